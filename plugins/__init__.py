@@ -1,0 +1,1 @@
+"""Built-in selector plugins of arraysel (installed as ``arraysel_plugins``)."""
