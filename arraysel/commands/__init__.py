@@ -1,0 +1,1 @@
+"""One module per ``arraysel`` sub-command."""

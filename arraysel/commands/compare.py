@@ -1,0 +1,130 @@
+"""``arraysel compare``: run selectors on a scene and write Table 1, traces and figures."""
+from __future__ import annotations
+
+import sys
+
+from ..errors import ArrayselError, ParameterError, check_number
+from ..registry import get_registry, load_plugin
+from ..selector import Budget
+
+DEFAULT_BUDGET_S = 120.0
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compare", help="compare selectors on a scene (Table 1, traces, figures)",
+        description="Run each selector once per seed on the scene's objective, add the full-array "
+                    "reference row and write table1.csv, runs.csv, trace.csv, trace_nevergrad.csv, "
+                    "run.json and figures to --out. Rows are saved as each run finishes; after an "
+                    "interruption, rerun the same command with --resume.")
+    p.add_argument("--selectors", required=True, metavar="A,B,...",
+                   help="comma-separated selector names (see `arraysel list`)")
+    p.add_argument("--scene", default="paper",
+                   help="scene name or file (default: paper); 'toy' is the cheap synthetic objective "
+                        "of arraysel.testing (Ne=64, k=32), for trying selectors out")
+    p.add_argument("--budget-s", type=float, default=DEFAULT_BUDGET_S, metavar="S",
+                   help=f"wall-clock seconds per selector run (default {DEFAULT_BUDGET_S:g}; 0: no limit)")
+    p.add_argument("--budget-evals", type=int, default=None, metavar="N",
+                   help="objective evaluations per selector run (default: no limit)")
+    p.add_argument("--seeds", default="0", metavar="0,1,2", help="comma-separated seeds (default 0)")
+    p.add_argument("--out", default="results/compare", metavar="DIR",
+                   help="output folder (default results/compare)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help="real dtype of the objective (default float32)")
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE_OR_PATH",
+                   help="load a selector plugin (module name or .py file) without installing it; repeatable")
+    p.add_argument("-o", "--option", action="append", default=[], metavar="SELECTOR.KEY=VALUE",
+                   help="selector option, e.g. -o ste.lr=1e-3 (repeatable; see `arraysel list -v`)")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the finished runs in --out/runs.csv and run only the missing ones")
+    p.add_argument("--no-figures", action="store_true", help="write tables only")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise ParameterError(f"--seeds must be comma-separated integers, got {text!r}") from None
+    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise ParameterError(f"--seeds must list distinct integers >= 0, got {text!r}")
+    return seeds
+
+
+def parse_selectors(text: str, registry) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if not names:
+        raise ParameterError("--selectors is empty; known selectors: " + ", ".join(registry.names()))
+    unknown = [n for n in names if n not in registry]
+    if unknown:
+        raise ParameterError(f"unknown selector(s) {', '.join(unknown)}; known selectors: "
+                             f"{', '.join(registry.names())} (load others with --plugin)")
+    if len(set(names)) != len(names):
+        raise ParameterError(f"--selectors lists a selector twice: {text!r}")
+    return names
+
+
+def parse_options(items: list[str], names: list[str], registry) -> dict[str, dict]:
+    """``["ste.lr=1e-3", ...]`` -> ``{"ste": {"lr": 0.001}}`` validated against declared options."""
+    raw: dict[str, dict[str, str]] = {n: {} for n in names}
+    for item in items:
+        key, sep, value = item.partition("=")
+        sel, dot, opt = key.strip().partition(".")
+        if not sep or not dot or not sel or not opt:
+            raise ParameterError(f"-o {item!r}: expected SELECTOR.KEY=VALUE, e.g. -o ste.lr=1e-3")
+        if sel not in raw:
+            raise ParameterError(f"-o {item!r}: selector {sel!r} is not in --selectors ({', '.join(names)})")
+        raw[sel][opt] = value
+    return {n: registry[n].parse_options(raw[n]) for n in names}
+
+
+def build_objective(scene: str, device: str, dtype_name: str):
+    """The objective of ``scene`` (``toy``: :class:`arraysel.testing.ToyObjective`)."""
+    import torch
+
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ParameterError("--device cuda was given but torch sees no CUDA device")
+    dtype = getattr(torch, dtype_name)
+    if scene == "toy":
+        from ..testing import ToyObjective
+        return ToyObjective(64, 32, device=device, dtype=dtype)
+    try:
+        from ..objective import build_objective as _build
+        from ..scene import load_scene
+    except ModuleNotFoundError as exc:
+        if exc.name in ("arraysel.objective", "arraysel.scene"):
+            raise ArrayselError(
+                f"the physics objective is not available in this version ({exc.name} is missing); "
+                f"use --scene toy to try the selectors on the synthetic objective") from exc
+        raise
+    return _build(load_scene(scene), device=device, dtype=dtype)
+
+
+def run(args) -> int:
+    from ..runner import compare
+
+    for spec in args.plugin:
+        load_plugin(spec)
+    registry = get_registry()
+    names = parse_selectors(args.selectors, registry)
+    options = parse_options(args.option, names, registry)
+    seeds = parse_seeds(args.seeds)
+    budget_s = check_number("--budget-s", args.budget_s, lo=0)
+    evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
+                                                                lo=1, integer=True)
+    budget = Budget(seconds=budget_s or None, evaluations=evals)
+    if budget.unlimited:
+        raise ParameterError("--budget-s 0 needs --budget-evals: a run must have some budget")
+    objective = build_objective(args.scene, args.device, args.dtype)
+    table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
+                    budget=budget, registry=registry, resume=args.resume,
+                    progress=not args.no_progress, figures=not args.no_figures,
+                    command_line=list(sys.argv))
+    cols = [c for c in ("config", "Mean", "L_PSF", "seconds", "evaluations", "error") if c in table]
+    with __import__("pandas").option_context("display.width", 160, "display.max_colwidth", 60):
+        print(table[cols].to_string(index=False))
+    print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, trace_nevergrad.csv, run.json"
+          + ("" if args.no_figures else " and figures"))
+    return 0

@@ -1,0 +1,153 @@
+"""Relaxations of the (Ne x k) selection matrix, shared by the ``ste`` and ``gumbel`` selectors.
+
+Conventions (SPEC.md §3): logits ``l`` have shape ``(Ne, k)``; column ``j``
+chooses one element with probabilities ``p_j = softmax(l_j / tau)``; the
+columns are drawn one after the other *without replacement*: elements chosen
+by earlier columns are masked out (their score is ``-inf``) in later ones, as
+in Deep Probabilistic Subsampling (Huijben et al., 2020). ``P_hard`` holds the
+one-hot columns of the drawn elements, ``P_soft`` the masked softmax columns,
+and the straight-through matrix is ``P = (P_hard - P_soft).detach() + P_soft``
+(forward value ``P_hard``, gradient of ``P_soft``).
+
+Every function works in log space (``log_softmax``) so that temperatures from
+1e-3 to 1e3 and logits up to 1e4 stay finite in float32.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+__all__ = [
+    "Relaxation", "cosine_temperature", "gumbel_noise", "sequential_selection",
+    "selection_weights", "column_entropy", "row_penalty", "project_capped_simplex",
+]
+
+
+def cosine_temperature(step: int, tau_start: float = 6.0, tau_end: float = 1.2, steps: int = 1500) -> float:
+    """Cosine decay of the temperature from ``tau_start`` (step 0) to ``tau_end``
+    (step ``steps``), constant afterwards.
+
+    >>> cosine_temperature(0), cosine_temperature(1500), cosine_temperature(10**6)
+    (6.0, 1.2, 1.2)
+    """
+    if steps <= 0:
+        return float(tau_end)
+    t = min(max(step, 0), steps) / steps
+    return float(tau_end + 0.5 * (tau_start - tau_end) * (1.0 + math.cos(math.pi * t)))
+
+
+def gumbel_noise(shape, generator: torch.Generator | None = None, *, device=None,
+                 dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Standard Gumbel noise ``-log(-log(u))`` from uniforms clamped to ``[tiny, 1 - eps]``
+    of ``dtype``, so the noise is always finite (about -4.5 .. 16 in float32)."""
+    finfo = torch.finfo(dtype)
+    u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
+    u = u.clamp(min=finfo.tiny, max=1.0 - finfo.eps)
+    return -torch.log(-torch.log(u))
+
+
+@dataclasses.dataclass
+class Relaxation:
+    """Result of :func:`sequential_selection`.
+
+    P : (Ne, k) the matrix to feed the loss (straight-through or soft)
+    P_soft : (Ne, k) masked softmax columns (differentiable)
+    P_hard : (Ne, k) one-hot columns (no gradient)
+    indices : the k chosen elements, in column order (distinct)
+    """
+
+    P: torch.Tensor
+    P_soft: torch.Tensor
+    P_hard: torch.Tensor
+    indices: list[int]
+
+
+def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tensor | None = None,
+                         hard: bool = True, sample: bool = False,
+                         generator: torch.Generator | None = None) -> Relaxation:
+    """Draw ``k`` distinct elements, one column of ``logits`` (shape ``(Ne, k)``) at a time.
+
+    Parameters
+    ----------
+    logits : (Ne, k) real tensor (may require grad)
+    tau : temperature > 0
+    noise : optional (Ne, k) perturbation added to the logits before the
+        temperature (Gumbel noise gives the Gumbel-softmax / Gumbel top-k draw)
+    hard : return the straight-through matrix as ``P`` (else ``P = P_soft``)
+    sample : draw each element from ``p_j`` with ``generator`` instead of
+        taking its arg-max (with Gumbel noise the arg-max already is a sample)
+
+    The drawn element of each column is always one not chosen before, even
+    when scores are NaN or infinite.
+    """
+    if logits.ndim != 2:
+        raise ValueError(f"logits must have shape (Ne, k), got {tuple(logits.shape)}")
+    if not tau > 0:
+        raise ValueError(f"temperature must be > 0, got {tau}")
+    n, k = logits.shape
+    if k > n:
+        raise ValueError(f"cannot draw k = {k} distinct elements out of Ne = {n}")
+    scores_all = logits if noise is None else logits + noise
+    scores_all = scores_all / tau
+    finfo = torch.finfo(logits.dtype)
+    available = torch.ones(n, dtype=torch.bool, device=logits.device)
+    arange = torch.arange(n, device=logits.device)
+    soft_cols, hard_cols, chosen = [], [], []
+    for j in range(k):
+        s = scores_all[:, j].masked_fill(~available, -math.inf)
+        logp = torch.log_softmax(s, dim=0)
+        p = torch.exp(logp)
+        # which element: finite, available, NaN-proof
+        pick_scores = torch.nan_to_num(s.detach(), nan=finfo.min, posinf=finfo.max, neginf=finfo.min)
+        pick_scores = pick_scores.masked_fill(~available, -math.inf)
+        i = int(torch.argmax(pick_scores))
+        if sample:
+            probs = p.detach()
+            if bool(torch.isfinite(probs).all()) and float(probs.sum()) > 0:
+                i = int(torch.multinomial(probs, 1, generator=generator))
+        onehot = (arange == i).to(logits.dtype)
+        soft_cols.append(torch.nan_to_num(p, nan=0.0))
+        hard_cols.append(onehot)
+        chosen.append(i)
+        available = available & (arange != i)
+    P_soft = torch.stack(soft_cols, dim=1)
+    P_hard = torch.stack(hard_cols, dim=1)
+    P = (P_hard - P_soft).detach() + P_soft if hard else P_soft
+    return Relaxation(P=P, P_soft=P_soft, P_hard=P_hard, indices=chosen)
+
+
+def selection_weights(P: torch.Tensor) -> torch.Tensor:
+    """Per-element weights ``(Ne,)`` of a selection matrix: row sums clamped to ``[0, 1]``."""
+    return P.sum(dim=1).clamp(0.0, 1.0)
+
+
+def column_entropy(P_soft: torch.Tensor) -> torch.Tensor:
+    """Mean entropy (nats) of the columns of ``P_soft`` (``L_ent``, SPEC §3); finite for zeros."""
+    p = P_soft.clamp_min(0.0)
+    plogp = torch.where(p > 0, p * torch.log(p.clamp_min(torch.finfo(p.dtype).tiny)), torch.zeros_like(p))
+    return -plogp.sum(dim=0).mean()
+
+
+def row_penalty(P_soft: torch.Tensor) -> torch.Tensor:
+    """``sum_i relu(sum_j P_ij - 1)^2``: penalty for using an element in several columns (``L_row``)."""
+    return torch.relu(P_soft.sum(dim=1) - 1.0).pow(2).sum()
+
+
+def project_capped_simplex(w: torch.Tensor, k: float, iters: int = 60) -> torch.Tensor:
+    """Euclidean projection of ``w`` (…, Ne) onto ``{0 <= x <= 1, sum(x) = k}``.
+
+    ``x = clip(w - theta, 0, 1)`` with ``theta`` found by bisection (no gradient through theta).
+    """
+    w_d = w.detach()
+    lo = (w_d.min(dim=-1, keepdim=True).values - 1.0)
+    hi = w_d.max(dim=-1, keepdim=True).values
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        s = (w_d - mid).clamp(0.0, 1.0).sum(dim=-1, keepdim=True)
+        too_big = s > k
+        lo = torch.where(too_big, mid, lo)
+        hi = torch.where(too_big, hi, mid)
+    theta = 0.5 * (lo + hi)
+    return (w - theta).clamp(0.0, 1.0)

@@ -1,0 +1,378 @@
+"""Run selectors on an objective and compare them.
+
+An :class:`Experiment` is (objective, selector, options, budget, seed);
+:meth:`Experiment.run` returns one flat row with the fixed columns
+:data:`ROW_COLUMNS` and never dies because of the selector: an exception
+raised by the selector (or the objective it calls), or an invalid selection,
+lands in the row's ``error`` column. It *does* raise
+:class:`~arraysel.selector.BudgetExceededError` when the selector used more
+objective evaluations than its budget plus one batch.
+
+:func:`compare` runs every selector for every seed, adds the ``full``
+reference row and writes, atomically and after each finished run, the
+files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``,
+``trace.csv``, ``trace_nevergrad.csv``, ``run.json``, then the figures).
+
+The objective is passed in (dependency injection), so any object following
+the Objective contract works, e.g. :class:`arraysel.testing.ToyObjective`.
+
+Example
+-------
+>>> from arraysel.testing import ToyObjective
+>>> from arraysel.runner import Experiment
+>>> from arraysel.selector import Budget
+>>> row = Experiment(ToyObjective(16, 8), "uniform", budget=Budget(evaluations=10)).run()
+>>> row["elements"]
+'0 2 4 6 8 10 12 14'
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .errors import ParameterError, check_number
+from .selector import Budget, BudgetExceededError, Recorder, Selector, check_selection, indices_to_mask
+
+__all__ = [
+    "METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "NEVERGRAD_COLUMNS", "Experiment", "full_row",
+    "config_label", "compare",
+]
+
+METRICS = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+#: columns of a run row, in this order
+ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "seconds", "evaluations",
+               "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error")
+TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean")
+NEVERGRAD_COLUMNS = ("optimizer_name", "budget", "loss", "elapsed_time", "elapsed_budget", "seed")
+
+
+def config_label(name: str, options: dict | None = None) -> str:
+    """``name`` or ``name(key=value,...)`` for non-default options."""
+    if not options:
+        return name
+    inner = ",".join(f"{k}={options[k]}" for k in sorted(options))
+    return f"{name}({inner})"
+
+
+def _fmt_elements(sel: Iterable[int] | None) -> str:
+    return "" if not sel else " ".join(str(int(i)) for i in sel)
+
+
+def _error_text(exc: BaseException) -> str:
+    text = str(exc).strip().replace("\n", " ")
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _counters(objective) -> tuple[int, int, float]:
+    return int(objective.evaluations), int(objective.gradient_steps), float(objective.seconds)
+
+
+def _final_metrics(objective, selection: list[int]) -> dict[str, float]:
+    mask = indices_to_mask(selection, int(objective.n_elements))[None, :]
+    out = objective.evaluate(mask)
+    return {m: float(np.asarray(out[m], dtype=np.float64).reshape(-1)[0]) for m in METRICS if m in out}
+
+
+def _resolve(selector, registry) -> type[Selector]:
+    if isinstance(selector, type) and issubclass(selector, Selector):
+        return selector
+    if registry is None:
+        from .registry import get_registry
+        registry = get_registry()
+    return registry[selector]
+
+
+@dataclasses.dataclass
+class Experiment:
+    """One selection run: (objective, selector, options, budget, seed).
+
+    Parameters
+    ----------
+    objective : object following the Objective contract
+    selector : registered name or a :class:`Selector` subclass
+    options : option values for the selector (validated)
+    budget : limits; a fresh copy is started for each :meth:`run`
+    seed : int seed given to the selector
+    k : elements to keep (default ``objective.k``)
+    config : label in the tables (default from name and options)
+    registry : where to look the name up (default: the process-wide registry)
+
+    After :meth:`run`, ``trace`` holds the improvement rows and ``selection``
+    the selected elements (or ``None``).
+    """
+
+    objective: Any
+    selector: Any
+    options: dict = dataclasses.field(default_factory=dict)
+    budget: Budget = dataclasses.field(default_factory=Budget)
+    seed: int = 0
+    k: int | None = None
+    config: str | None = None
+    registry: Any = None
+    trace: list = dataclasses.field(default_factory=list, init=False)
+    selection: list | None = dataclasses.field(default=None, init=False)
+
+    def run(self) -> dict:
+        """Run the selector once; return a row with the keys :data:`ROW_COLUMNS`."""
+        obj = self.objective
+        cls = _resolve(self.selector, self.registry)
+        selector = cls(**self.options)
+        n = int(obj.n_elements)
+        k = int(obj.k if self.k is None else self.k)
+        check_number("k", k, lo=1, hi=n, integer=True)
+        seed = int(check_number("seed", self.seed, lo=0, integer=True))
+        config = self.config or config_label(cls.name, self.options)
+
+        e0, g0, s0 = _counters(obj)
+        budget = self.budget.fresh().start(obj)
+        recorder = Recorder(obj, budget)
+        error = ""
+        selection = None
+        t0 = time.perf_counter()
+        try:
+            result = selector.select(obj, k, budget, seed, recorder)
+            selection = check_selection(result, n, k)
+        except (KeyboardInterrupt, BudgetExceededError):
+            raise
+        except Exception as exc:  # the selector's (or objective's) failure goes in the row
+            error = _error_text(exc)
+        wall = time.perf_counter() - t0
+        e1, g1, s1 = _counters(obj)
+        used = e1 - e0
+        if budget.evaluations is not None:
+            slack = max(1, int(selector.batch_size(n, k)))
+            if used > budget.evaluations + slack:
+                raise BudgetExceededError(
+                    f"selector {cls.name!r} used {used} objective evaluations, more than its budget of "
+                    f"{budget.evaluations} plus one batch ({slack})")
+
+        metrics = {m: math.nan for m in METRICS}
+        if selection is not None:
+            try:
+                metrics.update(_final_metrics(obj, selection))
+            except (KeyboardInterrupt, BudgetExceededError):
+                raise
+            except Exception as exc:
+                error = error or f"final evaluation failed: {_error_text(exc)}"
+            if not error and not math.isfinite(metrics["Mean"]):
+                error = (f"NumericalError: the objective returned NaN/Inf for the selected elements "
+                         f"(Mean = {metrics['Mean']})")
+        self.selection = selection
+        self.trace = [dict(r) for r in recorder.rows]
+        obj_seconds = s1 - s0
+        return {
+            "config": config, "selector": cls.name, "seed": seed, "k": k, "n_elements": n,
+            **metrics,
+            "seconds": wall, "evaluations": used, "gradient_steps": g1 - g0,
+            "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
+            "elements": _fmt_elements(selection),
+            "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
+            "error": error,
+        }
+
+
+def full_row(objective) -> dict:
+    """The ``full`` reference row: every element active, evaluated once."""
+    n = int(objective.n_elements)
+    e0, g0, s0 = _counters(objective)
+    t0 = time.perf_counter()
+    error = ""
+    metrics = {m: math.nan for m in METRICS}
+    try:
+        metrics.update(_final_metrics(objective, list(range(n))))
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        error = f"full-array evaluation failed: {_error_text(exc)}"
+    wall = time.perf_counter() - t0
+    e1, g1, s1 = _counters(objective)
+    return {
+        "config": "full", "selector": "full", "seed": "", "k": n, "n_elements": n, **metrics,
+        "seconds": wall, "evaluations": e1 - e0, "gradient_steps": g1 - g0,
+        "objective_seconds": s1 - s0, "overhead_seconds": max(0.0, wall - (s1 - s0)),
+        "elements": _fmt_elements(range(n)), "options": "", "error": error,
+    }
+
+
+# ---------------------------------------------------------------------------
+# compare
+# ---------------------------------------------------------------------------
+
+def _versions() -> dict:
+    import numpy
+    import torch
+
+    from . import __version__
+    out = {"arraysel": __version__, "torch": torch.__version__, "numpy": numpy.__version__,
+           "python": platform.python_version()}
+    for mod in ("pluggy", "pandas", "matplotlib", "nlopt"):
+        try:
+            m = __import__(mod)
+            out[mod] = getattr(m, "__version__", "unknown")
+        except Exception:  # optional: absent or broken
+            out[mod] = None
+    return out
+
+
+def _scene_info(objective) -> tuple[str, Any]:
+    scene = getattr(objective, "scene", None)
+    name = getattr(scene, "name", None)
+    try:
+        data = scene.to_dict() if scene is not None else None
+    except Exception as exc:  # a scene that cannot describe itself must not stop the run
+        data = {"error": _error_text(exc)}
+    return name, data
+
+
+def _normalise_selectors(selectors) -> list[tuple[str, dict]]:
+    out = []
+    for s in selectors:
+        if isinstance(s, str):
+            out.append((s, {}))
+        else:
+            name, opts = s
+            out.append((name, dict(opts or {})))
+    return out
+
+
+def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] = (0,),
+            budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
+            figures: bool = True, command_line: Sequence[str] | None = None,
+            info: dict | None = None):
+    """Run each selector for each seed on ``objective``; write the report to ``out_dir``.
+
+    Parameters
+    ----------
+    objective : object following the Objective contract (built by the caller)
+    selectors : names, or ``(name, options)`` pairs
+    out_dir : output folder (created)
+    seeds : seeds; each selector runs once per seed
+    budget : per-run limits (default: 120 s)
+    registry : selector registry (default: the process-wide one)
+    resume : keep the finished, error-free runs found in ``out_dir/runs.csv`` and run the rest
+    progress : show a tqdm progress bar on stderr
+    figures : write the PNG figures at the end
+    command_line : recorded in ``run.json``
+    info : extra entries for ``run.json``
+
+    Returns
+    -------
+    pandas.DataFrame : the ``table1.csv`` table
+
+    On Ctrl-C (``KeyboardInterrupt``) or an error raised by a run, every
+    finished row is already on disk; a message on stderr says how to resume,
+    and the exception is re-raised.
+    """
+    import pandas as pd
+    from tqdm.auto import tqdm
+
+    from . import reporting
+    from .registry import get_registry
+
+    registry = get_registry() if registry is None else registry
+    budget = Budget(seconds=120.0) if budget is None else budget
+    sels = _normalise_selectors(selectors)
+    seeds = [int(check_number("seed", s, lo=0, integer=True)) for s in seeds]
+    if not sels:
+        raise ParameterError("compare needs at least one selector")
+    classes = {}
+    for name, opts in sels:
+        cls = registry[name]
+        cls(**opts)  # validate options before anything runs
+        classes[name] = cls
+    labels = [config_label(name, opts) for name, opts in sels]
+    if len(set(labels)) != len(labels):
+        raise ParameterError(f"the same selector configuration is listed twice: {labels}")
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    runs_path = out / "runs.csv"
+
+    rows: list[dict] = []
+    traces: list[dict] = []
+    done: set[tuple[str, int]] = set()
+    if resume and runs_path.exists():
+        old = pd.read_csv(runs_path)
+        for rec in old.to_dict("records"):
+            err = rec.get("error")
+            if rec["config"] == "full" or (isinstance(err, str) and err.strip()):
+                continue
+            rec["seed"] = int(rec["seed"])
+            rec["error"] = ""
+            rec["options"] = rec["options"] if isinstance(rec.get("options"), str) else ""
+            rows.append({c: rec.get(c, "") for c in ROW_COLUMNS})
+            done.add((rec["config"], rec["seed"]))
+        tpath = out / "trace.csv"
+        if tpath.exists():
+            t = pd.read_csv(tpath)
+            traces = [r for r in t.to_dict("records") if (r["config"], int(r["seed"])) in done]
+    elif runs_path.exists() and not resume:
+        for p in (runs_path, out / "trace.csv", out / "trace_nevergrad.csv", out / "table1.csv"):
+            if p.exists():
+                p.unlink()
+
+    scene_name, scene_dict = _scene_info(objective)
+    meta = {
+        "status": "running",
+        "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command_line": list(command_line) if command_line is not None else list(sys.argv),
+        "scene_name": scene_name, "scene": scene_dict,
+        "n_elements": int(objective.n_elements), "k": int(objective.k),
+        "device": str(getattr(objective, "device", "")), "dtype": str(getattr(objective, "dtype", "")),
+        "seeds": seeds, "budget": budget.to_dict(),
+        "selectors": [{"config": lab, "selector": n, "options": o, "origin": registry.origin(n)}
+                      for lab, (n, o) in zip(labels, sels)],
+        "versions": _versions(), "cpu_count": os.cpu_count(), **(info or {}),
+    }
+    reporting.write_json(out / "run.json", meta)
+
+    full = full_row(objective)
+
+    def save():
+        reporting.write_runs(out, [full] + rows, traces, budget)
+
+    todo = [(lab, name, opts, seed) for lab, (name, opts) in zip(labels, sels) for seed in seeds
+            if (lab, seed) not in done]
+    save()
+    bar = tqdm(total=len(todo), disable=not progress, desc="compare", unit="run", file=sys.stderr)
+    finished = 0
+    try:
+        for lab, name, opts, seed in todo:
+            bar.set_postfix_str(f"{lab} seed {seed}")
+            exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab)
+            row = exp.run()
+            rows.append(row)
+            traces.extend({"config": lab, "seed": seed, **t} for t in exp.trace)
+            save()
+            finished += 1
+            bar.update(1)
+    except BaseException as exc:
+        bar.close()
+        left = len(todo) - finished
+        meta["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {_error_text(exc)}"
+        meta["finished"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        reporting.write_json(out / "run.json", meta)
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"stopped by {_error_text(exc)}"
+        print(f"arraysel compare {what}: {len(rows)} finished run(s) are saved in {out}/runs.csv "
+              f"and {out}/table1.csv; {left} run(s) left. Rerun the same command with --resume "
+              f"to run only those.", file=sys.stderr)
+        raise
+    bar.close()
+
+    table = reporting.table1(pd.DataFrame([full] + rows, columns=list(ROW_COLUMNS)))
+    if figures:
+        meta["figure_errors"] = reporting.make_figures(objective, table, pd.DataFrame(traces), out)
+    meta["status"] = "finished"
+    meta["finished"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    reporting.write_json(out / "run.json", meta)
+    return table

@@ -1,0 +1,33 @@
+"""A single-file arraysel plugin: load it with ``--plugin examples/single_file_plugin.py``.
+
+    arraysel list --plugin examples/single_file_plugin.py
+    arraysel compare --plugin examples/single_file_plugin.py --selectors centre,uniform --scene toy
+
+It registers ``centre``: the k contiguous elements in the middle of the array
+(a compact aperture, the opposite of a spread-out one).
+"""
+from arraysel.hookspecs import hookimpl
+from arraysel.selector import Selector, indices_to_mask
+
+
+class CentreSelector(Selector):
+    name = "centre"
+    description = "the k contiguous elements in the middle of the array"
+    options = {}
+    deterministic = True
+
+    def batch_size(self, n_elements, k):
+        return 1
+
+    def select(self, objective, k, budget, seed, recorder):
+        start = (objective.n_elements - k) // 2
+        chosen = list(range(start, start + k))
+        if budget.allowed(1):
+            mean = objective.evaluate(indices_to_mask(chosen, objective.n_elements)[None])["Mean"][0]
+            recorder.report(chosen, mean)
+        return chosen
+
+
+@hookimpl
+def arraysel_register_selectors(register):
+    register(CentreSelector)

@@ -1,0 +1,94 @@
+"""Baseline selectors named by the paper (SPEC §4): ``uniform`` and ``random``."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from arraysel.hookspecs import hookimpl
+from arraysel.selector import Option, Selector, finite_or_inf, numpy_rng
+
+
+class UniformSelector(Selector):
+    """k evenly spaced elements: ``floor(i Ne / k)``, i = 0..k-1 (every second one for k = Ne/2)."""
+
+    name = "uniform"
+    description = "k evenly spaced elements (every second element for k = Ne/2)"
+    options = {}
+    deterministic = True
+
+    def batch_size(self, n_elements, k):
+        return 1
+
+    def select(self, objective, k, budget, seed, recorder):
+        n = int(objective.n_elements)
+        chosen = [(i * n) // k for i in range(k)]
+        if budget.allowed(1):
+            mean = objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))["Mean"][0]
+            recorder.report(chosen, mean)
+        return chosen
+
+
+def random_subsets(rng: np.random.Generator, batch: int, n: int, k: int) -> np.ndarray:
+    """``(batch, k)`` sorted indices of uniformly random k-subsets of range(n)."""
+    keys = rng.random((batch, n))
+    idx = np.argpartition(keys, k - 1, axis=1)[:, :k] if k < n else np.tile(np.arange(n), (batch, 1))
+    return np.sort(idx, axis=1)
+
+
+class RandomSelector(Selector):
+    """Best of N uniformly random k-subsets, scored in chunks by ``objective.evaluate``.
+
+    N is bounded by the budget; ``n = 1`` is "a random mask chosen once".
+    """
+
+    name = "random"
+    description = "best of n random k-subsets (n = 1: a random mask chosen once)"
+    options = {
+        "n": Option(int, 500_000, "number of random subsets to try (bounded by the budget)", lo=1),
+        "chunk": Option(int, 1024, "most subsets per objective.evaluate call (smaller when masks "
+                        "are slow, so a time budget is not overrun by much)", lo=1),
+    }
+    deterministic = True
+
+    def batch_size(self, n_elements, k):
+        return self.options["chunk"]
+
+    def select(self, objective, k, budget, seed, recorder):
+        n = int(objective.n_elements)
+        rng = numpy_rng(seed)
+        total, chunk = self.options["n"], self.options["chunk"]
+        best, best_mean = None, np.inf
+        first = None
+        drawn = 0
+        # the chunk grows from a few masks to `chunk` so that one call lasts
+        # about `target` seconds; the subsets drawn do not depend on chunking
+        target = 2.0 if budget.seconds is None else min(2.0, max(0.05, 0.02 * budget.seconds))
+        size = 1  # the first call is one mask, so a slow objective overruns by one mask at most
+        while drawn < total:
+            b = budget.allowed(min(size, total - drawn))
+            if b <= 0:
+                break
+            subsets = random_subsets(rng, b, n, k)
+            t0 = time.perf_counter()
+            if first is None:
+                first = subsets[0]
+            masks = np.zeros((b, n), dtype=bool)
+            np.put_along_axis(masks, subsets, True, axis=1)
+            means = finite_or_inf(objective.evaluate(masks)["Mean"])
+            drawn += b
+            per_mask = max((time.perf_counter() - t0) / b, 1e-9)
+            size = int(min(chunk, 4 * b, max(1, target / per_mask)))
+            i = int(np.argmin(means))
+            if means[i] < best_mean:
+                best, best_mean = subsets[i], float(means[i])
+                recorder.report(best.tolist(), best_mean)
+        if best is None:  # no finite score (or no budget): one random subset
+            best = first if first is not None else random_subsets(rng, 1, n, k)[0]
+        return [int(i) for i in best]
+
+
+@hookimpl
+def arraysel_register_selectors(register):
+    register(UniformSelector)
+    register(RandomSelector)

@@ -1,0 +1,128 @@
+"""``nlopt``: NLopt on the continuous relaxation ``w in [0, 1]^Ne``.
+
+* ``MMA`` / ``SLSQP`` (gradient-based): minimise ``objective.mask_loss(w)``
+  with its torch-autograd gradient under ``sum(w) = k`` (SLSQP: an equality
+  constraint; MMA, which takes only inequalities and stalls on the pair
+  ``sum(w) <= k``, ``sum(w) >= k``: ``sum(w) <= k``, active at the optimum
+  because every loss prefers more active aperture).
+* ``CRS2`` / ``ISRES`` / ``DIRECT`` (derivative-free, global): minimise
+  ``mask_loss(project(w))`` where ``project`` is the Euclidean projection onto
+  ``{0 <= w <= 1, sum(w) = k}``.
+
+Each point NLopt asks for is rounded to its ``k`` largest weights; new
+rounded selections are scored with ``objective.evaluate`` and the best one is
+returned. NLopt's stochastic algorithms draw from NLopt's own generator,
+seeded with ``nlopt.srand(seed)`` at the start of each run.
+``nlopt`` is imported only when this selector runs.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from arraysel.errors import NumericalError
+from arraysel.hookspecs import hookimpl
+from arraysel.relax import project_capped_simplex
+from arraysel.selector import Option, Selector, indices_to_mask, numpy_rng, top_k
+
+_GRADIENT = ("MMA", "SLSQP")
+_ALGORITHMS = {"MMA": "LD_MMA", "SLSQP": "LD_SLSQP", "CRS2": "GN_CRS2_LM", "ISRES": "GN_ISRES",
+               "DIRECT": "GN_DIRECT_L"}
+
+
+class NLoptSelector(Selector):
+    name = "nlopt"
+    description = "NLopt on soft weights w in [0,1]^Ne (MMA/SLSQP with sum(w)=k, or CRS2/ISRES/DIRECT), top-k rounding"
+    options = {
+        "algorithm": Option(str, "MMA", "NLopt algorithm", choices=tuple(_ALGORITHMS)),
+        "maxeval": Option(int, 5000, "most objective calls made by NLopt (the budget may stop earlier)", lo=1),
+        "xtol_rel": Option(float, 1e-6, "NLopt relative tolerance on w", lo=0.0),
+        "init_jitter": Option(float, 0.05, "random perturbation of the start point k/Ne", lo=0.0, hi=1.0),
+    }
+    uses_gradients = True
+    deterministic = True
+
+    def batch_size(self, n_elements, k):
+        return 2  # one mask_loss + at most one evaluate per NLopt call
+
+    def select(self, objective, k, budget, seed, recorder):
+        import nlopt
+
+        n = int(objective.n_elements)
+        alg = self.options["algorithm"]
+        gradient = alg in _GRADIENT
+        device, dtype = objective.device, objective.dtype
+        scored: dict[tuple, float] = {}
+        state: dict = {"last": None}
+
+        def score(idx):
+            key = tuple(idx)
+            if key in scored or not budget.allowed(1):
+                return
+            mean = float(objective.evaluate(indices_to_mask(key, n)[None, :])["Mean"][0])
+            scored[key] = mean
+            recorder.report(list(key), mean)
+
+        def f(x, grad):
+            if budget.allowed(2) < 2:
+                raise nlopt.ForcedStop()
+            w = torch.tensor(np.asarray(x), dtype=dtype, device=device, requires_grad=gradient)
+            w_eff = w if gradient else project_capped_simplex(w, float(k))
+            try:
+                total, _ = objective.mask_loss(w_eff[None, :])
+            except NumericalError:
+                if grad.size > 0:
+                    grad[:] = 0.0
+                return 1e30
+            value = float(total[0].detach())
+            if gradient and grad.size > 0:
+                g = torch.autograd.grad(total[0], w)[0] if w.requires_grad and total.requires_grad else None
+                grad[:] = 0.0 if g is None else np.nan_to_num(g.detach().double().cpu().numpy(),
+                                                              nan=0.0, posinf=0.0, neginf=0.0)
+            idx = top_k(w_eff.detach(), k)
+            state["last"] = idx
+            score(idx)
+            return value if math.isfinite(value) else 1e30
+
+        opt = nlopt.opt(getattr(nlopt, _ALGORITHMS[alg]), n)
+        nlopt.srand(int(seed))
+        opt.set_lower_bounds(np.zeros(n))
+        opt.set_upper_bounds(np.ones(n))
+        opt.set_min_objective(f)
+        opt.set_maxeval(self.options["maxeval"])
+        if self.options["xtol_rel"] > 0:
+            opt.set_xtol_rel(self.options["xtol_rel"])
+        if budget.seconds is not None:
+            opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
+        if gradient:
+            tol = 1e-6 * max(1, k)
+
+            def over(x, grad):
+                if grad.size > 0:
+                    grad[:] = 1.0
+                return float(np.sum(x) - k)
+
+            if alg == "SLSQP":
+                opt.add_equality_constraint(over, tol)
+            else:
+                # MMA takes inequalities only, and its dual solver stalls on the pair
+                # sum(w) <= k, sum(w) >= k; the losses prefer more active weight, so
+                # sum(w) <= k is active at the optimum
+                opt.add_inequality_constraint(over, tol)
+        rng = numpy_rng(seed)
+        x0 = k / n + self.options["init_jitter"] * rng.uniform(-1.0, 1.0, n)
+        x0 = project_capped_simplex(torch.tensor(x0, dtype=torch.float64), float(k)).numpy()
+        try:
+            opt.optimize(x0)
+        except (nlopt.ForcedStop, nlopt.RoundoffLimited):
+            pass  # budget reached, or no further progress possible: keep the best so far
+        if recorder.best is not None:
+            return recorder.best
+        return state["last"] if state["last"] is not None else top_k(x0, k)
+
+
+@hookimpl
+def arraysel_register_selectors(register):
+    register(NLoptSelector)

@@ -1,0 +1,253 @@
+"""Tests of arraysel.runner / reporting: experiment rows, budgets, compare outputs, resume."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from arraysel.commands.compare import build_objective
+from arraysel.errors import ArrayselError, ParameterError
+from arraysel.registry import SelectorRegistry, build_plugin_manager, get_registry
+from arraysel.runner import NEVERGRAD_COLUMNS, ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
+from arraysel.selector import Budget, BudgetExceededError, Option, Selector, check_selection
+from arraysel.testing import ToyObjective
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
+
+
+class Broken(Selector):
+    name = "broken"
+    description = "raises"
+
+    def select(self, objective, k, budget, seed, recorder):
+        raise RuntimeError("selector exploded")
+
+
+class Repeats(Selector):
+    name = "repeats"
+    description = "returns an invalid selection"
+
+    def select(self, objective, k, budget, seed, recorder):
+        return [0] * k
+
+
+class Greedy4Budget(Selector):
+    name = "hog"
+    description = "ignores its budget"
+
+    def batch_size(self, n_elements, k):
+        return 4
+
+    def select(self, objective, k, budget, seed, recorder):
+        objective.evaluate(np.ones((100, objective.n_elements), dtype=bool))
+        return list(range(k))
+
+
+class Interrupts(Selector):
+    name = "interrupts"
+    description = "Ctrl-C on seed 1"
+    options = {"when": Option(int, 1, "seed that interrupts", lo=0)}
+
+    def select(self, objective, k, budget, seed, recorder):
+        if seed == self.options["when"]:
+            raise KeyboardInterrupt
+        return list(range(k))
+
+
+def test_uniform_row_has_fixed_columns_and_every_second_element(reg):
+    obj = ToyObjective(64, 32)
+    exp = Experiment(obj, "uniform", budget=Budget(evaluations=5), registry=reg)
+    row = exp.run()
+    assert tuple(row) == ROW_COLUMNS
+    assert row["elements"] == " ".join(str(i) for i in range(0, 64, 2))
+    assert row["error"] == "" and math.isfinite(row["Mean"])
+    assert row["evaluations"] == 1 and row["config"] == "uniform"
+    assert row["overhead_seconds"] >= 0
+
+
+def test_random_n1_is_a_random_mask_chosen_once(reg):
+    obj = ToyObjective(16, 8)
+    row = Experiment(obj, "random", options={"n": 1}, budget=Budget(evaluations=100), registry=reg).run()
+    assert row["evaluations"] == 1 and row["config"] == "random(n=1)"
+    assert len(row["elements"].split()) == 8
+
+
+def test_random_is_independent_of_chunking(reg):
+    rows = [Experiment(ToyObjective(16, 8), "random", options={"chunk": c}, seed=4,
+                       budget=Budget(evaluations=300), registry=reg).run() for c in (1, 7, 1024)]
+    assert len({r["elements"] for r in rows}) == 1
+
+
+def test_greedy_finds_the_toy_target(reg):
+    obj = ToyObjective(16, 8)
+    row = Experiment(obj, "greedy", budget=Budget(evaluations=1000), registry=reg).run()
+    assert row["elements"] == " ".join(map(str, obj.target))
+
+
+@pytest.mark.parametrize("cls,message", [(Broken, "RuntimeError: selector exploded"),
+                                         (Repeats, "SelectionError: selection repeats")])
+def test_selector_failures_land_in_the_error_column(cls, message):
+    row = Experiment(ToyObjective(12, 4), cls, budget=Budget(evaluations=10)).run()
+    assert row["error"].startswith(message)
+    assert row["elements"] == "" and math.isnan(row["Mean"])
+
+
+def test_budget_overrun_raises():
+    with pytest.raises(BudgetExceededError, match="used 100 objective evaluations"):
+        Experiment(ToyObjective(12, 4), Greedy4Budget, budget=Budget(evaluations=10)).run()
+    # within one batch of slack is accepted
+    row = Experiment(ToyObjective(12, 4), Greedy4Budget, budget=Budget(evaluations=96)).run()
+    assert row["error"] == ""
+
+
+def test_options_and_k_are_validated(reg):
+    with pytest.raises(ParameterError, match="has no option"):
+        Experiment(ToyObjective(12, 4), "ste", options={"nope": 1}, registry=reg).run()
+    with pytest.raises(ParameterError, match="out of range"):
+        Experiment(ToyObjective(12, 4), "ste", options={"lr": -1.0}, registry=reg).run()
+    with pytest.raises(ParameterError, match="k = 13"):
+        Experiment(ToyObjective(12, 4), "uniform", k=13, registry=reg).run()
+
+
+def test_check_selection():
+    assert check_selection(np.array([3, 1]), 4, 2) == [1, 3]
+    for bad, msg in [([1, 1], "repeats"), ([0, 9], "outside"), ([0], "expected k"), ([0.5, 1], "non-integer"),
+                     ("01", "list of element")]:
+        with pytest.raises(Exception, match=msg):
+            check_selection(bad, 4, 2)
+
+
+def test_budget_queries():
+    obj = ToyObjective(8, 4)
+    b = Budget(evaluations=10).start(obj)
+    assert b.allowed(4) == 4 and not b.exhausted()
+    obj.evaluate(np.ones((8, 8), dtype=bool))
+    assert b.remaining_evaluations() == 2 and b.allowed(4) == 2
+    obj.evaluate(np.ones((2, 8), dtype=bool))
+    assert b.exhausted() and b.allowed(4) == 0 and b.fraction() == 1.0
+    with pytest.raises(ParameterError):
+        Budget(seconds=-1)
+    with pytest.raises(ArrayselError, match="before start"):
+        Budget(seconds=1).exhausted()
+
+
+def test_compare_writes_all_files(reg, tmp_path):
+    obj = ToyObjective(16, 8)
+    table = compare(obj, ["ste", "random", "uniform"], out_dir=tmp_path, seeds=[0, 1],
+                    budget=Budget(evaluations=60, seconds=10), registry=reg, progress=False,
+                    command_line=["arraysel", "compare"])
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {"table1.csv", "runs.csv", "trace.csv", "trace_nevergrad.csv", "run.json", "masks.png",
+            "psfs.png", "profiles.png", "trace.png"} <= names
+    assert not [n for n in names if n.endswith(".tmp")]
+    t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
+    assert list(t1.columns[:9]) == ["config", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds",
+                                    "evaluations", "elements"]
+    assert {"Mean_std", "L_PSF_std", "error", "overhead_seconds"} <= set(t1.columns)
+    assert list(t1["config"]) == ["full", "ste", "random", "uniform"]
+    assert t1.set_index("config").loc["full", "elements"] == " ".join(map(str, range(16)))
+    assert list(table["config"]) == list(t1["config"])
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert tuple(runs.columns) == ROW_COLUMNS and len(runs) == 7
+    trace = pd.read_csv(tmp_path / "trace.csv")
+    assert tuple(trace.columns) == TRACE_COLUMNS and set(trace["config"]) == {"ste", "random", "uniform"}
+    for _, g in trace.groupby(["config", "seed"]):
+        assert (np.diff(g["best_Mean"]) < 0).all()
+    ng = pd.read_csv(tmp_path / "trace_nevergrad.csv")
+    assert tuple(ng.columns) == NEVERGRAD_COLUMNS and len(ng) == len(trace)
+    meta = json.loads((tmp_path / "run.json").read_text())
+    assert meta["status"] == "finished" and meta["seeds"] == [0, 1]
+    assert meta["scene"]["name"] == "toy" and meta["command_line"] == ["arraysel", "compare"]
+    assert {"arraysel", "torch", "numpy", "python"} <= set(meta["versions"])
+    assert meta["figure_errors"] == []
+
+
+def test_single_seed_has_no_std_columns(reg, tmp_path):
+    compare(ToyObjective(12, 6), ["uniform"], out_dir=tmp_path, budget=Budget(evaluations=5),
+            registry=reg, progress=False, figures=False)
+    t1 = pd.read_csv(tmp_path / "table1.csv")
+    assert not [c for c in t1.columns if c.endswith("_std")]
+
+
+def test_failing_selector_keeps_the_comparison_going(tmp_path):
+    reg = SelectorRegistry()
+    reg.register(Broken)
+    reg.register(get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))["uniform"])
+    compare(ToyObjective(12, 6), ["broken", "uniform"], out_dir=tmp_path, budget=Budget(evaluations=5),
+            registry=reg, progress=False, figures=False)
+    t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False).set_index("config")
+    assert "selector exploded" in t1.loc["broken", "error"] and t1.loc["uniform", "error"] == ""
+
+
+def test_interrupt_keeps_finished_rows_and_resume_finishes(tmp_path, capsys):
+    reg = SelectorRegistry()
+    reg.register(Interrupts)
+    obj = ToyObjective(12, 6)
+    with pytest.raises(KeyboardInterrupt):
+        compare(obj, ["interrupts"], out_dir=tmp_path, seeds=[0, 1, 2], budget=Budget(evaluations=5),
+                registry=reg, progress=False, figures=False)
+    assert "--resume" in capsys.readouterr().err
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert list(runs["config"]) == ["full", "interrupts"] and list(runs["seed"].dropna()) == [0]
+    assert json.loads((tmp_path / "run.json").read_text())["status"] == "interrupted"
+    compare(obj, [("interrupts", {"when": 99})], out_dir=tmp_path, seeds=[0, 1, 2],
+            budget=Budget(evaluations=5), registry=reg, progress=False, figures=False, resume=True)
+    # the option changes the config label, so all three seeds of the new config run
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert sorted(runs[runs["config"] == "interrupts(when=99)"]["seed"]) == [0, 1, 2]
+
+
+def test_resume_skips_finished_runs(reg, tmp_path):
+    obj = ToyObjective(12, 6)
+    compare(obj, ["uniform"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=5), registry=reg,
+            progress=False, figures=False)
+    before = obj.evaluations
+    compare(obj, ["uniform"], out_dir=tmp_path, seeds=[0, 1], budget=Budget(evaluations=5), registry=reg,
+            progress=False, figures=False, resume=True)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert sorted(runs["seed"].dropna()) == [0, 1]
+    assert obj.evaluations - before == 1 + 1 + 1  # full row + one new run + its final evaluation
+
+
+def test_compare_rejects_unknown_selectors(reg, tmp_path):
+    with pytest.raises(ParameterError, match="known selectors"):
+        compare(ToyObjective(12, 6), ["nope"], out_dir=tmp_path, registry=reg, progress=False)
+
+
+def test_physics_objective_guard():
+    assert build_objective("toy", "cpu", "float64").n_elements == 64
+    try:
+        import arraysel.objective  # noqa: F401
+        import arraysel.scene  # noqa: F401
+    except ModuleNotFoundError:
+        with pytest.raises(ArrayselError, match="--scene toy"):
+            build_objective("paper", "cpu", "float32")
+    else:
+        pytest.skip("the physics objective exists")
+
+
+def test_toy_objective_contract():
+    import torch
+    obj = ToyObjective(10, 5, dtype=torch.float64)
+    m = np.zeros((3, 10), dtype=bool)
+    m[:, obj.target] = True
+    m[1] = True
+    out = obj.evaluate(m)
+    assert set(out) == set(obj.metric_names) and all(v.dtype == np.float64 and v.shape == (3,) for v in out.values())
+    assert out["L_PSF"][0] == 0.0 and obj.evaluations == 3 and obj.gradient_steps == 0
+    assert math.isnan(obj.evaluate(np.zeros((1, 10)))["Mean"][0])
+    w = torch.full((2, 10), 0.5, dtype=torch.float64, requires_grad=True)
+    total, terms = obj.mask_loss(w)
+    assert total.shape == (2,) and obj.gradient_steps == 1 and obj.evaluations == 6
+    total.sum().backward()
+    assert torch.isfinite(w.grad).all()
+    assert torch.autograd.gradcheck(lambda x: obj.mask_loss(x)[0], (w.detach().clone().requires_grad_(),),
+                                    eps=1e-6, atol=1e-5)
+    assert obj.kernels(m).shape == (3, 128, 128) and obj.reference_kernel().shape == (128, 128)
+    assert obj.seconds > 0

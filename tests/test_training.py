@@ -1,0 +1,328 @@
+"""Tests of arraysel.training with a toy differentiable kernel_fn (no physics)."""
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+
+from arraysel.data import load_dataset
+from arraysel.errors import ParameterError, SelectionError
+from arraysel.training import (E2ETrainer, HardSTESelection, LossWeights, TrainConfig,
+                               entropy_loss, mask_to_weights, row_loss, tau_schedule, train_e2e)
+
+NE, K, N = 16, 6, 32
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: one intra-op thread is far faster on a shared machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def toy_kernel_fn(ne: int = NE, n: int = N):
+    """kernel(w) = normalised sum_e w_e g_e: element e contributes a lateral
+    plane wave exp(2 pi i x_e j / n) under a Gaussian envelope (an aperture's
+    far-field response: the full aperture gives a narrow main lobe, sparse
+    ones grating lobes)."""
+    idx = torch.arange(n, dtype=torch.float32) - n // 2
+    env = torch.exp(-idx[:, None] ** 2 / 8) * torch.exp(-idx[None, :] ** 2 / 200)
+    pos = torch.arange(ne, dtype=torch.float32) - (ne - 1) / 2
+    basis = env * torch.exp(2j * math.pi * pos[:, None, None] * idx[None, None, :] / n)
+
+    def kernel_fn(w: torch.Tensor) -> torch.Tensor:
+        b = basis.to(w.device)
+        k = torch.einsum("e,eij->ij", w.to(b.dtype), b)
+        return k / torch.linalg.vector_norm(k)
+
+    return kernel_fn
+
+
+def toy_psf_terms(kappa_ref: torch.Tensor):
+    """SI-MSE as in SPEC section 2 and crude energy-ratio stand-ins for contrast/SLR."""
+    c = N // 2
+    main = torch.zeros(N, N, dtype=torch.bool)
+    main[c - 1:c + 2, c - 1:c + 2] = True
+
+    def fn(kappa):
+        a = torch.vdot(kappa.flatten(), kappa_ref.flatten()) / torch.vdot(kappa.flatten(), kappa.flatten())
+        psf = (torch.linalg.vector_norm(a * kappa - kappa_ref) / torch.linalg.vector_norm(kappa_ref)) ** 2
+        m2 = kappa.abs() ** 2
+        ratio = m2[~main].mean() / m2[main].mean()
+        return {"psf": psf, "contrast": ratio, "slr_q": ratio.sqrt(), "slr_i": ratio}
+
+    return fn
+
+
+@pytest.fixture(scope="module")
+def images():
+    x, _ = load_dataset("mnist", "train", source="sample", limit=8)
+    return x
+
+
+def separated_selection(gen_seed: int = 0, **kw) -> HardSTESelection:
+    """Logits with a clear winner per column, so one small step cannot flip the argmax."""
+    sel = HardSTESelection(NE, K, generator=torch.Generator().manual_seed(gen_seed), **kw)
+    with torch.no_grad():
+        for j, e in enumerate([0, 3, 5, 9, 12, 15]):
+            sel.logits[e, j] += 5.0
+    return sel
+
+
+def make_trainer(images, tmp_path=None, selection=None, weights=None, **cfg):
+    kfn = toy_kernel_fn()
+    kref = kfn(torch.ones(NE))
+    config = dict(batch_size=4, epochs=1, progress=False, seed=0, checkpoint_every=0)
+    config.update(cfg)
+    return E2ETrainer(selection if selection is not None else HardSTESelection(
+                          NE, K, generator=torch.Generator().manual_seed(1)),
+                      kfn, kref, images, psf_terms_fn=toy_psf_terms(kref), weights=weights,
+                      config=config, base_channels=4, n_layers=4,
+                      checkpoint_path=None if tmp_path is None else tmp_path / "ckpt.pt")
+
+
+# -- selection --------------------------------------------------------------------
+
+def test_tau_schedule():
+    assert tau_schedule(0) == pytest.approx(6.0)
+    assert tau_schedule(750) == pytest.approx(3.6)
+    assert tau_schedule(1500) == pytest.approx(1.2)
+    assert tau_schedule(10 ** 6) == pytest.approx(1.2)
+    taus = [tau_schedule(s) for s in range(0, 1600, 50)]
+    assert all(a >= b for a, b in zip(taus, taus[1:]))
+
+
+@pytest.mark.parametrize("tau", [6.0, 1.2, 0.05])
+def test_hard_ste_selection_is_k_distinct_one_hot(tau):
+    sel = HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0))
+    gen = torch.Generator().manual_seed(2)
+    for _ in range(5):
+        P, P_soft = sel(tau, gen)
+        assert P.shape == P_soft.shape == (NE, K)
+        assert torch.allclose(P, P.round(), atol=1e-6)
+        assert torch.allclose(P.sum(0), torch.ones(K), atol=1e-6)  # one-hot columns
+        assert float(P.detach().sum(1).max()) <= 1 + 1e-6                  # no element twice
+        assert int((P.sum(1) > 0.5).sum()) == K
+        torch.testing.assert_close(P_soft.sum(0), torch.ones(K))
+        # already chosen elements get zero probability in later columns
+        chosen = P.argmax(0)
+        for j in range(1, K):
+            assert torch.all(P_soft[chosen[:j], j] == 0)
+
+
+def test_selection_randomness_comes_from_the_generator():
+    sel = HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0))
+    a, _ = sel(6.0, torch.Generator().manual_seed(5))
+    b, _ = sel(6.0, torch.Generator().manual_seed(5))
+    assert torch.equal(a, b)
+    with pytest.raises(ParameterError, match="Generator"):
+        sel(6.0)
+    sel.eval()
+    c, _ = sel(6.0)
+    d, _ = sel(6.0, torch.Generator().manual_seed(9))
+    assert torch.equal(c, d)
+    assert sel.indices().tolist() == torch.nonzero(c.sum(1) > 0.5).flatten().tolist()
+
+
+def test_ste_gradient_reaches_logits_through_kernel_fn():
+    sel = HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0))
+    kfn = toy_kernel_fn()
+    P, _ = sel(2.0, torch.Generator().manual_seed(0))
+    kappa = kfn(P.sum(1))
+    loss = (kappa - kfn(torch.ones(NE))).abs().pow(2).sum()
+    loss.backward()
+    assert torch.isfinite(sel.logits.grad).all() and float(sel.logits.grad.abs().sum()) > 0
+
+
+def test_entropy_and_row_losses():
+    p = torch.full((4, 3), 0.25)
+    assert float(entropy_loss(p)) == pytest.approx(math.log(4))
+    q = torch.tensor([[1.0, 0.0], [0.0, 0.5], [0.0, 0.5]], requires_grad=True)
+    e = entropy_loss(q)
+    assert float(e.detach()) == pytest.approx(math.log(2) / 2)
+    e.backward()
+    assert torch.isfinite(q.grad).all()
+    assert float(row_loss(torch.tensor([[1.0, 0.7], [0.0, 0.3]]))) == pytest.approx(0.49)
+
+
+def test_mask_to_weights():
+    torch.testing.assert_close(mask_to_weights([0, 2], 4), torch.tensor([1.0, 0, 1, 0]))
+    torch.testing.assert_close(mask_to_weights(torch.tensor([True, False, False, True]), 4),
+                               torch.tensor([1.0, 0, 0, 1]))
+    with pytest.raises(SelectionError, match="repeat"):
+        mask_to_weights([1, 1], 4)
+    with pytest.raises(SelectionError):
+        mask_to_weights([0, 4], 4)
+    with pytest.raises(SelectionError):
+        mask_to_weights(torch.ones(3), 4)
+
+
+# -- trainer ----------------------------------------------------------------------
+
+def test_one_step_decreases_loss_on_fixed_batch(images):
+    batch = images[:4]
+    t = make_trainer(batch, selection=separated_selection(sample=False),
+                     lr_mask=1e-3, lr_ista=1e-3, lr_head=1e-3)
+
+    def loss():
+        with torch.no_grad():
+            return t.loss_terms(batch, t.tau())
+
+    before = loss()
+    expected = sum(getattr(t.weights, k) * v for k, v in before.items() if k != "total")
+    torch.testing.assert_close(before["total"], expected)
+    assert set(before) == {"psf", "contrast", "slr", "conv", "rec", "ent", "row", "total"}
+    rec = t.train_step()
+    assert rec["total"] == pytest.approx(float(before["total"]), rel=1e-5)
+    after = loss()
+    assert float(after["total"]) < float(before["total"])
+    assert t.step == 1 and len(t.history) == 1
+
+
+def test_gradients_reach_logits_through_reconstruction(images):
+    # only L_rec: the gradient must flow image -> head -> ISTA -> kappa -> kernel_fn -> P -> logits
+    w = dict(psf=0, conv=0, contrast=0, slr=0, ent=0, row=0, rec=1)
+    t = make_trainer(images, weights=w)
+    terms = t.loss_terms(images[:4], 2.0)
+    assert set(terms) == {"rec", "total"}
+    terms["total"].backward()
+    g = t.selection.logits.grad
+    assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) > 0
+    for name, p in t.reconstructor.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+def test_zero_weight_terms_are_not_computed(images):
+    kfn = toy_kernel_fn()
+
+    def forbidden(kappa):
+        raise AssertionError("psf_terms_fn called although its weights are 0")
+
+    t = E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images,
+                   psf_terms_fn=forbidden, weights=dict(psf=0, contrast=0, slr=0, conv=0),
+                   config=dict(batch_size=4, progress=False), base_channels=4, n_layers=2)
+    terms = t.loss_terms(images[:4], 1.0)
+    assert set(terms) == {"rec", "ent", "row", "total"}
+    with pytest.raises(ParameterError, match="psf_terms_fn"):
+        E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images)
+    with pytest.raises(ParameterError, match="'slr'"):
+        E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images,
+                   psf_terms_fn=lambda k: {"psf": k.abs().sum(), "contrast": k.abs().sum()},
+                   config=dict(progress=False), base_channels=4, n_layers=2
+                   ).loss_terms(images[:2], 1.0)
+
+
+def test_conv_reduction(images):
+    t_mean = make_trainer(images, weights=dict(psf=0, contrast=0, slr=0, rec=0, ent=0, row=0))
+    t_sum = make_trainer(images, weights=dict(psf=0, contrast=0, slr=0, rec=0, ent=0, row=0),
+                         conv_reduction="sum")
+    for t in (t_mean, t_sum):
+        t.selection.eval()
+    a = t_mean.loss_terms(images[:4], 1.0)["conv"]
+    b = t_sum.loss_terms(images[:4], 1.0)["conv"]
+    torch.testing.assert_close(b, a * N * N)
+
+
+def test_training_gives_k_distinct_elements_and_progress_bar(images, capsys):
+    t = make_trainer(images, progress=True, max_steps=3)
+    hist = t.train()
+    assert len(hist) == 3 and all(math.isfinite(h["total"]) for h in hist)
+    idx = t.learned_indices()
+    assert idx.numel() == K and idx.unique().numel() == K
+    assert int(idx.min()) >= 0 and int(idx.max()) < NE
+    err = capsys.readouterr().err
+    assert "e2e" in err and "rec=" in err
+
+
+def test_checkpoint_resume_gives_identical_continuation(images, tmp_path):
+    cfg = dict(noise_std=0.01, checkpoint_every=2)  # sampling selection + noise: RNG matters
+    straight = make_trainer(images, tmp_path / "a", **cfg)
+    (tmp_path / "a").mkdir()
+    straight.train(5)
+
+    (tmp_path / "b").mkdir()
+    first = make_trainer(images, tmp_path / "b", **cfg)
+    first.train(3)
+    state = torch.load(tmp_path / "b" / "ckpt.pt", weights_only=True)
+    assert state["step"] == 3
+    resumed = make_trainer(images, tmp_path / "b", **cfg)
+    # a different initialisation, to be sure the checkpoint overrides it
+    with torch.no_grad():
+        resumed.selection.logits.add_(1.0)
+    resumed.train(5, resume=True)
+
+    assert resumed.step == straight.step == 5
+    assert [h["total"] for h in resumed.history] == [h["total"] for h in straight.history]
+    for a, b in ((straight.selection, resumed.selection),
+                 (straight.reconstructor, resumed.reconstructor)):
+        sa, sb = a.state_dict(), b.state_dict()
+        assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert torch.equal(straight.generator.get_state(), resumed.generator.get_state())
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["ckpt.pt"]  # no temp files
+
+
+def test_resume_without_checkpoint_starts_fresh(images, tmp_path):
+    t = make_trainer(images, tmp_path, max_steps=1)
+    t.train(resume=True)
+    assert t.step == 1 and (tmp_path / "ckpt.pt").is_file()
+    with pytest.raises(ParameterError):
+        make_trainer(images).train(1, resume=True)
+
+
+def test_evaluate_and_finetune_head(images):
+    t = make_trainer(images, max_steps=2)
+    t.train()
+    test_x, _ = load_dataset("mnist", "test", source="sample", limit=6)
+    masks = {"uniform": list(range(0, NE, NE // K))[:K], "full": torch.ones(NE)}
+    res = t.evaluate(test_x, masks, batch_size=4)
+    assert set(res) == {"learned", "uniform", "full"}
+    for row in res.values():
+        assert math.isfinite(row["mse"]) and math.isfinite(row["psnr"]) and row["ssim"] <= 1
+    assert res["learned"]["indices"] == t.learned_indices().tolist()
+    assert res == t.evaluate(test_x, masks, batch_size=4)  # same scenes, no hidden RNG
+
+    logits = t.selection.logits.detach().clone()
+    ista = {k: v.clone() for k, v in t.reconstructor.ista.state_dict().items()}
+    head = {k: v.clone() for k, v in t.reconstructor.head.state_dict().items()}
+    losses = t.finetune_head(3, lr=1e-3)
+    assert len(losses) == 3
+    assert torch.equal(t.selection.logits, logits)
+    assert all(torch.equal(v, ista[k]) for k, v in t.reconstructor.ista.state_dict().items())
+    assert any(not torch.equal(v, head[k]) for k, v in t.reconstructor.head.state_dict().items())
+    assert all(p.requires_grad for p in t.reconstructor.parameters())
+    # fine-tune a copy for a baseline mask, leaving the trainer's model alone
+    res_mid = t.evaluate(test_x, {}, batch_size=4)
+    own = {k: v.clone() for k, v in t.reconstructor.state_dict().items()}
+    other = copy.deepcopy(t.reconstructor)
+    t.finetune_head(2, mask=masks["uniform"], reconstructor=other, include_ista=True)
+    assert all(torch.equal(v, own[k]) for k, v in t.reconstructor.state_dict().items())
+    res2 = t.evaluate(test_x, {"uniform": masks["uniform"]}, batch_size=4,
+                      reconstructors={"uniform": other})
+    assert res2["learned"] == res_mid["learned"]
+    assert res2["uniform"] != res["uniform"]
+
+
+def test_train_e2e_wrapper(images):
+    kfn = toy_kernel_fn()
+    t = train_e2e(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0)), kfn,
+                  kfn(torch.ones(NE)), (images, None), max_steps=2,
+                  weights=LossWeights(psf=0, contrast=0, slr=0),
+                  config=TrainConfig(batch_size=4, progress=False), base_channels=4, n_layers=2)
+    assert t.step == 2
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_training_step_on_cuda(images):
+    kfn = toy_kernel_fn()
+    t = E2ETrainer(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0)), kfn,
+                   kfn(torch.ones(NE)), images, psf_terms_fn=toy_psf_terms(kfn(torch.ones(NE))),
+                   config=dict(batch_size=4, progress=False), base_channels=4, n_layers=2,
+                   device="cuda")
+    rec = t.train_step()
+    assert math.isfinite(rec["total"])
+    assert t.selection.logits.device.type == "cuda"
