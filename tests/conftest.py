@@ -1,0 +1,28 @@
+import os
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+
+@pytest.fixture(scope="session")
+def paper_objective():
+    """The paper scene's float32 objective, built once per test session (cached on disk)."""
+    from arraysel.objective import build_objective
+
+    return build_objective("paper")
+
+
+@pytest.fixture(scope="session")
+def pymust_scene():
+    pytest.importorskip("pymust")
+    from pymust_pipeline import PyMUSTScene
+
+    return PyMUSTScene()
+
+
+@pytest.fixture(params=["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def device(request):
+    return request.param

@@ -1,0 +1,149 @@
+"""Physics of the PSF core against the PyMUST oracle (SPEC §1), and its gradients."""
+import numpy as np
+import pytest
+import torch
+
+from arraysel.delays import plane_wave_delays
+from arraysel.probes import Acquisition, get_probe
+from arraysel.psf import PSFModel, PSFSetup
+from arraysel.simus import simulate_rf
+from pymust_pipeline import si_mse
+
+pytest.importorskip("pymust")
+
+
+def _masks():
+    rng = np.random.default_rng(7)
+    full = np.ones(64)
+    uni = np.zeros(64)
+    uni[::2] = 1
+    out = [full, uni]
+    for _ in range(2):
+        m = np.zeros(64)
+        m[rng.choice(64, 32, replace=False)] = 1
+        out.append(m)
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def exact_model():
+    probe = get_probe("P4-2v", fc=3.5e6)
+    return PSFModel(PSFSetup(probe=probe, acq=Acquisition.for_probe(probe)), dtype=torch.float64, fast=False)
+
+
+@pytest.fixture(scope="module")
+def pymust_kernels(pymust_scene):
+    return [pymust_scene.kernel(m) for m in _masks()]
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, -10.0, 10.0])
+def test_rf_matches_pymust_single_transmit(pymust_scene, tilt_deg):
+    probe = get_probe("P4-2v", fc=3.5e6)
+    acq = Acquisition.for_probe(probe)
+    mask = _masks()[2]
+    RF, delays, _ = pymust_scene.rf(mask, np.deg2rad(tilt_deg))
+    d = plane_wave_delays(probe, [np.deg2rad(tilt_deg)], acq.c)[0]
+    np.testing.assert_allclose(d, delays.ravel(), rtol=0, atol=1e-15)
+    xs, zs = pymust_scene.scatterer()
+    rf, _ = simulate_rf([xs], [zs], [1.0], d, probe, acq, tx_apod=mask, rx_apod=mask)
+    rf = rf.numpy()
+    assert rf.shape == RF.shape
+    assert np.linalg.norm(rf - RF) / np.linalg.norm(RF) <= 1e-3
+
+
+def test_exact_psf_matches_pymust(exact_model, pymust_kernels):
+    k = exact_model.kernels_exact(torch.tensor(_masks()))
+    for i, ref in enumerate(pymust_kernels):
+        assert si_mse(k[i].numpy(), ref) <= 1e-4, i
+
+
+def test_fast_psf_matches_pymust(paper_objective, pymust_kernels):
+    k = paper_objective.kernels(_masks()).to(torch.complex128).numpy()
+    for i, ref in enumerate(pymust_kernels):
+        assert si_mse(k[i], ref) <= 1e-4, i
+
+
+def test_uniform_lpsf_matches_paper(paper_objective):
+    r = paper_objective.evaluate(_masks()[:2])
+    assert r["L_PSF"][0] < 1e-6
+    assert abs(r["L_PSF"][1] - 0.0522) / 0.0522 < 0.10
+    assert abs(r["L_contrast"][0] - 1.766e-4) / 1.766e-4 < 0.10
+
+
+def test_fast_path_certificate_or_fallback_is_exact(paper_objective, exact_model):
+    """Masks whose peak leaves the region must be detected and recomputed exactly."""
+    edge = np.zeros(64)
+    edge[[0, 1, 62, 63]] = 1  # only the outermost elements: degenerate PSF
+    masks = np.stack([edge, _masks()[3]])
+    k, fb = paper_objective.psf.kernels(torch.tensor(masks, dtype=torch.float32), return_info=True)
+    ke = exact_model.kernels_exact(torch.tensor(masks))
+    for i in range(2):
+        assert si_mse(k[i].to(torch.complex128).numpy(), ke[i].numpy()) <= 1e-4
+
+
+def test_batch_equals_single(paper_objective):
+    m = _masks()
+    kb = paper_objective.kernels(m)
+    for i in range(len(m)):
+        k1 = paper_objective.kernels(m[i:i + 1])[0]
+        assert torch.allclose(kb[i], k1, atol=1e-5)
+
+
+def _small_setup(n_elements=8):
+    probe = get_probe("P4-2v", fc=3.5e6, n_elements=n_elements)
+    acq = Acquisition.for_probe(probe)
+    return PSFSetup(probe=probe, acq=acq, tilts=(-0.1, 0.1), n_x=24, n_z=24, pixel=1e-4, window=8,
+                    scatterer=(0.0, 2e-3))
+
+
+def test_gradcheck_exact_path_soft_weights():
+    model = PSFModel(_small_setup(), dtype=torch.float64, fast=False)
+    w0 = torch.linspace(0.3, 0.9, 8, dtype=torch.float64)[None].requires_grad_(True)
+    peak = model.image(w0.detach()).abs().reshape(-1).argmax()
+
+    def f(w):
+        img = model.image(w)
+        from arraysel.psf import window_and_normalise
+        return torch.view_as_real(window_and_normalise(img, 8, peak=peak[None]))
+
+    assert torch.autograd.gradcheck(f, (w0,), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_fast_path_soft_weights(monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    model = PSFModel(_small_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    w0 = torch.linspace(0.4, 1.0, 8, dtype=torch.float64)[None].requires_grad_(True)
+
+    def f(w):
+        return torch.view_as_real(model.fast.kernels(w)[0])
+
+    assert torch.autograd.gradcheck(f, (w0,), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_fast_equals_exact_small_scene(monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    setup = _small_setup()
+    fast = PSFModel(setup, dtype=torch.float64, fast=True, margin=2, block=4)
+    rng = np.random.default_rng(0)
+    w = torch.tensor(rng.uniform(0.1, 1, size=(5, 8)))
+    kf = fast.kernels(w)
+    ke = fast.kernels_exact(w)
+    for i in range(5):
+        assert si_mse(kf[i].numpy(), ke[i].numpy()) < 1e-10
+
+
+def test_float32_matches_float64(monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    setup = _small_setup()
+    w = torch.tensor(np.random.default_rng(1).uniform(0.1, 1, size=(3, 8)))
+    k64 = PSFModel(setup, dtype=torch.float64, fast=True, margin=2, block=4).kernels(w)
+    k32 = PSFModel(setup, dtype=torch.float32, fast=True, margin=2, block=4).kernels(w)
+    for i in range(3):
+        assert si_mse(k32[i].to(torch.complex128).numpy(), k64[i].numpy()) < 1e-8
+
+
+def test_empty_selection_is_an_error(paper_objective):
+    from arraysel.errors import SelectionError
+
+    with pytest.raises(SelectionError, match="empty"):
+        paper_objective.evaluate(np.zeros((1, 64)))
