@@ -1,0 +1,51 @@
+"""``arraysel psf`` and ``arraysel evaluate`` (run through the installed entry point's main)."""
+import numpy as np
+import pandas as pd
+import pytest
+
+from arraysel.cli import main
+
+
+def test_psf_command_writes_kernel_and_png(tmp_path, paper_objective):
+    out = tmp_path / "psf.npz"
+    assert main(["psf", "--elements", ",".join(map(str, range(0, 64, 2))), "--out", str(out), "--plot"]) == 0
+    data = np.load(out)
+    assert data["psf"].shape == (128, 128) and np.iscomplexobj(data["psf"])
+    assert np.isclose(np.linalg.norm(data["psf"]), 1.0, atol=1e-5)
+    assert abs(float(data["L_PSF"]) - 0.0522) / 0.0522 < 0.1
+    assert (tmp_path / "psf.png").stat().st_size > 1000
+
+
+def test_evaluate_command(tmp_path, paper_objective):
+    masks = tmp_path / "masks.txt"
+    uni = " ".join(map(str, range(0, 64, 2)))
+    full_half = ",".join(map(str, range(32)))
+    masks.write_text(f"# two masks\n{uni}\n\n{full_half}  # contiguous\n")
+    out = tmp_path / "metrics.csv"
+    psf = tmp_path / "k.npz"
+    assert main(["evaluate", "--masks", str(masks), "--out", str(out), "--psf-out", str(psf)]) == 0
+    df = pd.read_csv(out)
+    assert list(df.columns) == ["elements", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean"]
+    assert len(df) == 2
+    assert df["L_PSF"].iloc[0] == pytest.approx(0.0522, rel=0.1)
+    d = np.load(psf)
+    assert d["psf"].shape == (2, 128, 128) and d["psf_ref"].shape == (128, 128)
+
+
+@pytest.mark.parametrize("line,msg", [
+    ("0 1 1" + "".join(f" {i}" for i in range(2, 31)), "repeated"),
+    ("-1" + "".join(f" {i}" for i in range(1, 32)), "in \\[0, 63\\]"),
+    ("0 1 64" + "".join(f" {i}" for i in range(2, 31)), "in \\[0, 63\\]"),
+    ("0 1 2", "expected k = 32"),
+    ("0 1 x", "not an integer"),
+])
+def test_evaluate_rejects_bad_masks_with_line_number(tmp_path, capsys, line, msg):
+    masks = tmp_path / "masks.txt"
+    masks.write_text(" ".join(map(str, range(32))) + "\n# comment\n" + line + "\n")
+    out = tmp_path / "metrics.csv"
+    assert main(["evaluate", "--masks", str(masks), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "line 3" in err
+    import re
+    assert re.search(msg, err)
+    assert not out.exists()
