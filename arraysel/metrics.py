@@ -168,6 +168,18 @@ def _detached_scale(x: Tensor) -> Tensor:
     return torch.where(s > 0, s, torch.ones_like(s))
 
 
+def _divide_by_scale(x: Tensor, s: Tensor) -> Tensor:
+    """``x / s[..., None, None]`` for a real ``s > 0`` of shape ``x.shape[:-2]``.
+
+    A complex ``x`` is divided through its real view: torch promotes a real
+    divisor to complex, and its complex division returns inf/NaN for a
+    subnormal divisor (e.g. a float32 kernel whose largest entry is 1e-44).
+    """
+    if x.is_complex():
+        return torch.view_as_complex(torch.view_as_real(x.resolve_conj()) / s[..., None, None, None])
+    return x / s[..., None, None]
+
+
 def _use_matmul(x: Tensor) -> bool:
     """Whether to reduce dot products with matmul (BLAS) rather than multiply-and-sum.
 
@@ -235,8 +247,8 @@ def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
     # L is invariant to the scale of kappa and of kappa_ref separately: divide
     # each kernel by a detached scale so float32 sums cannot under/overflow
     # (no gradient is lost: the loss does not depend on those scales).
-    k = k / _detached_scale(k)[..., None, None]
-    r = r / _detached_scale(r)[..., None, None]
+    k = _divide_by_scale(k, _detached_scale(k))
+    r = _divide_by_scale(r, _detached_scale(r))
     kk = _sqnorm(k)
     kr = _inner(k, r)
     rr = _sqnorm(r)

@@ -33,6 +33,7 @@ image is a quadratic form of the weights::
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -45,6 +46,8 @@ from .errors import NumericalError, ParameterError, SelectionError, check_number
 from .probes import Acquisition, Probe, check_sampling
 from .simus import (SimOptions, element_responses, grid_for_points, probe_response, pulse_spectrum,
                     spectra_to_rf)
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -163,8 +166,22 @@ class PSFModel:
         self.plan_cache_elements = plan_cache_elements
         self.fast = None
         if fast:
-            self.fast = _load_or_build_basis(self)
+            need = self.basis_bytes()
+            limit = _basis_limit_bytes()
+            if need > limit:
+                _log.warning("PSF fast path disabled: its precomputation would need %.1f GiB (> %.1f GiB, "
+                             "set ARRAYSEL_BASIS_MAX_GIB to allow more); using the exact path",
+                             need / 2 ** 30, limit / 2 ** 30)
+            else:
+                self.fast = _load_or_build_basis(self)
         self._ref = None
+
+    def basis_bytes(self) -> int:
+        """Peak memory (bytes) of building the fast path's pair basis (float64 pair images)."""
+        s = self.setup
+        ne = self.n_elements
+        rows = min(s.n_z, s.window + 2 * self.margin)
+        return (ne * (ne + 1) // 2) * 2 * rows * s.n_x * 8
 
     # ------------------------------------------------------------------ exact path
     def _build_transmits(self):
@@ -175,6 +192,7 @@ class PSFModel:
         zt = torch.tensor([zs], dtype=torch.float64)
         delays_all = plane_wave_delays(probe, list(s.tilts), acq.c)
         self.transmits = []
+        parts = []
         for delays in delays_all:
             grid = grid_for_points(xt, zt, delays, probe, acq, s.options)
             f = grid.f
@@ -187,7 +205,20 @@ class PSFModel:
             C = P * H * H * (grid.df * probe.width * s.reflectivity)
             Q = iq_matrix(grid.n_time, acq.fs, probe.fc,
                           probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
-            self.transmits.append(_Transmit(delays=delays, grid=grid, G=G, RC=R * C[None, :], Q=Q))
+            parts.append((delays, grid, G, R * C[None, :], Q))
+        # A deep, attenuated or weak echo can lie below float32's normal range at its physical
+        # scale; G and RC are divided by their largest magnitude over all transmits (the kernel is
+        # normalised, so only the unit changes): spectra, RF, I/Q and images are in units of
+        # ``image_scale``.
+        g_max = max(float(G.abs().max()) for _, _, G, _, _ in parts)
+        rc_max = max(float(RC.abs().max()) for _, _, _, RC, _ in parts)
+        if not (g_max > 0 and rc_max > 0 and math.isfinite(g_max) and math.isfinite(rc_max)):
+            raise NumericalError(f"the echo of the scatterer is zero or not finite (|G| max {g_max:.3g}, "
+                                 f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
+        #: physical value of one unit of :meth:`spectra`, :meth:`rf`, :meth:`iq` and :meth:`image`
+        self.image_scale = g_max * rc_max
+        for delays, grid, G, RC, Q in parts:
+            self.transmits.append(_Transmit(delays=delays, grid=grid, G=G / g_max, RC=RC / rc_max, Q=Q))
 
     def _weights(self, weights) -> torch.Tensor:
         w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
@@ -199,7 +230,7 @@ class PSFModel:
         return w
 
     def spectra(self, weights, tx: int) -> torch.Tensor:
-        """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne)."""
+        """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne), in units of ``image_scale``."""
         t = self.transmits[tx]
         w = self._weights(weights)
         G = t.G.to(self.device, self.cdtype)
@@ -208,7 +239,7 @@ class PSFModel:
         return w.to(self.cdtype)[:, :, None] * RC[None] * field_[:, None, :]
 
     def rf(self, weights, tx: int) -> torch.Tensor:
-        """RF signals (B, Ne, T) of transmit ``tx`` (element-major, time last)."""
+        """RF signals (B, Ne, T) of transmit ``tx`` (element-major, time last), in units of ``image_scale``."""
         return spectra_to_rf(self.spectra(weights, tx), self.transmits[tx].grid)
 
     def iq(self, weights, tx: int) -> torch.Tensor:
@@ -239,7 +270,7 @@ class PSFModel:
               rows_per_chunk: int | None = None) -> torch.Tensor:
         """Exact compound image (B, nz', nx') on grid rows/cols (default: whole grid).
 
-        Differentiable with respect to ``weights``.
+        In units of :attr:`image_scale`; differentiable with respect to ``weights``.
         """
         rows = rows or slice(0, self.setup.n_z)
         cols = cols or slice(0, self.setup.n_x)
@@ -291,6 +322,18 @@ class PSFModel:
         return self._ref
 
 
+def _basis_limit_bytes() -> int:
+    import os
+
+    raw = os.environ.get("ARRAYSEL_BASIS_MAX_GIB", "4")
+    try:
+        gib = float(raw)
+    except ValueError:
+        raise ParameterError(f"ARRAYSEL_BASIS_MAX_GIB = {raw!r} must be a number of GiB (> 0)") from None
+    check_number("ARRAYSEL_BASIS_MAX_GIB", gib, lo=0, lo_open=True)
+    return int(gib * 2 ** 30)
+
+
 def cache_dir() -> str | None:
     """Folder of the precomputation cache: ``$ARRAYSEL_CACHE`` ('off' disables), else ~/.cache/arraysel."""
     import os
@@ -335,7 +378,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 1
+_BASIS_VERSION = 3
 
 
 def window_and_normalise(img: torch.Tensor, size: int, peak=None) -> torch.Tensor:
@@ -356,11 +399,25 @@ def window_and_normalise(img: torch.Tensor, size: int, peak=None) -> torch.Tenso
     xi = (x0[:, None] + ar[None])[:, None, :]
     bi = torch.arange(B, device=img.device)[:, None, None]
     win = img[bi, zi, xi]
-    norm = torch.linalg.vector_norm(win.reshape(B, -1), dim=1)
-    if bool((norm.detach() == 0).any()) or not bool(torch.isfinite(norm.detach()).all()):
+    top = mag.gather(1, peak[:, None])[:, 0]
+    if bool((top == 0).any()) or not bool(torch.isfinite(mag).all()):
         raise NumericalError("PSF image is all zero or not finite for some selection "
                              "(is the selection empty, or the scatterer outside the grid?)")
-    return win / norm[:, None, None].to(win.dtype)
+    return _unit_norm(win, top)
+
+
+def _scale_complex(x: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """``x / s`` (s real, one per batch item) through the real view: torch's complex division
+    by a promoted real returns inf/NaN for a subnormal divisor."""
+    return torch.view_as_complex(torch.view_as_real(x) / s.reshape(-1, *([1] * x.dim())))
+
+
+def _unit_norm(win: torch.Tensor, top: torch.Tensor) -> torch.Tensor:
+    """Windows (B, h, w) divided by their L2 norm; ``top`` (B,) > 0 is a detached scale
+    (the peak magnitude) applied first, so squares of tiny or huge values cannot under/overflow."""
+    win = _scale_complex(win, top.detach().to(win.real.dtype))
+    norm = torch.linalg.vector_norm(win.reshape(win.shape[0], -1), dim=1)
+    return _scale_complex(win, torch.where(norm > 0, norm, torch.ones_like(norm)))
 
 
 def _csr(crow, col, val, size):
@@ -383,20 +440,28 @@ def pair_products(w: torch.Tensor, e: torch.Tensor, j: torch.Tensor) -> torch.Te
 
 
 class _PairBasis:
-    """Precomputed pair images on the exact region E and the peak certificate outside it.
+    """Precomputed pair images and peak certificates of the fast path.
 
-    Image on E: ``I_E = c @ H`` with ``c`` the (B, P) pair products and ``H``
-    the (P, 2 Npix) real pair images, stored compressed as ``U @ V`` (a
-    truncated SVD whose discarded energy is below ``rank_tol`` of the total).
+    Regions (grid rows ``rows`` = the window plus a margin around the scatterer):
 
-    Certificate: for transmit n and receive element e the I/Q channel of a
+    * tier 1, ``E``: the columns of the window plus the margin;
+    * tier 2, the *strips*: the remaining columns of the same rows, so that
+      E and the strips make the full-width band ``rows x all columns``.
+
+    Images: ``I = c @ H`` with ``c`` the (B, P) pair products and ``H`` the
+    (P, 2 Npix) real pair images ([re | im]); tier 1 is stored as a truncated
+    SVD ``U @ V`` when that saves work (discarded energy <= ``rank_tol``).
+
+    Certificates: for transmit n and receive element e the I/Q channel of a
     selection is ``X_ne(t) = m_e sum_j m_j A_nej(t)`` (A: pair I/Q signals).
     Linear interpolation and unit phase rotations cannot exceed the larger
-    neighbouring sample, so on a block Q of pixels outside E
-    ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_{neQ}} |X_ne(t)|``, where
-    ``[lo, hi]`` spans the samples the block's pixels read. ``lo``/``hi`` are
-    precomputed; per selection the bound costs one small matrix product, a
-    sliding maximum and a sparse sum.
+    neighbouring sample, so on a block Q of pixels
+    ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_neQ} |X_ne(t)|``, where
+    ``[lo, hi]`` spans the samples the block's pixels read. Certificate 1
+    covers the blocks not inside E, certificate 2 the blocks not inside the
+    band. A selection is done at tier 1 when its peak in E beats certificate 1
+    (and its window fits in E), at tier 2 when its peak in the band beats
+    certificate 2; otherwise the exact path recomputes it.
     """
 
     def __init__(self, model: PSFModel, rank_tol: float = 1e-7, _state: dict | None = None):
@@ -415,14 +480,36 @@ class _PairBasis:
         self.cols = slice(x_lo, min(s.n_x, x_lo + win + 2 * m))
         self.shape = (self.rows.stop - self.rows.start, self.cols.stop - self.cols.start)
         self.npix = self.shape[0] * self.shape[1]
+        self.strip_cols = torch.cat([torch.arange(0, self.cols.start), torch.arange(self.cols.stop, s.n_x)])
+        self.npix2 = self.shape[0] * self.strip_cols.numel()
         self.e_idx, self.j_idx = pair_index(ne)
         if _state is not None:
             self._set_state(_state)
             return
         pair_iq = [self._pair_iq(n) for n in range(len(model.transmits))]
-        self._build_images(pair_iq, rank_tol)
-        self._build_certificate(pair_iq)
+        H1 = self._pair_images(pair_iq, torch.arange(self.cols.start, self.cols.stop))
+        col1 = _pixel_norms(H1)
+        self.U, self.V, self.rank, self.rank_tail = self._compress(H1, rank_tol)
+        if self.U is not None:
+            # residual (H - U V) norm of each pixel's pair column, |H_p|^2 - |V_p|^2 (U orthonormal)
+            resid = (col1 ** 2 - _pixel_norms(self.V.double()) ** 2).clamp(min=0).sqrt()
+            rho = float(resid.max())
+        else:
+            rho = 0.0
+        del H1
+        if self.npix2:
+            H2 = self._pair_images(pair_iq, self.strip_cols)
+            col2 = float(_pixel_norms(H2).max())
+            self.H2 = H2.to(model.device, model.dtype)
+            del H2
+        else:
+            col2 = 0.0
+            self.H2 = torch.zeros(self.e_idx.numel(), 0, dtype=model.dtype, device=model.device)
+        #: [max residual pixel-column norm of U V, max pixel-column norm of H1, of H2]
+        self.err = torch.tensor([rho, float(col1.max()), col2], dtype=torch.float64)
+        self._build_certificates(pair_iq)
 
+    # ------------------------------------------------------------------ precomputation
     def _pair_iq(self, n: int) -> torch.Tensor:
         """I/Q of every (rx e, tx j) pair for transmit n: (Ne, Ne, T) complex128."""
         t = self.model.transmits[n]
@@ -430,55 +517,66 @@ class _PairBasis:
         rf = spectra_to_rf(spec, t.grid)
         return rf.to(torch.complex128) @ t.Q.T
 
-    def _build_images(self, pair_iq, rank_tol):
+    def _pair_images(self, pair_iq, cols: torch.Tensor) -> torch.Tensor:
+        """Symmetrised pair images on (self.rows x cols): (P, 2 Npix) float64, [re | im]."""
         model = self.model
         s = model.setup
         ne = model.n_elements
-        Z, X = torch.meshgrid(model._zg[self.rows], model._xg[self.cols], indexing="ij")
-        npix = self.npix
-        Hfull = torch.zeros(ne, ne, npix, dtype=torch.complex128)
-        for n, t in enumerate(model.transmits):
-            iq = pair_iq[n]
-            plan = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
-                            fnumber=s.fnumber, fc=s.probe.fc)
-            T = iq.shape[-1]
-            step = max(1, 2 ** 23 // (ne * npix))
-            for e0 in range(0, ne, step):
-                e1 = min(ne, e0 + step)
+        Z, X = torch.meshgrid(model._zg[self.rows], model._xg[cols], indexing="ij")
+        npix = Z.numel()
+        e = self.e_idx
+        H = torch.zeros(e.numel(), 2 * npix, dtype=torch.float64)
+        plans = [das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                          fc=s.probe.fc) for t in model.transmits]
+        # H_ej for a chunk of receive elements e (all j), added into pair (min, max) of (e, j):
+        # the image of pair e < j is H_ej + H_je, that of e = j is H_ee
+        step = max(1, 2 ** 23 // (ne * npix))
+        ar = torch.arange(ne)
+        for e0 in range(0, ne, step):
+            e1 = min(ne, e0 + step)
+            acc = torch.zeros(e1 - e0, ne, npix, dtype=torch.complex128)
+            for n, plan in enumerate(plans):
+                iq = pair_iq[n]
+                T = iq.shape[-1]
                 idx = plan.i0[:, e0:e1].T[:, None, :].expand(-1, ne, -1)
                 wt = plan.w[:, e0:e1].T[:, None, :]
                 rot = plan.rot[:, e0:e1].T[:, None, :]
                 src = iq[e0:e1]
                 a = torch.gather(src, 2, idx)
                 b = torch.gather(src, 2, (idx + 1).clamp(max=T - 1))
-                Hfull[e0:e1] += (a + (b - a) * wt) * rot
-        e, j = self.e_idx, self.j_idx
-        Hs = Hfull[e, j] + torch.where((e != j)[:, None], Hfull[j, e], torch.zeros_like(Hfull[e, j]))
-        del Hfull
-        H = torch.cat([Hs.real, Hs.imag], dim=1)  # (P, 2 Npix) float64
-        del Hs
-        # truncated SVD through the (P x P) Gram matrix
+                acc += (a + (b - a) * wt) * rot
+            for ee in range(e0, e1):
+                lo_, hi_ = torch.minimum(ar, torch.tensor(ee)), torch.maximum(ar, torch.tensor(ee))
+                pos = lo_ * ne - lo_ * (lo_ - 1) // 2 + (hi_ - lo_)
+                H[:, :npix].index_add_(0, pos, acc[ee - e0].real)
+                H[:, npix:].index_add_(0, pos, acc[ee - e0].imag)
+        return H
+
+    def _compress(self, H: torch.Tensor, rank_tol: float):
+        model = self.model
+        P = H.shape[0]
         gram = H @ H.T
         evals, evecs = torch.linalg.eigh(gram)
         evals = evals.flip(0).clamp(min=0)
         evecs = evecs.flip(1)
-        tail = evals.sum() - torch.cumsum(evals, 0)
-        rank = int(torch.nonzero(tail <= rank_tol * evals.sum()).flatten()[0]) + 1
-        U = evecs[:, :rank]
-        V = U.T @ H  # (R, 2 Npix)
-        self.rank = rank
-        self.rank_tail = float(tail[rank - 1] / evals.sum())
-        self.U = U.to(model.device, model.dtype)
-        self.V = V.to(model.device, model.dtype)
+        total = float(evals.sum())
+        tail = total - torch.cumsum(evals, 0)
+        rank = int(torch.nonzero(tail <= rank_tol * total).flatten()[0]) + 1
+        # U @ V costs P*R + R*N per selection against P*N for H itself
+        if rank * (P + H.shape[1]) < 0.9 * P * H.shape[1]:
+            U = evecs[:, :rank]
+            V = U.T @ H
+            return (U.to(model.device, model.dtype), V.to(model.device, model.dtype), rank,
+                    float(tail[rank - 1] / total))
+        return None, H.to(model.device, model.dtype), P, 0.0
 
-    def _build_certificate(self, pair_iq):
+    def _build_certificates(self, pair_iq):
         model = self.model
         s = model.setup
         ne = model.n_elements
         ntx = len(model.transmits)
         b = model.block
         T = max(x.shape[-1] for x in pair_iq)
-        # A: (Ne_j, ntx * Ne_e * T) complex -> real [re | im]
         A = torch.zeros(ne, ntx, ne, T, dtype=torch.complex128)
         for n, iq in enumerate(pair_iq):
             A[:, n, :, : iq.shape[-1]] = iq.permute(1, 0, 2)
@@ -487,11 +585,6 @@ class _PairBasis:
         self.A = torch.cat([A.real, A.imag], dim=1).to(model.device, model.dtype)
         nbz = -(-s.n_z // b)
         nbx = -(-s.n_x // b)
-        bz = torch.arange(nbz)
-        bx = torch.arange(nbx)
-        inside_z = (bz * b >= self.rows.start) & ((bz + 1) * b <= self.rows.stop)
-        inside_x = (bx * b >= self.cols.start) & ((bx + 1) * b <= self.cols.stop)
-        outside = ~(inside_z[:, None] & inside_x[None, :])  # (nbz, nbx)
         lo = torch.full((ntx, nbz, nbx, ne), T, dtype=torch.long)
         hi = torch.full((ntx, nbz, nbx, ne), -1, dtype=torch.long)
         rows_per = max(b, (2 ** 21 // (s.n_x * ne)) // b * b)
@@ -516,59 +609,113 @@ class _PairBasis:
                 hi_b = hi_p.reshape(nq, b, nbx, b, ne).amax(dim=(1, 3))
                 lo[n, q0:q0 + nq] = torch.minimum(lo[n, q0:q0 + nq], lo_b)
                 hi[n, q0:q0 + nq] = torch.maximum(hi[n, q0:q0 + nq], hi_b)
-        qz, qx = torch.nonzero(outside, as_tuple=True)
-        lo = lo[:, qz, qx]  # (ntx, nQ, Ne)
-        hi = hi[:, qz, qx]
-        has = hi >= lo
-        length = torch.where(has, hi - lo + 1, torch.zeros_like(lo))
+        bz = torch.arange(nbz)
+        bx = torch.arange(nbx)
+        in_rows = (bz * b >= self.rows.start) & ((bz + 1) * b <= self.rows.stop)
+        in_cols = (bx * b >= self.cols.start) & ((bx + 1) * b <= self.cols.stop)
+        outside1 = ~(in_rows[:, None] & in_cols[None, :])
+        outside2 = ~(in_rows[:, None] & torch.ones(nbx, dtype=torch.bool)[None, :])
+        has_all = hi >= lo
+        length = torch.where(has_all, hi - lo + 1, torch.zeros_like(lo))
         self.L = max(1, int(length.max()))
+        self.S1 = self._block_matrix(lo, hi, outside1)
+        self.S2 = self._block_matrix(lo, hi, outside2)
+
+    def _block_matrix(self, lo, hi, outside):
+        """Sparse (nQ, ntx*Ne*T) matrix summing, per block, the sliding-max envelopes at lo."""
+        model = self.model
+        ntx, _, _, ne = lo.shape
+        T = self.T
+        qz, qx = torch.nonzero(outside, as_tuple=True)
         nq = qz.numel()
-        self.n_blocks = nq
-        # column index of (n, e, lo) in the flattened sliding-max envelope (ntx, Ne, T)
+        lo_q = lo[:, qz, qx]
+        hi_q = hi[:, qz, qx]
+        has = hi_q >= lo_q
         n_ar = torch.arange(ntx)[:, None, None]
         e_ar = torch.arange(ne)[None, None, :]
-        col = (n_ar * ne + e_ar) * T + lo.clamp(0, T - 1)
+        col = (n_ar * ne + e_ar) * T + lo_q.clamp(0, T - 1)
         q_ar = torch.arange(nq)[None, :, None].expand_as(col)
-        sel = has
-        rows_i = q_ar[sel]
-        cols_i = col[sel]
+        rows_i = q_ar[has]
+        cols_i = col[has]
         order = torch.argsort(rows_i * (ntx * ne * T) + cols_i)
         rows_i, cols_i = rows_i[order], cols_i[order]
         crow = torch.zeros(nq + 1, dtype=torch.long)
         crow[1:] = torch.cumsum(torch.bincount(rows_i, minlength=nq), 0)
         vals = torch.full((rows_i.numel(),), 1.0 + 1e-4, dtype=model.dtype)  # rounding safety margin
-        self.S = _csr(crow, cols_i, vals, (nq, ntx * ne * T)).to(model.device)
+        return _csr(crow, cols_i, vals, (nq, ntx * ne * T)).to(model.device)
 
+    # ------------------------------------------------------------------ cache
     def state(self) -> dict:
-        S = self.S
-        return {"U": self.U.cpu(), "V": self.V.cpu(), "A": self.A.cpu(), "S_crow": S.crow_indices().cpu(),
-                "S_col": S.col_indices().cpu(), "S_val": S.values().cpu(),
-                "meta": torch.tensor([self.T, self.L, self.rank, S.shape[0], S.shape[1]]),
-                "rank_tail": torch.tensor(self.rank_tail)}
+        st = {"V": self.V.cpu(), "H2": self.H2.cpu(), "A": self.A.cpu(), "err": self.err,
+              "meta": torch.tensor([self.T, self.L, self.rank]), "rank_tail": torch.tensor(self.rank_tail)}
+        if self.U is not None:
+            st["U"] = self.U.cpu()
+        for name in ("S1", "S2"):
+            S = getattr(self, name)
+            st[name + "_crow"], st[name + "_col"], st[name + "_val"] = (
+                S.crow_indices().cpu(), S.col_indices().cpu(), S.values().cpu())
+            st[name + "_shape"] = torch.tensor(list(S.shape))
+        return st
 
     def _set_state(self, st: dict):
         dev, dt = self.model.device, self.model.dtype
-        self.U, self.V, self.A = (st[k].to(dev, dt) for k in ("U", "V", "A"))
-        self.T, self.L, self.rank, nq, ncol = (int(v) for v in st["meta"])
+        self.U = st["U"].to(dev, dt) if "U" in st else None
+        self.V, self.H2, self.A = (st[k].to(dev, dt) for k in ("V", "H2", "A"))
+        self.T, self.L, self.rank = (int(v) for v in st["meta"])
         self.rank_tail = float(st["rank_tail"])
-        self.n_blocks = nq
-        self.S = _csr(st["S_crow"], st["S_col"], st["S_val"].to(dt), (nq, ncol)).to(dev)
+        self.err = st["err"].double()
+        for name in ("S1", "S2"):
+            shape = tuple(int(v) for v in st[name + "_shape"])
+            setattr(self, name, _csr(st[name + "_crow"], st[name + "_col"], st[name + "_val"].to(dt),
+                                     shape).to(dev))
 
     @classmethod
     def from_state(cls, model, state):
         return cls(model, _state=state)
 
-    def images(self, w: torch.Tensor) -> torch.Tensor:
-        """Images on region E, (B, nzE, nxE) complex."""
-        c = pair_products(w, self.e_idx.to(w.device), self.j_idx.to(w.device))
-        y = (c @ self.U) @ self.V
-        img = torch.complex(y[:, : self.npix], y[:, self.npix:])
-        return img.reshape(w.shape[0], *self.shape)
+    # ------------------------------------------------------------------ evaluation
+    def _pairs(self, w):
+        return pair_products(w, self.e_idx.to(w.device), self.j_idx.to(w.device))
 
-    def bound(self, w: torch.Tensor) -> torch.Tensor:
-        """(B,) upper bound of |I| on the blocks outside region E."""
+    def images(self, w: torch.Tensor, with_error: bool = False):
+        """Images on region E, (B, nzE, nxE) complex [and a (B,) bound of the error of |I|].
+
+        The error bound covers the SVD truncation, ``|c (I - U U^T) H_p| <= |c - (c U) U^T| rho``
+        with ``rho`` the largest residual pixel-column norm (rigorous), plus a rounding
+        allowance ``2 sqrt(P) u |c| max_p |H_p|`` (u: the unit roundoff of the dtype).
+        """
+        c = self._pairs(w)
+        if self.U is not None:
+            cu = c @ self.U
+            y = cu @ self.V
+        else:
+            y = c @ self.V
+        img = torch.complex(y[:, : self.npix], y[:, self.npix:]).reshape(w.shape[0], *self.shape)
+        if not with_error:
+            return img
+        with torch.no_grad():
+            cn2 = (c.detach() ** 2).sum(1)
+            resid = (cn2 - (cu.detach() ** 2).sum(1)).clamp(min=0).sqrt() if self.U is not None else 0 * cn2
+            u = torch.finfo(c.dtype).eps / 2
+            rnd = 2 * math.sqrt(c.shape[1]) * u * cn2.sqrt() * float(self.err[1:].max())
+            eps = resid * float(self.err[0]) + rnd
+        return img, eps
+
+    def band_images(self, w: torch.Tensor, img_e: torch.Tensor | None = None) -> torch.Tensor:
+        """Images on the full-width band (B, nzE, n_x) complex."""
+        if img_e is None:
+            img_e = self.images(w)
         B = w.shape[0]
-        if self.n_blocks == 0:
+        y = self._pairs(w) @ self.H2
+        strips = torch.complex(y[:, : self.npix2], y[:, self.npix2:]).reshape(B, self.shape[0], -1)
+        left = self.cols.start
+        return torch.cat([strips[:, :, :left], img_e, strips[:, :, left:]], dim=2)
+
+    def bound(self, w: torch.Tensor, tier: int = 1) -> torch.Tensor:
+        """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2)."""
+        S = self.S1 if tier == 1 else self.S2
+        B = w.shape[0]
+        if S.shape[0] == 0:
             return torch.zeros(B, dtype=w.dtype, device=w.device)
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
@@ -579,33 +726,83 @@ class _PairBasis:
         if self.L > 1:
             env = torch.nn.functional.pad(env.reshape(B * ntx * ne, 1, self.T), (0, self.L - 1))
             env = torch.nn.functional.max_pool1d(env, self.L, stride=1)
-        env = env.reshape(B, -1)
-        bounds = torch.sparse.mm(self.S, env.T.contiguous())  # (nQ, B)
+        bounds = torch.sparse.mm(S, env.reshape(B, -1).T.contiguous())  # (nQ, B)
         return bounds.amax(dim=0)
 
-    def kernels(self, w: torch.Tensor):
-        s = self.model.setup
-        img = self.images(w)
-        B = w.shape[0]
-        nzE, nxE = self.shape
+    @staticmethod
+    def _peak_window(img, row0, col0, s, rows, cols):
+        """Peak of |img| (B, h, w) placed at grid offset (row0, col0); window start and fit flag."""
+        B, h, wd = img.shape
         mag = img.detach().abs().reshape(B, -1)
         val, arg = mag.max(dim=1)
-        with torch.no_grad():
-            bnd = self.bound(w.detach())
-        pz = arg // nxE + self.rows.start
-        px = arg % nxE + self.cols.start
+        pz = arg // wd + row0
+        px = arg % wd + col0
         z0 = _window_start(pz, s.window, s.n_z)
         x0 = _window_start(px, s.window, s.n_x)
-        fits = (z0 >= self.rows.start) & (z0 + s.window <= self.rows.stop) & \
-               (x0 >= self.cols.start) & (x0 + s.window <= self.cols.stop)
-        ok = fits & (bnd < val) & (val > 0)
+        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
+               (x0 + s.window <= cols.stop)
+        return val, z0, x0, fits
+
+    @staticmethod
+    def _cut(img, z0, x0, size):
+        B = img.shape[0]
+        ar = torch.arange(size, device=img.device)
+        zi = (z0[:, None] + ar[None])[:, :, None]
+        xi = (x0[:, None] + ar[None])[:, None, :]
+        bi = torch.arange(B, device=img.device)[:, None, None]
+        win = img[bi, zi, xi]
+        top = win.detach().abs().reshape(B, -1).amax(dim=1)
+        return _unit_norm(win, torch.where(top > 0, top, torch.ones_like(top)))
+
+    @staticmethod
+    def _unambiguous(img, val, eps):
+        """(B,) True where no other pixel of img is within 2 eps of the peak value ``val``
+        (else the arg-max, and the window with it, may differ from the exact image's)."""
+        mag = img.detach().abs().reshape(img.shape[0], -1)
+        return (mag >= (val - 2 * eps)[:, None]).sum(dim=1) <= 1
+
+    def kernels(self, w: torch.Tensor):
+        """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
+
+        Certified: the window fits in the region, the peak (less its error bound) beats the
+        bound of |I| outside the region, and no other pixel ties with the peak within the
+        error bound.
+        """
+        s = self.model.setup
+        img, eps = self.images(w, with_error=True)
+        val, z0, x0, fits = self._peak_window(img, self.rows.start, self.cols.start, s, self.rows, self.cols)
+        with torch.no_grad():
+            val = val.detach()
+            ok = fits & (self.bound(w.detach(), 1) < val - eps) & (val > 0) & self._unambiguous(img, val, eps)
         z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
-        ar = torch.arange(s.window, device=w.device)
-        zi = (z0e[:, None] + ar[None])[:, :, None]
-        xi = (x0e[:, None] + ar[None])[:, None, :]
-        bi = torch.arange(B, device=w.device)[:, None, None]
-        win = img[bi, zi, xi]
-        norm = torch.linalg.vector_norm(win.reshape(B, -1), dim=1)
-        safe = torch.where(norm > 0, norm, torch.ones_like(norm))
-        return win / safe[:, None, None].to(win.dtype), ok.cpu()
+        out = self._cut(img, z0e, x0e, s.window)
+        todo = torch.nonzero(~ok).flatten()
+        if todo.numel() and self.npix2:
+            w2 = w[todo]
+            band = self.band_images(w2, img[todo])
+            full_cols = slice(0, s.n_x)
+            val2, z02, x02, fits2 = self._peak_window(band, self.rows.start, 0, s, self.rows, full_cols)
+            with torch.no_grad():
+                e2 = eps[todo]
+                ok2 = fits2 & (self.bound(w2.detach(), 2) < val2 - e2) & (val2 > 0) & \
+                    self._unambiguous(band, val2, e2)
+            z0b = torch.where(ok2, z02 - self.rows.start, torch.zeros_like(z02))
+            k2 = self._cut(band, z0b, torch.where(ok2, x02, torch.zeros_like(x02)), s.window)
+            sel = torch.nonzero(ok2).flatten()
+            if sel.numel():
+                out = out.index_put((todo[sel],), k2[sel])
+                ok = ok.clone()
+                ok[todo[sel]] = True
+        return out, ok.cpu()
+
+
+def _pixel_norms(H: torch.Tensor) -> torch.Tensor:
+    """Norm over pairs of each pixel's complex column of a (P, 2 Npix) [re | im] matrix: (Npix,)."""
+    n = H.shape[1] // 2
+    return ((H[:, :n] ** 2).sum(0) + (H[:, n:] ** 2).sum(0)).sqrt()
+
+
+def _pair_position(e: int, j: int, ne: int) -> int:
+    """Row of pair (e <= j) in the order of :func:`pair_index` (row-major upper triangle)."""
+    return e * ne - e * (e - 1) // 2 + (j - e)

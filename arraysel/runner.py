@@ -27,6 +27,7 @@ Example
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import json
@@ -204,6 +205,19 @@ def full_row(objective) -> dict:
     }
 
 
+def _lost_row(objective, config: str, name: str, options: dict, seed: int, message: str) -> dict:
+    """The row of a run that could not be completed on any worker."""
+    nan = math.nan
+    return {
+        "config": config, "selector": name, "seed": seed, "k": int(objective.k),
+        "n_elements": int(objective.n_elements), **{m: nan for m in METRICS},
+        "seconds": nan, "evaluations": nan, "gradient_steps": nan, "objective_seconds": nan,
+        "overhead_seconds": nan, "elements": "",
+        "options": json.dumps(options, sort_keys=True, default=str) if options else "",
+        "error": f"run lost: {message}",
+    }
+
+
 # ---------------------------------------------------------------------------
 # compare
 # ---------------------------------------------------------------------------
@@ -248,7 +262,7 @@ def _normalise_selectors(selectors) -> list[tuple[str, dict]]:
 def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] = (0,),
             budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
             figures: bool = True, command_line: Sequence[str] | None = None,
-            info: dict | None = None):
+            info: dict | None = None, executor=None, objective_factory=None):
     """Run each selector for each seed on ``objective``; write the report to ``out_dir``.
 
     Parameters
@@ -264,6 +278,15 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     figures : write the PNG figures at the end
     command_line : recorded in ``run.json``
     info : extra entries for ``run.json``
+    executor : an :class:`arraysel.executors.Executor` that runs the
+        ``(selector, seed)`` runs (default: in this process, one after another).
+        With a process pool or Dask, each worker builds its own objective from
+        ``objective_factory``; the rows and traces are written in the same,
+        deterministic order as a local run (the order of ``selectors`` x
+        ``seeds``). A run whose worker kept dying gets its message in the
+        ``error`` column and the others finish.
+    objective_factory : picklable callable that builds the objective on a
+        worker (default: :func:`arraysel.executors.objective_factory_for`)
 
     Returns
     -------
@@ -332,7 +355,9 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         "seeds": seeds, "budget": budget.to_dict(),
         "selectors": [{"config": lab, "selector": n, "options": o, "origin": registry.origin(n)}
                       for lab, (n, o) in zip(labels, sels)],
-        "versions": _versions(), "cpu_count": os.cpu_count(), **(info or {}),
+        "versions": _versions(), "cpu_count": os.cpu_count(),
+        "executor": executor.describe() if executor is not None else {"executor": "local", "workers": 1},
+        **(info or {}),
     }
     reporting.write_json(out / "run.json", meta)
 
@@ -343,19 +368,45 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
 
     todo = [(lab, name, opts, seed) for lab, (name, opts) in zip(labels, sels) for seed in seeds
             if (lab, seed) not in done]
+    remote = executor is not None and not getattr(executor, "in_process", False)
+    if remote:
+        from . import executors as _ex
+        factory = objective_factory if objective_factory is not None else _ex.objective_factory_for(objective)
+        items = [_ex.compare_item(lab, classes[name], opts, budget, seed) for lab, name, opts, seed in todo]
     save()
     bar = tqdm(total=len(todo), disable=not progress, desc="compare", unit="run", file=sys.stderr)
     finished = 0
     try:
-        for lab, name, opts, seed in todo:
-            bar.set_postfix_str(f"{lab} seed {seed}")
-            exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab)
-            row = exp.run()
-            rows.append(row)
-            traces.extend({"config": lab, "seed": seed, **t} for t in exp.trace)
-            save()
-            finished += 1
-            bar.update(1)
+        if not remote:
+            for lab, name, opts, seed in todo:
+                bar.set_postfix_str(f"{lab} seed {seed}")
+                exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab)
+                row = exp.run()
+                rows.append(row)
+                traces.extend({"config": lab, "seed": seed, **t} for t in exp.trace)
+                save()
+                finished += 1
+                bar.update(1)
+        else:
+            # results arrive in any order; rows and traces are kept in the order of `todo`
+            kept_rows, kept_traces = list(rows), list(traces)
+            results: dict[int, tuple[dict, list]] = {}
+            with contextlib.closing(executor.run_tasks(factory, _ex.compare_task, items)) as tasks:
+                for i, res in tasks:  # closing the generator cancels the rest on an exception
+                    lab, name, opts, seed = todo[i]
+                    if isinstance(res, _ex._Raise):
+                        raise res.exception
+                    if isinstance(res, _ex.TaskFailed):
+                        row, trace = _lost_row(objective, lab, classes[name].name, opts, seed, res.message), []
+                    else:
+                        row, trace = res["row"], res["trace"]
+                    results[i] = (row, [{"config": lab, "seed": seed, **t} for t in trace])
+                    rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
+                    traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]
+                    save()
+                    finished += 1
+                    bar.set_postfix_str(f"{lab} seed {seed}")
+                    bar.update(1)
     except BaseException as exc:
         bar.close()
         left = len(todo) - finished

@@ -33,10 +33,17 @@ here:
   averaged over the batch (``n^2`` times larger).
 * ``L_rec = mean((I_hat - I_ref)^2)`` over pixels and batch.
 * ``L_ent``: mean over columns of the entropy ``-sum_i p_ij log p_ij`` of
-  ``P_soft``.
-* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2``. It is computed on ``P_soft``:
-  the hard ``P`` drawn without replacement never repeats an element, so the
-  penalty on it would be identically zero.
+  ``P_soft`` (:func:`arraysel.metrics.l_ent`).
+* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2`` (:func:`arraysel.metrics.l_row`).
+  It is computed on ``P_soft``: the hard ``P`` drawn without replacement never
+  repeats an element, so the penalty on it would be identically zero.
+
+Image size
+----------
+The scenes are ``image_size x image_size`` (default: the kernel's size). When
+it differs from the kernel window, the data terms use the kernel cropped
+around its centre pixel (or zero-padded around it), :func:`fit_kernel`; the
+PSF terms always see the whole kernel.
 """
 from __future__ import annotations
 
@@ -56,10 +63,12 @@ from tqdm import tqdm
 from arraysel.data import SceneMaker
 from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
                              check_number)
+from arraysel.metrics import l_ent, l_row
 from arraysel.recon import ConvolutionOperator, Reconstructor, mse, psnr, ssim
+from arraysel.relax import cosine_temperature, sequential_selection
 
 __all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
-           "train_e2e", "mask_to_weights", "entropy_loss", "row_loss"]
+           "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "blurred_image"]
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +84,9 @@ CHECKPOINT_FORMAT = "arraysel-e2e-1"
 def tau_schedule(step: int, tau_start: float = 6.0, tau_end: float = 1.2,
                  decay_steps: int = 1500) -> float:
     """Cosine decay of the softmax temperature from ``tau_start`` (step 0) to
-    ``tau_end`` (step ``decay_steps``), constant afterwards."""
-    if decay_steps <= 0:
-        return float(tau_end)
-    t = min(max(step, 0), decay_steps) / decay_steps
-    return float(tau_end + 0.5 * (tau_start - tau_end) * (1 + math.cos(math.pi * t)))
+    ``tau_end`` (step ``decay_steps``), constant afterwards
+    (:func:`arraysel.relax.cosine_temperature`)."""
+    return cosine_temperature(step, tau_start, tau_end, decay_steps)
 
 
 class HardSTESelection(nn.Module):
@@ -88,8 +95,9 @@ class HardSTESelection(nn.Module):
     Columns are drawn one after another; for column ``j`` the elements already
     chosen are masked out and ``p_j = softmax(l_j / tau)`` over the others.
     In training mode (``sample=True``) the element is drawn from ``p_j``
-    (Gumbel-max with noise from the ``generator`` passed in); in ``eval()``
-    mode, or with ``sample=False``, it is the most probable one. The output
+    with the ``generator`` passed in; in ``eval()`` mode, or with
+    ``sample=False``, it is the most probable one. The draw is
+    :func:`arraysel.relax.sequential_selection`. The output
     is ``P = (P_hard - P_soft).detach() + P_soft``: exactly one-hot columns
     with distinct rows in the forward pass, the softmax gradient backwards.
 
@@ -119,29 +127,17 @@ class HardSTESelection(nn.Module):
     def forward(self, tau: float = 1.0, generator: torch.Generator | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         tau = check_number("tau", tau, lo=0, lo_open=True)
-        ne, k = self.logits.shape
         sampling = self.training and self.sample
-        if sampling:
-            if generator is None:
-                raise ParameterError("HardSTESelection samples in training mode: pass a "
-                                     "torch.Generator (or call .eval() / set sample=False)")
-            u = torch.rand(ne, k, generator=generator, dtype=torch.float64)
-            gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1 - 1e-12)))
-            gumbel = gumbel.to(device=self.logits.device, dtype=self.logits.dtype)
-        chosen = torch.zeros(ne, dtype=torch.bool, device=self.logits.device)
-        soft_cols, hard_idx = [], []
-        for j in range(k):
-            lj = (self.logits[:, j] / tau).masked_fill(chosen, -math.inf)
-            soft_cols.append(torch.softmax(lj, dim=0))
-            score = lj.detach() + gumbel[:, j] if sampling else lj.detach()
-            idx = int(torch.argmax(score))
-            hard_idx.append(idx)
-            chosen = chosen.clone()  # the old mask is saved by masked_fill for backward
-            chosen[idx] = True
-        p_soft = torch.stack(soft_cols, dim=1)
-        p_hard = torch.zeros_like(p_soft)
-        p_hard[hard_idx, torch.arange(k)] = 1.0
-        return (p_hard - p_soft).detach() + p_soft, p_soft
+        if sampling and generator is None:
+            raise ParameterError("HardSTESelection samples in training mode: pass a "
+                                 "torch.Generator (or call .eval() / set sample=False)")
+        # the draw runs where the generator lives (the trainer's is on the CPU); the
+        # (Ne, k) logits are tiny, and moving them keeps the gradient path
+        where = generator.device if sampling else self.logits.device
+        rel = sequential_selection(self.logits.to(where), tau, hard=True, sample=sampling,
+                                   generator=generator if sampling else None)
+        dev = self.logits.device
+        return rel.P.to(dev), rel.P_soft.to(dev)
 
     @torch.no_grad()
     def indices(self, tau: float = 1.0) -> torch.Tensor:
@@ -155,16 +151,27 @@ class HardSTESelection(nn.Module):
         return torch.nonzero(P.sum(1) > 0.5).flatten().sort().values
 
 
-def entropy_loss(p_soft: torch.Tensor) -> torch.Tensor:
-    """Mean over columns of ``-sum_i p_ij log p_ij`` (zero entries contribute 0, finite gradient)."""
-    pos = p_soft > 0
-    safe = torch.where(pos, p_soft, torch.ones_like(p_soft))
-    return -(torch.where(pos, p_soft * torch.log(safe), torch.zeros_like(p_soft))).sum(0).mean()
+#: ``L_ent`` (mean column entropy of ``P_soft``): :func:`arraysel.metrics.l_ent`
+entropy_loss = l_ent
+#: ``L_row`` (``sum_i relu(sum_j p_ij - 1)^2``): :func:`arraysel.metrics.l_row`
+row_loss = l_row
 
 
-def row_loss(p: torch.Tensor) -> torch.Tensor:
-    """``sum_i relu(sum_j p_ij - 1)^2``: penalises using an element in several columns."""
-    return torch.relu(p.sum(1) - 1).pow(2).sum()
+def fit_kernel(kappa: torch.Tensor, n: int) -> torch.Tensor:
+    """Crop (or zero-pad) an ``(h, h)`` kernel to ``(n, n)`` keeping its centre pixel.
+
+    Pixel ``(h // 2, h // 2)`` of ``kappa`` becomes pixel ``(n // 2, n // 2)``
+    of the result (the zero shift of :class:`~arraysel.recon.ConvolutionOperator`);
+    differentiable.
+    """
+    h = kappa.shape[-1]
+    if h == n:
+        return kappa
+    if h > n:
+        s = h // 2 - n // 2
+        return kappa[..., s:s + n, s:s + n]
+    s = n // 2 - h // 2
+    return torch.nn.functional.pad(kappa, (s, n - h - s, s, n - h - s))
 
 
 def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None
@@ -288,7 +295,9 @@ class E2ETrainer:
     reconstructor : default ``Reconstructor(n_layers, base_channels=base_channels)``,
         initialised from ``config.seed`` (the global RNG is left untouched).
     scene_fn : ``(images, generator) -> (I_s, I_ref)``; default
-        ``SceneMaker(n=n, mode='image')`` (see :class:`arraysel.data.SceneMaker`).
+        ``SceneMaker(n=image_size, mode='image')`` (see :class:`arraysel.data.SceneMaker`).
+    image_size : side of the scenes (default: the kernel's); the data terms use
+        :func:`fit_kernel` of the kernel when it differs.
     checkpoint_path : file for checkpoints (``None``: no checkpoints).
     device : where the models and batches live (``'cpu'``, ``'cuda'``, ...).
 
@@ -303,7 +312,7 @@ class E2ETrainer:
                  config: TrainConfig | Mapping[str, Any] | None = None,
                  reconstructor: nn.Module | None = None, n_layers: int = 8, base_channels: int = 32,
                  scene_fn: Callable | None = None, checkpoint_path: str | os.PathLike | None = None,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", image_size: int | None = None):
         self.device = torch.device(device)
         self.weights = weights if isinstance(weights, LossWeights) else LossWeights(**(weights or {}))
         self.config = config if isinstance(config, TrainConfig) else TrainConfig(**(config or {}))
@@ -317,6 +326,8 @@ class E2ETrainer:
             raise ParameterError(f"kernel_ref must be (n, n), got {tuple(kernel_ref.shape)}")
         self.kernel_ref = kernel_ref.to(self.device)
         self.n = kernel_ref.shape[-1]
+        self.image_size = self.n if image_size is None else check_number("image_size", image_size,
+                                                                         lo=1, integer=True)
         self.images = _as_images(train_images)
         self.selection = selection.to(self.device)
         if reconstructor is None:
@@ -324,7 +335,7 @@ class E2ETrainer:
                 torch.manual_seed(self.config.seed)
                 reconstructor = Reconstructor(n_layers, base_channels=base_channels)
         self.reconstructor = reconstructor.to(self.device)
-        self.scene_fn = scene_fn if scene_fn is not None else SceneMaker(n=self.n, mode="image")
+        self.scene_fn = scene_fn if scene_fn is not None else SceneMaker(n=self.image_size, mode="image")
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.generator = torch.Generator().manual_seed(self.config.seed)
         self.optimizer = torch.optim.Adam(self._param_groups())
@@ -385,6 +396,10 @@ class E2ETrainer:
             raise ParameterError(f"kernel_fn returned {shape}; expected {tuple(self.kernel_ref.shape)}")
         return kappa
 
+    def operator(self, kappa: torch.Tensor) -> ConvolutionOperator:
+        """The forward model of a kernel on the scene grid (:func:`fit_kernel` to ``image_size``)."""
+        return ConvolutionOperator(fit_kernel(kappa, self.image_size))
+
     # -- loss ---------------------------------------------------------------
     def loss_terms(self, images: torch.Tensor, tau: float,
                    generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
@@ -406,10 +421,10 @@ class E2ETrainer:
                                              f"'{t}' is needed (weight {getattr(w, t)})")
                     terms[t] = got[t]
         if w.conv > 0 or w.rec > 0:
-            op = ConvolutionOperator(kappa)
+            op = self.operator(kappa)
             y_c = op.A(i_s)
             if w.conv > 0:
-                d = y_c - ConvolutionOperator(self.kernel_ref).A(i_s)
+                d = y_c - self.operator(self.kernel_ref).A(i_s)
                 sq = d.real ** 2 + d.imag ** 2
                 terms["conv"] = (sq.mean() if self.config.conv_reduction == "mean"
                                  else sq.flatten(1).sum(1).mean())
@@ -572,7 +587,7 @@ class E2ETrainer:
         recon = self.reconstructor if reconstructor is None else reconstructor.to(self.device)
         with torch.no_grad():
             w = self.learned_weights() if mask is None else self._mask_weights(mask)
-            op = ConvolutionOperator(self._kernel(w.to(self.device)).detach())
+            op = self.operator(self._kernel(w.to(self.device)).detach())
         params = list(recon.head.parameters()) if hasattr(recon, "head") else list(recon.parameters())
         if include_ista and hasattr(recon, "ista"):
             params += list(recon.ista.parameters())
@@ -600,11 +615,16 @@ class E2ETrainer:
     @torch.no_grad()
     def evaluate(self, images: Any, masks: Mapping[str, Any] | None = None, *,
                  batch_size: int = 64, clamp: bool = True, seed: int | None = None,
-                 reconstructors: Mapping[str, nn.Module] | None = None
+                 reconstructors: Mapping[str, nn.Module] | None = None, blurred: bool = False
                  ) -> dict[str, dict[str, Any]]:
         """MSE, PSNR (dB, data range 1) and SSIM on held-out images.
 
         Returns ``{name: {'mse', 'psnr', 'ssim': float, 'indices': list of int}}``.
+        With ``blurred=True`` each row also holds ``'mse_blurred'``,
+        ``'psnr_blurred'``, ``'ssim_blurred'``: the same metrics of the
+        measurement's magnitude ``|Y|`` (the input of the reconstructor) as an
+        image, scaled per image by its least-squares gain to ``I_ref``
+        (:func:`blurred_image`) and clamped like ``I_hat``.
 
         Rows: ``'learned'`` (the learned selection) and one per entry of
         ``masks`` (name -> indices or ``(Ne,)`` weights). Each selection's
@@ -628,21 +648,38 @@ class E2ETrainer:
             was = recon.training
             recon.eval()
             gen = torch.Generator().manual_seed(self.config.seed + 1 if seed is None else seed)
-            op = ConvolutionOperator(self._kernel(w.to(self.device)))
-            vals = {"mse": [], "psnr": [], "ssim": []}
+            op = self.operator(self._kernel(w.to(self.device)))
+            vals: dict[str, list] = {}
             for start in range(0, len(imgs), bs):
                 i_s, i_ref = self.scene_fn(imgs[start:start + bs].to(self.device), gen)
-                i_hat = recon(self._noise(op.A(i_s), gen), op)
-                if clamp:
-                    i_hat = i_hat.clamp(0, 1)
+                y = self._noise(op.A(i_s), gen)
+                i_hat = recon(y, op)
                 i_ref = i_ref.to(i_hat.dtype)
-                vals["mse"].append(mse(i_hat, i_ref, reduction="none"))
-                vals["psnr"].append(psnr(i_hat, i_ref, reduction="none"))
-                vals["ssim"].append(ssim(i_hat, i_ref, reduction="none"))
+                pairs = [("", i_hat)]
+                if blurred:
+                    pairs.append(("_blurred", blurred_image(y, i_ref)))
+                for suffix, img in pairs:
+                    if clamp:
+                        img = img.clamp(0, 1)
+                    for key, fn in (("mse", mse), ("psnr", psnr), ("ssim", ssim)):
+                        vals.setdefault(key + suffix, []).append(fn(img, i_ref, reduction="none"))
             recon.train(was)
             out[name] = {k: float(torch.cat(v).mean()) for k, v in vals.items()}
             out[name]["indices"] = torch.nonzero(w).flatten().cpu().tolist()
         return out
+
+
+def blurred_image(y: torch.Tensor, i_ref: torch.Tensor) -> torch.Tensor:
+    """``g |y|`` with the per-image gain ``g = <|y|, I_ref> / <|y|, |y|>`` (least squares).
+
+    The measurement ``Y = kappa (*) I_s`` of a unit-norm kernel has an
+    arbitrary scale; this gain gives the plain blurred image its best fit to
+    the target before it is scored against it.
+    """
+    m = y.abs().to(i_ref.dtype)
+    num = (m * i_ref).flatten(1).sum(1)
+    den = (m * m).flatten(1).sum(1).clamp_min(torch.finfo(m.dtype).tiny)
+    return m * (num / den).view(-1, *([1] * (m.dim() - 1)))
 
 
 def train_e2e(selection: nn.Module, kernel_fn: KernelFn, kernel_ref: torch.Tensor, train_images: Any,

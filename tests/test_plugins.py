@@ -8,7 +8,6 @@ import types
 from pathlib import Path
 
 import pandas as pd
-import pluggy
 import pytest
 
 from arraysel import cli, registry

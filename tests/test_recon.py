@@ -166,7 +166,6 @@ def test_ista_step_size_bounded_for_any_raw_parameter():
 
 def test_ista_recovers_sparse_signal_and_converges():
     n = 16
-    gen = torch.Generator().manual_seed(5)
     k = torch.zeros(n, n, dtype=torch.complex128)
     k[n // 2, n // 2], k[n // 2, n // 2 + 1], k[n // 2 + 1, n // 2] = 1.0, 0.5, 0.25j
     x = torch.zeros(1, 1, n, n, dtype=torch.complex128)

@@ -220,16 +220,8 @@ def test_compare_rejects_unknown_selectors(reg, tmp_path):
         compare(ToyObjective(12, 6), ["nope"], out_dir=tmp_path, registry=reg, progress=False)
 
 
-def test_physics_objective_guard():
+def test_toy_scene_builds_the_toy_objective():
     assert build_objective("toy", "cpu", "float64").n_elements == 64
-    try:
-        import arraysel.objective  # noqa: F401
-        import arraysel.scene  # noqa: F401
-    except ModuleNotFoundError:
-        with pytest.raises(ArrayselError, match="--scene toy"):
-            build_objective("paper", "cpu", "float32")
-    else:
-        pytest.skip("the physics objective exists")
 
 
 def test_toy_objective_contract():

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import ArrayselError, ParameterError, check_number
+from ..errors import ParameterError, check_number
 from ..registry import get_registry, load_plugin
 from ..selector import Budget
 
@@ -38,6 +38,19 @@ def add_parser(subparsers) -> None:
                    help="selector option, e.g. -o ste.lr=1e-3 (repeatable; see `arraysel list -v`)")
     p.add_argument("--resume", action="store_true",
                    help="keep the finished runs in --out/runs.csv and run only the missing ones")
+    g = p.add_argument_group("parallel runs (see docs/distributed.md)")
+    g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
+                   help="where the (selector, seed) runs are computed: local (default: this process, "
+                        "one after another), process (a local process pool of --workers processes) or "
+                        "dask (a Dask cluster at --scheduler, or a local one with --workers processes; "
+                        "needs pip install arraysel[dask]). Results are the same as a local run")
+    g.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes for --executor process / dask without --scheduler "
+                        "(default: the number of CPU cores)")
+    g.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
+                   help="address of a running Dask scheduler (--executor dask)")
+    g.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="times a run is started again after its worker died or it failed (default 2)")
     p.add_argument("--no-figures", action="store_true", help="write tables only")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -90,15 +103,9 @@ def build_objective(scene: str, device: str, dtype_name: str):
     if scene == "toy":
         from ..testing import ToyObjective
         return ToyObjective(64, 32, device=device, dtype=dtype)
-    try:
-        from ..objective import build_objective as _build
-        from ..scene import load_scene
-    except ModuleNotFoundError as exc:
-        if exc.name in ("arraysel.objective", "arraysel.scene"):
-            raise ArrayselError(
-                f"the physics objective is not available in this version ({exc.name} is missing); "
-                f"use --scene toy to try the selectors on the synthetic objective") from exc
-        raise
+    from ..objective import build_objective as _build
+    from ..scene import load_scene
+
     return _build(load_scene(scene), device=device, dtype=dtype)
 
 
@@ -117,11 +124,21 @@ def run(args) -> int:
     budget = Budget(seconds=budget_s or None, evaluations=evals)
     if budget.unlimited:
         raise ParameterError("--budget-s 0 needs --budget-evals: a run must have some budget")
-    objective = build_objective(args.scene, args.device, args.dtype)
-    table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
-                    budget=budget, registry=registry, resume=args.resume,
-                    progress=not args.no_progress, figures=not args.no_figures,
-                    command_line=list(sys.argv))
+    retries = check_number("--retries", args.retries, lo=0, hi=100, integer=True)
+    executor = None
+    if args.executor != "local" or args.workers is not None or args.scheduler:
+        from ..executors import make_executor
+        executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
+                                 retries=retries)
+    try:
+        objective = build_objective(args.scene, args.device, args.dtype)
+        table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
+                        budget=budget, registry=registry, resume=args.resume,
+                        progress=not args.no_progress, figures=not args.no_figures,
+                        command_line=list(sys.argv), executor=executor)
+    finally:
+        if executor is not None:
+            executor.close()
     cols = [c for c in ("config", "Mean", "L_PSF", "seconds", "evaluations", "error") if c in table]
     with __import__("pandas").option_context("display.width", 160, "display.max_colwidth", 60):
         print(table[cols].to_string(index=False))

@@ -1,0 +1,131 @@
+"""Helpers shared by the benchmark scripts (not part of the package).
+
+Every benchmark measures its figures side by side in one run and prints a
+human-readable table followed by one JSON line, so that results can be
+collected by a script (``tail -n 1``).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import platform
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def set_threads(n: int | None) -> None:
+    """Limit BLAS/OpenMP threads; call before numpy and torch do any work."""
+    if n is None:
+        return
+    if n < 1:
+        raise SystemExit(f"--threads must be >= 1, got {n}")
+    for var in THREAD_VARS:
+        os.environ[var] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+
+
+def machine() -> dict:
+    """A short description of where the figures were measured."""
+    import torch
+
+    return {"python": platform.python_version(), "torch": torch.__version__,
+            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "load_avg_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None}
+
+
+def random_masks(n: int, n_elements: int = 64, k: int = 32, seed: int = 0):
+    """(n, n_elements) float64 0/1 masks with k ones each, reproducible."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = np.zeros((n, n_elements), dtype=np.float64)
+    for i in range(n):
+        out[i, rng.choice(n_elements, k, replace=False)] = 1.0
+    return out
+
+
+def uniform_mask(n_elements: int = 64, k: int = 32):
+    """Every (n_elements // k)-th element on (the regular sparse array)."""
+    import numpy as np
+
+    m = np.zeros(n_elements, dtype=np.float64)
+    m[:: n_elements // k] = 1.0
+    return m
+
+
+def load_pymust_pipeline():
+    """Import ``tests/pymust_pipeline.py`` by path (the tests folder is not a package)."""
+    path = os.path.join(ROOT, "tests", "pymust_pipeline.py")
+    spec = importlib.util.spec_from_file_location("pymust_pipeline", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def si_mse(k, ref) -> float:
+    """Scale-invariant MSE of kernel ``k`` against ``ref`` (complex arrays), as in the tests."""
+    import numpy as np
+
+    k = np.asarray(k, dtype=np.complex128)
+    ref = np.asarray(ref, dtype=np.complex128)
+    a = np.vdot(k, ref) / np.vdot(k, k)
+    return float(np.linalg.norm(a * k - ref) ** 2 / np.linalg.norm(ref) ** 2)
+
+
+class Timer:
+    """``with Timer() as t: ...`` then ``t.s`` (seconds, perf_counter)."""
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.s = time.perf_counter() - self.t0
+
+
+def table(rows, headers) -> str:
+    """Plain-text table of rows (lists of values already formatted or numbers)."""
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+
+    cells = [[fmt(v) for v in r] for r in rows]
+    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(headers)]
+    line = "  ".join(h.ljust(w) for h, w in zip(headers, widths))
+    out = [line, "  ".join("-" * w for w in widths)]
+    out += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in cells]
+    return "\n".join(out)
+
+
+def emit_json(record: dict) -> None:
+    """The machine-readable result: one JSON line, last line of the output."""
+    print(json.dumps(record, sort_keys=False), flush=True)
+
+
+def cache_files() -> set | None:
+    """Names of the fast-path basis files in the on-disk cache (None when the cache is off)."""
+    from arraysel.psf import cache_dir
+
+    folder = cache_dir()
+    if folder is None:
+        return None
+    try:
+        return {f for f in os.listdir(folder) if f.startswith("psf-basis-")}
+    except FileNotFoundError:
+        return set()
+
+
+def basis_source(before: set | None) -> str:
+    """How the basis of the model just built was obtained, from the cache listing taken before."""
+    if before is None:
+        return "built (cache off)"
+    return "built (now cached)" if cache_files() - before else "loaded from disk cache"

@@ -1,0 +1,212 @@
+"""End-to-end training on a physics scene (arraysel.e2e, `arraysel train`), on a tiny scene."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from arraysel.cli import main as cli_main
+from arraysel.scene import load_scene
+
+TINY = {"base": "paper-e2e", "name": "tiny-e2e",
+        "probe": {"n_elements": 16}, "selection": {"k": 8},
+        "grid": {"n_x": 64, "n_z": 64, "window": 32}, "simulator": {"fast_margin": 4}}
+TINY_TOML = """base = "paper-e2e"
+name = "tiny-e2e"
+[probe]
+n_elements = 16
+[selection]
+k = 8
+[grid]
+n_x = 64
+n_z = 64
+window = 32
+[simulator]
+fast_margin = 4
+"""
+NE, K = 16, 8
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    from arraysel.objective import build_objective
+
+    scene = load_scene(TINY)
+    return scene, build_objective(scene)
+
+
+def make_trainer(objective, images, image_size=16, **cfg):
+    from arraysel.data import SceneMaker
+    from arraysel.training import E2ETrainer, HardSTESelection
+
+    def kernel_fn(w):
+        return objective.psf.kernels(w[None])[0]
+
+    def psf_terms(kappa):
+        return {"psf": objective.metrics_of_kernels(kappa[None], terms=["L_PSF"])["L_PSF"][0]}
+
+    config = dict(batch_size=4, max_steps=1, progress=False, seed=0, checkpoint_every=0)
+    config.update(cfg)
+    return E2ETrainer(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0)), kernel_fn,
+                      objective.reference_kernel(), images, psf_terms_fn=psf_terms,
+                      weights=dict(contrast=0, slr=0), config=config, n_layers=2, base_channels=4,
+                      scene_fn=SceneMaker(n=image_size, mode="image"), image_size=image_size)
+
+
+@pytest.fixture(scope="module")
+def images():
+    from arraysel.data import load_dataset
+
+    return load_dataset("mnist", "train", source="sample", limit=8)[0]
+
+
+def test_gradients_reach_selection_logits_through_the_simulator(tiny, images):
+    _, obj = tiny
+    t = make_trainer(obj, images)
+    terms = t.loss_terms(images[:4], tau=3.0)
+    terms["total"].backward()
+    g = t.selection.logits.grad
+    assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) > 0
+    # the physics part alone (L_PSF through the PSF model) also reaches the logits
+    t.selection.logits.grad = None
+    t.loss_terms(images[:4], tau=3.0)["psf"].backward()
+    assert float(t.selection.logits.grad.abs().sum()) > 0
+
+
+def test_one_step_decreases_the_loss_on_a_fixed_batch(tiny, images):
+    _, obj = tiny
+    t = make_trainer(obj, images, lr_mask=1e-3, lr_ista=1e-3, lr_head=1e-3)
+    batch = images[:4]
+    t.selection.eval()  # deterministic selection: the same P before and after the step
+
+    def loss():
+        return t.loss_terms(batch, tau=1.2, generator=torch.Generator().manual_seed(0))["total"]
+
+    before = loss()
+    t.optimizer.zero_grad()
+    before.backward()
+    t.optimizer.step()
+    with torch.no_grad():
+        after = loss()
+    assert float(after) < float(before.detach())
+
+
+def test_learned_selection_has_k_distinct_elements(tiny, images):
+    _, obj = tiny
+    t = make_trainer(obj, images, max_steps=2)
+    t.train()
+    idx = t.learned_indices().tolist()
+    assert len(idx) == K == len(set(idx)) and all(0 <= i < NE for i in idx)
+
+
+def test_kernel_is_cropped_to_the_image_size(tiny):
+    from arraysel.training import fit_kernel
+
+    _, obj = tiny
+    ref = obj.reference_kernel()
+    assert ref.shape == (32, 32)
+    crop = fit_kernel(ref, 16)
+    assert crop.shape == (16, 16) and crop[8, 8] == ref[16, 16]
+    pad = fit_kernel(ref, 40)
+    assert pad.shape == (40, 40) and pad[20, 20] == ref[16, 16]
+    assert torch.isclose(pad.abs().pow(2).sum(), ref.abs().pow(2).sum())
+
+
+def test_settings_profiles():
+    from arraysel.e2e import resolve_settings
+
+    scene = load_scene("paper-e2e")
+    full = resolve_settings(scene, full=True)
+    assert (full.image_size, full.batch_size, full.epochs, full.steps) == (128, 64, 100, None)
+    assert (full.lr_mask, full.lr_ista, full.lr_head, full.tau_steps, full.ista_layers) == (
+        1e-4, 5e-4, 1e-4, 1500, 8)
+    quick = resolve_settings(scene)
+    assert quick.image_size <= 64 and quick.steps is not None and quick.source == "sample"
+    assert resolve_settings(scene, epochs=2).steps is None
+    assert resolve_settings(scene, dataset="fashion", seed=3).dataset == "fashion"
+
+
+def test_paper_scene_is_refused():
+    from arraysel.e2e import run_training
+    from arraysel.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="nothing to train"):
+        run_training("paper", out_dir="/nonexistent/never-written")
+
+
+def test_cli_runs_end_to_end_and_resumes(tmp_path, capsys):
+    scene_file = tmp_path / "tiny.toml"
+    scene_file.write_text(TINY_TOML)
+    out = tmp_path / "run"
+    argv = ["train", "--scene", str(scene_file), "--steps", "3", "--batch-size", "2",
+            "--image-size", "16", "--channels", "4", "--finetune-steps", "1", "--n-test", "4",
+            "--out", str(out)]
+    assert cli_main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "step      3/3" in printed and "rec=" in printed and "PSNR" in printed
+    from arraysel.e2e import OUTPUT_FILES
+    for name in OUTPUT_FILES:
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert not [p for p in os.listdir(out) if p.endswith(".tmp")]
+    sel = [int(v) for v in (out / "mask.txt").read_text().splitlines()[-1].split(",")]
+    assert len(sel) == K == len(set(sel))
+    assert json.loads((out / "mask.json").read_text())["elements"] == sel
+    with open(out / "table1.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert [r["config"] for r in table] == ["learned", "uniform", "random", "full"]
+    assert float(table[3]["L_PSF"]) < 1e-6
+    with open(out / "reconstruction.csv") as fh:
+        rec = list(csv.DictReader(fh))
+    assert [r["config"] for r in rec] == ["learned", "uniform", "random", "full"]
+    for r in rec:
+        for key in ("mse", "psnr", "ssim", "psnr_blurred", "ssim_blurred"):
+            assert r[key] not in ("", "nan")
+    for png in ("fig_mask.png", "fig_psf.png", "fig_images.png", "fig_loss.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # resume: 2 more steps continue from the checkpoint; other settings are refused
+    assert cli_main(argv[:4] + ["5"] + argv[5:] + ["--resume", "--no-figures"]) == 2  # steps differ
+    assert "other settings" in capsys.readouterr().err
+
+
+def test_resume_continues_the_checkpoint(tmp_path):
+    from arraysel.e2e import run_training
+
+    kw = dict(out_dir=str(tmp_path), steps=2, batch_size=2, image_size=16, base_channels=4,
+              finetune_steps=0, n_test=2, figures=False, log=None, ista_layers=2)
+    first = run_training(load_scene(TINY), **kw)
+    again = run_training(load_scene(TINY), resume=True, **kw)
+    assert again["steps"] == first["steps"] == 2
+    assert again["history"] == first["history"]  # nothing retrained: the checkpoint is complete
+    assert again["learned"] == first["learned"]
+
+
+def test_paper_scene_needs_no_network_and_no_data(paper_objective):
+    """Building and evaluating the `paper` objective imports none of the training modules."""
+    code = (
+        "import sys\n"
+        "from arraysel.cli import build_parser\n"
+        "build_parser()\n"
+        "from arraysel.objective import build_objective\n"
+        "obj = build_objective('paper')\n"
+        "res = obj.evaluate([[1.0, 0.0] * 32])\n"
+        "assert res['L_PSF'][0] > 0\n"
+        "bad = [m for m in ('arraysel.recon', 'arraysel.data', 'arraysel.training', 'arraysel.e2e')"
+        " if m in sys.modules]\n"
+        "print('IMPORTED', bad)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "IMPORTED []" in out.stdout
