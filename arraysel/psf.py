@@ -378,7 +378,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 3
+_BASIS_VERSION = 4
 
 
 def window_and_normalise(img: torch.Tensor, size: int, peak=None) -> torch.Tensor:
@@ -412,12 +412,15 @@ def _scale_complex(x: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     return torch.view_as_complex(torch.view_as_real(x) / s.reshape(-1, *([1] * x.dim())))
 
 
-def _unit_norm(win: torch.Tensor, top: torch.Tensor) -> torch.Tensor:
+def _unit_norm(win: torch.Tensor, top: torch.Tensor, with_norm: bool = False):
     """Windows (B, h, w) divided by their L2 norm; ``top`` (B,) > 0 is a detached scale
-    (the peak magnitude) applied first, so squares of tiny or huge values cannot under/overflow."""
-    win = _scale_complex(win, top.detach().to(win.real.dtype))
+    (the peak magnitude) applied first, so squares of tiny or huge values cannot under/overflow.
+    With ``with_norm`` also the (detached) norms themselves."""
+    top = top.detach().to(win.real.dtype)
+    win = _scale_complex(win, top)
     norm = torch.linalg.vector_norm(win.reshape(win.shape[0], -1), dim=1)
-    return _scale_complex(win, torch.where(norm > 0, norm, torch.ones_like(norm)))
+    out = _scale_complex(win, torch.where(norm > 0, norm, torch.ones_like(norm)))
+    return (out, norm.detach() * top) if with_norm else out
 
 
 def _csr(crow, col, val, size):
@@ -483,6 +486,8 @@ class _PairBasis:
         self.strip_cols = torch.cat([torch.arange(0, self.cols.start), torch.arange(self.cols.stop, s.n_x)])
         self.npix2 = self.shape[0] * self.strip_cols.numel()
         self.e_idx, self.j_idx = pair_index(ne)
+        self.blocks2 = torch.nonzero(self._outside_blocks()[1])  # (nQ2, 2): rows of S2 as (qz, qx)
+        self._block_plans: dict = {}
         if _state is not None:
             self._set_state(_state)
             return
@@ -505,8 +510,9 @@ class _PairBasis:
         else:
             col2 = 0.0
             self.H2 = torch.zeros(self.e_idx.numel(), 0, dtype=model.dtype, device=model.device)
-        #: [max residual pixel-column norm of U V, max pixel-column norm of H1, of H2]
-        self.err = torch.tensor([rho, float(col1.max()), col2], dtype=torch.float64)
+        #: [max residual pixel-column norm of U V, max pixel-column norm of H1, of H2,
+        #:  largest discarded singular value of H1]
+        self.err = torch.tensor([rho, float(col1.max()), col2, self.sigma_next], dtype=torch.float64)
         self._build_certificates(pair_iq)
 
     # ------------------------------------------------------------------ precomputation
@@ -566,8 +572,10 @@ class _PairBasis:
         if rank * (P + H.shape[1]) < 0.9 * P * H.shape[1]:
             U = evecs[:, :rank]
             V = U.T @ H
+            self.sigma_next = float(evals[rank].sqrt()) if rank < P else 0.0
             return (U.to(model.device, model.dtype), V.to(model.device, model.dtype), rank,
                     float(tail[rank - 1] / total))
+        self.sigma_next = 0.0
         return None, H.to(model.device, model.dtype), P, 0.0
 
     def _build_certificates(self, pair_iq):
@@ -609,17 +617,24 @@ class _PairBasis:
                 hi_b = hi_p.reshape(nq, b, nbx, b, ne).amax(dim=(1, 3))
                 lo[n, q0:q0 + nq] = torch.minimum(lo[n, q0:q0 + nq], lo_b)
                 hi[n, q0:q0 + nq] = torch.maximum(hi[n, q0:q0 + nq], hi_b)
-        bz = torch.arange(nbz)
-        bx = torch.arange(nbx)
-        in_rows = (bz * b >= self.rows.start) & ((bz + 1) * b <= self.rows.stop)
-        in_cols = (bx * b >= self.cols.start) & ((bx + 1) * b <= self.cols.stop)
-        outside1 = ~(in_rows[:, None] & in_cols[None, :])
-        outside2 = ~(in_rows[:, None] & torch.ones(nbx, dtype=torch.bool)[None, :])
+        outside1, outside2 = self._outside_blocks()
         has_all = hi >= lo
         length = torch.where(has_all, hi - lo + 1, torch.zeros_like(lo))
         self.L = max(1, int(length.max()))
         self.S1 = self._block_matrix(lo, hi, outside1)
         self.S2 = self._block_matrix(lo, hi, outside2)
+
+    def _outside_blocks(self):
+        """(nbz, nbx) bool masks of the blocks not inside E (tier 1) and not inside the band (tier 2)."""
+        s = self.model.setup
+        b = self.model.block
+        bz = torch.arange(-(-s.n_z // b))
+        bx = torch.arange(-(-s.n_x // b))
+        in_rows = (bz * b >= self.rows.start) & ((bz + 1) * b <= self.rows.stop)
+        in_cols = (bx * b >= self.cols.start) & ((bx + 1) * b <= self.cols.stop)
+        outside1 = ~(in_rows[:, None] & in_cols[None, :])
+        outside2 = ~(in_rows[:, None] & torch.ones(bx.numel(), dtype=torch.bool)[None, :])
+        return outside1, outside2
 
     def _block_matrix(self, lo, hi, outside):
         """Sparse (nQ, ntx*Ne*T) matrix summing, per block, the sliding-max envelopes at lo."""
@@ -678,11 +693,14 @@ class _PairBasis:
         return pair_products(w, self.e_idx.to(w.device), self.j_idx.to(w.device))
 
     def images(self, w: torch.Tensor, with_error: bool = False):
-        """Images on region E, (B, nzE, nxE) complex [and a (B,) bound of the error of |I|].
+        """Images on region E, (B, nzE, nxE) complex [and two (B,) error bounds].
 
-        The error bound covers the SVD truncation, ``|c (I - U U^T) H_p| <= |c - (c U) U^T| rho``
-        with ``rho`` the largest residual pixel-column norm (rigorous), plus a rounding
-        allowance ``2 sqrt(P) u |c| max_p |H_p|`` (u: the unit roundoff of the dtype).
+        The error bounds cover the SVD truncation and rounding. Per pixel,
+        ``|c (I - U U^T) H_p| <= |c - (c U) U^T| rho`` with ``rho`` the largest residual
+        pixel-column norm; on any set of pixels (the kernel window) in L2,
+        ``<= |c - (c U) U^T| sigma_{r+1}`` (both rigorous). The rounding allowance is
+        ``2 sqrt(P) u |c| max_p |H_p|`` per pixel (u: the unit roundoff of the dtype), times
+        the window side in L2.
         """
         c = self._pairs(w)
         if self.U is not None:
@@ -699,7 +717,8 @@ class _PairBasis:
             u = torch.finfo(c.dtype).eps / 2
             rnd = 2 * math.sqrt(c.shape[1]) * u * cn2.sqrt() * float(self.err[1:].max())
             eps = resid * float(self.err[0]) + rnd
-        return img, eps
+            win_err = resid * float(self.err[3]) + rnd * self.model.setup.window
+        return img, eps, win_err
 
     def band_images(self, w: torch.Tensor, img_e: torch.Tensor | None = None) -> torch.Tensor:
         """Images on the full-width band (B, nzE, n_x) complex."""
@@ -711,37 +730,109 @@ class _PairBasis:
         left = self.cols.start
         return torch.cat([strips[:, :, :left], img_e, strips[:, :, left:]], dim=2)
 
-    def bound(self, w: torch.Tensor, tier: int = 1) -> torch.Tensor:
-        """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2)."""
+    def channels(self, w: torch.Tensor) -> torch.Tensor:
+        """I/Q channel signals (B, ntx, Ne, T) complex of selections w: ``m_e sum_j m_j A_nej``."""
+        ne = self.model.n_elements
+        ntx = len(self.model.transmits)
+        y = w @ self.A
+        half = y.shape[1] // 2
+        x = torch.complex(y[:, :half], y[:, half:]).reshape(w.shape[0], ntx, ne, self.T)
+        return x * w.to(x.dtype)[:, None, :, None]
+
+    def envelopes(self, w: torch.Tensor) -> torch.Tensor:
+        """Sliding-max channel envelopes (ntx * Ne * T, B): ``max_{s in [t, t+L)} |X_ne(s)|``."""
+        ne = self.model.n_elements
+        ntx = len(self.model.transmits)
+        B = w.shape[0]
+        y = self.A.T @ w.T  # (2 ntx Ne T, B)
+        half = y.shape[0] // 2
+        env = torch.hypot(y[:half], y[half:]).reshape(ntx, ne, self.T, B)
+        env = env * w.abs().T[None, :, None, :]
+        # running max over windows of L samples (zeros past the end): doubling, then two overlapping
+        # windows of the largest power of two <= L
+        width = 1
+        while 2 * width <= self.L:
+            shifted = torch.nn.functional.pad(env[:, :, width:], (0, 0, 0, width))
+            env = torch.maximum(env, shifted)
+            width *= 2
+        if width < self.L:
+            d = self.L - width
+            env = torch.maximum(env, torch.nn.functional.pad(env[:, :, d:], (0, 0, 0, d)))
+        return env.reshape(-1, B)
+
+    def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
+        """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2);
+        with ``per_block`` the (nQ, B) bounds of every block. ``env``: :meth:`envelopes` of w."""
         S = self.S1 if tier == 1 else self.S2
         B = w.shape[0]
         if S.shape[0] == 0:
-            return torch.zeros(B, dtype=w.dtype, device=w.device)
-        ne = self.model.n_elements
-        ntx = len(self.model.transmits)
-        y = w @ self.A  # (B, 2 * ntx * Ne * T)
-        half = y.shape[1] // 2
-        env = torch.sqrt(y[:, :half] ** 2 + y[:, half:] ** 2).reshape(B, ntx, ne, self.T)
-        env = env * w.abs()[:, None, :, None]
-        if self.L > 1:
-            env = torch.nn.functional.pad(env.reshape(B * ntx * ne, 1, self.T), (0, self.L - 1))
-            env = torch.nn.functional.max_pool1d(env, self.L, stride=1)
-        bounds = torch.sparse.mm(S, env.reshape(B, -1).T.contiguous())  # (nQ, B)
-        return bounds.amax(dim=0)
+            return torch.zeros((0, B) if per_block else B, dtype=w.dtype, device=w.device)
+        if env is None:
+            env = self.envelopes(w)
+        bounds = torch.sparse.mm(S, env)  # (nQ, B)
+        return bounds if per_block else bounds.amax(dim=0)
 
-    @staticmethod
-    def _peak_window(img, row0, col0, s, rows, cols):
-        """Peak of |img| (B, h, w) placed at grid offset (row0, col0); window start and fit flag."""
-        B, h, wd = img.shape
-        mag = img.detach().abs().reshape(B, -1)
-        val, arg = mag.max(dim=1)
-        pz = arg // wd + row0
-        px = arg % wd + col0
-        z0 = _window_start(pz, s.window, s.n_z)
-        x0 = _window_start(px, s.window, s.n_x)
-        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
-               (x0 + s.window <= cols.stop)
-        return val, z0, x0, fits
+    #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
+    refine_max_blocks = 256
+    #: block DAS plans kept in memory (one block: ntx x block^2 x Ne entries)
+    plan_cache_blocks = 1024
+
+    def _plans_for_block(self, qz: int, qx: int) -> list:
+        """DAS plans (one (i0, w, rot) per transmit) of the pixels of grid block (qz, qx),
+        row-major, clipped to the grid; cached."""
+        plans = self._block_plans.get((qz, qx))
+        if plans is None:
+            model = self.model
+            s = model.setup
+            b = model.block
+            Z, X = torch.meshgrid(model._zg[qz * b:(qz + 1) * b], model._xg[qx * b:(qx + 1) * b], indexing="ij")
+            plans = []
+            for t in model.transmits:
+                p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                             fc=s.probe.fc)
+                plans.append((p.i0.to(model.device), p.w.to(model.device, model.dtype),
+                              p.rot.to(model.device, model.cdtype)))
+            if len(self._block_plans) < self.plan_cache_blocks:
+                self._block_plans[(qz, qx)] = plans
+        return plans
+
+    def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
+        """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
+        ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
+        plans = [self._plans_for_block(qz, qx) for qz, qx in blocks]
+        img = 0
+        for n in range(len(self.model.transmits)):
+            parts = [tuple(a[r] for a in pl[n]) if rows is not None else pl[n] for pl, r in
+                     zip(plans, rows if rows is not None else [None] * len(plans))]
+            i0, wt, rot = (torch.cat([pt[j] for pt in parts]) for j in range(3))
+            img = img + das_apply(X[n], i0, wt, rot)
+        return img
+
+    def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None) -> torch.Tensor:
+        """Settle selections whose tier-2 certificate failed: (B,) True where the exact image on
+        every block whose bound reaches ``threshold`` (the peak less its error bound) stays below it.
+
+        The exact values come from delay-and-sum of the selection's I/Q channels
+        (:meth:`channels`) on those blocks only, so a selection with a few loose blocks costs
+        milliseconds instead of a whole-grid exact image.
+        """
+        B = w.shape[0]
+        out = torch.zeros(B, dtype=torch.bool)
+        if self.S2.shape[0] == 0 or B == 0:
+            return out
+        w = w.detach()
+        bounds = self.bound(w, 2, per_block=True, env=env)  # (nQ, B)
+        X = self.channels(w)
+        for i in range(B):
+            flagged = torch.nonzero(bounds[:, i] >= threshold[i]).flatten().tolist()
+            if not flagged:
+                out[i] = True
+                continue
+            if len(flagged) > self.refine_max_blocks:
+                continue
+            img = self._das(X[i], [tuple(int(v) for v in self.blocks2[q]) for q in flagged])
+            out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
+        return out
 
     @staticmethod
     def _cut(img, z0, x0, size):
@@ -752,44 +843,103 @@ class _PairBasis:
         bi = torch.arange(B, device=img.device)[:, None, None]
         win = img[bi, zi, xi]
         top = win.detach().abs().reshape(B, -1).amax(dim=1)
-        return _unit_norm(win, torch.where(top > 0, top, torch.ones_like(top)))
+        return _unit_norm(win, torch.where(top > 0, top, torch.ones_like(top)), with_norm=True)
 
-    @staticmethod
-    def _unambiguous(img, val, eps):
-        """(B,) True where no other pixel of img is within 2 eps of the peak value ``val``
-        (else the arg-max, and the window with it, may differ from the exact image's)."""
-        mag = img.detach().abs().reshape(img.shape[0], -1)
-        return (mag >= (val - 2 * eps)[:, None]).sum(dim=1) <= 1
+    #: at most this many pixels tied with the peak (within the error bound) are settled exactly
+    max_ties = 256
+    #: largest bound of the relative L2 error of a fast-path kernel window (else: exact path)
+    kernel_tol = 5e-3
+
+    def _exact_pixels(self, X: torch.Tensor, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+        """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
+        channels ``X`` (ntx, Ne, T) (delay-and-sum with the cached block plans, as the exact path)."""
+        s = self.model.setup
+        b = self.model.block
+        zi, xi = zi.cpu(), xi.cpu()
+        blocks, rows, order = [], [], []
+        qz, qx = zi // b, xi // b
+        for z_, x_ in torch.unique(torch.stack([qz, qx], 1), dim=0).tolist():
+            sel = torch.nonzero((qz == z_) & (qx == x_)).flatten()
+            bw = min(b, s.n_x - x_ * b)
+            blocks.append((z_, x_))
+            rows.append((zi[sel] - z_ * b) * bw + (xi[sel] - x_ * b))
+            order.append(sel)
+        vals = self._das(X, blocks, rows)
+        out = torch.empty_like(vals)
+        out[torch.cat(order).to(vals.device)] = vals
+        return out
+
+    def _locate(self, img: torch.Tensor, eps: torch.Tensor, w: torch.Tensor, row0: int, col0: int):
+        """Peak pixel of the exact image, from an approximation ``img`` (B, h, wd) at grid offset
+        (row0, col0) whose |.| error is at most ``eps`` (B,).
+
+        Every pixel within 2 eps of the approximate peak may be the exact peak: those are
+        evaluated exactly (:meth:`_exact_pixels`) and the largest wins (the first in row-major
+        order, as ``argmax`` on the exact image). Returns the peak's grid row and column, a lower
+        bound ``thr`` of the exact peak value and a flag (False: more than :attr:`max_ties` ties,
+        or an all-zero image).
+        """
+        B, h, wd = img.shape
+        with torch.no_grad():
+            mag = img.detach().abs().reshape(B, -1)
+            val, arg = mag.max(dim=1)
+            cand = mag >= (val - 2 * eps)[:, None]
+            n = cand.sum(dim=1)
+            ok = (val > 0) & (n <= self.max_ties)
+            amb = torch.nonzero(ok & (n > 1)).flatten()
+            if amb.numel():
+                X = self.channels(w[amb].detach())
+                arg = arg.clone()
+                for i, b in enumerate(amb.tolist()):
+                    idx = torch.nonzero(cand[b]).flatten()
+                    v = self._exact_pixels(X[i], idx // wd + row0, idx % wd + col0).abs()
+                    arg[b] = idx[int(torch.argmax(v))]
+        return arg // wd + row0, arg % wd + col0, val - eps, ok
+
+    def _windows(self, pz, px, rows, cols):
+        s = self.model.setup
+        z0 = _window_start(pz, s.window, s.n_z)
+        x0 = _window_start(px, s.window, s.n_x)
+        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
+               (x0 + s.window <= cols.stop)
+        return z0, x0, fits
 
     def kernels(self, w: torch.Tensor):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
 
-        Certified: the window fits in the region, the peak (less its error bound) beats the
-        bound of |I| outside the region, and no other pixel ties with the peak within the
-        error bound.
+        Certified: the exact peak is located (pixels tied with the approximate peak within the
+        error bound are evaluated exactly), its window fits in the region, and the lower bound of
+        the peak beats the bound of |I| outside the region (tier 1: E; tier 2: the band, whose
+        loose blocks are then beamformed exactly, :meth:`refine`).
         """
         s = self.model.setup
-        img, eps = self.images(w, with_error=True)
-        val, z0, x0, fits = self._peak_window(img, self.rows.start, self.cols.start, s, self.rows, self.cols)
+        img, eps, win_err = self.images(w, with_error=True)
+        pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
+        z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
         with torch.no_grad():
-            val = val.detach()
-            ok = fits & (self.bound(w.detach(), 1) < val - eps) & (val > 0) & self._unambiguous(img, val, eps)
+            env = self.envelopes(w.detach())
+            ok = ok & fits & (self.bound(w.detach(), 1, env=env) < thr)
         z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
-        out = self._cut(img, z0e, x0e, s.window)
+        out, norm = self._cut(img, z0e, x0e, s.window)
+        ok = ok & (win_err <= self.kernel_tol * norm)
         todo = torch.nonzero(~ok).flatten()
         if todo.numel() and self.npix2:
             w2 = w[todo]
             band = self.band_images(w2, img[todo])
-            full_cols = slice(0, s.n_x)
-            val2, z02, x02, fits2 = self._peak_window(band, self.rows.start, 0, s, self.rows, full_cols)
+            pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.rows.start, 0)
+            z02, x02, fits2 = self._windows(pz2, px2, self.rows, slice(0, s.n_x))
             with torch.no_grad():
-                e2 = eps[todo]
-                ok2 = fits2 & (self.bound(w2.detach(), 2) < val2 - e2) & (val2 > 0) & \
-                    self._unambiguous(band, val2, e2)
-            z0b = torch.where(ok2, z02 - self.rows.start, torch.zeros_like(z02))
-            k2 = self._cut(band, z0b, torch.where(ok2, x02, torch.zeros_like(x02)), s.window)
-            sel = torch.nonzero(ok2).flatten()
+                ok2 = ok2 & fits2
+                env2 = env[:, todo]
+                passed = ok2 & (self.bound(w2.detach(), 2, env=env2) < thr2)
+                retry = torch.nonzero(ok2 & ~passed).flatten()
+                if retry.numel():
+                    passed[retry] = self.refine(w2[retry], thr2[retry], env=env2[:, retry]).to(passed.device)
+            z0b = torch.where(passed, z02 - self.rows.start, torch.zeros_like(z02))
+            k2, norm2 = self._cut(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
+            passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
+            sel = torch.nonzero(passed).flatten()
             if sel.numel():
                 out = out.index_put((todo[sel],), k2[sel])
                 ok = ok.clone()
