@@ -40,17 +40,10 @@ _EXTRA = ("L_SLR", "gradient_steps", "overhead_seconds", "seeds", "best_seed", "
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to a temporary file next to ``path`` and ``os.replace`` it."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``text`` (UTF-8) to a temporary file next to ``path`` and ``os.replace`` it."""
+    from .maskio import atomic_write_bytes
+
+    atomic_write_bytes(os.fspath(path), text.encode("utf-8"))
 
 
 def write_json(path, data: Any) -> None:

@@ -16,13 +16,7 @@ from arraysel.data import (SceneMaker, find_idx_files, genscat, grid_coordinates
 from arraysel.errors import ParameterError
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: one intra-op thread is far faster on a shared machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _raw_idx(arr: np.ndarray, code: int) -> bytes:

@@ -15,13 +15,7 @@ from arraysel.training import (E2ETrainer, HardSTESelection, LossWeights, TrainC
 NE, K, N = 16, 6, 32
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: one intra-op thread is far faster on a shared machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def toy_kernel_fn(ne: int = NE, n: int = N):
