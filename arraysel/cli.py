@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from .allocator import tune_malloc
+
+    tune_malloc()
     try:
         return int(args.func(args) or 0)
     except ArrayselError as exc:

@@ -216,6 +216,9 @@ def _run_on_worker(token: str, fn: Callable, item):
 
 
 def _process_init(token: str, factory, threads: int) -> None:
+    from .allocator import tune_malloc
+
+    tune_malloc()
     if threads:
         try:
             import torch

@@ -142,12 +142,17 @@ class PSFModel:
     device : torch device.
     margin : pixels added on each side of the window for the fast path's
         exact region ``E``; block : side (pixels) of the bound blocks.
+    rank_tol : energy fraction the fast path's truncated SVD of the pair images on ``E`` may
+        discard (``benchmarks/work_precision.py`` measures error and time against it). The
+        stored basis keeps more (``_BUILD_RANK_TOL``); every kernel carries a rigorous error
+        bound, and one whose bound exceeds ``kernel_tol`` of its norm is retried at the stored
+        rank, then on the exact path, so this trades speed only against how often that happens.
 
     The precomputation itself always runs in float64.
     """
 
     def __init__(self, setup: PSFSetup, dtype=torch.float32, device="cpu", margin: int = 8, block: int = 8,
-                 fast: bool = True, plan_cache_elements: int = 80_000_000):
+                 fast: bool = True, plan_cache_elements: int = 80_000_000, rank_tol: float = 1e-6):
         if dtype not in (torch.float32, torch.float64):
             raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
         self.setup = setup
@@ -157,6 +162,7 @@ class PSFModel:
         self.n_elements = setup.probe.n_elements
         self.margin = int(check_number("margin", margin, lo=0, hi=4096, integer=True))
         self.block = int(check_number("block", block, lo=1, hi=4096, integer=True))
+        self.rank_tol = float(check_number("rank_tol", rank_tol, lo=0, hi=1, lo_open=True, hi_open=True))
         self._build_transmits()
         self._xg = torch.as_tensor(setup.x, dtype=torch.float64)
         self._zg = torch.as_tensor(setup.z, dtype=torch.float64)
@@ -173,7 +179,8 @@ class PSFModel:
                              "set ARRAYSEL_BASIS_MAX_GIB to allow more); using the exact path",
                              need / 2 ** 30, limit / 2 ** 30)
             else:
-                self.fast = _load_or_build_basis(self)
+                full = _load_or_build_basis(self)
+                self.fast = full.truncated(full.rank_for(self.rank_tol))
         self._ref = None
 
     def basis_bytes(self) -> int:
@@ -356,7 +363,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     from . import __version__
 
     key = hashlib.sha256(repr((__version__, _BASIS_VERSION, model.setup, str(model.dtype), model.margin,
-                               model.block)).encode()).hexdigest()[:24]
+                               model.block, _BUILD_RANK_TOL)).encode()).hexdigest()[:24]
     folder = cache_dir()
     path = os.path.join(folder, f"psf-basis-{key}.pt") if folder else None
     if path and os.path.exists(path):
@@ -365,7 +372,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
             return _PairBasis.from_state(model, state)
         except Exception:  # a corrupt or stale cache entry is rebuilt
             pass
-    basis = _PairBasis(model)
+    basis = _PairBasis(model, rank_tol=_BUILD_RANK_TOL)
     if path:
         try:
             os.makedirs(folder, exist_ok=True)
@@ -378,7 +385,9 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 4
+_BASIS_VERSION = 5
+#: energy fraction the stored SVD of the pair images on E discards (runs truncate further)
+_BUILD_RANK_TOL = 1e-7
 
 
 def window_and_normalise(img: torch.Tensor, size: int, peak=None) -> torch.Tensor:
@@ -418,7 +427,7 @@ def _unit_norm(win: torch.Tensor, top: torch.Tensor, with_norm: bool = False):
     With ``with_norm`` also the (detached) norms themselves."""
     top = top.detach().to(win.real.dtype)
     win = _scale_complex(win, top)
-    norm = torch.linalg.vector_norm(win.reshape(win.shape[0], -1), dim=1)
+    norm = torch.linalg.vector_norm(torch.view_as_real(win).reshape(win.shape[0], -1), dim=1)
     out = _scale_complex(win, torch.where(norm > 0, norm, torch.ones_like(norm)))
     return (out, norm.detach() * top) if with_norm else out
 
@@ -460,14 +469,20 @@ class _PairBasis:
     Linear interpolation and unit phase rotations cannot exceed the larger
     neighbouring sample, so on a block Q of pixels
     ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_neQ} |X_ne(t)|``, where
-    ``[lo, hi]`` spans the samples the block's pixels read. Certificate 1
-    covers the blocks not inside E, certificate 2 the blocks not inside the
-    band. A selection is done at tier 1 when its peak in E beats certificate 1
-    (and its window fits in E), at tier 2 when its peak in the band beats
-    certificate 2; otherwise the exact path recomputes it.
+    ``[lo, hi]`` spans the samples the block's pixels read. The maxima come from
+    aligned segments of :attr:`seg` samples: ``[lo, hi]`` lies inside segments
+    ``lo // seg .. hi // seg``, and the envelope of every run of 1 .. M
+    consecutive segments is formed once per batch (:meth:`envelopes`), so one
+    sparse product sums the right run for every (block, transmit, element).
+    Certificate 1 covers the blocks not inside E, certificate 2 the blocks not
+    inside the band. A selection is done at tier 1 when its peak in E beats
+    certificate 1 (and its window fits in E), or when the blocks whose bound
+    reaches the peak are beamformed exactly and stay below it
+    (:meth:`refine`); at tier 2 likewise on the band; otherwise the exact path
+    recomputes it.
     """
 
-    def __init__(self, model: PSFModel, rank_tol: float = 1e-7, _state: dict | None = None):
+    def __init__(self, model: PSFModel, rank_tol: float = 1e-6, _state: dict | None = None):
         s = model.setup
         self.model = model
         ne = model.n_elements
@@ -486,8 +501,14 @@ class _PairBasis:
         self.strip_cols = torch.cat([torch.arange(0, self.cols.start), torch.arange(self.cols.stop, s.n_x)])
         self.npix2 = self.shape[0] * self.strip_cols.numel()
         self.e_idx, self.j_idx = pair_index(ne)
-        self.blocks2 = torch.nonzero(self._outside_blocks()[1])  # (nQ2, 2): rows of S2 as (qz, qx)
+        outside1, outside2 = self._outside_blocks()
+        self.blocks1 = torch.nonzero(outside1)  # (nQ1, 2): rows of S1 as (qz, qx)
+        self.blocks2 = torch.nonzero(outside2)  # (nQ2, 2): rows of S2 as (qz, qx)
+        self._strip_layout()
         self._block_plans: dict = {}
+        #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
+        #: error bound fails here are retried there before the exact path
+        self.finer = None
         if _state is not None:
             self._set_state(_state)
             return
@@ -501,11 +522,14 @@ class _PairBasis:
             rho = float(resid.max())
         else:
             rho = 0.0
+        self.core_pix = self._core_pixels()
+        self.Hc = torch.cat([H1[:, self.core_pix], H1[:, self.npix + self.core_pix]], dim=1).to(model.device,
+                                                                                               model.dtype)
         del H1
         if self.npix2:
             H2 = self._pair_images(pair_iq, self.strip_cols)
             col2 = float(_pixel_norms(H2).max())
-            self.H2 = H2.to(model.device, model.dtype)
+            self.H2 = H2[:, self.h2_cols].to(model.device, model.dtype)
             del H2
         else:
             col2 = 0.0
@@ -516,6 +540,49 @@ class _PairBasis:
         self._build_certificates(pair_iq)
 
     # ------------------------------------------------------------------ precomputation
+    def _strip_layout(self):
+        """Column order of ``H2``: block-major, so the pair images of one grid block of the strips
+        are ``2 block^2`` adjacent columns ([re | im] of its pixels, row-major), followed by the
+        pixels no whole block covers. Sets ``h2_cols`` (old [re | im] column of each new column),
+        its inverse ``h2_inv`` and ``strip_block_col`` (nQ1,): the first column of each tier-1
+        block in ``H2``, -1 where the block is not wholly inside the strips."""
+        s = self.model.setup
+        b = self.model.block
+        nstrip = self.strip_cols.numel()
+        qz, qx = self.blocks1[:, 0], self.blocks1[:, 1]
+        in_rows = (qz * b >= self.rows.start) & ((qz + 1) * b <= self.rows.stop)
+        in_grid = (qx + 1) * b <= s.n_x
+        in_strip = ((qx + 1) * b <= self.cols.start) | (qx * b >= self.cols.stop)
+        whole = torch.nonzero(in_rows & in_grid & in_strip).flatten()
+        ar = torch.arange(b)
+        z = qz[whole, None, None] * b + ar[None, :, None] - self.rows.start  # (nW, b, 1)
+        x = qx[whole, None, None] * b + ar[None, None, :]
+        j = torch.where(x < self.cols.start, x, x - (self.cols.stop - self.cols.start))
+        pix = (z * nstrip + j).reshape(whole.numel(), b * b)  # strip pixels of each whole block
+        covered = torch.zeros(self.npix2, dtype=torch.bool)
+        covered[pix.reshape(-1)] = True
+        rest = torch.nonzero(~covered).flatten()
+        self.h2_cols = torch.cat([torch.cat([pix, pix + self.npix2], dim=1).reshape(-1), rest, rest + self.npix2])
+        self.h2_inv = torch.argsort(self.h2_cols)
+        self.strip_block_col = torch.full((self.blocks1.shape[0],), -1, dtype=torch.long)
+        self.strip_block_col[whole] = torch.arange(whole.numel()) * 2 * b * b
+
+    #: half side (pixels) of the core around the scatterer whose exact pair images are kept
+    core = 16
+
+    def _core_pixels(self) -> torch.Tensor:
+        """Row-major E-pixel indices of the core: the (2 core) x (2 core) pixels of E centred on
+        the scatterer, where the peak of a selection's image lies (its pair images, ``Hc``,
+        settle near-ties at the peak without delay-and-sum)."""
+        s = self.model.setup
+        xs, zs = s.scatterer_position
+        iz = int(round(zs / s.pitch - s.z_offset)) - self.rows.start
+        ix = int(round(xs / s.pitch + s.n_x // 2)) - self.cols.start
+        h, w = self.shape
+        zr = torch.arange(max(0, iz - self.core), min(h, iz + self.core))
+        xr = torch.arange(max(0, ix - self.core), min(w, ix + self.core))
+        return (zr[:, None] * w + xr[None, :]).reshape(-1)
+
     def _pair_iq(self, n: int) -> torch.Tensor:
         """I/Q of every (rx e, tx j) pair for transmit n: (Ne, Ne, T) complex128."""
         t = self.model.transmits[n]
@@ -578,6 +645,9 @@ class _PairBasis:
         self.sigma_next = 0.0
         return None, H.to(model.device, model.dtype), P, 0.0
 
+    #: samples per aligned envelope segment of the certificates
+    seg = 4
+
     def _build_certificates(self, pair_iq):
         model = self.model
         s = model.setup
@@ -585,6 +655,7 @@ class _PairBasis:
         ntx = len(model.transmits)
         b = model.block
         T = max(x.shape[-1] for x in pair_iq)
+        T = -(-T // self.seg) * self.seg  # whole segments (zero padded)
         A = torch.zeros(ne, ntx, ne, T, dtype=torch.complex128)
         for n, iq in enumerate(pair_iq):
             A[:, n, :, : iq.shape[-1]] = iq.permute(1, 0, 2)
@@ -618,9 +689,11 @@ class _PairBasis:
                 lo[n, q0:q0 + nq] = torch.minimum(lo[n, q0:q0 + nq], lo_b)
                 hi[n, q0:q0 + nq] = torch.maximum(hi[n, q0:q0 + nq], hi_b)
         outside1, outside2 = self._outside_blocks()
+        hi = hi.clamp(max=T - 1)
         has_all = hi >= lo
-        length = torch.where(has_all, hi - lo + 1, torch.zeros_like(lo))
-        self.L = max(1, int(length.max()))
+        runs = torch.where(has_all, hi // self.seg - lo // self.seg + 1, torch.zeros_like(lo))
+        #: longest run of consecutive segments a block reads
+        self.L = max(1, int(runs.max()))
         self.S1 = self._block_matrix(lo, hi, outside1)
         self.S2 = self._block_matrix(lo, hi, outside2)
 
@@ -637,32 +710,37 @@ class _PairBasis:
         return outside1, outside2
 
     def _block_matrix(self, lo, hi, outside):
-        """Sparse (nQ, ntx*Ne*T) matrix summing, per block, the sliding-max envelopes at lo."""
+        """Sparse (nQ, ntx*Ne*M*nS) matrix summing, per block, the envelope of the run of
+        segments that holds the block's samples (layout of :meth:`envelopes`)."""
         model = self.model
         ntx, _, _, ne = lo.shape
-        T = self.T
+        M, nS, sg = self.L, self.T // self.seg, self.seg
         qz, qx = torch.nonzero(outside, as_tuple=True)
         nq = qz.numel()
         lo_q = lo[:, qz, qx]
         hi_q = hi[:, qz, qx]
         has = hi_q >= lo_q
+        first = (lo_q // sg).clamp(0, nS - 1)
+        run = (hi_q // sg - lo_q // sg).clamp(0, M - 1)
         n_ar = torch.arange(ntx)[:, None, None]
         e_ar = torch.arange(ne)[None, None, :]
-        col = (n_ar * ne + e_ar) * T + lo_q.clamp(0, T - 1)
+        col = ((n_ar * ne + e_ar) * M + run) * nS + first
         q_ar = torch.arange(nq)[None, :, None].expand_as(col)
         rows_i = q_ar[has]
         cols_i = col[has]
-        order = torch.argsort(rows_i * (ntx * ne * T) + cols_i)
+        width = ntx * ne * M * nS
+        order = torch.argsort(rows_i * width + cols_i)
         rows_i, cols_i = rows_i[order], cols_i[order]
         crow = torch.zeros(nq + 1, dtype=torch.long)
         crow[1:] = torch.cumsum(torch.bincount(rows_i, minlength=nq), 0)
         vals = torch.full((rows_i.numel(),), 1.0 + 1e-4, dtype=model.dtype)  # rounding safety margin
-        return _csr(crow, cols_i, vals, (nq, ntx * ne * T)).to(model.device)
+        return _csr(crow, cols_i, vals, (nq, width)).to(model.device)
 
     # ------------------------------------------------------------------ cache
     def state(self) -> dict:
         st = {"V": self.V.cpu(), "H2": self.H2.cpu(), "A": self.A.cpu(), "err": self.err,
-              "meta": torch.tensor([self.T, self.L, self.rank]), "rank_tail": torch.tensor(self.rank_tail)}
+              "Hc": self.Hc.cpu(), "core_pix": self.core_pix,
+              "meta": torch.tensor([self.T, self.L, self.rank, self.seg]), "rank_tail": torch.tensor(self.rank_tail)}
         if self.U is not None:
             st["U"] = self.U.cpu()
         for name in ("S1", "S2"):
@@ -675,8 +753,9 @@ class _PairBasis:
     def _set_state(self, st: dict):
         dev, dt = self.model.device, self.model.dtype
         self.U = st["U"].to(dev, dt) if "U" in st else None
-        self.V, self.H2, self.A = (st[k].to(dev, dt) for k in ("V", "H2", "A"))
-        self.T, self.L, self.rank = (int(v) for v in st["meta"])
+        self.V, self.H2, self.A, self.Hc = (st[k].to(dev, dt) for k in ("V", "H2", "A", "Hc"))
+        self.core_pix = st["core_pix"].long()
+        self.T, self.L, self.rank, self.seg = (int(v) for v in st["meta"])
         self.rank_tail = float(st["rank_tail"])
         self.err = st["err"].double()
         for name in ("S1", "S2"):
@@ -687,6 +766,41 @@ class _PairBasis:
     @classmethod
     def from_state(cls, model, state):
         return cls(model, _state=state)
+
+    def truncated(self, rank: int) -> "_PairBasis":
+        """A view of this basis keeping the first ``rank`` singular vectors of the pair images on
+        E, with its error constants widened to stay rigorous: the residual pixel-column norm
+        grows by the dropped rows of V (``rho^2 + max_p sum_{i >= rank} |V_ip|^2``) and the
+        largest discarded singular value becomes ``|V_rank|``."""
+        import copy
+
+        out = copy.copy(self)
+        r = int(check_number("rank", rank, lo=1, integer=True))
+        if self.U is None or r >= self.rank:
+            return out
+        n = self.npix
+        tail = self.V[r:].double()
+        pix = (tail[:, :n] ** 2 + tail[:, n:] ** 2).sum(0)
+        sig = (tail ** 2).sum(1)
+        err = self.err.clone()
+        err[0] = math.sqrt(float(err[0]) ** 2 + float(pix.max())) * (1 + 1e-6)
+        err[3] = max(float(sig[0].sqrt()), float(err[3])) * (1 + 1e-6)
+        total = float((self.V.double() ** 2).sum()) / max(1e-300, 1 - self.rank_tail)
+        out.U, out.V, out.rank, out.err = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
+        out.rank_tail = self.rank_tail + float(sig.sum()) / total
+        out.finer = self
+        return out
+
+    def rank_for(self, rank_tol: float) -> int:
+        """Smallest rank whose discarded energy fraction is at most ``rank_tol`` (at most the
+        stored rank)."""
+        if self.U is None:
+            return self.rank
+        sig2 = (self.V.double() ** 2).sum(1)
+        total = float(sig2.sum()) / max(1e-300, 1 - self.rank_tail)
+        tail = total - torch.cumsum(sig2, 0)
+        ok = torch.nonzero(tail <= rank_tol * total).flatten()
+        return int(ok[0]) + 1 if ok.numel() else self.rank
 
     # ------------------------------------------------------------------ evaluation
     def _pairs(self, w):
@@ -714,18 +828,24 @@ class _PairBasis:
         with torch.no_grad():
             cn2 = (c.detach() ** 2).sum(1)
             resid = (cn2 - (cu.detach() ** 2).sum(1)).clamp(min=0).sqrt() if self.U is not None else 0 * cn2
-            u = torch.finfo(c.dtype).eps / 2
-            rnd = 2 * math.sqrt(c.shape[1]) * u * cn2.sqrt() * float(self.err[1:].max())
+            rnd = self._rounding(c.detach(), cn2)
             eps = resid * float(self.err[0]) + rnd
             win_err = resid * float(self.err[3]) + rnd * self.model.setup.window
         return img, eps, win_err
+
+    def _rounding(self, c: torch.Tensor, cn2: torch.Tensor | None = None) -> torch.Tensor:
+        """(B,) rounding allowance of one image pixel ``c @ H_p``: ``2 sqrt(P) u |c| max_p |H_p|``."""
+        if cn2 is None:
+            cn2 = (c ** 2).sum(1)
+        u = torch.finfo(c.dtype).eps / 2
+        return 2 * math.sqrt(c.shape[1]) * u * cn2.sqrt() * float(self.err[1:].max())
 
     def band_images(self, w: torch.Tensor, img_e: torch.Tensor | None = None) -> torch.Tensor:
         """Images on the full-width band (B, nzE, n_x) complex."""
         if img_e is None:
             img_e = self.images(w)
         B = w.shape[0]
-        y = self._pairs(w) @ self.H2
+        y = (self._pairs(w) @ self.H2)[:, self.h2_inv.to(w.device)]
         strips = torch.complex(y[:, : self.npix2], y[:, self.npix2:]).reshape(B, self.shape[0], -1)
         left = self.cols.start
         return torch.cat([strips[:, :, :left], img_e, strips[:, :, left:]], dim=2)
@@ -739,26 +859,41 @@ class _PairBasis:
         x = torch.complex(y[:, :half], y[:, half:]).reshape(w.shape[0], ntx, ne, self.T)
         return x * w.to(x.dtype)[:, None, :, None]
 
+    #: (transmit, element) channels per step of :meth:`envelopes` (keeps the products in cache)
+    env_group = 8
+
     def envelopes(self, w: torch.Tensor) -> torch.Tensor:
-        """Sliding-max channel envelopes (ntx * Ne * T, B): ``max_{s in [t, t+L)} |X_ne(s)|``."""
+        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w.
+
+        Entry (n, e, m, a): ``max |X_ne(t)|`` over segments ``a .. a + m`` (``seg`` samples
+        each; zeros past the end). The channel sums are formed :attr:`env_group` channels at a
+        time and reduced to segment maxima at once, so they never reach main memory; then
+        M - 1 running maxima on the segment array (``seg`` times smaller than the channels).
+        """
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
         B = w.shape[0]
-        y = self.A.T @ w.T  # (2 ntx Ne T, B)
-        half = y.shape[0] // 2
-        env = torch.hypot(y[:half], y[half:]).reshape(ntx, ne, self.T, B)
-        env = env * w.abs().T[None, :, None, :]
-        # running max over windows of L samples (zeros past the end): doubling, then two overlapping
-        # windows of the largest power of two <= L
-        width = 1
-        while 2 * width <= self.L:
-            shifted = torch.nn.functional.pad(env[:, :, width:], (0, 0, 0, width))
-            env = torch.maximum(env, shifted)
-            width *= 2
-        if width < self.L:
-            d = self.L - width
-            env = torch.maximum(env, torch.nn.functional.pad(env[:, :, d:], (0, 0, 0, d)))
-        return env.reshape(-1, B)
+        T = self.T
+        nS = T // self.seg
+        nch = ntx * ne
+        half = self.A.shape[1] // 2
+        a_re, a_im = self.A[:, :half].T, self.A[:, half:].T
+        wt = w.T.contiguous()
+        seg = w.new_empty(nch, nS, B)
+        for g0 in range(0, nch, self.env_group):
+            g1 = min(nch, g0 + self.env_group)
+            yr = a_re[g0 * T: g1 * T] @ wt
+            yi = a_im[g0 * T: g1 * T] @ wt
+            sq = torch.addcmul(yi.square_(), yr, yr)
+            torch.amax(sq.view(g1 - g0, nS, self.seg, B), dim=2, out=seg[g0:g1])
+        seg.sqrt_()
+        seg.view(ntx, ne, nS, B).mul_(w.abs().T[None, :, None, :])
+        env = seg.new_empty(nch, self.L, nS, B)
+        env[:, 0] = seg
+        for m in range(1, self.L):
+            env[:, m, nS - m:] = env[:, m - 1, nS - m:]
+            torch.maximum(env[:, m - 1, : nS - m], seg[:, m:], out=env[:, m, : nS - m])
+        return env.view(-1, B)
 
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
         """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2);
@@ -808,29 +943,56 @@ class _PairBasis:
             img = img + das_apply(X[n], i0, wt, rot)
         return img
 
-    def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None) -> torch.Tensor:
-        """Settle selections whose tier-2 certificate failed: (B,) True where the exact image on
-        every block whose bound reaches ``threshold`` (the peak less its error bound) stays below it.
+    def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None, tier: int = 2) -> torch.Tensor:
+        """Settle selections whose certificate failed: (B,) True where the exact image on every
+        block (outside E for tier 1, outside the band for tier 2) whose bound reaches
+        ``threshold`` (the peak less its error bound) stays below it.
 
-        The exact values come from delay-and-sum of the selection's I/Q channels
-        (:meth:`channels`) on those blocks only, so a selection with a few loose blocks costs
-        milliseconds instead of a whole-grid exact image.
+        Blocks wholly inside the strips (tier 1) take their values from the precomputed strip
+        pair images, one small product per block for all selections at once (block-major
+        columns of ``H2``); other blocks are delay-and-summed from the selection's I/Q channels
+        (:meth:`channels`). Either way a selection with a few loose blocks costs far less than
+        a whole-grid exact image.
         """
         B = w.shape[0]
         out = torch.zeros(B, dtype=torch.bool)
-        if self.S2.shape[0] == 0 or B == 0:
+        S = self.S1 if tier == 1 else self.S2
+        if S.shape[0] == 0 or B == 0:
             return out
+        blocks = self.blocks1 if tier == 1 else self.blocks2
         w = w.detach()
-        bounds = self.bound(w, 2, per_block=True, env=env)  # (nQ, B)
-        X = self.channels(w)
+        clear = self.bound(w, tier, per_block=True, env=env) < threshold[None]  # (nQ, B)
+        strip = torch.zeros(S.shape[0], dtype=torch.bool)
+        if tier == 1 and self.npix2:
+            # blocks wholly inside the strips: their pair images are precomputed (exact to rounding)
+            col0 = self.strip_block_col
+            strip = col0 >= 0
+            todo = torch.nonzero(strip & ~clear.all(1).cpu()).flatten()
+            if todo.numel():
+                c = self._pairs(w)
+                limit = (threshold / (1 + 1e-4) - self._rounding(c)).square()
+                bb = self.model.block ** 2
+                # runs of blocks adjacent in H2 (gaps of up to 2 blocks are computed too)
+                slot = col0[todo] // (2 * bb)
+                cut = torch.nonzero(slot[1:] - slot[:-1] > 3).flatten() + 1
+                for run in torch.tensor_split(todo, cut.tolist()):
+                    first, last = int(col0[run[0]]), int(col0[run[-1]]) + 2 * bb
+                    v = (c @ self.H2[:, first:last]).view(B, -1, 2, bb)
+                    peak2 = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(2)  # (B, blocks)
+                    at = (col0[run] - first) // (2 * bb)
+                    clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
+        clear = clear.cpu()
+        X = None
         for i in range(B):
-            flagged = torch.nonzero(bounds[:, i] >= threshold[i]).flatten().tolist()
-            if not flagged:
+            left = torch.nonzero(~clear[:, i]).flatten()
+            if not left.numel():
                 out[i] = True
                 continue
-            if len(flagged) > self.refine_max_blocks:
-                continue
-            img = self._das(X[i], [tuple(int(v) for v in self.blocks2[q]) for q in flagged])
+            if bool(strip[left].any()) or left.numel() > self.refine_max_blocks:
+                continue  # a strip block reaches the peak, or too many blocks to beamform
+            if X is None:
+                X = self.channels(w)
+            img = self._das(X[i], [tuple(int(v) for v in blocks[q]) for q in left.tolist()])
             out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
         return out
 
@@ -888,13 +1050,40 @@ class _PairBasis:
             ok = (val > 0) & (n <= self.max_ties)
             amb = torch.nonzero(ok & (n > 1)).flatten()
             if amb.numel():
-                X = self.channels(w[amb].detach())
                 arg = arg.clone()
+                if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
+                    amb = self._settle_in_core(cand, amb, arg, w)
+            if amb.numel():
+                X = self.channels(w[amb].detach())
                 for i, b in enumerate(amb.tolist()):
                     idx = torch.nonzero(cand[b]).flatten()
                     v = self._exact_pixels(X[i], idx // wd + row0, idx % wd + col0).abs()
                     arg[b] = idx[int(torch.argmax(v))]
         return arg // wd + row0, arg % wd + col0, val - eps, ok
+
+    def _settle_in_core(self, cand: torch.Tensor, amb: torch.Tensor, arg: torch.Tensor, w: torch.Tensor):
+        """Settle the near-ties ``cand`` (B, npix) on E of the selections ``amb`` whose candidates
+        all lie in the core, from the core's exact pair images (one product for all of them);
+        writes their peak index into ``arg`` and returns the selections left (candidates
+        outside the core)."""
+        pos = getattr(self, "_core_pos", None)
+        if pos is None or pos.device != cand.device:
+            pos = torch.full((self.npix,), -1, dtype=torch.long)
+            pos[self.core_pix] = torch.arange(self.core_pix.numel())
+            pos = self._core_pos = pos.to(cand.device)
+        ca = cand[amb]
+        inside = ~(ca & (pos < 0)[None]).any(1)
+        sel = amb[inside]
+        if sel.numel():
+            union = torch.nonzero(ca[inside].any(0)).flatten()
+            cols = pos[union]
+            nc = self.Hc.shape[1] // 2
+            v = self._pairs(w[sel].detach()) @ self.Hc[:, torch.cat([cols, cols + nc])]
+            nu = union.numel()
+            mag2 = torch.addcmul(v[:, nu:].square(), v[:, :nu], v[:, :nu])
+            mag2 = torch.where(ca[inside][:, union], mag2, torch.full_like(mag2, -1.0))
+            arg[sel] = union[mag2.argmax(dim=1)]
+        return amb[~inside]
 
     def _windows(self, pz, px, rows, cols):
         s = self.model.setup
@@ -913,12 +1102,19 @@ class _PairBasis:
         loose blocks are then beamformed exactly, :meth:`refine`).
         """
         s = self.model.setup
+        with torch.no_grad():
+            wd = w.detach()
+            env = self.envelopes(wd)
         img, eps, win_err = self.images(w, with_error=True)
         pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
         z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
         with torch.no_grad():
-            env = self.envelopes(w.detach())
-            ok = ok & fits & (self.bound(w.detach(), 1, env=env) < thr)
+            ok = ok & fits
+            passed = ok & (self.bound(wd, 1, env=env) < thr)
+            retry = torch.nonzero(ok & ~passed).flatten()
+            if retry.numel():
+                passed[retry] = self.refine(wd[retry], thr[retry], env=env[:, retry], tier=1).to(passed.device)
+            ok = passed
         z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
         out, norm = self._cut(img, z0e, x0e, s.window)
@@ -932,16 +1128,25 @@ class _PairBasis:
             with torch.no_grad():
                 ok2 = ok2 & fits2
                 env2 = env[:, todo]
-                passed = ok2 & (self.bound(w2.detach(), 2, env=env2) < thr2)
+                passed = ok2 & (self.bound(wd[todo], 2, env=env2) < thr2)
                 retry = torch.nonzero(ok2 & ~passed).flatten()
                 if retry.numel():
-                    passed[retry] = self.refine(w2[retry], thr2[retry], env=env2[:, retry]).to(passed.device)
+                    passed[retry] = self.refine(wd[todo][retry], thr2[retry], env=env2[:, retry]).to(passed.device)
             z0b = torch.where(passed, z02 - self.rows.start, torch.zeros_like(z02))
             k2, norm2 = self._cut(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
             passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
             sel = torch.nonzero(passed).flatten()
             if sel.numel():
                 out = out.index_put((todo[sel],), k2[sel])
+                ok = ok.clone()
+                ok[todo[sel]] = True
+        todo = torch.nonzero(~ok).flatten()
+        if todo.numel() and self.finer is not None:
+            # a tighter error bound (the full stored rank) settles most of the rest
+            k3, ok3 = self.finer.kernels(w[todo])
+            sel = torch.nonzero(ok3.to(todo.device)).flatten()
+            if sel.numel():
+                out = out.index_put((todo[sel],), k3[sel])
                 ok = ok.clone()
                 ok[todo[sel]] = True
         return out, ok.cpu()

@@ -35,6 +35,7 @@ import math
 import os
 import platform
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -107,6 +108,8 @@ class Experiment:
     k : elements to keep (default ``objective.k``)
     config : label in the tables (default from name and options)
     registry : where to look the name up (default: the process-wide registry)
+    progress : show a progress bar of the run (evaluations against the budget or the
+        selector's plan, gradient steps, best Mean so far) on stderr
 
     After :meth:`run`, ``trace`` holds the improvement rows and ``selection``
     the selected elements (or ``None``).
@@ -120,6 +123,7 @@ class Experiment:
     k: int | None = None
     config: str | None = None
     registry: Any = None
+    progress: bool = False
     trace: list = dataclasses.field(default_factory=list, init=False)
     selection: list | None = dataclasses.field(default=None, init=False)
 
@@ -140,8 +144,11 @@ class Experiment:
         error = ""
         selection = None
         t0 = time.perf_counter()
+        watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
+            else contextlib.nullcontext()
         try:
-            result = selector.select(obj, k, budget, seed, recorder)
+            with watch:
+                result = selector.select(obj, k, budget, seed, recorder)
             selection = check_selection(result, n, k)
         except (KeyboardInterrupt, BudgetExceededError):
             raise
@@ -180,6 +187,50 @@ class Experiment:
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
             "error": error,
         }
+
+
+class _RunProgress:
+    """A tqdm bar for one run, refreshed from the budget's counters by a background thread
+    (selectors need no code for it): evaluations (of the budget's, else of the selector's
+    planned number), rate, gradient steps and the best Mean so far."""
+
+    def __init__(self, label: str, budget: Budget, recorder: Recorder, planned: int | None,
+                 interval: float = 0.5):
+        self.label, self.budget, self.recorder = label, budget, recorder
+        caps = [v for v in (budget.evaluations, planned) if v is not None]
+        self.total = min(caps) if caps else None
+        self.interval = interval
+        self._stop = threading.Event()
+
+    def _refresh(self, bar):
+        used = self.budget.used_evaluations()
+        bar.update(used - bar.n)
+        text = f"steps {self.budget.used_gradient_steps()}"
+        if math.isfinite(self.recorder.best_mean):
+            text += f", best Mean {self.recorder.best_mean:.5g}"
+        bar.set_postfix_str(text, refresh=False)
+
+    def _loop(self, bar):
+        while not self._stop.wait(self.interval):
+            self._refresh(bar)
+            bar.refresh()
+
+    def __enter__(self):
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=self.total, desc=self.label, unit="eval", unit_scale=True, file=sys.stderr,
+                        dynamic_ncols=True)
+        self.thread = threading.Thread(target=self._loop, args=(self.bar,), daemon=True)
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self.thread.join()
+        self._refresh(self.bar)
+        self.bar.refresh()
+        self.bar.close()
+        return False
 
 
 def full_row(objective) -> dict:
@@ -380,7 +431,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         if not remote:
             for lab, name, opts, seed in todo:
                 bar.set_postfix_str(f"{lab} seed {seed}")
-                exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab)
+                exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab,
+                                 progress=progress)
                 row = exp.run()
                 rows.append(row)
                 traces.extend({"config": lab, "seed": seed, **t} for t in exp.trace)

@@ -376,6 +376,11 @@ class Selector:
         """Most evaluations this selector may spend in one step (used as overrun slack)."""
         return max(1, n_elements)
 
+    def planned_evaluations(self, n_elements: int, k: int) -> int | None:
+        """Evaluations the selector means to spend when the budget allows (for progress
+        displays); None when it does not know in advance."""
+        return None
+
     def select(self, objective, k: int, budget: Budget, seed: int, recorder: Recorder) -> list[int]:
         raise NotImplementedError
 

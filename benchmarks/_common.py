@@ -19,7 +19,12 @@ THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
 def set_threads(n: int | None) -> None:
-    """Limit BLAS/OpenMP threads; call before numpy and torch do any work."""
+    """Limit BLAS/OpenMP threads and tune the allocator as the ``arraysel`` command does
+    (:func:`arraysel.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
+    before numpy and torch do any work."""
+    from arraysel.allocator import tune_malloc
+
+    tune_malloc()
     if n is None:
         return
     if n < 1:

@@ -16,6 +16,7 @@ Measured side by side in one run, on the paper scene (P4-2v, 7 plane waves,
 Usage::
 
     python benchmarks/bench_psf.py [--masks 2048] [--pymust-masks 5] [--threads N] [--no-cache]
+        [--no-malloc-tune]
 
 The last output line is a JSON record; everything before it is for people.
 """
@@ -41,6 +42,9 @@ def parse_args(argv=None):
                    help="build the pair basis even if the on-disk cache ($ARRAYSEL_CACHE) holds it "
                         "(by default a cached basis is loaded and the precompute figure is the load time)")
     p.add_argument("--skip-pymust", action="store_true", help="arraysel figures only (no PyMUST, no accuracy)")
+    p.add_argument("--no-malloc-tune", action="store_true",
+                   help="leave glibc malloc at its defaults (arraysel.allocator; both pipelines run in "
+                        "this process, so the setting applies to both)")
     a = p.parse_args(argv)
     if a.masks < 1 or a.pymust_masks < 1:
         p.error("--masks and --pymust-masks must be >= 1")
@@ -63,12 +67,15 @@ def run_pymust(masks, n_timed):
 
 def main(argv=None):
     args = parse_args(argv)
+    if args.no_malloc_tune:
+        os.environ["ARRAYSEL_MALLOC_TUNE"] = "0"
     C.set_threads(args.threads)
     if args.no_cache:
         os.environ["ARRAYSEL_CACHE"] = "off"
     import numpy as np
     import torch
 
+    from arraysel.allocator import tune_malloc
     from arraysel.objective import build_objective
 
     dtype = torch.float32 if args.dtype == "float32" else torch.float64
@@ -143,7 +150,8 @@ def main(argv=None):
     print(C.table(rows, ["step", "time", "rate / note"]))
     record.update(masks=args.masks, pymust_masks=args.pymust_masks, dtype=args.dtype, device=args.device,
                   precompute_basis_s=t_basis.s, precompute_warmup_s=t_warm.s, evaluate_s=t_eval.s,
-                  fast_path_only_s=fast_only_s, precompute_source=source, threads=torch.get_num_threads())
+                  fast_path_only_s=fast_only_s, precompute_source=source, threads=torch.get_num_threads(),
+                  malloc_tuned=tune_malloc())
     C.emit_json(record)
 
 

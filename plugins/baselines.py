@@ -54,6 +54,9 @@ class RandomSelector(Selector):
     def batch_size(self, n_elements, k):
         return self.options["chunk"]
 
+    def planned_evaluations(self, n_elements, k):
+        return self.options["n"]
+
     def select(self, objective, k, budget, seed, recorder):
         n = int(objective.n_elements)
         rng = numpy_rng(seed)

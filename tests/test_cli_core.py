@@ -49,3 +49,17 @@ def test_evaluate_rejects_bad_masks_with_line_number(tmp_path, capsys, line, msg
     import re
     assert re.search(msg, err)
     assert not out.exists()
+
+
+def test_malloc_tuning_is_optional_and_idempotent(monkeypatch):
+    from arraysel import allocator
+
+    monkeypatch.setattr(allocator, "_state", {})
+    monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "off")
+    assert allocator.malloc_tuning_enabled() is False
+    assert allocator.tune_malloc() is False
+    monkeypatch.setattr(allocator, "_state", {})
+    monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "1")
+    first = allocator.tune_malloc()
+    assert first is (allocator._glibc() is not None)  # in effect exactly where glibc is present
+    assert allocator.tune_malloc() is first

@@ -147,3 +147,101 @@ def test_empty_selection_is_an_error(paper_objective):
 
     with pytest.raises(SelectionError, match="empty"):
         paper_objective.evaluate(np.zeros((1, 64)))
+
+
+# --------------------------------------------------------------------------- fast-path certificates
+def _certificate_masks():
+    rng = np.random.default_rng(21)
+    out = [_masks()[1]]  # uniform 32-of-64
+    for _ in range(2):
+        m = np.zeros(64)
+        m[rng.choice(64, 32, replace=False)] = 1
+        out.append(m)
+    sparse = np.zeros(64)
+    sparse[rng.choice(64, 4, replace=False)] = 1  # k = 4: strong grating lobes
+    out.append(sparse)
+    return torch.tensor(np.stack(out), dtype=torch.float32)
+
+
+@pytest.fixture(scope="module")
+def exact_grid_images(paper_objective):
+    """Whole-grid exact images (float32 exact path) of the certificate masks."""
+    with torch.no_grad():
+        return paper_objective.psf.image(_certificate_masks())
+
+
+def _block_max(img, b):
+    B, nz, nx = img.shape
+    pad = torch.nn.functional.pad(img.abs(), (0, -nx % b, 0, -nz % b))
+    return pad.reshape(B, pad.shape[1] // b, b, pad.shape[2] // b, b).amax(dim=(2, 4))
+
+
+@pytest.mark.parametrize("tier", [1, 2])
+def test_block_bounds_cover_the_exact_image(paper_objective, exact_grid_images, tier):
+    """Every block's envelope bound is at least the exact |I| on the block (the certificate)."""
+    fast = paper_objective.psf.fast
+    w = _certificate_masks()
+    with torch.no_grad():
+        bounds = fast.bound(w, tier, per_block=True)  # (nQ, B)
+    blocks = fast.blocks1 if tier == 1 else fast.blocks2
+    truth = _block_max(exact_grid_images, paper_objective.psf.block)[:, blocks[:, 0], blocks[:, 1]].T
+    assert bool((truth > 0).any())
+    assert bool((bounds >= truth * (1 - 1e-5)).all()), float((truth / bounds).max())
+    # not vacuous: the tightest blocks come within a factor 10 of the truth
+    assert float((truth / bounds).max()) > 0.1
+
+
+def test_strip_pair_images_match_the_exact_image(paper_objective, exact_grid_images):
+    """Block-major strip columns of H2 reproduce the exact image on every whole strip block."""
+    fast = paper_objective.psf.fast
+    b = paper_objective.psf.block
+    w = _certificate_masks()
+    q = torch.nonzero(fast.strip_block_col >= 0).flatten()[::37]
+    c = fast._pairs(w)
+    for qi in q.tolist():
+        c0 = int(fast.strip_block_col[qi])
+        v = (c @ fast.H2[:, c0:c0 + 2 * b * b]).view(w.shape[0], 2, b * b)
+        got = torch.complex(v[:, 0], v[:, 1]).view(-1, b, b)
+        qz, qx = (int(t) for t in fast.blocks1[qi])
+        ref = exact_grid_images[:, qz * b:(qz + 1) * b, qx * b:(qx + 1) * b]
+        scale = exact_grid_images.abs().amax()
+        assert float((got - ref).abs().max() / scale) < 1e-5, (qz, qx)
+    # the band image (tier 2) undoes the block-major order (E itself: truncated SVD, ~1e-4)
+    band = fast.band_images(w)
+    ref = exact_grid_images[:, fast.rows]
+    left, right = fast.cols.start, fast.cols.stop
+    strips = torch.cat([(band - ref)[:, :, :left], (band - ref)[:, :, right:]], dim=2)
+    assert float(strips.abs().max() / ref.abs().max()) < 1e-5
+    assert float((band - ref).abs().max() / ref.abs().max()) < 2e-3
+
+
+@pytest.mark.parametrize("rank", [300, 600])
+def test_truncated_basis_error_bounds_hold(paper_objective, exact_grid_images, rank):
+    """A truncated basis widens its constants: the per-pixel bound covers |I_r - I| on E and
+    the window bound covers the L2 error of any window (here the whole of E's 128 x 128
+    top-left window)."""
+    fast = paper_objective.psf.fast
+    full = fast.finer or fast
+    tr = full.truncated(rank)
+    assert tr.rank == rank and tr.finer is full
+    w = _certificate_masks()
+    with torch.no_grad():
+        img, eps, win_err = tr.images(w, with_error=True)
+    ref = exact_grid_images[:, fast.rows, fast.cols]
+    err = (img - ref).abs().reshape(w.shape[0], -1)
+    assert bool((err.amax(1) <= eps * (1 + 1e-3) + 1e-6 * ref.abs().amax()).all())
+    n = paper_objective.psf.setup.window
+    werr = (img - ref)[:, :n, :n].abs().reshape(w.shape[0], -1).norm(dim=1)
+    assert bool((werr <= win_err * (1 + 1e-3) + 1e-5 * ref.abs().amax()).all())
+    assert float(eps.min()) > 0  # truncation makes the bound positive, not vacuous at rank 300
+    assert full.rank_for(1e-12) == full.rank and full.rank_for(0.5) < 50
+
+
+def test_fast_kernels_match_exact_path_for_hard_masks(paper_objective):
+    """Masks that exercise refine (k = 4 grating lobes) still give the exact kernel."""
+    w = _certificate_masks()
+    k, ok = paper_objective.psf.fast.kernels(w)
+    ke = paper_objective.psf.kernels_exact(w)
+    for i in range(w.shape[0]):
+        if bool(ok[i]):
+            assert si_mse(k[i].to(torch.complex128).numpy(), ke[i].to(torch.complex128).numpy()) <= 1e-4, i

@@ -243,3 +243,17 @@ def test_toy_objective_contract():
                                     eps=1e-6, atol=1e-5)
     assert obj.kernels(m).shape == (3, 128, 128) and obj.reference_kernel().shape == (128, 128)
     assert obj.seconds > 0
+
+
+def test_run_progress_bar_counts_the_evaluations(reg, capsys):
+    """The in-run bar follows the budget's counters; its total is the random selector's n."""
+    exp = Experiment(ToyObjective(16, 8), "random", options={"n": 300, "chunk": 64}, seed=1,
+                     budget=Budget(evaluations=1000), registry=reg, progress=True)
+    row = exp.run()
+    assert row["evaluations"] == 300 and row["error"] == ""
+    err = capsys.readouterr().err
+    assert "300/300" in err and "best Mean" in err
+    # the same run without the bar gives the same row (the bar only reads counters)
+    quiet = Experiment(ToyObjective(16, 8), "random", options={"n": 300, "chunk": 64}, seed=1,
+                       budget=Budget(evaluations=1000), registry=reg).run()
+    assert quiet["elements"] == row["elements"] and quiet["Mean"] == row["Mean"]
