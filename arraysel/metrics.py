@@ -531,10 +531,14 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         # max(k2) cancels in every ratio below and is never divided out.
         k2 = _scaled_abs2(flat)                                          # (B, N)
         flat_peak = _peak_index(k2)
-        reg = _regions_flat(flat, pitch, wavelength, r_main, r_guard, distance=False,
-                            flat_peak=flat_peak, mask_dtype=k2.dtype)
-        main = reg.main.reshape(b, h * w)                                # 0/1 floats
-        side = reg.side.reshape(b, h * w)
+        # kernels cut around their peak share one peak pixel (and so one pair of regions):
+        # then the masks are (1, N) and broadcast, instead of gathered per kernel
+        shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
+        rows = 1 if shared else b
+        reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
+                            flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
+        main = reg.main.reshape(rows, h * w)                             # 0/1 floats
+        side = reg.side.reshape(rows, h * w)
         if {"L_contrast", "L_SLR_i"} & lobe_terms:
             s_main = _rowdot(k2, main)
             s_side = _rowdot(k2, side)
@@ -548,7 +552,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
             # The peak is the global maximum and lies in the main lobe (r = 0), so
             # max(m over main) is m at the peak.
             main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
-            q_side = _masked_quantile(k2, side, q, transform=_safe_sqrt)
+            q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
             out["L_SLR_q"] = _safe_div(q_side, main_max).reshape(lead)
 
     if "L_SLR" in need:

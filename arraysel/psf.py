@@ -385,7 +385,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 5
+_BASIS_VERSION = 6
 #: energy fraction the stored SVD of the pair images on E discards (runs truncate further)
 _BUILD_RANK_TOL = 1e-7
 
@@ -529,11 +529,14 @@ class _PairBasis:
         if self.npix2:
             H2 = self._pair_images(pair_iq, self.strip_cols)
             col2 = float(_pixel_norms(H2).max())
-            self.H2 = H2[:, self.h2_cols].to(model.device, model.dtype)
+            H2 = H2[:, self.h2_cols]
+            self._strip_factors(H2)
+            self.H2 = H2.to(model.device, model.dtype)
             del H2
         else:
             col2 = 0.0
             self.H2 = torch.zeros(self.e_idx.numel(), 0, dtype=model.dtype, device=model.device)
+            self._strip_factors(self.H2.double())
         #: [max residual pixel-column norm of U V, max pixel-column norm of H1, of H2,
         #:  largest discarded singular value of H1]
         self.err = torch.tensor([rho, float(col1.max()), col2, self.sigma_next], dtype=torch.float64)
@@ -582,6 +585,47 @@ class _PairBasis:
         zr = torch.arange(max(0, iz - self.core), min(h, iz + self.core))
         xr = torch.arange(max(0, ix - self.core), min(w, ix + self.core))
         return (zr[:, None] * w + xr[None, :]).reshape(-1)
+
+    #: rank of the per-block factors of the strip pair images (:meth:`_strip_factors`)
+    strip_rank = 16
+
+    def _strip_factors(self, H2: torch.Tensor):
+        """Rank-``strip_rank`` factors of the pair images of every whole strip block (block-major
+        ``H2`` in float64): ``M_q = W S Z^T`` (SVD from the 2 b^2 x 2 b^2 Gram matrix) gives
+        ``SF[q] = W_r S_r`` (P, r), ``SG[q] = Z_r^T`` (r, 2 b^2), ``SS[q] = S_r`` and ``Snext[q]``
+        (a safe upper bound of ``S_{r+1}``). Then ``|c M_q - (c SF) SG|`` at a pixel is at most
+        ``|c_perp| Snext`` with ``|c_perp|^2 = |c|^2 - |(c SF) / SS|^2``: a cheap, rigorous bound of
+        a block's image that clears most loose blocks without reading its ``2 b^2`` columns."""
+        model = self.model
+        bb2 = 2 * model.block ** 2
+        nw = int((self.strip_block_col >= 0).sum())
+        r = min(self.strip_rank, bb2)
+        P = H2.shape[0]
+        if nw == 0:
+            self.SF = torch.zeros(0, P, r, dtype=model.dtype, device=model.device)
+            self.SG = torch.zeros(0, r, bb2, dtype=model.dtype, device=model.device)
+            self.SS = torch.zeros(0, r, dtype=model.dtype, device=model.device)
+            self.Snext = torch.zeros(0, dtype=torch.float64, device=model.device)
+            return
+        SF, SG, SS, SN = [], [], [], []
+        for q0 in range(0, nw, 64):
+            q1 = min(nw, q0 + 64)
+            M = H2[:, q0 * bb2:q1 * bb2].reshape(P, q1 - q0, bb2).permute(1, 0, 2)  # (n, P, 2b^2)
+            gram = M.transpose(1, 2) @ M
+            evals, evecs = torch.linalg.eigh(gram)
+            evals, evecs = evals.flip(-1).clamp(min=0), evecs.flip(-1)
+            sig = evals.sqrt()
+            Z = evecs[:, :, :r]
+            SF.append(M @ Z)                                   # W_r S_r
+            SG.append(Z.transpose(1, 2))
+            SS.append(sig[:, :r])
+            # eigenvalues of the Gram matrix are accurate to ~eps * sigma_1^2
+            tail = sig[:, r] if r < bb2 else torch.zeros_like(sig[:, 0])
+            SN.append((tail * (1 + 1e-6) + 1e-7 * sig[:, 0]))
+        self.SF = torch.cat(SF).to(model.device, model.dtype)
+        self.SG = torch.cat(SG).to(model.device, model.dtype)
+        self.SS = torch.cat(SS).to(model.device, model.dtype)
+        self.Snext = torch.cat(SN).to(model.device)
 
     def _pair_iq(self, n: int) -> torch.Tensor:
         """I/Q of every (rx e, tx j) pair for transmit n: (Ne, Ne, T) complex128."""
@@ -739,7 +783,8 @@ class _PairBasis:
     # ------------------------------------------------------------------ cache
     def state(self) -> dict:
         st = {"V": self.V.cpu(), "H2": self.H2.cpu(), "A": self.A.cpu(), "err": self.err,
-              "Hc": self.Hc.cpu(), "core_pix": self.core_pix,
+              "Hc": self.Hc.cpu(), "core_pix": self.core_pix, "SF": self.SF.cpu(), "SG": self.SG.cpu(),
+              "SS": self.SS.cpu(), "Snext": self.Snext.cpu(),
               "meta": torch.tensor([self.T, self.L, self.rank, self.seg]), "rank_tail": torch.tensor(self.rank_tail)}
         if self.U is not None:
             st["U"] = self.U.cpu()
@@ -753,7 +798,9 @@ class _PairBasis:
     def _set_state(self, st: dict):
         dev, dt = self.model.device, self.model.dtype
         self.U = st["U"].to(dev, dt) if "U" in st else None
-        self.V, self.H2, self.A, self.Hc = (st[k].to(dev, dt) for k in ("V", "H2", "A", "Hc"))
+        self.V, self.H2, self.A, self.Hc, self.SF, self.SG, self.SS = (
+            st[k].to(dev, dt) for k in ("V", "H2", "A", "Hc", "SF", "SG", "SS"))
+        self.Snext = st["Snext"].double().to(dev)
         self.core_pix = st["core_pix"].long()
         self.T, self.L, self.rank, self.seg = (int(v) for v in st["meta"])
         self.rank_tail = float(st["rank_tail"])
@@ -912,29 +959,40 @@ class _PairBasis:
     #: block DAS plans kept in memory (one block: ntx x block^2 x Ne entries)
     plan_cache_blocks = 1024
 
-    def _plans_for_block(self, qz: int, qx: int) -> list:
-        """DAS plans (one (i0, w, rot) per transmit) of the pixels of grid block (qz, qx),
-        row-major, clipped to the grid; cached."""
-        plans = self._block_plans.get((qz, qx))
-        if plans is None:
+    def _plans_for_blocks(self, blocks: list) -> list:
+        """DAS plans (per block: one (i0, w, rot) per transmit) of the pixels of the grid blocks
+        ``blocks`` ((qz, qx) pairs), row-major, clipped to the grid. Cached; the missing blocks are
+        planned together (one :func:`das_plan` call per transmit)."""
+        missing = list(dict.fromkeys(q for q in blocks if q not in self._block_plans))
+        made = {}
+        if missing:
             model = self.model
             s = model.setup
             b = model.block
-            Z, X = torch.meshgrid(model._zg[qz * b:(qz + 1) * b], model._xg[qx * b:(qx + 1) * b], indexing="ij")
-            plans = []
+            zs, xs, sizes = [], [], []
+            for qz, qx in missing:
+                Z, X = torch.meshgrid(model._zg[qz * b:(qz + 1) * b], model._xg[qx * b:(qx + 1) * b],
+                                      indexing="ij")
+                zs.append(Z.reshape(-1))
+                xs.append(X.reshape(-1))
+                sizes.append(Z.numel())
+            Z, X = torch.cat(zs), torch.cat(xs)
+            per_tx = []
             for t in model.transmits:
                 p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
                              fc=s.probe.fc)
-                plans.append((p.i0.to(model.device), p.w.to(model.device, model.dtype),
-                              p.rot.to(model.device, model.cdtype)))
-            if len(self._block_plans) < self.plan_cache_blocks:
-                self._block_plans[(qz, qx)] = plans
-        return plans
+                per_tx.append((p.i0.to(model.device).split(sizes), p.w.to(model.device, model.dtype).split(sizes),
+                               p.rot.to(model.device, model.cdtype).split(sizes)))
+            for i, q in enumerate(missing):
+                made[q] = [(i0[i], wt[i], rot[i]) for i0, wt, rot in per_tx]
+                if len(self._block_plans) < self.plan_cache_blocks:
+                    self._block_plans[q] = made[q]
+        return [self._block_plans.get(q) or made[q] for q in blocks]
 
     def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
         """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
         ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
-        plans = [self._plans_for_block(qz, qx) for qz, qx in blocks]
+        plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
         img = 0
         for n in range(len(self.model.transmits)):
             parts = [tuple(a[r] for a in pl[n]) if rows is not None else pl[n] for pl, r in
@@ -942,6 +1000,25 @@ class _PairBasis:
             i0, wt, rot = (torch.cat([pt[j] for pt in parts]) for j in range(3))
             img = img + das_apply(X[n], i0, wt, rot)
         return img
+
+    def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
+        """(n, B) float64 upper bounds of ``max |I|`` on the whole strip blocks ``slots`` (their
+        order in ``H2``) for pair products ``c`` (B, P), from the rank-r factors
+        (:meth:`_strip_factors`): ``|(c SF) SG| + |c_perp| S_{r+1}`` plus rounding allowances."""
+        if slack is None:
+            slack = self._rounding(c)
+        bb = self.model.block ** 2
+        sl = slots.to(c.device)
+        cf = torch.matmul(c[None], self.SF[sl])                                  # (n, B, r)
+        v = torch.matmul(cf, self.SG[sl]).view(sl.numel(), c.shape[0], 2, bb)
+        peak = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(-1).sqrt()
+        cw2 = (cf / self.SS[sl][:, None, :]).square().sum(-1).double()
+        cn2 = (c.double() ** 2).sum(1)[None]
+        # |c_perp|, widened for the rounding of |c W_r|^2 (float32)
+        cperp = ((cn2 - cw2).clamp(min=0) + 1e-6 * cn2).sqrt()
+        # rounding of the two float32 products: 2 sqrt(P) u |c| S_1, on top of H2's own
+        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * self.SS[sl][:, :1].double()
+        return peak.double() * (1 + 1e-4) + cperp * self.Snext[sl][:, None] + rnd + 2 * slack.double()
 
     def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None, tier: int = 2) -> torch.Tensor:
         """Settle selections whose certificate failed: (B,) True where the exact image on every
@@ -968,6 +1045,16 @@ class _PairBasis:
             col0 = self.strip_block_col
             strip = col0 >= 0
             todo = torch.nonzero(strip & ~clear.all(1).cpu()).flatten()
+            if todo.numel():
+                c = self._pairs(w)
+                slack = self._rounding(c)
+                bb = self.model.block ** 2
+                # first the rank-r factors: their bound below the threshold clears a block
+                slot = col0[todo] // (2 * bb)
+                for part in torch.split(torch.arange(todo.numel()), 256):
+                    bound = self.strip_bounds(c, slot[part], slack)
+                    clear[todo[part]] |= (bound * (1 + 1e-4) < threshold.double()[None]).to(clear.device)
+                todo = todo[~clear[todo].all(1).cpu()]
             if todo.numel():
                 c = self._pairs(w)
                 limit = (threshold / (1 + 1e-4) - self._rounding(c)).square()

@@ -1,9 +1,11 @@
 """Memory of what the fast path precomputes, measured on the objective itself.
 
-Lists every tensor held by ``Objective.psf.fast`` (the pair basis: ``U``/``V``
-the compressed pair images on the window + margin region, ``A`` the pair I/Q
-signals of the certificate, ``S``... the sparse block matrices, and whatever
-else the current version keeps), with shape, dtype and size, plus the
+Lists every tensor held by ``Objective.psf.fast`` and by the stored
+full-rank basis it is truncated from (``fast.finer``; tensors that share
+storage are counted once): ``U``/``V`` the compressed pair images on the
+window + margin region, ``H2`` the strips' pair images, ``Hc`` the core's,
+``A`` the pair I/Q signals of the certificate, ``S1``/``S2`` the sparse block
+matrices, with shape, dtype and size, plus the
 exact-path DAS plans cached by ``PSFModel`` after one exact evaluation.
 
 Usage::
@@ -53,11 +55,18 @@ def main(argv=None):
     obj = build_objective("paper", dtype=torch.float32 if args.dtype == "float32" else torch.float64)
     fast = obj.psf.fast
     rows, record = [], {}
-    for name, val in sorted(vars(fast).items()):
-        if isinstance(val, torch.Tensor) and (val.numel() > 0 or val.layout != torch.strided):
-            b = tensor_bytes(val)
-            rows.append([f"fast.{name}", describe(val), f"{b / 2**20:.1f} MiB"])
-            record[f"fast.{name}"] = b
+    seen = set()  # storages counted once: the run-time basis is a truncated view of the stored one
+    views = ([("fast.finer", fast.finer)] if getattr(fast, "finer", None) is not None else []) + [("fast", fast)]
+    for prefix, obj_ in views:
+        for name, val in sorted(vars(obj_).items()):
+            if isinstance(val, torch.Tensor) and (val.numel() > 0 or val.layout != torch.strided):
+                key = val.untyped_storage().data_ptr() if val.layout == torch.strided else id(val)
+                if key in seen:
+                    continue
+                seen.add(key)
+                b = tensor_bytes(val)
+                rows.append([f"{prefix}.{name}", describe(val), f"{b / 2**20:.1f} MiB"])
+                record[f"{prefix}.{name}"] = b
     total = sum(record.values())
     rows.append(["fast basis, total", "", f"{total / 2**20:.1f} MiB"])
     info = {k: getattr(fast, k) for k in ("rank", "rank_tail", "T", "L", "shape", "npix", "npix2")

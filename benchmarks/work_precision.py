@@ -13,9 +13,11 @@ the table reports the largest), and by its time per mask:
 * ``dtype`` float32: exact path, default options;
 * precomputation strategy: the fast path (``PSFModel(fast=True).kernels``,
   default options) in each ``--fast-dtypes``; its time per mask is the
-  batched time (``--fast-batch`` masks, the 4 scored ones repeated) and its
-  one-off precompute is reported separately (loaded from ``$ARRAYSEL_CACHE``
-  when present). ``--fast-knobs`` also runs every knob setting on the fast
+  batched time (``--fast-batch`` random 32-of-64 masks, after one warm-up
+  batch) and its one-off precompute is reported separately (loaded from
+  ``$ARRAYSEL_CACHE`` when present);
+* ``rank_tol`` of the fast path's truncated SVD (``--fast-ranks``), float32:
+  truncations of the one stored basis, each with its widened error bounds. ``--fast-knobs`` also runs every knob setting on the fast
   path (one precompute each: minutes per setting).
 
 For the exact path, ``setup_s`` is the model construction plus the first
@@ -65,7 +67,11 @@ def parse_args(argv=None):
                         "precompute)")
     p.add_argument("--fast-knobs", action="store_true",
                    help="also run every knob setting on the fast path (float32; one precompute per setting)")
-    p.add_argument("--fast-batch", type=int, default=256, help="batch of the fast-path timing (default 256)")
+    p.add_argument("--fast-batch", type=int, default=256,
+                   help="random 32-of-64 masks in the fast-path timing batch (default 256)")
+    p.add_argument("--fast-ranks", default="1e-7,3e-7,1e-6,3e-6",
+                   help="comma-separated rank_tol values of the fast path's truncated SVD, float32 "
+                        "(truncations of one stored basis; default 1e-7,3e-7,1e-6,3e-6)")
     p.add_argument("--seed", type=int, default=1, help="seed of the 3 random masks")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--replot", action="store_true", help="only redraw the PNG from an existing --out CSV")
@@ -76,6 +82,12 @@ def parse_args(argv=None):
             p.error(f"--fast-dtypes: {d!r} is not float32 or float64")
     if a.fast_batch < 1:
         p.error("--fast-batch must be >= 1")
+    try:
+        a.fast_ranks = [float(v) for v in a.fast_ranks.split(",") if v.strip()]
+    except ValueError:
+        p.error(f"--fast-ranks: {a.fast_ranks!r} is not a comma-separated list of numbers")
+    if any(not 0 < v < 1 for v in a.fast_ranks):
+        p.error("--fast-ranks: every rank_tol must lie in (0, 1)")
     return a
 
 
@@ -119,22 +131,32 @@ def main(argv=None):
         gc.collect()
         return k.to(torch.complex128).numpy(), t_run.s / len(W), t_setup.s, info
 
-    def run_fast(setup, dtype):
+    batch = torch.as_tensor(C.random_masks(args.fast_batch, seed=args.seed + 1000))
+
+    def time_fast(model, dtype):
+        with torch.no_grad():
+            model.kernels(batch.to(dtype))  # warm-up: first-call allocations, block DAS plans
+            with C.Timer() as t_run:
+                model.kernels(batch.to(dtype))
+            k = model.kernels(W)
+        return k.to(torch.complex128).numpy(), t_run.s / len(batch)
+
+    def run_fast(setup, dtype, rank_tols=()):
         before = C.cache_files()
         with C.Timer() as t_setup:
             model = PSFModel(setup, dtype=dtype, fast=True)
         source = C.basis_source(before)
-        reps = -(-args.fast_batch // len(W))
-        batch = W.repeat(reps, 1)[: args.fast_batch]
-        with torch.no_grad():
-            model.kernels(batch[:8])  # warm-up (first-call allocations)
-            with C.Timer() as t_run:
-                model.kernels(batch)
-            k = model.kernels(W)
-        info = describe(setup, model)
+        info = dict(describe(setup, model), precompute_source=source)
+        k, s_mask = time_fast(model, dtype)
+        ranked = []
+        full = model.fast.finer or model.fast
+        for tol in rank_tols:
+            model.fast = full.truncated(full.rank_for(tol))
+            kr, sr = time_fast(model, dtype)
+            ranked.append((f"{tol:g} (rank {model.fast.rank})", kr, sr))
         del model
         gc.collect()
-        return k.to(torch.complex128).numpy(), t_run.s / len(batch), t_setup.s, dict(info, precompute_source=source)
+        return k, s_mask, t_setup.s, info, ranked
 
     rows = []
 
@@ -157,12 +179,15 @@ def main(argv=None):
         k, s_mask, setup_s, info = run_exact(setup, torch.float64)
         record(knob, value, "exact", "float64", k, s_mask, setup_s, info, ref)
     for name in args.fast_dtypes:
-        k, s_mask, setup_s, info = run_fast(base, dtypes[name])
+        tols = args.fast_ranks if name == "float32" else ()
+        k, s_mask, setup_s, info, ranked = run_fast(base, dtypes[name], tols)
         record("precompute", "fast", "fast", name, k, s_mask, setup_s, info, ref)
+        for value, kr, sr in ranked:
+            record("rank_tol", value, "fast", name, kr, sr, 0.0, dict(info), ref)
     if args.fast_knobs:
         for knob, value, over in KNOBS:
             setup = dataclasses.replace(base, options=dataclasses.replace(SimOptions(), **over))
-            k, s_mask, setup_s, info = run_fast(setup, torch.float32)
+            k, s_mask, setup_s, info, _ = run_fast(setup, torch.float32)
             record(knob, value, "fast", "float32", k, s_mask, setup_s, info, ref)
 
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -199,20 +224,21 @@ def make_plot(rows, path, floor=1e-16):
 
     style = {"reference": ("k", "*"), "dtype": ("tab:purple", "s"), "db_thresh": ("tab:blue", "o"),
              "element_splitting": ("tab:green", "^"), "frequency_step": ("tab:orange", "D"),
-             "precompute": ("tab:red", "P")}
+             "precompute": ("tab:red", "P"), "rank_tol": ("tab:brown", "v")}
     fig, ax = plt.subplots(figsize=(7.5, 5))
     seen = set()
     at_floor = []
     nth: dict = {}
     for r in rows:
         color, marker = style.get(r["knob"], ("gray", "x"))
-        if r["path"] == "fast" and r["knob"] != "precompute":
+        if r["path"] == "fast" and r["knob"] not in ("precompute", "rank_tol"):
             marker = "x"
         y = max(r["max_si_mse"], floor)
         label = r["knob"] if r["knob"] not in seen else None
         seen.add(r["knob"])
         ax.scatter(r["s_per_mask"], y, c=color, marker=marker, s=70, label=label, zorder=3)
-        prefix = {"element_splitting": "split ", "frequency_step": "df x", "db_thresh": ""}.get(r["knob"], "")
+        prefix = {"element_splitting": "split ", "frequency_step": "df x", "db_thresh": "",
+                  "rank_tol": "rank_tol "}.get(r["knob"], "")
         text = f"{r['path']} path, {r['dtype']}" + (" (reference)" if r["knob"] == "reference" else "") \
             if r["knob"] in ("precompute", "dtype", "reference") \
             else prefix + f"{r['value']}" + (" (fast)" if r["path"] == "fast" else "")
