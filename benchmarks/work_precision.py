@@ -241,11 +241,21 @@ def make_plot(rows, path, floor=1e-16):
                   "rank_tol": "rank_tol "}.get(r["knob"], "")
         text = f"{r['path']} path, {r['dtype']}" + (" (reference)" if r["knob"] == "reference" else "") \
             if r["knob"] in ("precompute", "dtype", "reference") \
-            else prefix + f"{r['value']}" + (" (fast)" if r["path"] == "fast" else "")
+            else prefix + f"{r['value']}" + (" (fast)" if r["path"] == "fast" and r["knob"] != "rank_tol" else "")
         if y <= floor:  # one shared label for the points drawn at the floor (see below)
             at_floor.append((r["s_per_mask"], text))
             continue
         nth[r["knob"]] = nth.get(r["knob"], -1) + 1  # alternate above / below within a knob
+        if r["knob"] == "rank_tol":  # a tight cluster: labels fanned out to the right, with leaders
+            ax.annotate(text, (r["s_per_mask"], y), textcoords="axes fraction",
+                        xytext=(0.16, 0.52 - 0.045 * nth["rank_tol"]), fontsize=7, va="center",
+                        arrowprops=dict(arrowstyle="-", lw=0.4, color="gray"))
+            continue
+        if r["knob"] in ("precompute", "dtype"):
+            left = r["knob"] == "precompute"
+            ax.annotate(text, (r["s_per_mask"], y), textcoords="offset points", xytext=(4 if left else -6, 10),
+                        ha="left" if left else "right", fontsize=8)
+            continue
         ax.annotate(text, (r["s_per_mask"], y), textcoords="offset points",
                     xytext=(6, 4) if nth[r["knob"]] % 2 == 0 else (6, -12), fontsize=8)
     if at_floor:
