@@ -22,14 +22,19 @@ image is a quadratic form of the weights::
 * the *fast path* (:meth:`PSFModel.kernels`) precomputes the pair images
   ``H_ej`` on a region ``E`` around the scatterer (the PSF window plus a
   margin), so that the image of a batch of selections is one matrix product
-  of the pair products ``m_e m_j`` with ``H``. Because the SPEC searches the
-  peak over the whole grid, the fast path also precomputes, for blocks of
-  pixels outside ``E``, an upper bound ``U_Q,ej >= max_{p in Q} |H_ej(p)|``
-  from the I/Q envelopes; ``sum |m_e m_j| U_Q,ej`` bounds ``|I|`` on block Q.
-  A selection whose peak in ``E`` beats every block bound (and whose window
-  fits in ``E``) provably has its global peak in ``E``; any other selection
-  is recomputed by the exact path on the whole grid. The result is therefore
-  the SPEC's kernel, up to floating-point rounding, for every selection.
+  of the pair products ``m_e m_j`` with ``H`` (a truncated SVD ``U V`` of it,
+  with a rigorous bound of the truncation error of every pixel and window).
+  Because the SPEC searches the peak over the whole grid, the fast path also
+  precomputes, for 8 x 8 blocks of pixels outside ``E``, the samples each
+  block reads from each channel: the envelopes of a selection's I/Q channels
+  there bound ``|I|`` on the block (``_PairBasis``, certificates). A selection
+  whose peak in ``E`` (less its error bound) beats every block bound, or whose
+  loose blocks are settled exactly (strip pair images, their low-rank
+  factors, or block-wise DAS), and whose window fits in ``E``, provably has
+  its global peak there; a kernel whose error bound is too large is retried
+  at the stored rank; any other selection is recomputed by the exact path on
+  the whole grid. The result is therefore the SPEC's kernel, up to the stated
+  error bound (5e-3 relative L2, typically 1e-4), for every selection.
 """
 from __future__ import annotations
 
