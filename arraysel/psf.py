@@ -34,7 +34,8 @@ image is a quadratic form of the weights::
   its global peak there; a kernel whose error bound is too large is retried
   at the stored rank; any other selection is recomputed by the exact path on
   the whole grid. The result is therefore the SPEC's kernel, up to the stated
-  error bound (5e-3 relative L2, typically 1e-4), for every selection.
+  error bound (5e-3 relative L2; the actual error is typically below 1e-3),
+  for every selection.
 """
 from __future__ import annotations
 
