@@ -11,8 +11,12 @@
 
 Each point NLopt asks for is rounded to its ``k`` largest weights; new
 rounded selections are scored with ``objective.evaluate`` and the best one is
-returned. NLopt's stochastic algorithms draw from NLopt's own generator,
-seeded with ``nlopt.srand(seed)`` at the start of each run.
+returned. The first run starts from ``k / Ne`` (jittered); a local optimiser
+converges long before a usual budget ends, so up to ``restarts`` further runs
+start from random points of ``{0 <= w <= 1, sum(w) = k}`` while the budget
+lasts. NLopt's stochastic algorithms draw from NLopt's own generator, seeded
+with ``nlopt.srand(seed)`` at the start of the selector's run; the start
+points come from the run's seed, so a run is reproducible.
 ``nlopt`` is imported only when this selector runs.
 """
 from __future__ import annotations
@@ -40,6 +44,8 @@ class NLoptSelector(Selector):
         "maxeval": Option(int, 5000, "most objective calls made by NLopt (the budget may stop earlier)", lo=1),
         "xtol_rel": Option(float, 1e-6, "NLopt relative tolerance on w", lo=0.0),
         "init_jitter": Option(float, 0.05, "random perturbation of the start point k/Ne", lo=0.0, hi=1.0),
+        "restarts": Option(int, 1000, "further runs from random start points while the budget lasts "
+                           "(only under a time or evaluation budget; 0: one run from k/Ne)", lo=0),
     }
     uses_gradients = True
     deterministic = True
@@ -86,41 +92,56 @@ class NLoptSelector(Selector):
             score(idx)
             return value if math.isfinite(value) else 1e30
 
-        opt = nlopt.opt(getattr(nlopt, _ALGORITHMS[alg]), n)
+        def run_once(x0):
+            opt = nlopt.opt(getattr(nlopt, _ALGORITHMS[alg]), n)
+            opt.set_lower_bounds(np.zeros(n))
+            opt.set_upper_bounds(np.ones(n))
+            opt.set_min_objective(f)
+            opt.set_maxeval(self.options["maxeval"])
+            if self.options["xtol_rel"] > 0:
+                opt.set_xtol_rel(self.options["xtol_rel"])
+            if budget.seconds is not None:
+                opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
+            if gradient:
+                tol = 1e-6 * max(1, k)
+
+                def over(x, grad):
+                    if grad.size > 0:
+                        grad[:] = 1.0
+                    return float(np.sum(x) - k)
+
+                if alg == "SLSQP":
+                    opt.add_equality_constraint(over, tol)
+                else:
+                    # MMA takes inequalities only, and its dual solver stalls on the pair
+                    # sum(w) <= k, sum(w) >= k; the losses prefer more active weight, so
+                    # sum(w) <= k is active at the optimum
+                    opt.add_inequality_constraint(over, tol)
+            try:
+                opt.optimize(x0)
+            except (nlopt.ForcedStop, nlopt.RoundoffLimited):
+                pass  # budget reached, or no further progress possible: keep the best so far
+
+        def budget_left():
+            if budget.allowed(2) < 2:
+                return False
+            return budget.seconds is None or budget.remaining_seconds() > 0
+
         nlopt.srand(int(seed))
-        opt.set_lower_bounds(np.zeros(n))
-        opt.set_upper_bounds(np.ones(n))
-        opt.set_min_objective(f)
-        opt.set_maxeval(self.options["maxeval"])
-        if self.options["xtol_rel"] > 0:
-            opt.set_xtol_rel(self.options["xtol_rel"])
-        if budget.seconds is not None:
-            opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
-        if gradient:
-            tol = 1e-6 * max(1, k)
-
-            def over(x, grad):
-                if grad.size > 0:
-                    grad[:] = 1.0
-                return float(np.sum(x) - k)
-
-            if alg == "SLSQP":
-                opt.add_equality_constraint(over, tol)
-            else:
-                # MMA takes inequalities only, and its dual solver stalls on the pair
-                # sum(w) <= k, sum(w) >= k; the losses prefer more active weight, so
-                # sum(w) <= k is active at the optimum
-                opt.add_inequality_constraint(over, tol)
         rng = numpy_rng(seed)
         x0 = k / n + self.options["init_jitter"] * rng.uniform(-1.0, 1.0, n)
         x0 = project_capped_simplex(torch.tensor(x0, dtype=torch.float64), float(k)).numpy()
-        try:
-            opt.optimize(x0)
-        except (nlopt.ForcedStop, nlopt.RoundoffLimited):
-            pass  # budget reached, or no further progress possible: keep the best so far
+        first = x0
+        limited = budget.seconds is not None or budget.evaluations is not None
+        for run in range(1 + (self.options["restarts"] if limited else 0)):
+            if run and not budget_left():
+                break
+            if run:  # a random point of the capped simplex
+                x0 = project_capped_simplex(torch.tensor(rng.uniform(0.0, 2.0 * k / n, n)), float(k)).numpy()
+            run_once(x0)
         if recorder.best is not None:
             return recorder.best
-        return state["last"] if state["last"] is not None else top_k(x0, k)
+        return state["last"] if state["last"] is not None else top_k(first, k)
 
 
 @hookimpl

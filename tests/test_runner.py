@@ -257,3 +257,20 @@ def test_run_progress_bar_counts_the_evaluations(reg, capsys):
     quiet = Experiment(ToyObjective(16, 8), "random", options={"n": 300, "chunk": 64}, seed=1,
                        budget=Budget(evaluations=1000), registry=reg).run()
     assert quiet["elements"] == row["elements"] and quiet["Mean"] == row["Mean"]
+
+
+def test_nlopt_restarts_use_the_budget_and_stay_reproducible(reg):
+    pytest.importorskip("nlopt")
+
+    def run(**opts):
+        return Experiment(ToyObjective(16, 8), "nlopt", options=opts, seed=3,
+                          budget=Budget(evaluations=600), registry=reg).run()
+
+    once = run(restarts=0)
+    many = run()
+    again = run()
+    assert once["error"] == "" and many["error"] == ""
+    assert many["evaluations"] > once["evaluations"]          # the restarts spend the budget
+    assert many["evaluations"] <= 600 + 2
+    assert many["Mean"] <= once["Mean"] + 1e-12               # the first run is the same, best kept
+    assert (many["elements"], many["Mean"]) == (again["elements"], again["Mean"])
