@@ -488,7 +488,7 @@ class _PairBasis:
     recomputes it.
     """
 
-    def __init__(self, model: PSFModel, rank_tol: float = 1e-6, _state: dict | None = None):
+    def __init__(self, model: PSFModel, rank_tol: float = _BUILD_RANK_TOL, _state: dict | None = None):
         s = model.setup
         self.model = model
         ne = model.n_elements
@@ -1051,10 +1051,10 @@ class _PairBasis:
             col0 = self.strip_block_col
             strip = col0 >= 0
             todo = torch.nonzero(strip & ~clear.all(1).cpu()).flatten()
+            c = self._pairs(w)
+            slack = self._rounding(c)
+            bb = self.model.block ** 2
             if todo.numel():
-                c = self._pairs(w)
-                slack = self._rounding(c)
-                bb = self.model.block ** 2
                 # first the rank-r factors: their bound below the threshold clears a block
                 slot = col0[todo] // (2 * bb)
                 for part in torch.split(torch.arange(todo.numel()), 256):
@@ -1062,9 +1062,7 @@ class _PairBasis:
                     clear[todo[part]] |= (bound * (1 + 1e-4) < threshold.double()[None]).to(clear.device)
                 todo = todo[~clear[todo].all(1).cpu()]
             if todo.numel():
-                c = self._pairs(w)
-                limit = (threshold / (1 + 1e-4) - self._rounding(c)).square()
-                bb = self.model.block ** 2
+                limit = (threshold / (1 + 1e-4) - slack).square()
                 # runs of blocks adjacent in H2 (gaps of up to 2 blocks are computed too)
                 slot = col0[todo] // (2 * bb)
                 cut = torch.nonzero(slot[1:] - slot[:-1] > 3).flatten() + 1

@@ -122,19 +122,14 @@ class NLoptSelector(Selector):
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
                 pass  # budget reached, or no further progress possible: keep the best so far
 
-        def budget_left():
-            if budget.allowed(2) < 2:
-                return False
-            return budget.seconds is None or budget.remaining_seconds() > 0
-
         nlopt.srand(int(seed))
         rng = numpy_rng(seed)
         x0 = k / n + self.options["init_jitter"] * rng.uniform(-1.0, 1.0, n)
         x0 = project_capped_simplex(torch.tensor(x0, dtype=torch.float64), float(k)).numpy()
         first = x0
-        limited = budget.seconds is not None or budget.evaluations is not None
+        limited = any(v is not None for v in (budget.seconds, budget.evaluations, budget.gradient_steps))
         for run in range(1 + (self.options["restarts"] if limited else 0)):
-            if run and not budget_left():
+            if run and budget.allowed(2) < 2:  # the same test as in f(); 0 once any limit is reached
                 break
             if run:  # a random point of the capped simplex
                 x0 = project_capped_simplex(torch.tensor(rng.uniform(0.0, 2.0 * k / n, n)), float(k)).numpy()
