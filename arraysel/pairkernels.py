@@ -1,0 +1,98 @@
+"""Compiled kernel of the fast path's precomputation: symmetric pair images.
+
+For one scatterer the image of a selection ``m`` is ``I(p) = sum_{e<=j} m_e m_j H_ej(p)``
+with the symmetric pair image ``H_ej = D_ej + D_je`` (``e < j``), ``H_ee = D_ee``, where
+``D_ej(p) = sum_n rot_nep * lerp(X_nej, t_nep)`` is the delay-and-sum, over the
+transmits ``n``, of the I/Q signal ``X_nej`` received by element ``e`` when element ``j``
+transmits. :func:`pair_images` evaluates ``H`` for the pairs whose first element lies in
+``[e0, e1)``, on any set of pixels, directly from the I/Q signals and the DAS plans: a
+pixel reads two adjacent samples of a row of ``X`` per (transmit, element), so the
+work is ``ntx * Ne^2 * Npix`` complex multiply-adds and no pair image is ever held
+for all pixels at once unless the caller asks for it.
+
+The loops are compiled with numba (parallel over pixels). Everything here works on
+numpy arrays; the callers convert.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(parallel=True, cache=False, nogil=True)
+def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
+    """Accumulate the symmetric pair images of rows (e in [e0, e1), j >= e) into ``out``.
+
+    X: (ntx, Ne, T, Ne) complex64, ``X[n, e, t, j]`` the I/Q sample ``t`` of (rx e, tx j);
+    i0: (ntx, Ne, Npix) int32 first sample read by pixel p for rx e (local to ``X``);
+    wt: (ntx, Ne, Npix) float32 linear-interpolation weight of the second sample;
+    rr, ri: (ntx, Ne, Npix) float32 real and imaginary part of the phase rotation
+    (0 where the sample is outside the record or the element outside the aperture);
+    out: (Npix, nrows, 2) float64, rows in upper-triangle order of (e, j).
+    """
+    ntx = X.shape[0]
+    ne = X.shape[1]
+    npix = i0.shape[2]
+    for p in numba.prange(npix):
+        for n in range(ntx):
+            # D_ej, e in the block (receive), every j >= e (transmit)
+            row = 0
+            for e in range(e0, e1):
+                cr = rr[n, e, p]
+                ci = ri[n, e, p]
+                if cr != 0.0 or ci != 0.0:
+                    i = i0[n, e, p]
+                    w = wt[n, e, p]
+                    for j in range(e, ne):
+                        a = X[n, e, i, j]
+                        b = X[n, e, i + 1, j]
+                        vr = a.real + (b.real - a.real) * w
+                        vi = a.imag + (b.imag - a.imag) * w
+                        out[p, row + j - e, 0] += cr * vr - ci * vi
+                        out[p, row + j - e, 1] += cr * vi + ci * vr
+                row += ne - e
+            # D_je, j > e (receive), e in the block (transmit)
+            for j in range(e0 + 1, ne):
+                cr = rr[n, j, p]
+                ci = ri[n, j, p]
+                if cr == 0.0 and ci == 0.0:
+                    continue
+                i = i0[n, j, p]
+                w = wt[n, j, p]
+                row = 0
+                for e in range(e0, min(e1, j)):
+                    a = X[n, j, i, e]
+                    b = X[n, j, i + 1, e]
+                    vr = a.real + (b.real - a.real) * w
+                    vi = a.imag + (b.imag - a.imag) * w
+                    out[p, row + j - e, 0] += cr * vr - ci * vi
+                    out[p, row + j - e, 1] += cr * vi + ci * vr
+                    row += ne - e
+
+
+def pair_row_blocks(n_elements: int, max_rows: int) -> list[tuple[int, int, int]]:
+    """Split the upper-triangle pair rows into blocks of whole first elements:
+    ``(e0, e1, rows)`` with at most ``max_rows`` rows each (at least one element)."""
+    blocks = []
+    e0 = 0
+    while e0 < n_elements:
+        e1, rows = e0, 0
+        while e1 < n_elements and (rows + (n_elements - e1) <= max_rows or e1 == e0):
+            rows += n_elements - e1
+            e1 += 1
+        blocks.append((e0, e1, rows))
+        e0 = e1
+    return blocks
+
+
+def pair_images(X: np.ndarray, plan: tuple, e0: int, e1: int) -> np.ndarray:
+    """Symmetric pair images (Npix, nrows, 2) float64 of the rows (e in [e0, e1), j >= e).
+
+    ``plan`` = (i0, wt, rr, ri) as documented in :func:`_pair_images_kernel`.
+    """
+    i0, wt, rr, ri = plan
+    ne = X.shape[1]
+    rows = sum(ne - e for e in range(e0, e1))
+    out = np.zeros((i0.shape[2], rows, 2), dtype=np.float64)
+    _pair_images_kernel(X, i0, wt, rr, ri, int(e0), int(e1), out)
+    return out
