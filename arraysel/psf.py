@@ -1189,8 +1189,16 @@ class _PairBasis:
 
     #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
     refine_max_blocks = 256
-    #: block DAS plans kept in memory (one block: ntx x block^2 x Ne entries)
-    plan_cache_blocks = 1024
+    #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of
+    #: index, weight and rotation)
+    plan_cache_bytes = 256 * 2 ** 20
+
+    @property
+    def plan_cache_blocks(self) -> int:
+        """Block DAS plans kept in memory (from :attr:`plan_cache_bytes`)."""
+        model = self.model
+        per = len(model.transmits) * model.block ** 2 * model.n_elements * (8 + 4 + 8)
+        return max(16, self.plan_cache_bytes // per)
 
     def _plans_for_blocks(self, blocks: list) -> list:
         """DAS plans (per block: one (i0, w, rot) per transmit) of the pixels of the grid blocks

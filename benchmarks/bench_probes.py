@@ -1,0 +1,150 @@
+"""The fast objective on the probes people use: one row per probe (issue 17's table).
+
+For each scene, in a fresh process with an empty basis cache (so the first-run precompute is
+measured): the precompute time, the steady ``Objective.evaluate`` time per mask (random
+k-subsets, after a warm-up), the resident memory (peak RSS of the process after the
+evaluations), straight-through gradient steps per minute (``selection_loss`` forward +
+backward + Adam, one mask per step), the fallback fraction on the random masks, and the
+fidelity: SI-MSE of the fast kernels against the exact path for the uniform, a random, the
+'edges' (the k/2 outermost elements on each side) and the 'centre' (the k middle elements)
+masks.
+
+Usage::
+
+    python benchmarks/bench_probes.py [--probes paper,l11-5v,c5-2v,linear-256] [--masks 1024]
+
+``linear-256`` is the L11-5v scene with the probe extended to 256 elements (k = 128).
+The last output line is a JSON record; everything before it is for people.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as C  # noqa: E402
+
+PROBES = {
+    "paper": ("paper", None),
+    "l11-5v": ("l11-5v", None),
+    "c5-2v": ("c5-2v", None),
+    "linear-256": ("l11-5v", {"probe": {"n_elements": 256}, "selection": {"k": 128}}),
+}
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--probes", default=",".join(PROBES), help=f"comma-separated, from {list(PROBES)}")
+    p.add_argument("--masks", type=int, default=1024, help="random masks timed per probe (default 1024)")
+    p.add_argument("--steps", type=int, default=30, help="timed gradient steps per probe (default 30)")
+    p.add_argument("--one", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    for name in a.probes.split(","):
+        if name not in PROBES:
+            p.error(f"--probes: unknown probe {name!r}; choose from {list(PROBES)}")
+    return a
+
+
+def _masks(n, ne, k):
+    import numpy as np
+
+    uniform = np.zeros(ne)
+    uniform[[(i * ne) // k for i in range(k)]] = 1
+    edges = np.zeros(ne)
+    edges[: k // 2] = 1
+    edges[ne - (k - k // 2):] = 1
+    centre = np.zeros(ne)
+    centre[(ne - k) // 2:(ne - k) // 2 + k] = 1
+    return {"uniform": uniform, "random": C.random_masks(1, ne, k, seed=99)[0], "edges": edges,
+            "centre": centre}, C.random_masks(n, ne, k, seed=0)
+
+
+def run_one(name: str, masks: int, steps: int) -> dict:
+    """Measure one probe in this process (called in a child process)."""
+    import resource
+    import time
+
+    import numpy as np
+    import torch
+
+    from arraysel.metrics import si_mse
+    from arraysel.objective import Objective
+    from arraysel.relax import sequential_selection
+    from arraysel.scene import load_scene
+
+    C.set_threads(None)
+    base, over = PROBES[name]
+    scene = load_scene(base, overrides=over)
+    t0 = time.perf_counter()
+    obj = Objective(scene)
+    precompute = time.perf_counter() - t0
+    ne, k = obj.n_elements, obj.k
+    special, rand = _masks(masks, ne, k)
+    warm = min(256, masks)
+    obj.evaluate(rand[:warm])
+    obj.fallbacks = 0
+    t0 = time.perf_counter()
+    obj.evaluate(rand)
+    per_mask = (time.perf_counter() - t0) / masks
+    fallbacks = obj.fallbacks / masks
+    # gradient steps (as the ste selector takes them)
+    logits = torch.zeros(ne, k, requires_grad=True)
+    opt = torch.optim.Adam([logits], lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        logits.normal_(0, 0.01, generator=gen)
+    for i in range(steps + 2):
+        if i == 2:
+            t0 = time.perf_counter()
+        r = sequential_selection(logits, 2.0)
+        loss, _ = obj.selection_loss(r.P, r.P_soft)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    steps_per_min = 60 * steps / (time.perf_counter() - t0)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    w = torch.tensor(np.stack(list(special.values())), dtype=obj.dtype)
+    with torch.no_grad():
+        kf, fb = obj.psf.kernels(w, return_info=True)
+        ke = obj.psf.kernels_exact(w)
+    fid = {n: float(si_mse(kf[i].to(torch.complex128), ke[i].to(torch.complex128)))
+           for i, n in enumerate(special)}
+    fast = obj.psf.fast
+    return {"probe": name, "n_elements": ne, "k": k, "ms_per_mask": per_mask * 1e3, "rss_gib": rss,
+            "precompute_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
+            "si_mse_vs_exact": fid, "exact_path_for": [n for i, n in enumerate(special) if bool(fb[i])],
+            "fast_path": fast is not None, "rank": getattr(fast, "rank", None),
+            "strips": getattr(fast, "strips", None), "kernel_tol": getattr(fast, "kernel_tol", None)}
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    if args.one:
+        print(json.dumps(run_one(args.one, args.masks, args.steps)))
+        return
+    rows = []
+    for name in args.probes.split(","):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, ARRAYSEL_CACHE=cache)
+            out = subprocess.run([sys.executable, __file__, "--one", name, "--masks", str(args.masks),
+                                  "--steps", str(args.steps)], env=env, capture_output=True, text=True)
+        if out.returncode != 0:
+            print(out.stderr[-3000:], file=sys.stderr)
+            rows.append({"probe": name, "error": out.stderr.strip().splitlines()[-1:]})
+            continue
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        r = rows[-1]
+        print(f"{r['probe']:>11} Ne {r['n_elements']:>3} k {r['k']:>3}: {r['ms_per_mask']:6.2f} ms/mask, "
+              f"{r['rss_gib']:.2f} GiB, precompute {r['precompute_s']:6.1f} s, "
+              f"{r['grad_steps_per_min']:7.0f} grad steps/min, fallbacks {100 * r['fallback_fraction']:.2f} %, "
+              f"max SI-MSE vs exact {max(r['si_mse_vs_exact'].values()):.1e} "
+              f"(exact path for {r['exact_path_for'] or 'none'})", flush=True)
+    print(json.dumps({"machine": C.machine(), "rows": rows}))
+
+
+if __name__ == "__main__":
+    main()
