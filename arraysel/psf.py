@@ -433,7 +433,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 7
+_BASIS_VERSION = 8
 #: largest memory of the strips' pair images (tier 2) kept by the fast path; above it they are
 #: not built and loose blocks beside E are beamformed exactly
 _STRIP_MAX_BYTES = 1 << 30
@@ -710,43 +710,47 @@ class _PairBasis:
 
     # -- sample ranges and windowed pair I/Q -------------------------------------------------
     def _sample_ranges(self):
-        """Samples read by the grid's pixels, from the whole-grid DAS plans (row chunks).
+        """Samples read by the grid's pixels, block by block, from the block centres.
 
-        Returns ``lo``, ``hi`` (ntx, nbz, nbx, Ne): per block and (transmit, element) the first
-        and last sample index read by a valid pixel (``hi < lo`` where none is), and sets
+        The transmit distance (a minimum of 1-Lipschitz distances) and each receive distance
+        are 1-Lipschitz in the pixel position, so over a block of half-diagonal ``r`` the
+        sample position ``(d_TX + d_RX) fs / c`` of a pixel lies within ``2 r fs / c`` of the
+        centre's: the ranges below contain every sample a pixel of the block reads (they may
+        hold a sample or two more, which only loosens the bounds). Channels outside the
+        f-number aperture are kept (a bound only grows).
+
+        Returns ``lo``, ``hi`` (ntx, nbz, nbx, Ne): per block and (transmit, element) the
+        first and last sample index a pixel may read (``hi < lo`` where none can), and sets
         ``off`` (ntx, Ne): the first sample of each channel's window, and ``T``: the window
         length (a multiple of :attr:`seg`). Every sample any grid pixel reads lies in
         ``[off, off + T - 1]``, so channels are kept, precomputed and enveloped on that window
         only (its length follows the grid, not the record)."""
+        from .beamform import transmit_distance
+
         model = self.model
         s = model.setup
-        ne = model.n_elements
-        ntx = len(model.transmits)
         b = model.block
-        big = 1 << 40
         nbz, nbx = -(-s.n_z // b), -(-s.n_x // b)
-        lo = torch.full((ntx, nbz, nbx, ne), big, dtype=torch.long)
-        hi = torch.full((ntx, nbz, nbx, ne), -1, dtype=torch.long)
-        rows_per = max(b, (2 ** 21 // (s.n_x * ne)) // b * b)
-        for n, t in enumerate(model.transmits):
-            for r0 in range(0, s.n_z, rows_per):
-                rows = slice(r0, min(s.n_z, r0 + rows_per))
-                nr = rows.stop - rows.start
-                Z, X = torch.meshgrid(model._zg[rows], model._xg, indexing="ij")
-                plan = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
-                                fnumber=s.fnumber, fc=s.probe.fc)
-                valid = (plan.rot.abs() > 0).reshape(nr, s.n_x, ne)
-                i0 = plan.i0.reshape(nr, s.n_x, ne)
-                lo_p = torch.where(valid, i0, torch.full_like(i0, big))
-                hi_p = torch.where(valid, i0 + 1, torch.full_like(i0, -1))
-                padz = -(-nr // b) * b - nr
-                padx = nbx * b - s.n_x
-                lo_p = torch.nn.functional.pad(lo_p, (0, 0, 0, padx, 0, padz), value=big)
-                hi_p = torch.nn.functional.pad(hi_p, (0, 0, 0, padx, 0, padz), value=-1)
-                q0 = r0 // b
-                nq = lo_p.shape[0] // b
-                lo[n, q0:q0 + nq] = torch.minimum(lo[n, q0:q0 + nq], lo_p.reshape(nq, b, nbx, b, ne).amin(dim=(1, 3)))
-                hi[n, q0:q0 + nq] = torch.maximum(hi[n, q0:q0 + nq], hi_p.reshape(nq, b, nbx, b, ne).amax(dim=(1, 3)))
+        p = s.pitch
+        zc = float(model._zg[0]) + (torch.arange(nbz, dtype=torch.float64) * b + (b - 1) / 2) * p
+        xc = float(model._xg[0]) + (torch.arange(nbx, dtype=torch.float64) * b + (b - 1) / 2) * p
+        Z, X = torch.meshgrid(zc, xc, indexing="ij")
+        r = math.sqrt(2) * (b - 1) / 2 * p
+        xe, ze, _, _ = s.probe.element_positions()
+        drx = torch.sqrt((X[..., None] - torch.as_tensor(xe)) ** 2 + (Z[..., None] - torch.as_tensor(ze)) ** 2)
+        slack = 2 * r * s.acq.fs / s.acq.c + 1e-9
+        los, his = [], []
+        for t in model.transmits:
+            dtx = transmit_distance(X, Z, t.delays, s.probe, s.acq.c)
+            pos = (dtx[..., None] + drx) / s.acq.c * s.acq.fs
+            lo = torch.floor(pos - slack).clamp(min=0)
+            hi = torch.floor(pos + slack) + 1
+            n_t = t.grid.n_time
+            can = (pos + slack >= 0) & (pos - slack <= n_t - 2)
+            hi = hi.clamp(max=n_t - 1)
+            los.append(torch.where(can, lo, torch.full_like(lo, 1 << 40)).long())
+            his.append(torch.where(can, hi, torch.full_like(hi, -1)).long())
+        lo, hi = torch.stack(los), torch.stack(his)  # (ntx, nbz, nbx, Ne)
         first = lo.amin(dim=(1, 2))
         last = hi.amax(dim=(1, 2))
         read = last >= first

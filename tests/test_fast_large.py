@@ -120,3 +120,4 @@ def test_basis_memory_estimate_covers_the_build(no_cache):
     fast = model.fast.finer or model.fast
     stored = sum(t.numel() * t.element_size() for t in fast.state().values() if isinstance(t, torch.Tensor))
     assert model.basis_bytes() >= stored
+
