@@ -433,7 +433,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return basis
 
 
-_BASIS_VERSION = 8
+_BASIS_VERSION = 9
 #: largest memory of the strips' pair images (tier 2) kept by the fast path; above it they are
 #: not built and loose blocks beside E are beamformed exactly
 _STRIP_MAX_BYTES = 1 << 30
@@ -946,8 +946,11 @@ class _PairBasis:
         model = self.model
         ne = model.n_elements
         T = self.T
-        # A[j, (n, e, t)]: the channel of receive e on transmit n is m_e sum_j m_j A[j, (n, e, :)]
-        A = torch.from_numpy(X).permute(3, 0, 1, 2).reshape(ne, -1)
+        # A[j, (n, e, r, a)] = I/Q sample t = a seg + r of (rx e, tx j): the channel of receive e on
+        # transmit n is m_e sum_j m_j A[j, (n, e, :, :)]; samples are stored segment-offset major
+        # so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
+        A = torch.from_numpy(X).permute(3, 0, 1, 2)  # (j, n, e, T)
+        A = A.reshape(ne, A.shape[1], ne, T // self.seg, self.seg).transpose(-1, -2).reshape(ne, -1)
         self.A = torch.cat([A.real, A.imag], dim=1).to(model.device, model.dtype)
         off = self.off[:, None, None, :]
         read = hi >= lo
@@ -1140,8 +1143,18 @@ class _PairBasis:
         ntx = len(self.model.transmits)
         y = w @ self.A
         half = y.shape[1] // 2
-        x = torch.complex(y[:, :half], y[:, half:]).reshape(w.shape[0], ntx, ne, self.T)
+        x = torch.complex(y[:, :half], y[:, half:]).reshape(w.shape[0], ntx, ne, self.seg, self.T // self.seg)
+        x = x.transpose(-1, -2).reshape(w.shape[0], ntx, ne, self.T)
         return x * w.to(x.dtype)[:, None, :, None]
+
+    def pair_iq(self) -> torch.Tensor:
+        """The windowed pair I/Q signals (Ne tx j, ntx, Ne rx e, T) complex (sample t of the window
+        of (n, e) is sample ``off[n, e] + t`` of the record)."""
+        ne = self.model.n_elements
+        half = self.A.shape[1] // 2
+        a = torch.complex(self.A[:, :half], self.A[:, half:])
+        a = a.reshape(ne, len(self.model.transmits), ne, self.seg, self.T // self.seg)
+        return a.transpose(-1, -2).reshape(ne, len(self.model.transmits), ne, self.T)
 
     #: (transmit, element) channels per step of :meth:`envelopes` (keeps the products in cache)
     env_group = 8
@@ -1169,7 +1182,7 @@ class _PairBasis:
             yr = a_re[g0 * T: g1 * T] @ wt
             yi = a_im[g0 * T: g1 * T] @ wt
             sq = torch.addcmul(yi.square_(), yr, yr)
-            torch.amax(sq.view(g1 - g0, nS, self.seg, B), dim=2, out=seg[g0:g1])
+            torch.amax(sq.view(g1 - g0, self.seg, nS, B), dim=1, out=seg[g0:g1])
         seg.sqrt_()
         seg.view(ntx, ne, nS, B).mul_(w.abs().T[None, :, None, :])
         env = seg.new_empty(nch, self.L, nS, B)

@@ -87,14 +87,17 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
         spec = t.RC[:, None, :] * t.G[None, :, :]
         iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ t.Q.T  # (e, j, T)
         ne = model.n_elements
-        A = fast.A.double()
-        half = A.shape[1] // 2
-        Ac = torch.complex(A[:, :half], A[:, half:]).reshape(ne, len(model.transmits), ne, fast.T)
+        Ac = fast.pair_iq()
         for e in range(ne):
             o = int(fast.off[n, e])
             k = min(fast.T, iq.shape[-1] - o)
             ref = iq[e, :, o:o + k]
             assert float((Ac[:, n, e, :k] - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
+        # the channels of a selection are its weighted sums of the pair signals
+        w = _weights(8, 2, seed=7)
+        ch = fast.channels(w)[:, n]  # (B, e, T)
+        want = torch.einsum("bj,jet->bet", w.to(Ac.dtype), Ac[:, n]) * w.to(Ac.dtype)[:, :, None]
+        assert float((ch - want).abs().max()) <= 1e-9 * float(want.abs().max())
 
 
 def test_gradcheck_fast_path_128_elements(no_cache):
