@@ -277,7 +277,8 @@ class PSFModel:
         if batch is None:
             batch = int(max(1, min(_EXACT_MAX_BATCH, (free // 2) // max(1, per_mask))))
         das_free = free - batch * per_mask
-        pixels = int(max(1, min(s.n_z * s.n_x, das_free // max(1, 4 * batch * ne * c))))
+        # at least one grid row per DAS call (a row of 8192 pixels x 64 elements is 16 MiB a mask)
+        pixels = int(max(min(s.n_x, s.n_z * s.n_x), min(s.n_z * s.n_x, das_free // max(1, 4 * batch * ne * c))))
         return batch, pixels
 
     def masks_per_batch(self) -> int:
@@ -325,8 +326,8 @@ class PSFModel:
 
     def _check_exact_memory(self) -> None:
         """Refuse, before any work, a scene whose exact path cannot fit ``memory_limit`` even one mask
-        and one pixel at a time."""
-        need = self.exact_bytes(1, pixels=1)
+        and one grid row at a time."""
+        need = self.exact_bytes(1, pixels=self.setup.n_x)
         if need > self.memory_limit:
             s = self.setup
             raise ParameterError(
@@ -450,9 +451,14 @@ class PSFModel:
         return torch.cat(out, dim=1) if len(out) > 1 else out[0].reshape(w.shape[0], nz, nx)
 
     def kernels_exact(self, weights) -> torch.Tensor:
-        """SPEC kernels (B, window, window) from the exact whole-grid image."""
-        img = self.image(weights)
-        return window_and_normalise(img, self.setup.window)
+        """SPEC kernels (B, window, window) from the exact whole-grid image, in batches of
+        :meth:`exact_chunking`'s size (bounded memory whatever B)."""
+        w = self._weights(weights)
+        step = self.exact_chunking()[0]
+        if w.shape[0] <= step:
+            return window_and_normalise(self.image(w), self.setup.window)
+        return torch.cat([window_and_normalise(self.image(w[i:i + step]), self.setup.window)
+                          for i in range(0, w.shape[0], step)])
 
     # ------------------------------------------------------------------ fast path
     def kernels(self, weights, return_info: bool = False):

@@ -271,10 +271,10 @@ def test_exact_path_chunks_follow_the_memory_cap_and_agree(monkeypatch):
     setup = load_scene(tiny()).psf_setup()
     big = PSFModel(setup, fast=False)
     small = PSFModel(setup, fast=False)
-    # a cap just above the fixed costs: batches of one mask, DAS in sub-chunks of a few pixels
-    small.memory_limit = small.exact_bytes(1, pixels=1) + 4 * 8 * 40
+    # a cap just above the fixed costs: batches of one mask, DAS in sub-chunks of a few rows
+    small.memory_limit = small.exact_bytes(1, pixels=setup.n_x) + 4 * 8 * 8 * 40
     b, px = small.exact_chunking()
-    assert b == 1 and 1 <= px < setup.n_x * setup.n_z
+    assert b == 1 and setup.n_x <= px < setup.n_x * setup.n_z
     assert small.exact_bytes(b, px) <= small.memory_limit
     assert big.exact_chunking()[0] > 1 and big.exact_bytes(*big.exact_chunking()) <= big.memory_limit
     w = torch.as_tensor(MASKS, dtype=torch.float32)
