@@ -118,6 +118,11 @@ class Objective:
         self.psfs = [PSFModel(s, dtype=dtype, device=self.device, fast=fast, margin=margin, block=block)
                      for s in self.setups]
         self.psf = self.psfs[0]
+        if self.n_points > 1:  # the points share the memory cap: each keeps its share of DAS plans
+            for p in self.psfs:
+                p.plan_cache_elements = max(1, p._plan_cache_limit() // self.n_points)
+            for p in self.psfs:
+                p.other_bytes = sum(q.plan_cache_bytes() for q in self.psfs if q is not p)
         self._announced = False
         if any(p.fast is None for p in self.psfs):
             _log.warning("%s", self.exact_notice())

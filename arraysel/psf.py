@@ -194,6 +194,10 @@ class PSFModel:
         self.plan_cache_elements = plan_cache_elements
         #: memory (bytes) the exact path may use (``ARRAYSEL_MEMORY_GIB``); its batches follow from it
         self.memory_limit = memory_limit_bytes()
+        #: resident memory of the process when the model was built (the exact path's baseline)
+        self.baseline_bytes = _resident_bytes()
+        #: memory other models of the same objective keep (their DAS plans), set by the objective
+        self.other_bytes = 0
         self._check_exact_memory()
         self.fast = None
         if fast:
@@ -216,18 +220,21 @@ class PSFModel:
         return (ne * (ne + 1) // 2) * 2 * rows * s.n_x * 8
 
     # ------------------------------------------------------------------ exact path: memory
-    # The exact path's peak memory, in bytes, for a batch of ``batch`` masks (no autograd):
-    #   baseline (interpreter, torch, the model)                            _BASELINE_BYTES
-    # + DAS plans kept in memory: entries (pixel, element, transmit) x (i0 + w + rot)
-    # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and
-    #   RF on the way (Ne x (F + n_fft) complex), the whole-grid image twice (chunks + cat)
-    # + the DAS working set of one pixel sub-chunk: 4 (B, pixels x Ne) complex temporaries
-    # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries.
-    # :meth:`exact_chunking` picks the batch and the pixel sub-chunk so this stays within
-    # ``memory_limit``; ``benchmarks/exact_memory.py`` compares it with measured peaks.
+    # The exact path's peak resident memory, in bytes, for a batch of ``batch`` masks (no autograd):
+    #   baseline: the process's resident memory when the model was built (``baseline_bytes``)
+    # + DAS plans kept (this model's and, in a several-point objective, its siblings',
+    #   ``other_bytes``): entries (pixel, element, transmit) x (i0 + w + rot), capped at a
+    #   quarter of ``memory_limit``
+    # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries
+    # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and RF on
+    #   the way, the whole-grid image (row chunks, their concatenation, its magnitude)
+    # + one DAS call: _DAS_TEMPS (B, pixels x Ne) complex temporaries (gathered samples, their
+    #   index, differences, products), its pixels chosen to keep this near _DAS_BYTES;
+    # all but the baseline times _HEAP_FACTOR, the heap growth (fragmentation, blocks glibc
+    # keeps) measured on top of the live tensors by ``benchmarks/exact_memory.py``.
+    # :meth:`exact_chunking` picks the batch so the total stays within ``memory_limit``.
 
     def _sizes(self):
-        s = self.setup
         c = 8 if self.dtype == torch.float32 else 16
         T = max(t.grid.n_time for t in self.transmits)
         nfft = max(t.grid.n_fft for t in self.transmits)
@@ -239,7 +246,6 @@ class PSFModel:
 
     def plan_cache_bytes(self) -> int:
         """Memory (bytes) of the DAS plans the exact path keeps (whole grid, every transmit, capped)."""
-        s = self.setup
         c = 8 if self.dtype == torch.float32 else 16
         return self._plan_cache_limit() * (8 + c // 2 + c)
 
@@ -250,37 +256,40 @@ class PSFModel:
         quarter = self.memory_limit // 4 // (8 + c // 2 + c)
         return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
 
-    def exact_bytes(self, batch: int, pixels: int | None = None) -> int:
-        """Estimated peak memory (bytes) of an exact-path evaluation of ``batch`` masks with DAS
-        sub-chunks of ``pixels`` pixels (default: :meth:`exact_chunking`'s)."""
+    def _per_mask_bytes(self) -> int:
         s = self.setup
-        ne = self.n_elements
         c, T, nfft, F = self._sizes()
+        ne = self.n_elements
+        return len(self.transmits) * ne * T * c + 2 * ne * (F + nfft) * c + (2 * c + c // 2) * s.n_z * s.n_x
+
+    def _das_pixels(self, batch: int) -> int:
+        s = self.setup
+        c = self._sizes()[0]
+        want = _DAS_BYTES // max(1, _DAS_TEMPS * batch * self.n_elements * c)
+        return int(min(s.n_z * s.n_x, max(s.n_x, want)))
+
+    def exact_bytes(self, batch: int, pixels: int | None = None) -> int:
+        """Estimated peak resident memory (bytes) of the process during an exact-path evaluation of
+        ``batch`` masks with DAS calls of ``pixels`` pixels (default: :meth:`exact_chunking`'s)."""
+        s = self.setup
+        c = self._sizes()[0]
         if pixels is None:
-            pixels = self.exact_chunking(batch)[1]
-        per_mask = len(self.transmits) * ne * T * c + ne * (F + nfft) * c + 2 * s.n_z * s.n_x * c
-        das = 4 * batch * pixels * ne * c
-        build = 12 * self._plan_rows() * s.n_x * ne * 8
-        return _BASELINE_BYTES + self.plan_cache_bytes() + batch * per_mask + das + build
+            pixels = self._das_pixels(batch)
+        build = 12 * self._plan_rows() * s.n_x * self.n_elements * 8
+        das = _DAS_TEMPS * batch * pixels * self.n_elements * c
+        work = self.plan_cache_bytes() + self.other_bytes + build + batch * self._per_mask_bytes() + das
+        return int(self.baseline_bytes + _HEAP_FACTOR * work)
 
     def exact_chunking(self, batch: int | None = None) -> tuple[int, int]:
-        """(masks per batch, pixels per DAS sub-chunk) of the exact path within ``memory_limit``.
+        """(masks per batch, pixels per DAS call) of the exact path within ``memory_limit``.
 
-        With ``batch`` given, only the pixel sub-chunk is chosen for it.
+        With ``batch`` given, only the pixels per DAS call are chosen for it.
         """
-        s = self.setup
-        ne = self.n_elements
-        c, T, nfft, F = self._sizes()
-        free = self.memory_limit - _BASELINE_BYTES - self.plan_cache_bytes() \
-            - 12 * self._plan_rows() * s.n_x * ne * 8
-        per_mask = len(self.transmits) * ne * T * c + ne * (F + nfft) * c + 2 * s.n_z * s.n_x * c
         if batch is None:
-            batch = int(max(1, min(_EXACT_MAX_BATCH, (free // 2) // max(1, per_mask))))
-        das_free = free - batch * per_mask
-        # at least one grid row per DAS call (a row of 8192 pixels x 64 elements is 16 MiB a mask)
-        pixels = int(max(min(s.n_x, s.n_z * s.n_x), min(s.n_z * s.n_x, das_free // max(1, 4 * batch * ne * c))))
-        return batch, pixels
-
+            batch = _EXACT_MAX_BATCH
+            while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
+                batch = max(1, min(batch - 1, int(batch * 0.85)))
+        return batch, self._das_pixels(batch)
     def masks_per_batch(self) -> int:
         """Masks an evaluation should hand to :meth:`kernels` at once (bounded memory on the exact path)."""
         if self.fast is not None:
@@ -487,8 +496,24 @@ class PSFModel:
         return self._ref
 
 
-#: interpreter, torch and a model's small tensors (measured RSS of ``import arraysel`` + a model: ~0.45 GiB)
+#: baseline where the resident memory cannot be read (~ ``import arraysel`` and one model)
 _BASELINE_BYTES = 450 * 2 ** 20
+#: target size of one DAS call's temporaries, and how many (B, pixels x Ne) complex arrays they are
+_DAS_BYTES = 128 * 2 ** 20
+_DAS_TEMPS = 6
+#: resident heap per byte of live tensors (measured by benchmarks/exact_memory.py)
+_HEAP_FACTOR = 1.3
+
+
+def _resident_bytes() -> int:
+    """Resident memory of this process now (Linux ``/proc/self/statm``), else ``_BASELINE_BYTES``."""
+    import os
+
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return _BASELINE_BYTES
 #: largest batch the exact path hands to DAS at once
 _EXACT_MAX_BATCH = 256
 

@@ -268,11 +268,14 @@ def test_end_to_end_scenes_take_one_point():
 # ---------------------------------------------------------------------------
 
 def test_exact_path_chunks_follow_the_memory_cap_and_agree(monkeypatch):
+    import arraysel.psf as psf_module
+
     setup = load_scene(tiny()).psf_setup()
     big = PSFModel(setup, fast=False)
     small = PSFModel(setup, fast=False)
-    # a cap just above the fixed costs: batches of one mask, DAS in sub-chunks of a few rows
-    small.memory_limit = small.exact_bytes(1, pixels=setup.n_x) + 4 * 8 * 8 * 40
+    # a cap just above the fixed costs: batches of one mask; DAS calls of a few rows
+    monkeypatch.setattr(psf_module, "_DAS_BYTES", psf_module._DAS_TEMPS * 8 * 8 * 40)
+    small.memory_limit = small.exact_bytes(1) + 1000
     b, px = small.exact_chunking()
     assert b == 1 and setup.n_x <= px < setup.n_x * setup.n_z
     assert small.exact_bytes(b, px) <= small.memory_limit
