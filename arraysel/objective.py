@@ -14,6 +14,20 @@
 It counts evaluated masks, gradient steps and the wall time spent inside it,
 so a comparison can report every strategy's budget and overhead.
 Only the terms with a non-zero weight are computed.
+
+A scene with several field points (``medium.points``) has one
+:class:`~arraysel.psf.PSFModel` per point (``Objective.psfs``); each point's
+kernel is the window centred on its own peak, scored against its own full-array
+reference. The headline metrics (:data:`METRIC_NAMES`) are then the aggregate
+``metrics.aggregate`` chooses (the mean over the points, or the worst point),
+and :meth:`Objective.evaluate` adds every metric per point, their mean and
+their worst (:func:`point_metric_names`). A one-point scene returns exactly
+the headline metrics, as before. See ``docs/scenes.md``.
+
+When a point has no fast path, the objective logs once, when it is built, that
+it uses the exact path, with its estimated time per mask and memory
+(:meth:`Objective.exact_notice`), and the first evaluation of several masks
+logs its estimated duration.
 """
 from __future__ import annotations
 
@@ -147,9 +161,13 @@ class Objective:
         Exact-path points are estimated by :meth:`PSFModel.exact_seconds_per_mask`; fast-path
         points count as free (their cost is milliseconds a mask).
         """
-        per = sum(p.exact_seconds_per_mask(min(self.chunk, p.masks_per_batch(), max(1, n_masks)))
-                  for p in self.psfs if p.fast is None)
-        return per * n_masks
+        total = 0.0
+        for p in self.psfs:
+            if p.fast is None:
+                total += n_masks * p.exact_seconds_per_mask(min(self.chunk, p.masks_per_batch(), max(1, n_masks)))
+                if p._ref is None:  # the full array's reference kernel comes first, once
+                    total += p.exact_seconds_per_mask(1)
+        return total
 
     def exact_notice(self, n_masks: int | None = None) -> str:
         """One line saying that (and why) the scene runs on the exact path, with time and memory."""
@@ -158,7 +176,7 @@ class Objective:
             return f"scene {self.scene.name!r}: fast PSF path on every field point"
         why = "disabled (fast=False)" if not self.fast_requested else "unavailable (its precomputation is over its cap)"
         where = "" if self.n_points == 1 else f" for {len(slow)} of {self.n_points} field points"
-        per = self.estimate_seconds(1)
+        per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.fast is None)
         mem = max(p.exact_bytes(p.masks_per_batch()) for p in (self.psfs[i] for i in slow))
         text = (f"scene {self.scene.name!r}: PSF fast path {why}{where}; using the exact path: about "
                 f"{_fmt_seconds(per)} per mask (estimated), memory up to {mem / 2 ** 30:.1f} GiB "

@@ -189,8 +189,8 @@ def _check_length(key: str, value: Any, spec: Key) -> Any:
     if unit == spec.unit:
         check_number(key, value if not isinstance(value, str) else num, lo=lo, hi=hi, lo_open=lo_open,
                      integer=spec.integer and not isinstance(value, str))
-    else:  # the range is checked once the scene is complete (pixel and wavelength known)
-        check_number(key, num, lo=min(lo, 0), lo_open=lo_open and lo >= 0)
+    elif lo >= 0:  # the sign now; the range once the scene is complete (pitch and wavelength known)
+        check_number(key, num, lo=0, lo_open=lo_open)
     return value.strip() if isinstance(value, str) else value
 
 

@@ -63,6 +63,11 @@ def test_lengths_resolve_in_each_keys_unit():
     # bare numbers keep their old meaning: pixels, wavelengths, metres
     sc = load_scene({"base": "paper", "grid": {"window": 64}, "metrics": {"r_main": 1.0}})
     assert sc.length("grid", "window") == 64 and sc.length("metrics", "r_main") == 1.0
+    sc = load_scene({"base": "paper", "medium": {"points": [["-5 mm", "40 mm"], [0.004, "100 wl"]]}})
+    np.testing.assert_allclose(sc.points(), [(-0.005, 0.04), (0.004, 100 * LAM)], rtol=1e-12)
+    assert [s.x_offset for s in sc.psf_setups()] == [round(-5e-3 / 27.5e-6), round(4e-3 / 27.5e-6)]
+    with pytest.raises(ParameterError, match=r"medium\.points\[0\]\.x = '-2000 mm' is -2 m; allowed: \[-1, 1\] m"):
+        load_scene({"base": "paper", "medium": {"points": [["-2000 mm", "40 mm"]]}})
 
 
 @pytest.mark.parametrize("over,pattern", [
