@@ -331,3 +331,28 @@ def test_deep_scene_windows_show_what_sparse_masks_lose():
     for p in range(3):
         assert res[f"L_contrast@p{p}"][1] > res[f"L_contrast@p{p}"][0]
         assert res[f"L_PSF@p{p}"][1] > 1e-3
+
+
+def test_compare_ranks_by_the_chosen_aggregate(tmp_path, capsys):
+    scene = tmp_path / "two.toml"
+    scene.write_text('base = "paper"\n[probe]\nn_elements = 8\n[selection]\nk = 4\n[transmit]\nn_tx = 2\n'
+                     '[grid]\nn_x = 16\nn_z = 16\nwindow = 8\npixel_per_wavelength_fs = 1.0\n'
+                     '[metrics]\nr_main = 0.5\nr_guard = 1.0\n'
+                     '[medium]\npoints = [[0.0, "1.2 mm"], ["0.3 mm", "1.6 mm"]]\n')
+    out = tmp_path / "out"
+    rc = main(["compare", "--selectors", "uniform", "--scene", str(scene), "--budget-evals", "2",
+               "--aggregate", "worst", "--out", str(out), "--no-figures", "--no-progress"])
+    assert rc == 0
+    runs = pd.read_csv(out / "runs.csv")
+    np.testing.assert_allclose(runs["Mean"], runs["Mean@worst"])
+    assert (runs["Mean@worst"] >= runs["Mean@mean"]).all()
+
+
+def test_compare_says_how_long_the_exact_path_takes(two_points):
+    from arraysel.commands.compare import _exact_run_notice
+    from arraysel.selector import Budget
+
+    text = _exact_run_notice(two_points, Budget(evaluations=50), 3)
+    assert "using the exact path" in text and "150 mask(s): about" in text and "(3 run(s) of 50)" in text
+    text = _exact_run_notice(two_points, Budget(seconds=60), 2)
+    assert "each of the 2 run(s) stops at its 60 s budget after about" in text
