@@ -504,6 +504,8 @@ _DAS_BYTES = 128 * 2 ** 20
 _DAS_TEMPS = 6
 #: resident heap per byte of live tensors (measured by benchmarks/exact_memory.py)
 _HEAP_FACTOR = 1.2
+#: largest batch the exact path hands to DAS at once
+_EXACT_MAX_BATCH = 256
 
 
 def memory_limit_bytes() -> int:
