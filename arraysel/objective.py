@@ -136,7 +136,7 @@ class Objective:
             for p in self.psfs:
                 p.plan_cache_elements = max(1, p._plan_cache_limit() // self.n_points)
             for p in self.psfs:
-                p.other_bytes = sum(q.plan_cache_bytes() for q in self.psfs if q is not p)
+                p.other_bytes = sum(q.plan_cache_bytes() + q.model_bytes() for q in self.psfs if q is not p)
         self._announced = False
         if any(p.fast is None for p in self.psfs):
             _log.warning("%s", self.exact_notice())

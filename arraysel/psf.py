@@ -223,9 +223,9 @@ class PSFModel:
     # ------------------------------------------------------------------ exact path: memory
     # The exact path's peak resident memory, in bytes, for a batch of ``batch`` masks (no autograd):
     #   baseline: interpreter, torch and the model (``baseline_bytes``, a constant)
-    # + DAS plans kept (this model's and, in a several-point objective, its siblings',
-    #   ``other_bytes``): entries (pixel, element, transmit) x (i0 + w + rot), capped at a
-    #   quarter of ``memory_limit``
+    # + DAS plans kept: entries (pixel, element, transmit) x (i0 + w + rot), capped at a quarter
+    #   of ``memory_limit``; in a several-point objective also its siblings' plans and tensors
+    #   (``other_bytes``)
     # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries
     # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and RF on
     #   the way, the whole-grid image (row chunks, their concatenation, its magnitude)
@@ -256,6 +256,11 @@ class PSFModel:
         c = 8 if self.dtype == torch.float32 else 16
         quarter = self.memory_limit // 4 // (8 + c // 2 + c)
         return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
+
+    def model_bytes(self) -> int:
+        """Memory (bytes) of the model's own tensors: per transmit the I/Q matrix (T x T complex128)
+        and the spectra factors (Ne x F complex128 twice)."""
+        return sum(int(t.Q.numel()) * 16 + 2 * int(t.G.numel()) * 16 for t in self.transmits)
 
     def _per_mask_bytes(self) -> int:
         s = self.setup

@@ -22,6 +22,7 @@ them); ``docs/scenes.md`` describes the keys.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import os
 import re
@@ -35,6 +36,7 @@ import numpy as np
 from .errors import ParameterError, check_choice, check_number
 
 _INF = math.inf
+_log = logging.getLogger(__name__)
 
 #: physical length units a string may carry (metres per unit); "wl" and "px" are scene-relative
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
@@ -558,18 +560,25 @@ def _region_checks(scene: Scene) -> None:
     inscribed = min(c, win - 1 - c)
     corner = math.hypot(c, c)
     w_mm = win * scene.pixel * 1e3
+    problem = None
     if r_main * lam_px > inscribed * (1 + 1e-9):
-        raise ParameterError(
+        problem = (
             f"metrics.r_main = {scene.value('metrics', 'r_main')!r} ({r_main * lam_px:.1f} px) does not fit "
             f"grid.window = {scene.value('grid', 'window')!r} ({win} px, {w_mm:.3g} mm): the main lobe region "
             f"must lie inside the window (r_main <= {inscribed} px = {inscribed / lam_px:.3g} wl); "
             f"enlarge grid.window or reduce metrics.r_main")
-    if r_guard * lam_px >= corner * (1 - 1e-9):
-        raise ParameterError(
+    elif r_guard * lam_px >= corner * (1 - 1e-9):
+        problem = (
             f"metrics.r_guard = {scene.value('metrics', 'r_guard')!r} ({r_guard * lam_px:.1f} px) does not fit "
             f"grid.window = {scene.value('grid', 'window')!r} ({win} px, {w_mm:.3g} mm): the side-lobe region "
             f"r >= r_guard would be empty (r_guard < {corner:.1f} px = {corner / lam_px:.3g} wl needed); "
             f"enlarge grid.window or reduce metrics.r_guard")
+    if problem is None:
+        return
+    if not scene.needs_data:
+        raise ParameterError(problem)
+    # an end-to-end scene's window is also the kernel of L_conv: small ones stay allowed there
+    _log.warning("scene %r: %s (L_contrast and L_SLR are then 0 or partial)", scene.name, problem)
 
 
 def _finish(name: str, tree: dict) -> Scene:

@@ -324,13 +324,14 @@ def test_deep_scene_windows_show_what_sparse_masks_lose():
     """p4-2v-depths: the uniform mask's side lobes are in view at every depth (it scores worse than
     the full array on contrast), and the scene's three points are reported."""
     obj = Objective("p4-2v-depths", fast=False)
-    m = np.zeros((2, 64))
-    m[0] = 1
-    m[1, ::2] = 1
-    res = obj.evaluate(m)
+    m = np.zeros((1, 64))
+    m[0, ::2] = 1
+    res = obj.evaluate(m)  # the uniform mask (and the three full-array references)
+    full = obj.metrics_of_kernels(obj.reference_kernel()[None])  # (1, 3) values
     for p in range(3):
-        assert res[f"L_contrast@p{p}"][1] > res[f"L_contrast@p{p}"][0]
-        assert res[f"L_PSF@p{p}"][1] > 1e-3
+        assert res[f"L_contrast@p{p}"][0] > float(full["L_contrast"][0, p])
+        assert res[f"L_PSF@p{p}"][0] > 1e-3
+        assert float(full["L_PSF"][0, p]) < 1e-6
 
 
 def test_compare_ranks_by_the_chosen_aggregate(tmp_path, capsys):
@@ -356,3 +357,12 @@ def test_compare_says_how_long_the_exact_path_takes(two_points):
     assert "using the exact path" in text and "150 mask(s): about" in text and "(3 run(s) of 50)" in text
     text = _exact_run_notice(two_points, Budget(seconds=60), 2)
     assert "each of the 2 run(s) stops at its 60 s budget after about" in text
+
+
+def test_end_to_end_scenes_only_warn_about_regions(caplog):
+    with caplog.at_level(logging.WARNING, logger="arraysel.scene"):
+        load_scene({"base": "paper-e2e", "grid": {"n_x": 64, "n_z": 64, "window": 32}})
+    assert any("metrics.r_main = 1.5 (24.0 px) does not fit grid.window = 32" in r.getMessage()
+               for r in caplog.records)
+    with pytest.raises(ParameterError, match=r"metrics\.r_main = 1\.5 \(24\.0 px\) does not fit grid\.window = 32"):
+        load_scene({"base": "paper", "grid": {"n_x": 64, "n_z": 64, "window": 32}})
