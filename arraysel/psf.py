@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -56,15 +56,18 @@ from .simus import (SimOptions, element_responses, grid_for_points, probe_respon
 _log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class PSFSetup:
     """Everything the PSF of a selection depends on (a scene's physics part).
 
     probe, acq: transducer and acquisition (fs, c, attenuation, pulse cycles).
     tilts: plane-wave tilts (radians); TX delays are the full array's.
     n_x, n_z: image grid size; pixel: grid pitch (m, default (c/fs)/4);
-        ``x_i = (i - n_x//2) pixel``, ``z_i = (i + z_offset) pixel``.
-    scatterer: (x, z) in metres (default: the pixel (x=0, z=(n_z//2) pixel)).
+        ``x_i = (i - n_x//2 + x_offset) pixel``, ``z_i = (i + z_offset) pixel``
+        (offsets in whole pixels; ``x_offset`` is left out of the repr when 0,
+        so that the cache keys of unshifted grids do not change).
+    scatterer: (x, z) in metres (default: the pixel (x = x_offset pixel,
+        z = (n_z//2 + z_offset) pixel), i.e. column n_x//2, row n_z//2).
     window: PSF window side (pixels).
     fnumber: receive f-number (0 = full aperture).
     iq_bandwidth: bandwidth (%) of the I/Q low-pass (default: the probe's).
@@ -84,9 +87,16 @@ class PSFSetup:
     fnumber: float = 0.0
     iq_bandwidth: float | None = None
     options: SimOptions = field(default_factory=SimOptions)
+    x_offset: int = 0
+
+    def __repr__(self) -> str:
+        parts = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self)
+                 if not (f.name == "x_offset" and self.x_offset == 0)]
+        return f"{type(self).__qualname__}({', '.join(parts)})"
 
     def __post_init__(self):
         check_sampling(self.probe, self.acq)
+        check_number("x_offset", self.x_offset, lo=-10 ** 6, hi=10 ** 6, integer=True)
         check_number("n_x", self.n_x, lo=2, hi=8192, integer=True)
         check_number("n_z", self.n_z, lo=2, hi=8192, integer=True)
         check_number("window", self.window, lo=2, hi=min(self.n_x, self.n_z), integer=True)
@@ -108,7 +118,7 @@ class PSFSetup:
 
     @property
     def x(self) -> np.ndarray:
-        return (np.arange(self.n_x) - self.n_x // 2) * self.pitch
+        return (np.arange(self.n_x) - self.n_x // 2 + self.x_offset) * self.pitch
 
     @property
     def z(self) -> np.ndarray:
@@ -118,7 +128,13 @@ class PSFSetup:
     def scatterer_position(self) -> tuple[float, float]:
         if self.scatterer is not None:
             return float(self.scatterer[0]), float(self.scatterer[1])
-        return 0.0, float((self.n_z // 2 + self.z_offset) * self.pitch)
+        return float(self.x_offset * self.pitch), float((self.n_z // 2 + self.z_offset) * self.pitch)
+
+    @property
+    def scatterer_pixel(self) -> tuple[int, int]:
+        """(row, column) of the grid pixel nearest the scatterer (may lie outside the grid)."""
+        xs, zs = self.scatterer_position
+        return int(round(zs / self.pitch - self.z_offset)), int(round(xs / self.pitch - self.x_offset)) + self.n_x // 2
 
     @property
     def wavelength(self) -> float:
@@ -176,6 +192,14 @@ class PSFModel:
         self._plan_elements = 0
         #: DAS plan entries (pixels x elements) kept in memory for the exact path
         self.plan_cache_elements = plan_cache_elements
+        #: memory (bytes) the exact path may use (``ARRAYSEL_MEMORY_GIB``); its batches follow from it
+        self.memory_limit = memory_limit_bytes()
+        #: the exact path's baseline: interpreter, torch and the model (a constant: what else the
+        #: process holds is not this scene's to budget)
+        self.baseline_bytes = _BASELINE_BYTES
+        #: memory other models of the same objective keep (their DAS plans), set by the objective
+        self.other_bytes = 0
+        self._check_exact_memory()
         self.fast = None
         if fast:
             need = self.basis_bytes()
@@ -237,6 +261,137 @@ class PSFModel:
                 if bool(ok.any()):
                     span = max(span, int((hi - lo)[ok].max()) + 2)
         return -(-(span + 8) // 4) * 4
+
+    # ------------------------------------------------------------------ exact path: memory
+    # The exact path's peak resident memory, in bytes, for a batch of ``batch`` masks (no autograd):
+    #   baseline: interpreter, torch and the model (``baseline_bytes``, a constant)
+    # + DAS plans kept: entries (pixel, element, transmit) x (i0 + w + rot), capped at a quarter
+    #   of ``memory_limit``; in a several-point objective also its siblings' plans and tensors
+    #   (``other_bytes``)
+    # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries
+    # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and RF on
+    #   the way, the whole-grid image (row chunks, their concatenation, its magnitude)
+    # + one DAS call: _DAS_TEMPS (B, pixels x Ne) complex temporaries (gathered samples, their
+    #   index, differences, products), its pixels chosen to keep this near _DAS_BYTES;
+    # all but the baseline times _HEAP_FACTOR, the heap growth (fragmentation, blocks glibc
+    # keeps) measured on top of the live tensors by ``benchmarks/exact_memory.py``.
+    # :meth:`exact_chunking` picks the batch so the total stays within ``memory_limit``.
+
+    def _sizes(self):
+        c = 8 if self.dtype == torch.float32 else 16
+        T = max(t.grid.n_time for t in self.transmits)
+        nfft = max(t.grid.n_fft for t in self.transmits)
+        F = max(int(t.grid.f.numel()) for t in self.transmits)
+        return c, T, nfft, F
+
+    def _plan_rows(self) -> int:
+        return max(1, (2 ** 21) // max(1, self.setup.n_x * self.n_elements))
+
+    def plan_cache_bytes(self) -> int:
+        """Memory (bytes) of the DAS plans the exact path keeps (whole grid, every transmit, capped)."""
+        c = 8 if self.dtype == torch.float32 else 16
+        return self._plan_cache_limit() * (8 + c // 2 + c)
+
+    def _plan_cache_limit(self) -> int:
+        """Plan entries kept: ``plan_cache_elements``, at most a quarter of ``memory_limit``, at most all."""
+        s = self.setup
+        c = 8 if self.dtype == torch.float32 else 16
+        quarter = self.memory_limit // 4 // (8 + c // 2 + c)
+        return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
+
+    def model_bytes(self) -> int:
+        """Memory (bytes) of the model's own tensors: per transmit the I/Q matrix (T x T complex128)
+        and the spectra factors (Ne x F complex128 twice)."""
+        return sum(int(t.Q.numel()) * 16 + 2 * int(t.G.numel()) * 16 for t in self.transmits)
+
+    def _per_mask_bytes(self) -> int:
+        s = self.setup
+        c, T, nfft, F = self._sizes()
+        ne = self.n_elements
+        return len(self.transmits) * ne * T * c + 2 * ne * (F + nfft) * c + (2 * c + c // 2) * s.n_z * s.n_x
+
+    def _das_pixels(self, batch: int) -> int:
+        s = self.setup
+        c = self._sizes()[0]
+        want = _DAS_BYTES // max(1, _DAS_TEMPS * batch * self.n_elements * c)
+        return int(min(s.n_z * s.n_x, max(s.n_x, want)))
+
+    def exact_bytes(self, batch: int, pixels: int | None = None) -> int:
+        """Estimated peak resident memory (bytes) of the process during an exact-path evaluation of
+        ``batch`` masks with DAS calls of ``pixels`` pixels (default: :meth:`exact_chunking`'s)."""
+        s = self.setup
+        c = self._sizes()[0]
+        if pixels is None:
+            pixels = self._das_pixels(batch)
+        build = 12 * self._plan_rows() * s.n_x * self.n_elements * 8
+        das = _DAS_TEMPS * batch * pixels * self.n_elements * c
+        work = self.plan_cache_bytes() + self.other_bytes + build + batch * self._per_mask_bytes() + das
+        return int(self.baseline_bytes + _HEAP_FACTOR * work)
+
+    def exact_chunking(self, batch: int | None = None) -> tuple[int, int]:
+        """(masks per batch, pixels per DAS call) of the exact path within ``memory_limit``.
+
+        With ``batch`` given, only the pixels per DAS call are chosen for it.
+        """
+        if batch is None:
+            batch = _EXACT_MAX_BATCH
+            while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
+                batch = max(1, min(batch - 1, int(batch * 0.85)))
+        return batch, self._das_pixels(batch)
+    def masks_per_batch(self) -> int:
+        """Masks an evaluation should hand to :meth:`kernels` at once (bounded memory on the exact path)."""
+        if self.fast is not None:
+            return _EXACT_MAX_BATCH
+        return self.exact_chunking()[0]
+
+    def exact_seconds_per_mask(self, batch: int | None = None) -> float:
+        """Estimated wall time (s) of one mask on the exact path (whole-grid image), at ``batch`` masks
+        per call (default: :meth:`exact_chunking`'s).
+
+        Calibrated once by timing one DAS plan chunk (build and apply) of this grid, so the
+        estimate costs a fraction of a second and reflects the machine's current load.
+        """
+        import time
+
+        if batch is None:
+            batch = self.exact_chunking()[0]
+        if getattr(self, "_calib", None) is None:
+            s = self.setup
+            rows = slice(0, min(s.n_z, self._plan_rows()))
+            t = self.transmits[0]
+            t0 = time.perf_counter()
+            Z, X = torch.meshgrid(self._zg[rows], self._xg, indexing="ij")
+            plan = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                            fc=s.probe.fc)
+            plan.w, plan.rot = plan.w.to(self.device, self.dtype), plan.rot.to(self.device, self.cdtype)
+            plan.i0 = plan.i0.to(self.device)
+            t1 = time.perf_counter()
+            iq = torch.ones(2, self.n_elements, t.grid.n_time, dtype=self.cdtype, device=self.device)
+            das = []
+            for _ in range(2):  # the first call pays for allocations
+                t2 = time.perf_counter()
+                das_apply(iq, plan.i0, plan.w, plan.rot)
+                das.append((time.perf_counter() - t2) / 2)
+            self._calib = ((t1 - t0) / (rows.stop * s.n_x), min(das) / (rows.stop * s.n_x))
+        per_px_plan, per_px_das = self._calib
+        s = self.setup
+        pixels = len(self.transmits) * s.n_z * s.n_x
+        total = pixels * self.n_elements
+        cached = min(1.0, self._plan_cache_limit() / max(1, total))
+        # DAS for every mask; plans that do not fit the cache are rebuilt on every call
+        return pixels * (per_px_das + (1 - cached) * per_px_plan / max(1, batch))
+
+    def _check_exact_memory(self) -> None:
+        """Refuse, before any work, a scene whose exact path cannot fit ``memory_limit`` even one mask
+        and one grid row at a time."""
+        need = self.exact_bytes(1, pixels=self.setup.n_x)
+        if need > self.memory_limit:
+            s = self.setup
+            raise ParameterError(
+                f"this scene needs about {need / 2 ** 30:.1f} GiB for one mask on the exact PSF path (grid "
+                f"{s.n_x} x {s.n_z} pixels, {self.n_elements} elements, {len(self.transmits)} transmits), more "
+                f"than the memory cap of {self.memory_limit / 2 ** 30:.1f} GiB: reduce grid.n_x / grid.n_z "
+                f"(or coarsen grid.pixel), or raise the cap with ARRAYSEL_MEMORY_GIB")
 
     # ------------------------------------------------------------------ exact path
     def _build_transmits(self):
@@ -316,7 +471,7 @@ class PSFModel:
             plan.rot = plan.rot.to(self.device, self.cdtype)
             plan.i0 = plan.i0.to(self.device)
             size = plan.i0.numel()
-            if self._plan_elements + size <= self.plan_cache_elements:
+            if self._plan_elements + size <= self._plan_cache_limit():
                 self._plans[key] = plan
                 self._plan_elements += size
         return plan
@@ -335,20 +490,32 @@ class PSFModel:
         nx = cols.stop - cols.start
         if rows_per_chunk is None:
             rows_per_chunk = max(1, (2 ** 21) // max(1, nx * self.n_elements))
+        # DAS of a plan chunk in pixel sub-chunks, so that the (B, pixels x Ne) temporaries fit
+        sub = self.exact_chunking(int(w.shape[0]))[1]
         out = []
         for r0 in range(rows.start, rows.stop, rows_per_chunk):
             r = slice(r0, min(rows.stop, r0 + rows_per_chunk))
             acc = 0
             for n, iq in enumerate(iqs):
                 p = self._plan(n, r, cols)
-                acc = acc + das_apply(iq, p.i0, p.w, p.rot)
+                npix = p.i0.shape[0]
+                if npix <= sub:
+                    acc = acc + das_apply(iq, p.i0, p.w, p.rot)
+                else:
+                    acc = acc + torch.cat([das_apply(iq, p.i0[j:j + sub], p.w[j:j + sub], p.rot[j:j + sub])
+                                           for j in range(0, npix, sub)], dim=-1)
             out.append(acc.reshape(w.shape[0], r.stop - r.start, nx))
         return torch.cat(out, dim=1) if len(out) > 1 else out[0].reshape(w.shape[0], nz, nx)
 
     def kernels_exact(self, weights) -> torch.Tensor:
-        """SPEC kernels (B, window, window) from the exact whole-grid image."""
-        img = self.image(weights)
-        return window_and_normalise(img, self.setup.window)
+        """SPEC kernels (B, window, window) from the exact whole-grid image, in batches of
+        :meth:`exact_chunking`'s size (bounded memory whatever B)."""
+        w = self._weights(weights)
+        step = self.exact_chunking()[0]
+        if w.shape[0] <= step:
+            return window_and_normalise(self.image(w), self.setup.window)
+        return torch.cat([window_and_normalise(self.image(w[i:i + step]), self.setup.window)
+                          for i in range(0, w.shape[0], step)])
 
     # ------------------------------------------------------------------ fast path
     def kernels(self, weights, return_info: bool = False):
@@ -375,6 +542,36 @@ class PSFModel:
             with torch.no_grad():
                 self._ref = self.kernels(torch.ones(1, self.n_elements))[0]
         return self._ref
+
+
+#: resident memory of ``import arraysel`` and one model (measured: 0.28 GiB after the imports)
+_BASELINE_BYTES = 450 * 2 ** 20
+#: target size of one DAS call's temporaries, and how many (B, pixels x Ne) complex arrays they are
+_DAS_BYTES = 128 * 2 ** 20
+_DAS_TEMPS = 6
+#: resident heap per byte of live tensors (measured by benchmarks/exact_memory.py)
+_HEAP_FACTOR = 1.2
+#: largest batch the exact path hands to DAS at once
+_EXACT_MAX_BATCH = 256
+
+
+def memory_limit_bytes() -> int:
+    """Memory cap (bytes) of the exact PSF path: ``$ARRAYSEL_MEMORY_GIB``, default min(4 GiB, RAM / 4)."""
+    import os
+
+    raw = os.environ.get("ARRAYSEL_MEMORY_GIB")
+    if raw is None:
+        try:
+            ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):  # not POSIX
+            ram = 24 * 2 ** 30
+        return int(min(4 * 2 ** 30, ram / 4))
+    try:
+        gib = float(raw)
+    except ValueError:
+        raise ParameterError(f"ARRAYSEL_MEMORY_GIB = {raw!r} must be a number of GiB (> 0)") from None
+    check_number("ARRAYSEL_MEMORY_GIB", gib, lo=0, lo_open=True, hi=1e6)
+    return int(gib * 2 ** 30)
 
 
 def _basis_limit_bytes() -> int:
@@ -566,9 +763,7 @@ class _PairBasis:
         ne = model.n_elements
         win = s.window
         m = model.margin
-        xs, zs = s.scatterer_position
-        iz = int(round(zs / s.pitch - s.z_offset))
-        ix = int(round(xs / s.pitch + s.n_x // 2))
+        iz, ix = s.scatterer_pixel
         half = win // 2
         z_lo = max(0, min(iz - half - m, s.n_z - win - 2 * m))
         x_lo = max(0, min(ix - half - m, s.n_x - win - 2 * m))
@@ -659,9 +854,8 @@ class _PairBasis:
         the scatterer, where the peak of a selection's image lies (its pair images, ``Hc``,
         settle near-ties at the peak without delay-and-sum)."""
         s = self.model.setup
-        xs, zs = s.scatterer_position
-        iz = int(round(zs / s.pitch - s.z_offset)) - self.rows.start
-        ix = int(round(xs / s.pitch + s.n_x // 2)) - self.cols.start
+        iz, ix = s.scatterer_pixel
+        iz, ix = iz - self.rows.start, ix - self.cols.start
         h, w = self.shape
         zr = torch.arange(max(0, iz - self.core), min(h, iz + self.core))
         xr = torch.arange(max(0, ix - self.core), min(w, ix + self.core))

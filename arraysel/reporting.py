@@ -71,7 +71,9 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget) -> None:
     import pandas as pd
 
     from .runner import ROW_COLUMNS, TRACE_COLUMNS
-    runs = pd.DataFrame(rows, columns=list(ROW_COLUMNS))
+    # a several-point scene's per-point columns ("L_PSF@p0", ..., "Mean@worst") follow ROW_COLUMNS
+    extra = list(dict.fromkeys(k for r in rows for k in r if k not in ROW_COLUMNS))
+    runs = pd.DataFrame(rows, columns=list(ROW_COLUMNS) + extra)
     write_csv(out / "runs.csv", runs)
     write_csv(out / "table1.csv", table1(runs))
     write_csv(out / "trace.csv", pd.DataFrame(trace, columns=list(TRACE_COLUMNS)))

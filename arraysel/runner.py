@@ -80,9 +80,16 @@ def _counters(objective) -> tuple[int, int, float]:
 
 
 def _final_metrics(objective, selection: list[int]) -> dict[str, float]:
+    """Headline metrics, then a several-point scene's per-point breakdown (``objective.breakdown_names``)."""
     mask = indices_to_mask(selection, int(objective.n_elements))[None, :]
     out = objective.evaluate(mask)
-    return {m: float(np.asarray(out[m], dtype=np.float64).reshape(-1)[0]) for m in METRICS if m in out}
+    names = METRICS + tuple(getattr(objective, "breakdown_names", ()))
+    return {m: float(np.asarray(out[m], dtype=np.float64).reshape(-1)[0]) for m in names if m in out}
+
+
+def _breakdown(metrics: dict) -> dict:
+    """Pop the per-point columns out of ``metrics``: they go after :data:`ROW_COLUMNS` in a row."""
+    return {k: metrics.pop(k) for k in [k for k in metrics if k not in METRICS]}
 
 
 def _resolve(selector, registry) -> type[Selector]:
@@ -178,6 +185,7 @@ class Experiment:
         self.selection = selection
         self.trace = [dict(r) for r in recorder.rows]
         obj_seconds = s1 - s0
+        extra = _breakdown(metrics)
         return {
             "config": config, "selector": cls.name, "seed": seed, "k": k, "n_elements": n,
             **metrics,
@@ -185,7 +193,7 @@ class Experiment:
             "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
             "elements": _fmt_elements(selection),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
-            "error": error,
+            "error": error, **extra,
         }
 
 
@@ -248,11 +256,12 @@ def full_row(objective) -> dict:
         error = f"full-array evaluation failed: {_error_text(exc)}"
     wall = time.perf_counter() - t0
     e1, g1, s1 = _counters(objective)
+    extra = _breakdown(metrics)
     return {
         "config": "full", "selector": "full", "seed": "", "k": n, "n_elements": n, **metrics,
         "seconds": wall, "evaluations": e1 - e0, "gradient_steps": g1 - g0,
         "objective_seconds": s1 - s0, "overhead_seconds": max(0.0, wall - (s1 - s0)),
-        "elements": _fmt_elements(range(n)), "options": "", "error": error,
+        "elements": _fmt_elements(range(n)), "options": "", "error": error, **extra,
     }
 
 
@@ -384,7 +393,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
             rec["seed"] = int(rec["seed"])
             rec["error"] = ""
             rec["options"] = rec["options"] if isinstance(rec.get("options"), str) else ""
-            rows.append({c: rec.get(c, "") for c in ROW_COLUMNS})
+            rows.append({**{c: rec.get(c, "") for c in ROW_COLUMNS},  # and a scene's per-point columns
+                         **{c: v for c, v in rec.items() if c not in ROW_COLUMNS}})
             done.add((rec["config"], rec["seed"]))
         tpath = out / "trace.csv"
         if tpath.exists():

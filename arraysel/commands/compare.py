@@ -51,6 +51,9 @@ def add_parser(subparsers) -> None:
                    help="address of a running Dask scheduler (--executor dask)")
     g.add_argument("--retries", type=int, default=2, metavar="N",
                    help="times a run is started again after its worker died or it failed (default 2)")
+    p.add_argument("--aggregate", choices=("mean", "worst"), default=None,
+                   help="headline metrics of a scene with several field points: the mean over the points or "
+                        "the worst point (default: the scene's metrics.aggregate, 'mean')")
     p.add_argument("--no-figures", action="store_true", help="write tables only")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -93,8 +96,9 @@ def parse_options(items: list[str], names: list[str], registry) -> dict[str, dic
     return {n: registry[n].parse_options(raw[n]) for n in names}
 
 
-def build_objective(scene: str, device: str, dtype_name: str):
-    """The objective of ``scene`` (``toy``: :class:`arraysel.testing.ToyObjective`)."""
+def build_objective(scene: str, device: str, dtype_name: str, aggregate: str | None = None):
+    """The objective of ``scene`` (``toy``: :class:`arraysel.testing.ToyObjective`); ``aggregate``
+    overrides the scene's ``metrics.aggregate``."""
     import torch
 
     if device == "cuda" and not torch.cuda.is_available():
@@ -106,7 +110,19 @@ def build_objective(scene: str, device: str, dtype_name: str):
     from ..objective import build_objective as _build
     from ..scene import load_scene
 
-    return _build(load_scene(scene), device=device, dtype=dtype)
+    over = {"metrics": {"aggregate": aggregate}} if aggregate else None
+    return _build(load_scene(scene, overrides=over), device=device, dtype=dtype)
+
+
+def _exact_run_notice(objective, budget, runs: int) -> str | None:
+    """The whole comparison's estimated time when the scene runs on the exact PSF path."""
+    if not any(p.fast is None for p in getattr(objective, "psfs", ())):
+        return None
+    if budget.evaluations is not None:
+        return f"{objective.exact_notice(budget.evaluations * runs)} ({runs} run(s) of {budget.evaluations})"
+    per = objective.estimate_seconds(1)
+    return (f"the exact PSF path takes about {per:.2g} s a mask: each of the {runs} run(s) stops at its "
+            f"{budget.seconds:g} s budget after about {int(budget.seconds / per)} evaluation(s)")
 
 
 def run(args) -> int:
@@ -131,7 +147,10 @@ def run(args) -> int:
         executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
                                  retries=retries)
     try:
-        objective = build_objective(args.scene, args.device, args.dtype)
+        objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
+        notice = _exact_run_notice(objective, budget, len(names) * len(seeds))
+        if notice:
+            print(f"arraysel compare: {notice}", file=sys.stderr)
         table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
                         budget=budget, registry=registry, resume=args.resume,
                         progress=not args.no_progress, figures=not args.no_figures,
