@@ -1,13 +1,10 @@
 """Reading element selections from text, and writing result files atomically."""
 from __future__ import annotations
 
-import io
-import os
+import os  # noqa: F401  (tests patch maskio.os)
 import re
-import tempfile
 
-import numpy as np
-
+from .atomic import atomic_savez, atomic_write_bytes  # noqa: F401  (re-exported: the writers live in arraysel.atomic)
 from .errors import ParameterError, SelectionError
 
 
@@ -52,24 +49,3 @@ def read_mask_file(path: str, n_elements: int, k: int | None) -> list[list[int]]
     if not out:
         raise SelectionError(f"--masks: file {path!r} holds no selection")
     return out
-
-
-def atomic_write_bytes(path: str, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_savez(path: str, **arrays) -> None:
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +40,9 @@ _EXTRA = ("L_SLR", "gradient_steps", "overhead_seconds", "seeds", "best_seed", "
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` (UTF-8) to a temporary file next to ``path`` and ``os.replace`` it."""
-    from .maskio import atomic_write_bytes
+    from .atomic import atomic_write_text as _write
 
-    atomic_write_bytes(os.fspath(path), text.encode("utf-8"))
+    _write(path, text)
 
 
 def write_json(path, data: Any) -> None:
@@ -127,15 +126,13 @@ def table1(runs) -> "Any":
 # ---------------------------------------------------------------------------
 
 def _save(fig, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    import io
+
+    from .atomic import atomic_write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _masks(table, n: int) -> tuple[list[str], np.ndarray]:

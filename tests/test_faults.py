@@ -1,0 +1,303 @@
+"""Fault suite (issue 16): damaged caches, killed writers, concurrent builders, misuse of compare
+and evaluate, bad inputs, unwritable outputs and file modes.
+
+Everything runs on small states, tiny PSF scenes or the toy objective, with the cache in a
+temporary folder (``ARRAYSEL_CACHE``), so the shared cache is never touched.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import stat
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from arraysel import atomic, cache
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def cache_folder(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("ARRAYSEL_CACHE", str(folder))
+    monkeypatch.delenv("ARRAYSEL_CACHE_VERIFY", raising=False)
+    return folder
+
+
+def _state(seed=0, n=300_000):
+    g = torch.Generator().manual_seed(seed)
+    return {"V": torch.randn(n, generator=g), "meta": torch.tensor([3, 4, 5]), "scalar": torch.tensor(2.5),
+            "empty": torch.zeros(0, 7), "c": torch.randn(5, 3, dtype=torch.complex64, generator=g)}
+
+
+def _same(a: dict, b: dict) -> bool:
+    return set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def _counting_builder(seed=0):
+    calls = []
+
+    def build():
+        calls.append(1)
+        return _state(seed)
+    return build, calls
+
+
+def _entry(folder: Path) -> Path:
+    entries = [p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    assert len(entries) == 1, entries
+    return entries[0]
+
+
+def _mapped_file(t: torch.Tensor) -> str | None:
+    """The file whose memory map holds the tensor's data (Linux /proc/self/maps), else None."""
+    addr = t.data_ptr()
+    with open("/proc/self/maps") as fh:
+        for line in fh:
+            parts = line.split()
+            lo, hi = (int(v, 16) for v in parts[0].split("-"))
+            if lo <= addr < hi:
+                return parts[5] if len(parts) > 5 else None
+    return None
+
+
+def _flip_bit(path: Path, offset: int, bit: int = 3) -> None:
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)[0]
+        fh.seek(offset)
+        fh.write(bytes([b ^ (1 << bit)]))
+
+
+# ---------------------------------------------------------------------------
+# cache: format, integrity, atomicity, concurrency
+# ---------------------------------------------------------------------------
+
+def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder):
+    build, calls = _counting_builder()
+    first = cache.load_or_build("t", ("k", 1), build, what="a test state")
+    second = cache.load_or_build("t", ("k", 1), build, what="a test state")
+    assert calls == [1] and _same(first, _state()) and _same(second, _state())
+    entry = _entry(cache_folder)
+    assert entry.name == cache.entry_name("t", ("k", 1))
+    # loaded tensors are views of the files (copy-on-write maps), not copies
+    assert _mapped_file(second["V"]) == str(entry / "V.npy")
+    want = 0o666 & ~atomic._umask()
+    for f in entry.iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == want, f
+    assert not [p for p in cache_folder.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_cache_bit_flip_is_reported_and_rebuilt(cache_folder, caplog):
+    build, calls = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    entry = _entry(cache_folder)
+    _flip_bit(entry / "V.npy", 600_001)
+    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+        again = cache.load_or_build("t", ("k",), build)
+    assert calls == [1, 1] and _same(again, _state())
+    msgs = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(msgs) == 1 and "damaged" in msgs[0] and "checksum mismatch" in msgs[0] and "'V'" in msgs[0]
+    assert _same(cache.load_state(str(entry)), _state())  # the entry was repaired
+    assert calls == [1, 1]
+
+
+@pytest.mark.parametrize("damage", ["truncate", "manifest", "missing", "header", "garbage-manifest"])
+def test_cache_partial_or_altered_entry_is_rebuilt(cache_folder, caplog, damage):
+    build, calls = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    entry = _entry(cache_folder)
+    if damage == "truncate":
+        with open(entry / "V.npy", "r+b") as fh:
+            fh.truncate(1000)
+    elif damage == "manifest":
+        (entry / "manifest.json").unlink()
+    elif damage == "missing":
+        (entry / "meta.npy").unlink()
+    elif damage == "header":
+        np.save(entry / "meta.npy", np.array([3, 4, 5], dtype=np.int32))  # same values, other dtype
+    else:
+        (entry / "manifest.json").write_bytes(b"\xff\xfe not json")
+    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+        again = cache.load_or_build("t", ("k",), build)
+    assert calls == [1, 1] and _same(again, _state())
+    assert sum("damaged" in r.getMessage() for r in caplog.records) == 1
+    assert _same(cache.load_state(str(_entry(cache_folder))), _state())
+
+
+def test_cache_size_mode_skips_hashing_but_catches_truncation(cache_folder, monkeypatch):
+    build, _ = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    entry = _entry(cache_folder)
+    _flip_bit(entry / "V.npy", 900_000)
+    monkeypatch.setenv("ARRAYSEL_CACHE_VERIFY", "size")
+    cache.load_state(str(entry))  # documented: a flipped bit passes the size check
+    monkeypatch.setenv("ARRAYSEL_CACHE_VERIFY", "full")
+    with pytest.raises(cache.DamagedEntry, match="checksum mismatch"):
+        cache.load_state(str(entry))
+    monkeypatch.setenv("ARRAYSEL_CACHE_VERIFY", "bogus")
+    with pytest.raises(Exception, match="ARRAYSEL_CACHE_VERIFY"):
+        cache.verify_mode()
+
+
+_KILL_SCRIPT = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    import torch
+    from arraysel import cache
+
+    real = np.lib.format.write_array
+    count = [0]
+
+    def dying(fp, arr, **kw):
+        count[0] += 1
+        if count[0] == 2:  # killed in the middle of the second tensor
+            fp.write(b"x" * 1000)
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(fp, arr, **kw)
+
+    np.lib.format.write_array = dying
+    state = {"a": torch.arange(100_000), "b": torch.ones(100_000), "c": torch.zeros(3)}
+    cache.load_or_build("t", ("k",), lambda: state)
+""")
+
+
+def test_cache_kill_during_save_leaves_no_entry_and_the_next_run_cleans_up(cache_folder):
+    proc = subprocess.run([sys.executable, "-c", _KILL_SCRIPT], capture_output=True, text=True,
+                          env={**os.environ, "ARRAYSEL_CACHE": str(cache_folder)}, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    names = [p.name for p in cache_folder.iterdir()]
+    assert not [n for n in names if not n.startswith(".") and not n.endswith(".lock")], names  # no entry
+    assert [n for n in names if n.endswith(".tmp")], names  # the killed writer's leftover
+    build, calls = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    names = sorted(p.name for p in cache_folder.iterdir())
+    assert calls == [1] and not [n for n in names if n.endswith(".tmp")], names
+    assert [n for n in names if not n.endswith(".lock")] == [cache.entry_name("t", ("k",))]
+
+
+_BUILDER_SCRIPT = textwrap.dedent("""
+    import sys, time
+    import torch
+    from arraysel import cache
+
+    def build():
+        with open(sys.argv[1], "a") as fh:
+            fh.write("built\\n")
+        time.sleep(2.0)
+        return {"x": torch.arange(1000) * 3}
+
+    st = cache.load_or_build("t", ("shared",), build, what="the shared state")
+    assert torch.equal(st["x"], torch.arange(1000) * 3)
+    print("ok")
+""")
+
+
+def test_cache_concurrent_builders_wait_on_the_lock(cache_folder, tmp_path):
+    log = tmp_path / "builds.txt"
+    env = {**os.environ, "ARRAYSEL_CACHE": str(cache_folder)}
+    procs = [subprocess.Popen([sys.executable, "-c", _BUILDER_SCRIPT, str(log)], env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in range(2)]
+    outs = [p.communicate(timeout=180) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    assert log.read_text().count("built") == 1  # one built, the other waited and loaded
+    assert any("waiting for another process" in err for _, err in outs)
+
+
+def test_cache_off_and_location(monkeypatch, tmp_path):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    assert cache.cache_dir() is None
+    build, calls = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    cache.load_or_build("t", ("k",), build)
+    assert calls == [1, 1]
+    monkeypatch.delenv("ARRAYSEL_CACHE")
+    from platformdirs import user_cache_dir
+    assert cache.cache_dir() == user_cache_dir("arraysel", appauthor=False)
+
+
+def test_cache_command_path_info_clear(cache_folder):
+    from arraysel.cli import main
+
+    cache.load_or_build("t", ("k",), _counting_builder()[0])
+    (cache_folder / ".t-stale.1.abc.tmp").mkdir()
+    (cache_folder / "psf-basis-0123.pt").write_bytes(b"old format")
+    out = subprocess.run([sys.executable, "-m", "arraysel.cli", "cache", "info"], capture_output=True,
+                         text=True, env=os.environ.copy())
+    assert out.returncode == 0, out.stderr
+    assert str(cache_folder) in out.stdout and "ok" in out.stdout
+    assert "leftover" in out.stdout and "older cache format" in out.stdout
+    assert main(["cache", "path"]) == 0
+    assert main(["cache", "clear"]) == 0
+    assert list(cache_folder.iterdir()) == []
+
+
+def test_psf_basis_goes_through_the_checked_cache(cache_folder, caplog):
+    """The PSF model stores its basis in the new cache; a bit flip in the stored basis is caught,
+    reported and repaired, and the kernels stay the exact path's."""
+    from arraysel.probes import Acquisition, get_probe
+    from arraysel.psf import PSFModel, PSFSetup
+
+    probe = get_probe("P4-2v", fc=3.5e6, n_elements=8)
+    acq = Acquisition.for_probe(probe)
+    pixel = acq.c / acq.fs
+    setup = PSFSetup(probe=probe, acq=acq, tilts=(0.0,), n_x=32, n_z=32, pixel=pixel, z_offset=0, window=16,
+                     scatterer=(0.0, 16 * pixel))
+    w = torch.tensor([[1, 0, 1, 1, 0, 1, 0, 1.0]])
+    first = PSFModel(setup, margin=2, block=4)
+    k1 = first.kernels(w)
+    entry = _entry(cache_folder)
+    assert entry.name.startswith("psf-basis-")
+    biggest = max((p for p in entry.iterdir() if p.suffix == ".npy"), key=lambda p: p.stat().st_size)
+    _flip_bit(biggest, biggest.stat().st_size - 7, bit=6)
+    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+        second = PSFModel(setup, margin=2, block=4)
+    assert sum("damaged" in r.getMessage() for r in caplog.records) == 1
+    k2 = second.kernels(w)
+    exact = PSFModel(setup, margin=2, block=4, fast=False).kernels(w)
+    assert torch.allclose(k1, k2) and torch.allclose(k2, exact, atol=5e-3)
+
+
+# ---------------------------------------------------------------------------
+# file modes and atomic writers
+# ---------------------------------------------------------------------------
+
+def test_atomic_writers_follow_the_umask(tmp_path):
+    from arraysel import maskio, reporting
+
+    old = os.umask(0o022)
+    try:
+        atomic.atomic_write_text(tmp_path / "a.txt", "x")
+        maskio.atomic_write_bytes(str(tmp_path / "b.csv"), b"x")
+        maskio.atomic_savez(str(tmp_path / "c.npz"), a=np.zeros(2))
+        reporting.write_json(tmp_path / "d.json", {"a": 1})
+        with atomic.AtomicFile(tmp_path / "e.csv") as f:
+            f.write(b"x")
+            f.commit()
+        for name in ("a.txt", "b.csv", "c.npz", "d.json", "e.csv"):
+            assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+        os.umask(0o077)
+        atomic.atomic_write_text(tmp_path / "private.txt", "x")
+        assert stat.S_IMODE((tmp_path / "private.txt").stat().st_mode) == 0o600
+    finally:
+        os.umask(old)
+
+
+def test_atomic_file_discards_on_error(tmp_path):
+    target = tmp_path / "rows.csv"
+    target.write_text("old\n")
+    with pytest.raises(RuntimeError):
+        with atomic.AtomicFile(target) as f:
+            f.write(b"half")
+            raise RuntimeError("boom")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["rows.csv"]
