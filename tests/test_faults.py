@@ -301,3 +301,235 @@ def test_atomic_file_discards_on_error(tmp_path):
             raise RuntimeError("boom")
     assert target.read_text() == "old\n"
     assert [p.name for p in tmp_path.iterdir()] == ["rows.csv"]
+
+
+# ---------------------------------------------------------------------------
+# compare: isolation, resume, finished folders, budgets
+# ---------------------------------------------------------------------------
+
+_BAD_PLUGINS = textwrap.dedent("""
+    import os, sys, time
+    from arraysel.hookspecs import hookimpl
+    from arraysel.selector import Selector, indices_to_mask
+
+
+    class _Base(Selector):
+        options = {}
+        deterministic = True
+
+        def batch_size(self, n_elements, k):
+            return 1
+
+
+    class Hangs(_Base):
+        name = "hangs"
+        description = "ignores its budget and sleeps"
+
+        def select(self, objective, k, budget, seed, recorder):
+            time.sleep(600)
+            return list(range(k))
+
+
+    class Exits(_Base):
+        name = "exits"
+        description = "calls sys.exit(0)"
+
+        def select(self, objective, k, budget, seed, recorder):
+            sys.exit(0)
+
+
+    class Dies(_Base):
+        name = "dies"
+        description = "kills its own process"
+
+        def select(self, objective, k, budget, seed, recorder):
+            os._exit(3)
+
+
+    class Overspends(_Base):
+        name = "overspends"
+        description = "evaluates far more masks than its budget"
+
+        def select(self, objective, k, budget, seed, recorder):
+            for _ in range(50):
+                objective.evaluate(indices_to_mask(list(range(k)), objective.n_elements)[None])
+            return list(range(k))
+
+
+    class Fine(_Base):
+        name = "fine"
+        description = "the first k elements"
+
+        def select(self, objective, k, budget, seed, recorder):
+            return list(range(k))
+
+
+    @hookimpl
+    def arraysel_register_selectors(register):
+        for cls in (Hangs, Exits, Dies, Overspends, Fine):
+            register(cls)
+""")
+
+
+@pytest.fixture(scope="module")
+def _bad_plugin_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("plugins") / "bad_plugins.py"
+    path.write_text(_BAD_PLUGINS)
+    return str(path)
+
+
+@pytest.fixture(autouse=True)
+def _own_plugin_manager(monkeypatch):
+    """A process-wide plugin manager of the built-ins only, restored afterwards."""
+    from arraysel import registry
+
+    monkeypatch.delenv(registry.DISABLE_ENV, raising=False)
+    registry.reset()
+    registry._PM = registry.build_plugin_manager(load_entrypoints=False)
+    try:
+        yield
+    finally:
+        registry.reset()
+
+
+@pytest.fixture
+def bad_plugins(_bad_plugin_file):
+    return _bad_plugin_file
+
+
+def _compare(out, selectors, *extra, budget_s="1", evals="10"):
+    from arraysel.cli import main
+
+    return main(["compare", "--selectors", selectors, "--scene", "toy", "--budget-s", budget_s,
+                 "--budget-evals", evals, "--out", str(out), "--no-progress", "--no-figures", *extra])
+
+
+def test_compare_isolates_hanging_exiting_dying_and_overspending_selectors(tmp_path, bad_plugins, capsys):
+    import pandas as pd
+
+    out = tmp_path / "cmp"
+    t0 = time.monotonic()
+    code = _compare(out, "hangs,exits,dies,overspends,fine", "--plugin", bad_plugins, "--grace-s", "1")
+    took = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert code == 1 and "4 run(s) failed" in err
+    runs = pd.read_csv(out / "runs.csv", keep_default_na=False).set_index("config")
+    assert "stopped after" in runs.loc["hangs", "error"] and "budget was 1 s" in runs.loc["hangs", "error"]
+    assert "(exit code 0) without a result" in runs.loc["exits", "error"]
+    assert "exit code 3" in runs.loc["dies", "error"]
+    assert "BudgetExceededError" in runs.loc["overspends", "error"]
+    assert runs.loc["fine", "error"] == "" and runs.loc["full", "error"] == ""
+    meta = __import__("json").loads((out / "run.json").read_text())
+    assert meta["status"] == "finished" and meta["error_rows"] == 4
+    assert took < 120, took  # the hang cost its budget plus the grace period, not 600 s
+
+
+def test_compare_refuses_a_finished_folder_without_force(tmp_path, bad_plugins, capsys):
+    import pandas as pd
+
+    out = tmp_path / "cmp"
+    assert _compare(out, "fine", "--plugin", bad_plugins, "--in-process") == 0
+    before = (out / "runs.csv").read_bytes()
+    (out / "masks.png").write_bytes(b"stale figure")
+    assert _compare(out, "fine", "--plugin", bad_plugins, "--in-process") == 2
+    err = capsys.readouterr().err
+    assert "already holds the results" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert (out / "runs.csv").read_bytes() == before  # untouched
+    assert _compare(out, "fine", "--plugin", bad_plugins, "--in-process", "--force") == 0
+    assert not (out / "masks.png").exists()  # stale figures went with the old results
+    assert list(pd.read_csv(out / "runs.csv")["config"]) == ["full", "fine"]
+    assert _compare(out, "fine", "--plugin", bad_plugins, "--resume", "--force") == 2
+
+
+@pytest.mark.parametrize("change, field", [
+    (["--budget-s", "2"], "budget"),
+    (["--budget-evals", "11"], "budget"),
+    (["--dtype", "float64"], "dtype"),
+])
+def test_compare_resume_refuses_a_different_setup(tmp_path, bad_plugins, capsys, change, field):
+    out = tmp_path / "cmp"
+    assert _compare(out, "fine", "--plugin", bad_plugins, "--in-process") == 0
+    capsys.readouterr()
+    args = ["--plugin", bad_plugins, "--in-process", "--resume"]
+    budget_s = change[1] if change[0] == "--budget-s" else "1"
+    evals = change[1] if change[0] == "--budget-evals" else "10"
+    extra = change if change[0] == "--dtype" else []
+    assert _compare(out, "fine", *args, *extra, budget_s=budget_s, evals=evals) == 2
+    err = capsys.readouterr().err
+    assert f"different {field}" in err and "--force" in err
+
+
+def test_compare_resume_refuses_another_scene_and_damaged_files(tmp_path, capsys):
+    from arraysel.runner import compare
+    from arraysel.selector import Budget
+    from arraysel.testing import ToyObjective
+    from arraysel.errors import ParameterError
+
+    out = tmp_path / "cmp"
+    compare(ToyObjective(12, 6), ["uniform"], out_dir=out, budget=Budget(evaluations=5), progress=False,
+            figures=False)
+    with pytest.raises(ParameterError, match=r"different scene \(scene\.seed"):
+        compare(ToyObjective(12, 6, seed=1), ["uniform"], out_dir=out, budget=Budget(evaluations=5),
+                progress=False, figures=False, resume=True)
+    with pytest.raises(ParameterError, match="n_elements is 12 in run.json, 16 now"):
+        compare(ToyObjective(16, 6), ["uniform"], out_dir=out, budget=Budget(evaluations=5),
+                progress=False, figures=False, resume=True)
+    (out / "runs.csv").write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ParameterError, match="runs.csv is damaged"):
+        compare(ToyObjective(12, 6), ["uniform"], out_dir=out, budget=Budget(evaluations=5),
+                progress=False, figures=False, resume=True)
+    (out / "run.json").write_text("{not json")
+    with pytest.raises(ParameterError, match="run.json is damaged"):
+        compare(ToyObjective(12, 6), ["uniform"], out_dir=out, budget=Budget(evaluations=5),
+                progress=False, figures=False, resume=True)
+
+
+def test_compare_resume_records_every_selector_and_seed(tmp_path):
+    import json
+
+    from arraysel.runner import compare
+    from arraysel.selector import Budget
+    from arraysel.testing import ToyObjective
+
+    out = tmp_path / "cmp"
+    obj = ToyObjective(12, 6)
+    compare(obj, ["uniform"], out_dir=out, seeds=[0], budget=Budget(evaluations=5), progress=False,
+            figures=False)
+    compare(obj, ["random"], out_dir=out, seeds=[1], budget=Budget(evaluations=5), progress=False,
+            figures=False, resume=True)
+    meta = json.loads((out / "run.json").read_text())
+    assert [s["config"] for s in meta["selectors"]] == ["uniform", "random"] and meta["seeds"] == [0, 1]
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1"])
+def test_compare_refuses_non_finite_budgets(tmp_path, capsys, value):
+    assert _compare(tmp_path / "cmp", "uniform", budget_s=value) == 2
+    assert "--budget-s" in capsys.readouterr().err
+    assert not (tmp_path / "cmp").exists()
+
+
+def test_compare_api_refuses_infinite_budget(tmp_path):
+    from arraysel.errors import ParameterError
+    from arraysel.runner import compare
+    from arraysel.selector import Budget
+    from arraysel.testing import ToyObjective
+
+    with pytest.raises(ParameterError, match="budget seconds"):
+        compare(ToyObjective(12, 6), ["uniform"], out_dir=tmp_path, budget=Budget(seconds=float("inf")),
+                progress=False, figures=False)
+
+
+def test_compare_unwritable_out_fails_before_the_objective_is_built(tmp_path, capsys, monkeypatch):
+    from arraysel.commands import compare as cmd
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    monkeypatch.setattr(cmd, "build_objective", lambda *a, **k: pytest.fail("objective was built"))
+    from arraysel.cli import main
+    assert main(["compare", "--selectors", "uniform", "--scene", "toy", "--out", str(blocker / "sub"),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "not a folder" in err and len(err.strip().splitlines()) == 1
+    assert main(["compare", "--selectors", "uniform", "--scene", "toy", "--out", str(blocker),
+                 "--no-progress"]) == 2
+    assert "is a file" in capsys.readouterr().err
