@@ -23,7 +23,7 @@ import threading
 import time
 
 __all__ = ["TMP_SUFFIX", "file_mode", "atomic_write_bytes", "atomic_write_text", "atomic_savez",
-           "AtomicFile", "remove_stale_temporaries", "check_writable"]
+           "AtomicFile", "StreamingNpz", "remove_stale_temporaries", "check_writable"]
 
 TMP_SUFFIX = ".tmp"
 
@@ -132,6 +132,84 @@ class AtomicFile:
 
     def __exit__(self, *exc) -> bool:
         self.discard()
+        return False
+
+
+class StreamingNpz:
+    """An ``.npz`` file (a zip of ``.npy`` members, as :func:`numpy.savez_compressed` writes and
+    :func:`numpy.load` reads) written member by member, a member in row chunks when its number
+    of rows is known up front, and published atomically by :meth:`commit`. Memory use is one
+    chunk, whatever the size of the file."""
+
+    def __init__(self, path: str | os.PathLike, compress: bool = True):
+        import zipfile
+
+        self.file = AtomicFile(path)
+        try:
+            self.zip = zipfile.ZipFile(self.file.fh, "w", allowZip64=True,
+                                       compression=zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED)
+        except BaseException:
+            self.file.discard()
+            raise
+        self._member = None
+
+    def begin(self, name: str, shape: tuple, dtype) -> None:
+        """Start member ``name`` holding an array of ``shape`` and ``dtype`` (rows to follow)."""
+        import numpy as np
+
+        if self._member is not None:
+            raise RuntimeError(f"member {self._name!r} is not finished")
+        self._dtype, self._shape, self._name = np.dtype(dtype), tuple(int(v) for v in shape), name
+        self._rows = 0
+        self._member = self.zip.open(f"{name}.npy", "w", force_zip64=True)
+        np.lib.format.write_array_header_1_0(
+            self._member, {"descr": np.lib.format.dtype_to_descr(self._dtype), "fortran_order": False,
+                           "shape": self._shape})
+
+    def write_rows(self, rows) -> None:
+        import numpy as np
+
+        rows = np.ascontiguousarray(rows, dtype=self._dtype)
+        if self._shape and rows.shape[1:] != self._shape[1:]:
+            raise ValueError(f"{self._name}: rows of shape {rows.shape[1:]}, expected {self._shape[1:]}")
+        self._member.write(rows.tobytes())
+        self._rows += rows.shape[0] if self._shape else 1
+
+    def end(self) -> None:
+        want = self._shape[0] if self._shape else 1
+        if self._rows != want:
+            raise ValueError(f"{self._name}: {self._rows} rows written, {want} announced")
+        self._member.close()
+        self._member = None
+
+    def add(self, name: str, array) -> None:
+        """A whole member at once."""
+        import numpy as np
+
+        array = np.asarray(array)
+        self.begin(name, array.shape, array.dtype)
+        self.write_rows(array)
+        self.end()
+
+    def commit(self) -> None:
+        self.zip.close()
+        self.file.commit()
+
+    def discard(self) -> None:
+        try:
+            if self._member is not None:
+                self._member.close()
+            self.zip.close()
+        except Exception:  # the file is thrown away anyway
+            pass
+        self.file.discard()
+
+    def __enter__(self) -> "StreamingNpz":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        if not self.file.committed:
+            self.discard()
         return False
 
 

@@ -533,3 +533,167 @@ def test_compare_unwritable_out_fails_before_the_objective_is_built(tmp_path, ca
     assert main(["compare", "--selectors", "uniform", "--scene", "toy", "--out", str(blocker),
                  "--no-progress"]) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------
+# evaluate: streaming, long lines, encodings, paths, unwritable outputs
+# ---------------------------------------------------------------------------
+
+TINY_SCENE = """
+name = "tiny"
+base = "paper"
+[probe]
+n_elements = 8
+[transmit]
+n_tx = 1
+[grid]
+n_x = 32
+n_z = 32
+window = 16
+[selection]
+k = 4
+[metrics]
+r_main = 0.5
+r_guard = 1.0
+[simulator]
+fast_margin = 2
+fast_block = 4
+"""
+
+
+@pytest.fixture
+def tiny_scene(tmp_path, monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_SCENE)
+    return str(path)
+
+
+def _random_masks(path, n, ne=64, k=32, seed=0):
+    rng = np.random.default_rng(seed)
+    with open(path, "w") as fh:
+        for s in range(0, n, 50_000):
+            b = min(50_000, n - s)
+            idx = np.sort(np.argsort(rng.random((b, ne)), axis=1)[:, :k], axis=1)
+            fh.write("\n".join(" ".join(map(str, r)) for r in idx.tolist()) + "\n")
+
+
+def test_evaluate_streams_kernels_and_rows_in_chunks(tmp_path, tiny_scene, monkeypatch):
+    from arraysel.cli import main
+    from arraysel.commands import evaluate as ev
+    import pandas as pd
+
+    monkeypatch.setattr(ev, "CHUNK_WITH_KERNELS", 7)  # several chunks
+    rng = np.random.default_rng(1)
+    sels = [sorted(rng.choice(8, 4, replace=False).tolist()) for _ in range(30)]
+    masks = tmp_path / "m.txt"
+    masks.write_text("\n".join(",".join(map(str, s)) for s in sels) + "\n")
+    out, psf = tmp_path / "o.csv", tmp_path / "k.npz"
+    assert main(["evaluate", "--scene", tiny_scene, "--masks", str(masks), "--out", str(out),
+                 "--psf-out", str(psf), "--no-progress"]) == 0
+    df = pd.read_csv(out)
+    assert list(df["elements"]) == [" ".join(map(str, s)) for s in sels]
+    d = np.load(psf)
+    assert d["psf"].shape == (30, 16, 16) and d["psf_ref"].shape == (16, 16)
+    from arraysel.objective import build_objective, masks_from_indices
+    obj = build_objective(tiny_scene)
+    want = obj.evaluate(masks_from_indices(sels, 8, 4), return_kernels=True)
+    assert np.allclose(d["psf"], want["kernels"], atol=1e-6)
+    assert np.allclose(df["Mean"], want["Mean"], rtol=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k.npz", "m.txt", "o.csv", "tiny.toml"]
+
+
+def test_evaluate_unwritable_psf_out_leaves_no_csv(tmp_path, tiny_scene, capsys):
+    from arraysel.cli import main
+
+    masks = tmp_path / "m.txt"
+    masks.write_text("0 1 2 3\n")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    out = tmp_path / "o.csv"
+    assert main(["evaluate", "--scene", tiny_scene, "--masks", str(masks), "--out", str(out),
+                 "--psf-out", str(blocker / "k.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "--psf-out" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["missing", "folder", "latin1", "binary", "no-selection", "parent-is-file"])
+def test_evaluate_path_and_encoding_errors_are_one_line(tmp_path, capsys, monkeypatch, case):
+    from arraysel.cli import main
+    from arraysel.commands import compare as cmp
+
+    monkeypatch.setattr(cmp, "build_objective", lambda *a, **k: pytest.fail("objective was built"))
+    masks = tmp_path / "m.txt"
+    out = tmp_path / "o.csv"
+    if case == "folder":
+        masks.mkdir()
+    elif case == "latin1":
+        masks.write_bytes("0 1 2 # caf\u00e9\n".encode("latin-1"))
+    elif case == "binary":
+        masks.write_bytes(bytes(range(256)) * 4)
+    elif case == "no-selection":
+        masks.write_text("# nothing\n\n")
+    elif case == "parent-is-file":
+        masks.write_text(" ".join(map(str, range(32))) + "\n")
+        (tmp_path / "f").write_text("x")
+        out = tmp_path / "f" / "o.csv"
+    code = main(["evaluate", "--scene", "toy", "--masks", str(masks), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("arraysel evaluate: error:")
+    assert "Traceback" not in err
+    assert not out.exists()
+    want = {"missing": "does not exist", "folder": "is a folder", "latin1": "not UTF-8",
+            "binary": "not UTF-8", "no-selection": "no selection", "parent-is-file": "not a folder"}[case]
+    assert want in err
+
+
+def test_long_mask_lines_are_linear(tmp_path):
+    from arraysel.errors import SelectionError
+    from arraysel.maskio import iter_mask_lines, parse_elements
+
+    idx = list(range(40_000))
+    t0 = time.perf_counter()
+    assert parse_elements(" ".join(map(str, idx)), 100_000) == idx
+    with pytest.raises(SelectionError, match=r"repeated element index \[7\]"):
+        parse_elements(" ".join(map(str, idx + [7])), 100_000)
+    assert time.perf_counter() - t0 < 2.0
+    masks = tmp_path / "m.txt"
+    masks.write_text(" ".join(map(str, idx)) + "\n")
+    with pytest.raises(SelectionError, match="line 1: expected k = 32 elements, got 40000"):
+        list(iter_mask_lines(str(masks), 100_000, 32))
+    masks.write_text("1" * (2 ** 21))  # one 2 MB line without a newline: refused, not read whole
+    with pytest.raises(SelectionError, match="line 1: longer than"):
+        list(iter_mask_lines(str(masks), 64, 32))
+
+
+_MEMORY_SCRIPT = textwrap.dedent("""
+    import resource, sys
+    from arraysel.cli import main
+    code = main(["evaluate", "--scene", "toy", "--masks", sys.argv[1], "--out", sys.argv[2], "--no-progress"])
+    print("peak_mib", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    sys.exit(code)
+""")
+
+
+def _peak_evaluate(tmp_path, n) -> float:
+    masks, out = tmp_path / f"m{n}.txt", tmp_path / f"o{n}.csv"
+    _random_masks(masks, n)
+    proc = subprocess.run([sys.executable, "-c", _MEMORY_SCRIPT, str(masks), str(out)], capture_output=True,
+                          text=True, timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    with open(out) as fh:
+        assert sum(1 for _ in fh) == n + 1
+    return float(proc.stdout.split("peak_mib")[1])
+
+
+def test_evaluate_memory_does_not_grow_with_the_number_of_masks(tmp_path):
+    small, large = _peak_evaluate(tmp_path, 1_000), _peak_evaluate(tmp_path, 25_000)
+    assert large < small + 100, (small, large)  # MiB: bounded by the chunk, not the input
+
+
+@pytest.mark.slow
+def test_evaluate_a_million_masks_under_a_memory_ceiling(tmp_path):
+    peak = _peak_evaluate(tmp_path, 1_000_000)
+    assert peak < 1024, peak  # MiB (the whole file held in memory needed ~9 GB before)
