@@ -21,6 +21,7 @@ Files (see ``docs/selectors.md``):
 """
 from __future__ import annotations
 
+import contextvars
 import json
 import math
 import os
@@ -35,6 +36,8 @@ __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "table1
 TABLE1_COLUMNS = ("config", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds",
                   "evaluations", "elements")
 _STD_OF = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds", "evaluations")
+#: where :func:`collect_figures` keeps the figures :func:`make_figures` saves (None: not kept)
+_FIGURES: "contextvars.ContextVar[dict | None]" = contextvars.ContextVar("arraysel_figures", default=None)
 _EXTRA = ("L_SLR", "gradient_steps", "overhead_seconds", "seeds", "best_seed", "error")
 
 
@@ -133,6 +136,25 @@ def _save(fig, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
+    sink = _FIGURES.get()
+    if sink is not None:
+        sink[Path(path).stem] = fig
+
+
+def collect_figures():
+    """Context manager: the figures saved inside it are also kept, ``{file stem: Figure}``
+    (the Python API returns them to notebooks)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def _cm():
+        sink: dict = {}
+        token = _FIGURES.set(sink)
+        try:
+            yield sink
+        finally:
+            _FIGURES.reset(token)
+    return _cm()
 
 
 def _masks(table, n: int) -> tuple[list[str], np.ndarray]:

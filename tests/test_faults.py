@@ -697,3 +697,93 @@ def test_evaluate_memory_does_not_grow_with_the_number_of_masks(tmp_path):
 def test_evaluate_a_million_masks_under_a_memory_ceiling(tmp_path):
     peak = _peak_evaluate(tmp_path, 1_000_000)
     assert peak < 1024, peak  # MiB (the whole file held in memory needed ~9 GB before)
+
+
+def test_scene_relative_base_resolves_next_to_the_scene_file(tmp_path, monkeypatch):
+    from arraysel.scene import load_scene
+
+    folder = tmp_path / "scenes"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "parent.toml").write_text('name = "parent"\nbase = "paper"\n[selection]\nk = 20\n')
+    (folder / "sub" / "child.toml").write_text('base = "../parent.toml"\n[transmit]\nn_tx = 3\n')
+    (folder / "child.toml").write_text('base = "parent.toml"\n[transmit]\nn_tx = 3\n')
+    monkeypatch.chdir(tmp_path)  # not the scene folder
+    for path in (folder / "child.toml", folder / "sub" / "child.toml"):
+        scene = load_scene(str(path))
+        assert scene.k == 20 and scene.get("transmit", "n_tx") == 3
+
+
+@pytest.mark.parametrize("case", ["folder", "latin1"])
+def test_scene_file_errors_are_one_line(tmp_path, capsys, case):
+    from arraysel.cli import main
+
+    path = tmp_path / "bad.toml"
+    if case == "folder":
+        path.mkdir()
+    else:
+        path.write_bytes('name = "caf\u00e9"\n'.encode("latin-1"))
+    masks = tmp_path / "m.txt"
+    masks.write_text("0 1 2\n")
+    for argv in (["evaluate", "--masks", str(masks), "--out", str(tmp_path / "o.csv")],
+                 ["psf", "--out", str(tmp_path / "p.npz")]):
+        assert main([*argv, "--scene", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and ("is a folder" in err or "not UTF-8" in err), err
+
+
+# ---------------------------------------------------------------------------
+# Python API and the example notebook
+# ---------------------------------------------------------------------------
+
+def test_import_arraysel_is_light_and_exposes_the_api():
+    code = ("import sys, arraysel as asel; heavy = [m for m in ('torch', 'pandas', 'matplotlib') if m in sys.modules]; "
+            "assert not heavy, heavy; "
+            "assert callable(asel.load_scene) and callable(asel.compare) and asel.Objective.__name__ == 'Objective'; "
+            "print('ok')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
+    import arraysel
+    assert {"load_scene", "Objective", "compare", "build_objective"} <= set(dir(arraysel))
+    with pytest.raises(AttributeError):
+        arraysel.no_such_thing
+
+
+def test_api_compare_returns_dataframes_and_figures(tmp_path):
+    import pandas as pd
+    from matplotlib.figure import Figure
+
+    import arraysel as asel
+
+    res = asel.compare("toy", ["uniform", "random"], seeds=[0, 1], budget_s=5, budget_evals=20,
+                       out_dir=tmp_path / "cmp", progress=False)
+    assert isinstance(res.table, pd.DataFrame) and list(res.table["config"]) == ["full", "uniform", "random"]
+    assert isinstance(res.runs, pd.DataFrame) and len(res.runs) == 5
+    assert set(res.figures) == {"masks", "psfs", "profiles", "trace"}
+    assert all(isinstance(f, Figure) for f in res.figures.values())
+    from arraysel.errors import ParameterError
+    with pytest.raises(ParameterError, match="already holds"):
+        asel.compare("toy", ["uniform"], budget_evals=5, out_dir=tmp_path / "cmp", progress=False)
+
+
+def _notebook_code(path: Path) -> list[str]:
+    import json
+
+    nb = json.loads(path.read_text())
+    return ["".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code"]
+
+
+def test_example_notebook_is_valid_and_uses_the_public_api():
+    cells = _notebook_code(ROOT / "examples" / "quickstart.ipynb")
+    assert cells and "import arraysel as asel" in cells[0]
+    for src in cells:
+        compile(src, "quickstart.ipynb", "exec")
+
+
+@pytest.mark.slow
+def test_example_notebook_runs_top_to_bottom(tmp_path, monkeypatch):
+    """Every code cell, in order, in one namespace (as a kernel would), on the paper scene."""
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    for src in _notebook_code(ROOT / "examples" / "quickstart.ipynb"):
+        exec(compile(src, "quickstart.ipynb", "exec"), ns)
+    assert list(ns["result"].table["config"]) == ["full", "uniform", "random"]
