@@ -82,9 +82,13 @@ def _flip_bit(path: Path, offset: int, bit: int = 3) -> None:
 # cache: format, integrity, atomicity, concurrency
 # ---------------------------------------------------------------------------
 
-def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder):
+def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder, capsys):
     build, calls = _counting_builder()
-    first = cache.load_or_build("t", ("k", 1), build, what="a test state")
+    first = cache.load_or_build("t", ("k", 1), build, what="a test state", size_hint=3_000_000,
+                                seconds_hint=20, progress=True)
+    err = capsys.readouterr().err
+    assert f"building a test state" in err and f"cached in {cache_folder} (about 3.0 MB)" in err
+    assert "about 20 s" in err and "/~20 s" in err  # the announcement and the progress bar
     second = cache.load_or_build("t", ("k", 1), build, what="a test state")
     assert calls == [1] and _same(first, _state()) and _same(second, _state())
     entry = _entry(cache_folder)
@@ -787,3 +791,27 @@ def test_example_notebook_runs_top_to_bottom(tmp_path, monkeypatch):
     for src in _notebook_code(ROOT / "examples" / "quickstart.ipynb"):
         exec(compile(src, "quickstart.ipynb", "exec"), ns)
     assert list(ns["result"].table["config"]) == ["full", "uniform", "random"]
+
+
+def test_compare_outputs_follow_the_umask(tmp_path):
+    import arraysel as asel
+
+    old = os.umask(0o022)
+    try:
+        res = asel.compare("toy", ["uniform"], budget_evals=5, out_dir=tmp_path / "cmp", progress=False)
+    finally:
+        os.umask(old)
+    files = list(Path(res.out_dir).iterdir())
+    assert len(files) >= 9
+    for f in files:
+        assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+
+
+def test_license_and_citation():
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License")
+    yaml = pytest.importorskip("yaml")
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    titles = [r["title"] for r in cff["references"]]
+    assert "End-to-end optimization of sparse ultrasound linear probes" in titles
+    assert any("PyMUST" in t for t in titles) and cff["license"] == "MIT"
