@@ -210,6 +210,12 @@ def _read_manifest(path: str) -> dict:
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(
             manifest.get("tensors"), dict):
         raise DamagedEntry(f"manifest.json is not a format-{FORMAT} manifest")
+    for key, info in manifest["tensors"].items():
+        ok = (isinstance(info, dict) and isinstance(info.get("file"), str) and "/" not in info["file"]
+              and isinstance(info.get("bytes"), int) and isinstance(info.get("dtype"), str)
+              and isinstance(info.get("shape"), list) and isinstance(info.get("sha256"), list))
+        if not ok:
+            raise DamagedEntry(f"manifest.json: the entry of tensor {key!r} is incomplete")
     return manifest
 
 
@@ -291,8 +297,8 @@ def load_state(path: str, verify: str | None = None) -> dict:
         empty = any(int(d) == 0 for d in info["shape"])  # numpy cannot map a zero-size array
         try:
             arr = np.load(fpath, mmap_mode=None if empty else "c", allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DamagedEntry(f"tensor {key!r}: {info['file']} does not parse ({exc})") from None
+        except Exception as exc:  # numpy's header parser raises several kinds on garbage
+            raise DamagedEntry(f"tensor {key!r}: {info['file']} does not parse ({type(exc).__name__})") from None
         if arr.dtype.str != info["dtype"] or list(arr.shape) != list(info["shape"]):
             raise DamagedEntry(f"tensor {key!r}: {info['file']} holds {arr.dtype.str} {list(arr.shape)}, the "
                                f"manifest says {info['dtype']} {info['shape']}")
