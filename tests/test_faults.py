@@ -672,11 +672,15 @@ def test_long_mask_lines_are_linear(tmp_path):
         list(iter_mask_lines(str(masks), 64, 32))
 
 
+# VmHWM: the peak RSS of this process's own memory (ru_maxrss would carry the parent's peak
+# across the exec of a vfork-ed child)
 _MEMORY_SCRIPT = textwrap.dedent("""
-    import resource, sys
+    import sys
     from arraysel.cli import main
     code = main(["evaluate", "--scene", "toy", "--masks", sys.argv[1], "--out", sys.argv[2], "--no-progress"])
-    print("peak_mib", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    with open("/proc/self/status") as fh:
+        kb = next(int(l.split()[1]) for l in fh if l.startswith("VmHWM:"))
+    print("peak_mib", kb / 1024)
     sys.exit(code)
 """)
 
@@ -692,15 +696,17 @@ def _peak_evaluate(tmp_path, n) -> float:
     return float(proc.stdout.split("peak_mib")[1])
 
 
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmHWM from /proc (Linux)")
 def test_evaluate_memory_does_not_grow_with_the_number_of_masks(tmp_path):
     small, large = _peak_evaluate(tmp_path, 1_000), _peak_evaluate(tmp_path, 25_000)
     assert large < small + 100, (small, large)  # MiB: bounded by the chunk, not the input
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmHWM from /proc (Linux)")
 def test_evaluate_a_million_masks_under_a_memory_ceiling(tmp_path):
     peak = _peak_evaluate(tmp_path, 1_000_000)
-    assert peak < 1024, peak  # MiB (the whole file held in memory needed ~9 GB before)
+    assert peak < 600, peak  # MiB (~370 measured; holding every mask and result needed ~9 GB before)
 
 
 def test_scene_relative_base_resolves_next_to_the_scene_file(tmp_path, monkeypatch):
