@@ -12,7 +12,7 @@ import sys
 from .errors import ArrayselError
 
 #: command modules, in the order they are listed by ``arraysel --help``
-COMMAND_MODULES = ("psf", "evaluate", "compare", "list", "train", "scenes")
+COMMAND_MODULES = ("psf", "evaluate", "compare", "list", "scenes", "cache", "train")
 
 
 def build_parser() -> argparse.ArgumentParser:

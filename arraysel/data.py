@@ -47,6 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from arraysel.atomic import file_mode
 from arraysel.errors import ParameterError, check_choice, check_number
 
 __all__ = [
@@ -249,6 +250,7 @@ def download_idx(name: str, data_dir: str | os.PathLike | None = None, *,
                     with urllib.request.urlopen(mirror + stem + ".gz", timeout=timeout) as resp:
                         payload = resp.read()
                     fd, tmp = tempfile.mkstemp(dir=target, suffix=".part")
+                    os.fchmod(fd, file_mode())  # the umask's mode, not mkstemp's 0600
                     try:
                         with os.fdopen(fd, "wb") as fh:
                             fh.write(payload)

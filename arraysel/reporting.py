@@ -21,10 +21,10 @@ Files (see ``docs/selectors.md``):
 """
 from __future__ import annotations
 
+import contextvars
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -36,14 +36,16 @@ __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "table1
 TABLE1_COLUMNS = ("config", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds",
                   "evaluations", "elements")
 _STD_OF = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds", "evaluations")
+#: where :func:`collect_figures` keeps the figures :func:`make_figures` saves (None: not kept)
+_FIGURES: "contextvars.ContextVar[dict | None]" = contextvars.ContextVar("arraysel_figures", default=None)
 _EXTRA = ("L_SLR", "gradient_steps", "overhead_seconds", "seeds", "best_seed", "error")
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` (UTF-8) to a temporary file next to ``path`` and ``os.replace`` it."""
-    from .maskio import atomic_write_bytes
+    from .atomic import atomic_write_text as _write
 
-    atomic_write_bytes(os.fspath(path), text.encode("utf-8"))
+    _write(path, text)
 
 
 def write_json(path, data: Any) -> None:
@@ -129,15 +131,32 @@ def table1(runs) -> "Any":
 # ---------------------------------------------------------------------------
 
 def _save(fig, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    import io
+
+    from .atomic import atomic_write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())
+    sink = _FIGURES.get()
+    if sink is not None:
+        sink[Path(path).stem] = fig
+
+
+def collect_figures():
+    """Context manager: the figures saved inside it are also kept, ``{file stem: Figure}``
+    (the Python API returns them to notebooks)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def _cm():
+        sink: dict = {}
+        token = _FIGURES.set(sink)
+        try:
+            yield sink
+        finally:
+            _FIGURES.reset(token)
+    return _cm()
 
 
 def _masks(table, n: int) -> tuple[list[str], np.ndarray]:

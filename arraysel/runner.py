@@ -47,7 +47,7 @@ from .selector import Budget, BudgetExceededError, Recorder, Selector, check_sel
 
 __all__ = [
     "METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "NEVERGRAD_COLUMNS", "Experiment", "full_row",
-    "config_label", "compare",
+    "config_label", "compare", "check_out_dir", "check_resume", "remove_results", "RESULT_FILES",
 ]
 
 METRICS = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
@@ -267,6 +267,11 @@ def full_row(objective) -> dict:
 
 def _lost_row(objective, config: str, name: str, options: dict, seed: int, message: str) -> dict:
     """The row of a run that could not be completed on any worker."""
+    return _failed_row(objective, config, name, options, seed, f"run lost: {message}")
+
+
+def _failed_row(objective, config: str, name: str, options: dict, seed: int, message: str) -> dict:
+    """The row of a run that has no result, with ``message`` as its error."""
     nan = math.nan
     return {
         "config": config, "selector": name, "seed": seed, "k": int(objective.k),
@@ -274,8 +279,127 @@ def _lost_row(objective, config: str, name: str, options: dict, seed: int, messa
         "seconds": nan, "evaluations": nan, "gradient_steps": nan, "objective_seconds": nan,
         "overhead_seconds": nan, "elements": "",
         "options": json.dumps(options, sort_keys=True, default=str) if options else "",
-        "error": f"run lost: {message}",
+        "error": message,
     }
+
+
+# ---------------------------------------------------------------------------
+# compare: the output folder, resuming, isolation
+# ---------------------------------------------------------------------------
+
+#: files ``compare`` writes in its folder (``--force`` removes these and nothing else)
+RESULT_FILES = ("runs.csv", "table1.csv", "trace.csv", "trace_nevergrad.csv", "run.json", "masks.png",
+                "psfs.png", "profiles.png", "trace.png")
+#: fields of ``run.json`` that a resumed run must share with the new one
+RESUME_FIELDS = ("scene", "n_elements", "k", "dtype", "budget")
+
+
+def check_out_dir(out: str | os.PathLike, *, resume: bool = False, force: bool = False) -> dict | None:
+    """Check ``out`` before any work: a folder (or creatable), writable, and not holding the
+    results of another compare run unless ``resume`` (continue it) or ``force`` (replace it).
+
+    Returns the old ``run.json`` content when resuming (``None`` otherwise, or when there is
+    nothing to resume). Raises :class:`ParameterError` with a one-line message."""
+    out = Path(out)
+    if resume and force:
+        raise ParameterError("--resume and --force exclude each other: --resume continues the run in --out, "
+                             "--force replaces it")
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out {str(out)!r} is a file, not a folder")
+    from .atomic import check_writable
+    check_writable(out / "run.json", "--out")
+    held = [n for n in ("runs.csv", "run.json", "table1.csv") if (out / n).exists()]
+    if not held:
+        return None
+    meta = None
+    if (out / "run.json").exists():
+        try:
+            meta = json.loads((out / "run.json").read_bytes().decode("utf-8"))
+            if not isinstance(meta, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as exc:
+            if resume:
+                raise ParameterError(f"--resume: {out / 'run.json'} is damaged ({_error_text(exc)}); rerun "
+                                     f"with --force to start over, or choose another --out") from None
+            meta = None
+    if resume:
+        if meta is None:
+            raise ParameterError(f"--resume: {out} has no run.json describing its runs; rerun with --force to "
+                                 f"start over, or choose another --out")
+        return meta
+    if force:
+        return None
+    status = (meta or {}).get("status", "unknown")
+    raise ParameterError(f"--out {str(out)!r} already holds the results of a compare run (status: {status}); "
+                         f"rerun with --resume to finish it, with --force to replace it, or choose another --out")
+
+
+def _plain(value):
+    """``value`` as ``run.json`` stores it (JSON round trip, ``default=str``)."""
+    return json.loads(json.dumps(value, default=str))
+
+
+def check_resume(old: dict, now: dict, out) -> None:
+    """Refuse to resume when a field of :data:`RESUME_FIELDS` differs between ``old`` (run.json)
+    and ``now``; the message names the field and both values (the first differing key of a
+    scene)."""
+    for field in RESUME_FIELDS:
+        if field not in now:
+            continue
+        a, b = old.get(field), _plain(now[field])
+        if a == b:
+            continue
+        detail = f"{a!r} in run.json, {b!r} now"
+        if isinstance(a, dict) and isinstance(b, dict):
+            keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+            if keys:
+                detail = f"{field}.{keys[0]} is {a.get(keys[0])!r} in run.json, {b.get(keys[0])!r} now"
+        raise ParameterError(f"--resume: the runs in {out} were made with a different {field} ({detail}); "
+                             f"rerun with --force to start over, or choose another --out")
+
+
+def remove_results(out: str | os.PathLike) -> None:
+    """Remove the files of :data:`RESULT_FILES` from ``out`` (``--force``)."""
+    for name in RESULT_FILES:
+        try:
+            (Path(out) / name).unlink()
+        except FileNotFoundError:
+            pass
+
+
+def _make_isolator(objective, objective_factory, todo, classes):
+    """An :class:`~arraysel.executors.IsolatedWorker` for the local runs, and the configs whose
+    selector class cannot be sent to it (they run in this process)."""
+    from . import executors as _ex
+
+    factory = objective_factory if objective_factory is not None else _ex.objective_factory_for(objective)
+    in_process = set()
+    for lab, name, opts, _seed in todo:
+        try:
+            _ex.compare_item(lab, classes[name], opts, Budget(evaluations=1), 0)
+        except ParameterError as exc:
+            print(f"arraysel compare: {lab} runs in this process, not isolated: {exc}", file=sys.stderr)
+            in_process.add(lab)
+    return _ex.IsolatedWorker(factory), in_process
+
+
+def _run_isolated(isolator, objective, lab, cls, opts, budget, seed, grace) -> tuple[dict, list]:
+    from . import executors as _ex
+
+    item = _ex.compare_item(lab, cls, opts, budget, seed)
+    timeout = None if budget.seconds is None else budget.seconds + grace
+    res = isolator.run(_ex.compare_task, item, timeout)
+    if isinstance(res, _ex._Raise):
+        if isinstance(res.exception, BudgetExceededError):
+            return _failed_row(objective, lab, cls.name, opts, seed, _error_text(res.exception)), []
+        raise res.exception
+    if isinstance(res, _ex.TaskFailed):
+        msg = res.message
+        if msg.startswith("stopped after"):
+            msg = (f"BudgetExceededError: {msg}; the budget was {budget.seconds:g} s and the grace "
+                   f"period {grace:g} s")
+        return _failed_row(objective, lab, cls.name, opts, seed, f"run failed: {msg}"), []
+    return res["row"], res["trace"]
 
 
 # ---------------------------------------------------------------------------
@@ -322,7 +446,8 @@ def _normalise_selectors(selectors) -> list[tuple[str, dict]]:
 def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] = (0,),
             budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
             figures: bool = True, command_line: Sequence[str] | None = None,
-            info: dict | None = None, executor=None, objective_factory=None):
+            info: dict | None = None, executor=None, objective_factory=None, force: bool = False,
+            isolate: bool = False, grace_s: float | None = None):
     """Run each selector for each seed on ``objective``; write the report to ``out_dir``.
 
     Parameters
@@ -347,10 +472,24 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         ``error`` column and the others finish.
     objective_factory : picklable callable that builds the objective on a
         worker (default: :func:`arraysel.executors.objective_factory_for`)
+    force : replace the results already in ``out_dir`` (without it, a folder that holds
+        results of a compare run is refused unless ``resume``)
+    isolate : run each ``(selector, seed)`` in a child process (built from ``objective_factory``)
+        that is stopped ``grace_s`` seconds after its time budget: a selector that hangs, exits
+        the process (``sys.exit``) or crashes it gets an error row and the other runs go on.
+        A selector class that cannot be sent to a child process runs in this process.
+    grace_s : seconds past the time budget before an isolated run is stopped (default
+        :data:`arraysel.executors.DEFAULT_GRACE_S`)
 
     Returns
     -------
     pandas.DataFrame : the ``table1.csv`` table
+
+    ``resume`` refuses (:class:`~arraysel.errors.ParameterError` naming the field) when the
+    scene, ``k``, the number of elements, the dtype or the budget differ from ``run.json``;
+    it may add seeds and selector configurations (``run.json`` then lists all of them). A
+    run that exceeds its evaluation budget gets an error row (``BudgetExceededError``). The
+    ``error_rows`` entry of ``run.json`` counts the rows with an error.
 
     On Ctrl-C (``KeyboardInterrupt``) or an error raised by a run, every
     finished row is already on disk; a message on stderr says how to resume,
@@ -377,7 +516,21 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     if len(set(labels)) != len(labels):
         raise ParameterError(f"the same selector configuration is listed twice: {labels}")
 
+    if budget.seconds is not None and not math.isfinite(budget.seconds):
+        raise ParameterError(f"budget seconds = {budget.seconds} is not allowed; give a finite number of "
+                             f"seconds > 0, or None with an evaluation budget")
+    from .executors import DEFAULT_GRACE_S
+    grace = DEFAULT_GRACE_S if grace_s is None else float(check_number("grace_s", grace_s, lo=0, hi=1e6))
+
     out = Path(out_dir)
+    old_meta = check_out_dir(out, resume=resume, force=force)
+    scene_name, scene_dict = _scene_info(objective)
+    if old_meta is not None:
+        check_resume(old_meta, {"scene": scene_dict, "n_elements": int(objective.n_elements),
+                                "k": int(objective.k), "dtype": str(getattr(objective, "dtype", "")),
+                                "budget": budget.to_dict()}, out)
+    if force:
+        remove_results(out)
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.csv"
 
@@ -385,7 +538,14 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     traces: list[dict] = []
     done: set[tuple[str, int]] = set()
     if resume and runs_path.exists():
-        old = pd.read_csv(runs_path)
+        try:
+            old = pd.read_csv(runs_path)
+            missing = [c for c in ("config", "seed", "error", "options") if c not in old.columns]
+            if missing:
+                raise ValueError(f"no column(s) {missing}")
+        except (ValueError, UnicodeDecodeError, pd.errors.ParserError) as exc:
+            raise ParameterError(f"--resume: {runs_path} is damaged ({_error_text(exc)}); rerun with --force "
+                                 f"to start over, or choose another --out") from None
         for rec in old.to_dict("records"):
             err = rec.get("error")
             if rec["config"] == "full" or (isinstance(err, str) and err.strip()):
@@ -398,14 +558,20 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
             done.add((rec["config"], rec["seed"]))
         tpath = out / "trace.csv"
         if tpath.exists():
-            t = pd.read_csv(tpath)
-            traces = [r for r in t.to_dict("records") if (r["config"], int(r["seed"])) in done]
-    elif runs_path.exists() and not resume:
-        for p in (runs_path, out / "trace.csv", out / "trace_nevergrad.csv", out / "table1.csv"):
-            if p.exists():
-                p.unlink()
+            try:
+                t = pd.read_csv(tpath)
+                traces = [r for r in t.to_dict("records") if (r["config"], int(r["seed"])) in done]
+            except (ValueError, KeyError, UnicodeDecodeError, pd.errors.ParserError) as exc:
+                raise ParameterError(f"--resume: {tpath} is damaged ({_error_text(exc)}); rerun with --force "
+                                     f"to start over, or choose another --out") from None
 
-    scene_name, scene_dict = _scene_info(objective)
+    sel_meta = [{"config": lab, "selector": n, "options": o, "origin": registry.origin(n)}
+                for lab, (n, o) in zip(labels, sels)]
+    all_seeds = list(seeds)
+    if old_meta is not None:  # a resumed run lists what it holds: the old runs and the new ones
+        known = {d["config"] for d in sel_meta}
+        sel_meta = [d for d in old_meta.get("selectors", []) if d.get("config") not in known] + sel_meta
+        all_seeds = sorted(set(all_seeds) | {int(v) for v in old_meta.get("seeds", [])})
     meta = {
         "status": "running",
         "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -413,9 +579,7 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         "scene_name": scene_name, "scene": scene_dict,
         "n_elements": int(objective.n_elements), "k": int(objective.k),
         "device": str(getattr(objective, "device", "")), "dtype": str(getattr(objective, "dtype", "")),
-        "seeds": seeds, "budget": budget.to_dict(),
-        "selectors": [{"config": lab, "selector": n, "options": o, "origin": registry.origin(n)}
-                      for lab, (n, o) in zip(labels, sels)],
+        "seeds": all_seeds, "budget": budget.to_dict(), "selectors": sel_meta,
         "versions": _versions(), "cpu_count": os.cpu_count(),
         "executor": executor.describe() if executor is not None else {"executor": "local", "workers": 1},
         **(info or {}),
@@ -434,6 +598,9 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         from . import executors as _ex
         factory = objective_factory if objective_factory is not None else _ex.objective_factory_for(objective)
         items = [_ex.compare_item(lab, classes[name], opts, budget, seed) for lab, name, opts, seed in todo]
+    isolator, in_process = None, set()
+    if isolate and not remote and todo:
+        isolator, in_process = _make_isolator(objective, objective_factory, todo, classes)
     save()
     bar = tqdm(total=len(todo), disable=not progress, desc="compare", unit="run", file=sys.stderr)
     finished = 0
@@ -441,11 +608,18 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         if not remote:
             for lab, name, opts, seed in todo:
                 bar.set_postfix_str(f"{lab} seed {seed}")
-                exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed, config=lab,
-                                 progress=progress)
-                row = exp.run()
+                if isolator is not None and lab not in in_process:
+                    row, trace = _run_isolated(isolator, objective, lab, classes[name], opts, budget, seed, grace)
+                else:
+                    exp = Experiment(objective, classes[name], options=opts, budget=budget, seed=seed,
+                                     config=lab, progress=progress)
+                    try:
+                        row, trace = exp.run(), exp.trace
+                    except BudgetExceededError as exc:
+                        row, trace = _failed_row(objective, lab, classes[name].name, opts, seed,
+                                                 _error_text(exc)), []
                 rows.append(row)
-                traces.extend({"config": lab, "seed": seed, **t} for t in exp.trace)
+                traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                 save()
                 finished += 1
                 bar.update(1)
@@ -456,6 +630,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
             with contextlib.closing(executor.run_tasks(factory, _ex.compare_task, items)) as tasks:
                 for i, res in tasks:  # closing the generator cancels the rest on an exception
                     lab, name, opts, seed = todo[i]
+                    if isinstance(res, _ex._Raise) and isinstance(res.exception, BudgetExceededError):
+                        res = _ex.TaskFailed(_error_text(res.exception))
                     if isinstance(res, _ex._Raise):
                         raise res.exception
                     if isinstance(res, _ex.TaskFailed):
@@ -471,6 +647,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
                     bar.update(1)
     except BaseException as exc:
         bar.close()
+        if isolator is not None:
+            isolator.close()
         left = len(todo) - finished
         meta["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {_error_text(exc)}"
         meta["finished"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -481,10 +659,15 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
               f"to run only those.", file=sys.stderr)
         raise
     bar.close()
+    if isolator is not None:
+        isolator.close()
 
     table = reporting.table1(pd.DataFrame([full] + rows, columns=list(ROW_COLUMNS)))
     if figures:
         meta["figure_errors"] = reporting.make_figures(objective, table, pd.DataFrame(traces), out)
+    failed = [f"{r['config']} seed {r['seed']}" for r in [full] + rows if str(r.get("error") or "").strip()]
+    meta["error_rows"] = len(failed)
+    meta["failed_runs"] = failed
     meta["status"] = "finished"
     meta["finished"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     reporting.write_json(out / "run.json", meta)

@@ -299,11 +299,25 @@ def _resolve(tree: dict, seen: tuple = ()) -> dict:
 def _read_file(path: str) -> dict:
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            tree = tomllib.load(fh)
     except FileNotFoundError:
         raise ParameterError(f"scene file {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise ParameterError(f"scene file {path!r} is a folder, not a file") from None
+    except PermissionError:
+        raise ParameterError(f"scene file {path!r} cannot be read (permission denied)") from None
+    except UnicodeDecodeError as exc:
+        raise ParameterError(f"scene file {path!r} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at "
+                             f"offset {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ParameterError(f"scene file {path!r} is not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ParameterError(f"scene file {path!r} cannot be read ({exc.strerror or exc})") from None
+    base = tree.get("base")
+    if isinstance(base, str) and base.endswith(".toml") and not os.path.isabs(os.path.expanduser(base)):
+        # a relative base names a file next to this one, not in the working directory
+        tree["base"] = os.path.join(os.path.dirname(os.path.abspath(path)), base)
+    return tree
 
 
 @dataclass(frozen=True)

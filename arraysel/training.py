@@ -51,7 +51,6 @@ import dataclasses
 import logging
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -519,16 +518,13 @@ class E2ETrainer:
         if path is None:
             raise ParameterError("no checkpoint path given")
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                torch.save(self.state_dict(), fh)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        from .atomic import AtomicFile
+
+        with AtomicFile(path) as fh:
+            torch.save(self.state_dict(), fh.fh)
+            fh.fh.flush()
+            os.fsync(fh.fh.fileno())
+            fh.commit()
         return path
 
     def load_checkpoint(self, path: str | os.PathLike | None = None) -> None:

@@ -124,7 +124,7 @@ def cache_files() -> set | None:
     if folder is None:
         return None
     try:
-        return {f for f in os.listdir(folder) if f.startswith("psf-basis-")}
+        return {f for f in os.listdir(folder) if f.startswith("psf-basis-") and not f.endswith((".lock", ".tmp"))}
     except FileNotFoundError:
         return set()
 

@@ -1,6 +1,7 @@
 """``arraysel compare``: run selectors on a scene and write Table 1, traces and figures."""
 from __future__ import annotations
 
+import math
 import sys
 
 from ..errors import ParameterError, check_number
@@ -37,7 +38,18 @@ def add_parser(subparsers) -> None:
     p.add_argument("-o", "--option", action="append", default=[], metavar="SELECTOR.KEY=VALUE",
                    help="selector option, e.g. -o ste.lr=1e-3 (repeatable; see `arraysel list -v`)")
     p.add_argument("--resume", action="store_true",
-                   help="keep the finished runs in --out/runs.csv and run only the missing ones")
+                   help="keep the finished runs in --out/runs.csv and run only the missing ones (refused "
+                        "when the scene, k, dtype or budget differ from --out/run.json; seeds and "
+                        "selectors may be added)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results already in --out (without it, a folder holding the results "
+                        "of a compare run is refused)")
+    p.add_argument("--grace-s", type=float, default=None, metavar="S",
+                   help="seconds a run may go past --budget-s before its process is stopped and it gets "
+                        "an error row (default 30)")
+    p.add_argument("--in-process", action="store_true",
+                   help="run the selectors in this process instead of one child process per compare "
+                        "(faster start; a selector that hangs or exits then stops the whole compare)")
     g = p.add_argument_group("parallel runs (see docs/distributed.md)")
     g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
                    help="where the (selector, seed) runs are computed: local (default: this process, "
@@ -134,7 +146,13 @@ def run(args) -> int:
     names = parse_selectors(args.selectors, registry)
     options = parse_options(args.option, names, registry)
     seeds = parse_seeds(args.seeds)
+    if not math.isfinite(args.budget_s):
+        raise ParameterError(f"--budget-s must be a finite number of seconds >= 0 (0: no time limit), "
+                             f"got {args.budget_s}")
     budget_s = check_number("--budget-s", args.budget_s, lo=0)
+    grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
+    from ..runner import check_out_dir
+    check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
     evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
                                                                 lo=1, integer=True)
     budget = Budget(seconds=budget_s or None, evaluations=evals)
@@ -154,7 +172,8 @@ def run(args) -> int:
         table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
                         budget=budget, registry=registry, resume=args.resume,
                         progress=not args.no_progress, figures=not args.no_figures,
-                        command_line=list(sys.argv), executor=executor)
+                        command_line=list(sys.argv), executor=executor, force=args.force,
+                        isolate=not args.in_process, grace_s=grace_s)
     finally:
         if executor is not None:
             executor.close()
@@ -163,4 +182,21 @@ def run(args) -> int:
         print(table[cols].to_string(index=False))
     print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, trace_nevergrad.csv, run.json"
           + ("" if args.no_figures else " and figures"))
+    return _report_failures(args.out)
+
+
+def _report_failures(out: str) -> int:
+    """Say which runs have an error row (from run.json); exit code 1 when any, else 0."""
+    import json
+    import os
+
+    try:
+        with open(os.path.join(out, "run.json"), "rb") as fh:
+            failed = json.loads(fh.read().decode("utf-8")).get("failed_runs", [])
+    except (OSError, ValueError):
+        return 0
+    if failed:
+        print(f"arraysel compare: {len(failed)} run(s) failed (see the error column of runs.csv): "
+              + ", ".join(failed), file=sys.stderr)
+        return 1
     return 0

@@ -28,14 +28,19 @@ def run(args) -> int:
     from ..objective import build_objective, masks_from_indices
     from ..scene import load_scene
 
+    from ..atomic import check_writable
+
+    if not args.out.endswith(".npz"):
+        raise ParameterError(f"--out must end with .npz, got {args.out!r}")
+    check_writable(args.out, "--out")
+    if args.plot:
+        check_writable(args.out[:-4] + ".png", "--plot")
     scene = load_scene(args.scene)
     ne = scene.probe().n_elements
     if args.elements is None:
         elements = list(range(0, ne, 2))
     else:
         elements = parse_elements(args.elements, ne, None)
-    if not args.out.endswith(".npz"):
-        raise ParameterError(f"--out must end with .npz, got {args.out!r}")
     obj = build_objective(scene, device=args.device, dtype=getattr(torch, args.dtype))
     res = obj.evaluate(masks_from_indices([elements], ne), return_kernels=True)
     kernel = res["kernels"][0]

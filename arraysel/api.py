@@ -1,0 +1,100 @@
+"""The Python API for notebooks and scripts (``import arraysel as asel``).
+
+>>> import arraysel as asel                                        # doctest: +SKIP
+>>> scene = asel.load_scene("paper")
+>>> obj = asel.build_objective(scene)
+>>> obj.evaluate_indices([list(range(0, 64, 2))])["Mean"]
+>>> res = asel.compare("paper", ["uniform", "random"], budget_s=30)
+>>> res.table            # pandas DataFrame (table1.csv)
+>>> res.figures["psfs"]  # matplotlib Figure
+
+Everything here is a thin layer over the modules that do the work
+(:mod:`arraysel.scene`, :mod:`arraysel.objective`, :mod:`arraysel.runner`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Sequence
+
+__all__ = ["CompareResult", "compare"]
+
+
+@dataclasses.dataclass
+class CompareResult:
+    """What :func:`compare` returns.
+
+    table : ``table1.csv`` (one row per configuration, ``full`` first)
+    runs : ``runs.csv`` (one row per (configuration, seed) run)
+    trace : ``trace.csv`` (improvements of the best Mean over time)
+    figures : ``{"masks", "psfs", "profiles", "trace"}`` -> matplotlib Figure (those drawn)
+    out_dir : the folder that holds the files
+    """
+
+    table: Any
+    runs: Any
+    trace: Any
+    figures: dict
+    out_dir: str
+
+    def _repr_html_(self) -> str:  # a notebook shows the table
+        return self.table._repr_html_()
+
+
+def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *, seeds: Sequence[int] = (0,),
+            budget_s: float | None = 60.0, budget_evals: int | None = None, options: dict | None = None,
+            out_dir: str | os.PathLike | None = None, force: bool = False, resume: bool = False,
+            device: str = "cpu", dtype: str = "float32", isolate: bool = False, grace_s: float | None = None,
+            progress: bool = True, figures: bool = True, objective=None) -> CompareResult:
+    """Compare selectors on a scene, as ``arraysel compare`` does, and return the results.
+
+    Parameters
+    ----------
+    scene : scene name, ``.toml`` path, :class:`~arraysel.scene.Scene`, dict, or ``"toy"``
+    selectors : selector names (see ``arraysel list``)
+    seeds : each selector runs once per seed
+    budget_s, budget_evals : per-run limits (seconds must be finite; at least one limit)
+    options : ``{selector: {option: value}}``
+    out_dir : where the files go (default: a new temporary folder, kept)
+    force, resume : as ``--force`` / ``--resume`` for a folder that already holds results
+    device, dtype : of the objective (``"cpu"``/``"cuda"``, ``"float32"``/``"float64"``)
+    isolate : run each selector in a child process stopped ``grace_s`` s after its budget
+    objective : an already built objective (then ``scene``, ``device``, ``dtype`` are unused)
+
+    Returns
+    -------
+    :class:`CompareResult` with pandas DataFrames and matplotlib Figures.
+    """
+    import tempfile
+
+    import pandas as pd
+
+    from . import reporting
+    from .runner import compare as _compare
+    from .selector import Budget
+
+    budget = Budget(seconds=budget_s, evaluations=budget_evals)
+    if objective is None:
+        from .commands.compare import build_objective as _build
+        from .scene import Scene, load_scene
+
+        if isinstance(scene, str) and scene == "toy":
+            objective = _build("toy", device, dtype)
+        else:
+            import torch
+
+            from .objective import build_objective
+            objective = build_objective(scene if isinstance(scene, Scene) else load_scene(scene), device=device,
+                                        dtype=getattr(torch, dtype))
+    if out_dir is None:
+        out_dir = tempfile.mkdtemp(prefix="arraysel-compare-")
+    opts = options or {}
+    sels = [(name, opts.get(name, {})) for name in selectors]
+    with reporting.collect_figures() as figs:
+        table = _compare(objective, sels, out_dir=out_dir, seeds=list(seeds), budget=budget, resume=resume,
+                         force=force, progress=progress, figures=figures, isolate=isolate, grace_s=grace_s,
+                         command_line=["arraysel.compare(...)"])
+    out = os.fspath(out_dir)
+    runs = pd.read_csv(os.path.join(out, "runs.csv"), keep_default_na=False, na_values=["", "nan", "NaN"])
+    trace = pd.read_csv(os.path.join(out, "trace.csv"))
+    return CompareResult(table=table, runs=runs, trace=trace, figures=dict(figs), out_dir=out)
