@@ -609,7 +609,7 @@ def _load_or_build_basis(model: "PSFModel") -> "_PairBasis":
     return built[0] if built else _PairBasis.from_state(model, state)
 
 
-_BASIS_VERSION = 9
+_BASIS_VERSION = 10
 #: largest memory of the strips' pair images (tier 2) kept by the fast path; above it they are
 #: not built and loose blocks beside E are beamformed exactly
 _STRIP_MAX_BYTES = 1 << 30
@@ -758,6 +758,7 @@ class _PairBasis:
         self.blocks2 = torch.nonzero(outside2)  # (nQ2, 2): rows of S2 as (qz, qx)
         self._strip_layout()
         self._block_plans: dict = {}
+        self._row_energy = None
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path
         self.finer = None
@@ -1184,7 +1185,7 @@ class _PairBasis:
               "Hc": self.Hc.cpu(), "core_pix": self.core_pix, "SF": self.SF.cpu(), "SG": self.SG.cpu(),
               "SS": self.SS.cpu(), "Snext": self.Snext.cpu(),
               "meta": torch.tensor([self.T, self.L, self.rank, self.seg, int(self.strips)]),
-              "rank_tail": torch.tensor(self.rank_tail), "off": self.off.cpu(),
+              "rank_tail": torch.tensor(self.rank_tail), "off": self.off.cpu(), "row_energy": self.row_energy,
               "missed": torch.tensor(self.missed, dtype=torch.float64)}
         if self.U is not None:
             st["U"] = self.U.cpu()
@@ -1204,6 +1205,7 @@ class _PairBasis:
         self.core_pix = st["core_pix"].long()
         self.T, self.L, self.rank, self.seg, strips = (int(v) for v in st["meta"])
         self.off = st["off"].long()
+        self._row_energy = st["row_energy"].double()
         if not strips:
             self._disable_strips()
         self.rank_tail = float(st["rank_tail"])
@@ -1234,22 +1236,36 @@ class _PairBasis:
         n = self.npix
         tail = self.V[r:].double()
         pix = (tail[:, :n] ** 2 + tail[:, n:] ** 2).sum(0)
-        sig = (tail ** 2).sum(1)
+        sig = self.row_energy[r:]
         err = self.err.clone()
         err[0] = math.sqrt(float(err[0]) ** 2 + float(pix.max())) * (1 + 1e-6)
         err[3] = max(float(sig[0].sqrt()) * (1 + 1e-6), float(err[3]) - self.missed) + self.missed
-        total = float((self.V.double() ** 2).sum()) / max(1e-300, 1 - self.rank_tail)
+        total = float(self.row_energy.sum()) / max(1e-300, 1 - self.rank_tail)
+        out.row_energy = self.row_energy[:r]
         out.U, out.V, out.rank, out.err = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
         out.rank_tail = self.rank_tail + float(sig.sum()) / total
         out.finer = self
         return out
+
+    @property
+    def row_energy(self) -> torch.Tensor:
+        """(rank,) float64 squared singular values ``|V_i|^2`` (V's rows are orthogonal), computed
+        once at build time and stored with the basis (a cold start does not read all of V)."""
+        if self._row_energy is None:
+            self._row_energy = (self.V.double() ** 2).sum(1) if self.U is not None else \
+                torch.zeros(0, dtype=torch.float64)
+        return self._row_energy
+
+    @row_energy.setter
+    def row_energy(self, value: torch.Tensor):
+        self._row_energy = value
 
     def rank_for(self, rank_tol: float) -> int:
         """Smallest rank whose discarded energy fraction is at most ``rank_tol`` (at most the
         stored rank)."""
         if self.U is None:
             return self.rank
-        sig2 = (self.V.double() ** 2).sum(1)
+        sig2 = self.row_energy
         total = float(sig2.sum()) / max(1e-300, 1 - self.rank_tail)
         tail = total - torch.cumsum(sig2, 0)
         ok = torch.nonzero(tail <= rank_tol * total).flatten()
