@@ -19,6 +19,15 @@ import numba
 import numpy as np
 
 
+@numba.njit(inline="always", cache=False)
+def _lerp_rotate_add(out, p, row, a, b, w, cr, ci):
+    """``out[p, row] += (cr + i ci) * (a + (b - a) w)`` on the [re, im] pair of ``out``."""
+    vr = a.real + (b.real - a.real) * w
+    vi = a.imag + (b.imag - a.imag) * w
+    out[p, row, 0] += cr * vr - ci * vi
+    out[p, row, 1] += cr * vi + ci * vr
+
+
 @numba.njit(parallel=True, cache=False, nogil=True)
 def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
     """Accumulate the symmetric pair images of rows (e in [e0, e1), j >= e) into ``out``.
@@ -44,12 +53,7 @@ def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
                     i = i0[n, e, p]
                     w = wt[n, e, p]
                     for j in range(e, ne):
-                        a = X[n, e, i, j]
-                        b = X[n, e, i + 1, j]
-                        vr = a.real + (b.real - a.real) * w
-                        vi = a.imag + (b.imag - a.imag) * w
-                        out[p, row + j - e, 0] += cr * vr - ci * vi
-                        out[p, row + j - e, 1] += cr * vi + ci * vr
+                        _lerp_rotate_add(out, p, row + j - e, X[n, e, i, j], X[n, e, i + 1, j], w, cr, ci)
                 row += ne - e
             # D_je, j > e (receive), e in the block (transmit)
             for j in range(e0 + 1, ne):
@@ -61,12 +65,7 @@ def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
                 w = wt[n, j, p]
                 row = 0
                 for e in range(e0, min(e1, j)):
-                    a = X[n, j, i, e]
-                    b = X[n, j, i + 1, e]
-                    vr = a.real + (b.real - a.real) * w
-                    vi = a.imag + (b.imag - a.imag) * w
-                    out[p, row + j - e, 0] += cr * vr - ci * vi
-                    out[p, row + j - e, 1] += cr * vi + ci * vr
+                    _lerp_rotate_add(out, p, row + j - e, X[n, j, i, e], X[n, j, i + 1, e], w, cr, ci)
                     row += ne - e
 
 
