@@ -368,8 +368,10 @@ class Recorder:
 class BudgetedObjective:
     """The objective as a selector sees it: the runner's bookkeeping around the real one.
 
-    * ``evaluate(masks)`` scores the masks in pieces (``piece`` masks, checking the
-      budget before each piece, so a time limit stops a large batch early);
+    * ``evaluate(masks)`` scores the masks in pieces (at most ``piece`` masks,
+      and under a time limit no more than the time left allows at the measured
+      cost per mask; the budget is checked before each piece, so a time limit
+      stops a large batch early);
       every mask with exactly ``k`` active elements is recorded (best-so-far
       trace, at its own evaluation count). When the budget does not allow the
       whole batch, the allowed first masks are scored and recorded, then
@@ -395,6 +397,7 @@ class BudgetedObjective:
         self.n_elements = int(objective.n_elements)
         default = int(getattr(objective, "chunk", 256) or 256)
         self.piece = max(1, int(piece if piece is not None else min(default, 256)))
+        self._per_mask = 0.0  # running estimate of the seconds one mask costs
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
         if name.startswith("__"):
@@ -447,11 +450,17 @@ class BudgetedObjective:
             return self._inner.evaluate(masks, **kwargs)
         while done < total:
             want = min(self.piece, total - done)
+            if self.budget.seconds is not None and self._per_mask > 0:
+                # under a time limit, a piece must fit in the time left (at least one mask)
+                want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
             allowed = self.budget.allowed(want)
             if allowed <= 0:
                 raise self._exhausted(f"{done} of {total} masks of this call scored")
             before = self.budget.used_evaluations()
+            t0 = time.perf_counter()
             out = self._inner.evaluate(masks[done:done + allowed], **kwargs)
+            per_mask = (time.perf_counter() - t0) / allowed
+            self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
             self._record(hard[done:done + allowed], np.asarray(out["Mean"], dtype=np.float64), before)
             parts.append(out)
             done += allowed
