@@ -11,7 +11,7 @@ Example
 >>> class Mine(Selector):
 ...     name = "mine"
 ...     description = "keep the first k elements"
-...     def select(self, objective, k, budget, seed, recorder):
+...     def select(self, objective, k, seed):
 ...         return list(range(k))
 >>> @hookimpl
 ... def arraysel_register_selectors(register):

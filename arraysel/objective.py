@@ -357,7 +357,7 @@ class Objective:
         """Training loss of a (Ne, k) selection matrix: (scalar total, terms).
 
         Element weights are the row sums of P (clamped to [0, 1]); L_ent and
-        L_row act on P_soft / P; L_conv and L_rec come from :attr:`data_term`
+        L_row act on P_soft; L_conv and L_rec come from :attr:`data_term`
         on scenes that weight them.
         """
         with self._timed():
@@ -371,7 +371,9 @@ class Objective:
                 terms["L_ent"] = M.l_ent(P_soft)
                 total = total + self.weights["L_ent"] * terms["L_ent"]
             if self.weights.get("L_row", 0) > 0:
-                terms["L_row"] = M.l_row(P)
+                # on P_soft, as the trainer and the toy objective: the straight-through P
+                # has one-hot columns over distinct elements, so its rows never sum past 1
+                terms["L_row"] = M.l_row(P_soft)
                 total = total + self.weights["L_row"] * terms["L_row"]
             if self.scene.needs_data:
                 if self.data_term is None:

@@ -50,6 +50,10 @@ BUILTIN_PLUGINS: dict[str, str] = {
     "arraysel.gumbel": "arraysel_plugins.gumbel",
     "arraysel.nlopt": "arraysel_plugins.nlopt_relax",
     "arraysel.greedy": "arraysel_plugins.greedy",
+    "arraysel.swap": "arraysel_plugins.swap",
+    "arraysel.anneal": "arraysel_plugins.anneal",
+    "arraysel.genetic": "arraysel_plugins.genetic",
+    "arraysel.nevergrad": "arraysel_plugins.nevergrad_bridge",
 }
 #: environment variable listing plugin names not to load
 DISABLE_ENV = "ARRAYSEL_DISABLE_PLUGINS"

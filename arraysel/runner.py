@@ -11,7 +11,7 @@ objective evaluations than its budget plus one batch.
 :func:`compare` runs every selector for every seed, adds the ``full``
 reference row and writes, atomically and after each finished run, the
 files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``,
-``trace.csv``, ``trace_nevergrad.csv``, ``run.json``, then the figures).
+``trace.csv``, the IOHprofiler files under ``ioh/``, ``run.json``, then the figures).
 
 The objective is passed in (dependency injection), so any object following
 the Objective contract works, e.g. :class:`arraysel.testing.ToyObjective`.
@@ -37,16 +37,19 @@ import platform
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 
 from .errors import ParameterError, check_number
-from .selector import Budget, BudgetExceededError, Recorder, Selector, check_selection, indices_to_mask
+from .errors import SelectionError
+from .selector import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder, Selector,
+                       check_selection, indices_to_mask, is_legacy_selector, numpy_rng)
 
 __all__ = [
-    "METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "NEVERGRAD_COLUMNS", "Experiment", "full_row",
+    "METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "DEFAULT_SEEDS", "Experiment", "full_row",
     "config_label", "compare", "check_out_dir", "check_resume", "remove_results", "RESULT_FILES",
 ]
 
@@ -54,8 +57,9 @@ METRICS = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
 #: columns of a run row, in this order
 ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "seconds", "evaluations",
                "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error")
-TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean")
-NEVERGRAD_COLUMNS = ("optimizer_name", "budget", "loss", "elapsed_time", "elapsed_budget", "seed")
+#: columns of ``trace.csv``: one ``improvement`` row per new best, then one ``end`` row at the
+#: run's last evaluation and time
+TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean", "event")
 
 
 def config_label(name: str, options: dict | None = None) -> str:
@@ -153,14 +157,19 @@ class Experiment:
         t0 = time.perf_counter()
         watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
             else contextlib.nullcontext()
+        polish = float(selector.options.get("polish") or 0.0)
         try:
             with watch:
-                result = selector.select(obj, k, budget, seed, recorder)
+                stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
+                result = _run_selector(selector, obj, k, stage, seed, recorder)
+                if polish > 0:
+                    result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k))
             selection = check_selection(result, n, k)
         except (KeyboardInterrupt, BudgetExceededError):
             raise
         except Exception as exc:  # the selector's (or objective's) failure goes in the row
             error = _error_text(exc)
+        recorder.finish()
         wall = time.perf_counter() - t0
         e1, g1, s1 = _counters(obj)
         used = e1 - e0
@@ -195,6 +204,68 @@ class Experiment:
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
             "error": error, **extra,
         }
+
+
+_WARNED_LEGACY: set = set()
+
+
+def _warn_legacy(cls) -> None:
+    if cls in _WARNED_LEGACY:
+        return
+    _WARNED_LEGACY.add(cls)
+    warnings.warn(
+        f"selector {cls.name!r} ({cls.__module__}.{cls.__qualname__}) uses the legacy signature "
+        f"select(objective, k, budget, seed, recorder); define select(self, objective, k, seed) instead and "
+        f"drop the budget checks and recorder.report calls: the objective it receives counts, clips to "
+        f"the budget and records the trace (see docs/selectors.md)", DeprecationWarning, stacklevel=3)
+
+
+def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
+    """Call ``selector.select`` under either contract; return what it returned (or, when the
+    budget ended the search, the best selection recorded)."""
+    if is_legacy_selector(selector):
+        _warn_legacy(type(selector))
+        return selector.select(obj, k, budget, seed, recorder)
+    view = BudgetedObjective(obj, budget, recorder, k)
+    try:
+        return selector.select(view, k, seed)
+    except BudgetExhausted:
+        return _best_or_first(recorder)
+
+
+def _best_or_first(recorder: Recorder) -> list[int]:
+    if recorder.best is not None:
+        return list(recorder.best)
+    if recorder.first is not None:  # every score was NaN/Inf: the final scoring reports it
+        return list(recorder.first)
+    raise SelectionError("the budget ran out before the selector scored any selection of k elements")
+
+
+def _share_of(budget: Budget, obj, fraction: float) -> Budget:
+    """A budget of ``fraction`` of each limit of the started ``budget``, started at the same moment."""
+    def part(v, integer):
+        if v is None:
+            return None
+        return max(1, int(v * fraction)) if integer else max(1e-3, v * fraction)
+
+    sub = Budget(part(budget.seconds, False), part(budget.evaluations, True),
+                 part(budget.gradient_steps, True)).start(obj)
+    sub._t0, sub._e0, sub._g0 = budget._t0, budget._e0, budget._g0
+    return sub
+
+
+def _polish(obj, k: int, budget: Budget, seed: int, recorder: Recorder, start: list[int]) -> list[int]:
+    """First-improvement swap local search from ``start`` with what is left of ``budget``."""
+    from .localsearch import SwapSearch
+
+    view = BudgetedObjective(obj, budget, recorder, k)
+    search = SwapSearch(view, k, numpy_rng(seed, stream=7))
+    try:
+        search.run(start)
+    except BudgetExhausted:
+        pass
+    best = recorder.best
+    return list(best) if best is not None else start
 
 
 class _RunProgress:
@@ -288,8 +359,8 @@ def _failed_row(objective, config: str, name: str, options: dict, seed: int, mes
 # ---------------------------------------------------------------------------
 
 #: files ``compare`` writes in its folder (``--force`` removes these and nothing else)
-RESULT_FILES = ("runs.csv", "table1.csv", "trace.csv", "trace_nevergrad.csv", "run.json", "masks.png",
-                "psfs.png", "profiles.png", "trace.png")
+RESULT_FILES = ("runs.csv", "table1.csv", "trace.csv", "trace_nevergrad.csv", "ioh", "run.json", "masks.png",
+                "psfs.png", "profiles.png", "trace.png", "anytime.png")
 #: fields of ``run.json`` that a resumed run must share with the new one
 RESUME_FIELDS = ("scene", "n_elements", "k", "dtype", "budget")
 
@@ -360,9 +431,15 @@ def check_resume(old: dict, now: dict, out) -> None:
 
 def remove_results(out: str | os.PathLike) -> None:
     """Remove the files of :data:`RESULT_FILES` from ``out`` (``--force``)."""
+    import shutil
+
     for name in RESULT_FILES:
+        path = Path(out) / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+            continue
         try:
-            (Path(out) / name).unlink()
+            path.unlink()
         except FileNotFoundError:
             pass
 
@@ -443,7 +520,11 @@ def _normalise_selectors(selectors) -> list[tuple[str, dict]]:
     return out
 
 
-def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] = (0,),
+#: seeds of a stochastic selector when ``compare`` is given none (a deterministic one runs with the first)
+DEFAULT_SEEDS = (0, 1, 2, 3, 4)
+
+
+def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] | None = None,
             budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
             figures: bool = True, command_line: Sequence[str] | None = None,
             info: dict | None = None, executor=None, objective_factory=None, force: bool = False,
@@ -455,7 +536,9 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     objective : object following the Objective contract (built by the caller)
     selectors : names, or ``(name, options)`` pairs
     out_dir : output folder (created)
-    seeds : seeds; each selector runs once per seed
+    seeds : seeds; each selector runs once per seed. ``None`` (default): the
+        :data:`DEFAULT_SEEDS` for stochastic selectors, and only the first of
+        them for selectors whose ``deterministic`` flag says the seed does not matter
     budget : per-run limits (default: 120 s)
     registry : selector registry (default: the process-wide one)
     resume : keep the finished, error-free runs found in ``out_dir/runs.csv`` and run the rest
@@ -504,7 +587,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     registry = get_registry() if registry is None else registry
     budget = Budget(seconds=120.0) if budget is None else budget
     sels = _normalise_selectors(selectors)
-    seeds = [int(check_number("seed", s, lo=0, integer=True)) for s in seeds]
+    default_seeds = seeds is None
+    seeds = [int(check_number("seed", s, lo=0, integer=True)) for s in (DEFAULT_SEEDS if seeds is None else seeds)]
     if not sels:
         raise ParameterError("compare needs at least one selector")
     classes = {}
@@ -589,9 +673,12 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     full = full_row(objective)
 
     def save():
-        reporting.write_runs(out, [full] + rows, traces, budget)
+        reporting.write_runs(out, [full] + rows, traces, budget, problem=scene_name or "arraysel")
 
-    todo = [(lab, name, opts, seed) for lab, (name, opts) in zip(labels, sels) for seed in seeds
+    def seeds_of(name):
+        return seeds[:1] if default_seeds and classes[name].deterministic else seeds
+
+    todo = [(lab, name, opts, seed) for lab, (name, opts) in zip(labels, sels) for seed in seeds_of(name)
             if (lab, seed) not in done]
     remote = executor is not None and not getattr(executor, "in_process", False)
     if remote:

@@ -1,29 +1,40 @@
 """The selector contract: :class:`Selector`, its declared :class:`Option` s, the
-:class:`Budget` it must respect and the :class:`Recorder` that logs its trace.
+:class:`Budget` of a run and the :class:`BudgetedObjective` through which the
+runner does the bookkeeping.
 
 A selector chooses which ``k`` of the objective's ``Ne`` elements stay active.
 It is built from validated options (``SelectorClass(**options)``) and run by
 
-    ``selector.select(objective, k, budget, seed, recorder) -> list[int]``
+    ``selector.select(objective, k, seed) -> list[int]``
 
 where
 
-* ``objective`` follows the Objective contract (``evaluate``, ``mask_loss``,
-  ``selection_loss`` and the counters ``evaluations``, ``gradient_steps``,
-  ``seconds``), see ``docs/selectors.md``;
-* ``budget`` is a started :class:`Budget`: ask ``budget.exhausted()`` and
-  ``budget.remaining_evaluations()`` before spending, never exceed it by more
-  than one batch (:meth:`Selector.batch_size`);
+* ``objective`` is a :class:`BudgetedObjective`: it follows the Objective
+  contract (``evaluate``, ``mask_loss``, ``selection_loss``, ``n_elements``,
+  ``device``, ``dtype`` and the counters, see ``docs/selectors.md``), counts
+  what the selector spends against the run's budget, records every hard
+  ``k``-selection it scores (the best-so-far trace) and raises
+  :class:`BudgetExhausted` once the budget is used up. A selector therefore
+  holds only its search: it needs no budget arithmetic and no trace code;
+  ``objective.best`` is the best selection scored so far and
+  ``objective.budget`` the run's started :class:`Budget` (for schedules);
 * ``seed`` is an ``int``; build generators from it with :func:`numpy_rng` and
-  :func:`torch_rng` (never use global random state);
-* ``recorder`` is a :class:`Recorder`; call ``recorder.report(elements, mean)``
-  each time a hard selection of ``k`` elements has been evaluated.
+  :func:`torch_rng` (never use global random state).
 
-The returned list must hold exactly ``k`` distinct ints in ``[0, Ne)``.
+The returned list must hold exactly ``k`` distinct ints in ``[0, Ne)``. When
+:class:`BudgetExhausted` ends ``select`` the runner takes ``objective.best``.
+
+Legacy contract (still supported, deprecated): a selector whose ``select``
+takes five arguments, ``select(objective, k, budget, seed, recorder)``, gets
+the bare objective, the started :class:`Budget` and a :class:`Recorder`, and
+must ask ``budget.allowed(n)`` and call ``recorder.report(elements, mean)``
+itself, as before. The runner emits one :class:`DeprecationWarning` per class
+naming the change: drop ``budget`` and ``recorder`` from the signature.
 """
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import time
 from typing import Any, ClassVar, Iterable, Sequence
@@ -34,7 +45,8 @@ import torch
 from .errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number
 
 __all__ = [
-    "Option", "Selector", "Budget", "Recorder", "BudgetExceededError",
+    "Option", "Selector", "Budget", "Recorder", "BudgetExceededError", "BudgetExhausted",
+    "BudgetedObjective", "POLISH_OPTION", "is_legacy_selector",
     "numpy_rng", "torch_rng", "check_selection", "indices_to_mask", "mask_to_indices",
     "top_k", "finite_or_inf",
 ]
@@ -42,6 +54,15 @@ __all__ = [
 
 class BudgetExceededError(ArrayselError, RuntimeError):
     """A selector used more objective evaluations than its budget allowed."""
+
+
+class BudgetExhausted(ArrayselError):
+    """Raised by :class:`BudgetedObjective` when the run's budget is used up.
+
+    It ends the selector's search: the runner catches it and takes the best
+    ``k``-selection scored so far (``objective.best``). A selector may catch it
+    itself to return something else, but must not call the objective again.
+    """
 
 
 # ---------------------------------------------------------------------------
@@ -264,9 +285,11 @@ class Recorder:
     """Logs every improvement of the best evaluated ``k``-selection.
 
     Each trace row holds ``seconds`` (since the budget started),
-    ``evaluations`` and ``gradient_steps`` (used so far by this run) and
-    ``best_Mean``. ``best`` is the best selection reported so far (sorted list)
-    or ``None``; selectors may return it directly.
+    ``evaluations`` and ``gradient_steps`` (used so far by this run),
+    ``best_Mean`` and ``event`` (``"improvement"``, or ``"end"`` for the row
+    :meth:`finish` adds at the run's last evaluation and time). ``best`` is the
+    best selection reported so far (sorted list) or ``None``; selectors may
+    return it directly. ``first`` is the first selection reported, finite or not.
     """
 
     def __init__(self, objective, budget: Budget):
@@ -275,26 +298,38 @@ class Recorder:
         self.rows: list[dict] = []
         self.best: list[int] | None = None
         self.best_mean: float = math.inf
+        self.first: list[int] | None = None
         self.reports = 0
 
-    def report(self, elements: Iterable[int] | np.ndarray | torch.Tensor, mean: float) -> bool:
+    def _indices(self, elements) -> list[int]:
+        if _looks_like_mask(elements, self.objective.n_elements):
+            return mask_to_indices(elements, self.objective.n_elements)
+        return sorted(int(i) for i in elements)
+
+    def report(self, elements: Iterable[int] | np.ndarray | torch.Tensor, mean: float, *,
+               evaluations: int | None = None) -> bool:
         """Report an evaluated selection and its ``Mean``; return True if it improved.
 
         ``elements`` is a list of indices or a boolean mask of length ``Ne``.
-        NaN/Inf values are ignored (never an improvement).
+        NaN/Inf values are ignored (never an improvement). ``evaluations``: the
+        run's evaluation count at which this selection was scored (default: the
+        count used so far).
         """
         self.reports += 1
         mean = float(mean)
+        if self.first is None:
+            self.first = self._indices(elements)
         if not math.isfinite(mean) or mean >= self.best_mean:
             return False
-        self.best = mask_to_indices(elements, self.objective.n_elements) \
-            if _looks_like_mask(elements, self.objective.n_elements) else sorted(int(i) for i in elements)
+        self.best = self._indices(elements)
         self.best_mean = mean
+        used = self.budget.used_evaluations()
         self.rows.append({
             "seconds": self.budget.elapsed(),
-            "evaluations": self.budget.used_evaluations(),
+            "evaluations": used if evaluations is None else min(int(evaluations), used),
             "gradient_steps": self.budget.used_gradient_steps(),
             "best_Mean": mean,
+            "event": "improvement",
         })
         return True
 
@@ -307,8 +342,168 @@ class Recorder:
         i = int(np.argmin(finite))
         if not math.isfinite(finite[i]):
             self.reports += 1
+            if self.first is None:
+                self.first = self._indices(selections[0])
             return False
         return self.report(selections[i], finite[i])
+
+    def finish(self) -> None:
+        """Add the ``end`` row: the best Mean so far at the run's last evaluation and time
+        (nothing when no finite Mean was reported)."""
+        if not math.isfinite(self.best_mean):
+            return
+        self.rows.append({
+            "seconds": self.budget.elapsed(),
+            "evaluations": self.budget.used_evaluations(),
+            "gradient_steps": self.budget.used_gradient_steps(),
+            "best_Mean": self.best_mean,
+            "event": "end",
+        })
+
+
+# ---------------------------------------------------------------------------
+# the objective a selector sees: counting, clipping, recording
+# ---------------------------------------------------------------------------
+
+class BudgetedObjective:
+    """The objective as a selector sees it: the runner's bookkeeping around the real one.
+
+    * ``evaluate(masks)`` scores the masks in pieces (at most ``piece`` masks,
+      and under a time limit no more than the time left allows at the measured
+      cost per mask; the budget is checked before each piece, so a time limit
+      stops a large batch early);
+      every mask with exactly ``k`` active elements is recorded (best-so-far
+      trace, at its own evaluation count). When the budget does not allow the
+      whole batch, the allowed first masks are scored and recorded, then
+      :class:`BudgetExhausted` is raised: a call either returns every score
+      asked for or ends the search (it never returns a shortened array);
+    * ``mask_loss`` / ``selection_loss`` raise :class:`BudgetExhausted` when the
+      budget does not allow the call (soft weights are counted, not recorded);
+    * every other attribute (``n_elements``, ``device``, ``dtype``, ``scene``,
+      ``kernels``, the counters ``evaluations``/``gradient_steps``/``seconds``)
+      is the wrapped objective's.
+
+    Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
+    :meth:`score_indices`, ``best`` / ``best_mean`` (best recorded so far),
+    ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
+    :meth:`remaining` (evaluations the budget allows now).
+    """
+
+    def __init__(self, objective, budget: Budget, recorder: Recorder, k: int, piece: int | None = None):
+        self._inner = objective
+        self.budget = budget
+        self.recorder = recorder
+        self.k = int(k)
+        self.n_elements = int(objective.n_elements)
+        default = int(getattr(objective, "chunk", 256) or 256)
+        self.piece = max(1, int(piece if piece is not None else min(default, 256)))
+        self._per_mask = 0.0  # running estimate of the seconds one mask costs
+
+    def __getattr__(self, name):  # everything not defined here is the wrapped objective's
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self._inner, name)
+
+    # -- bookkeeping -----------------------------------------------------------
+    @property
+    def best(self) -> list[int] | None:
+        return None if self.recorder.best is None else list(self.recorder.best)
+
+    @property
+    def best_mean(self) -> float:
+        return self.recorder.best_mean
+
+    def remaining(self) -> int | float:
+        """Evaluations the budget allows now (``math.inf`` when only time limits it, 0 when spent)."""
+        if self.budget.exhausted():
+            return 0
+        return self.budget.remaining_evaluations()
+
+    def _exhausted(self, what: str) -> BudgetExhausted:
+        return BudgetExhausted(f"the run's budget ({self.budget!r}) is used up ({what})")
+
+    def _record(self, masks: np.ndarray, means: np.ndarray, before: int) -> None:
+        ok = masks.sum(axis=1) == self.k
+        if not ok.any():
+            return
+        finite = np.where(ok & np.isfinite(means), means, np.inf)
+        i = int(np.argmin(finite))
+        if self.recorder.first is None:
+            self.recorder.first = mask_to_indices(masks[int(np.flatnonzero(ok)[0])])
+        if math.isfinite(finite[i]) and finite[i] < self.recorder.best_mean:
+            self.recorder.report(masks[i], float(finite[i]), evaluations=before + i + 1)
+        else:
+            self.recorder.reports += 1
+
+    # -- the Objective contract -----------------------------------------------
+    def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
+        if isinstance(masks, torch.Tensor):
+            masks = masks.detach().cpu().numpy()
+        masks = np.asarray(masks)
+        if masks.ndim == 1:
+            masks = masks[None, :]
+        hard = masks > 0.5
+        total = int(masks.shape[0])
+        parts: list[dict] = []
+        done = 0
+        if total == 0:
+            return self._inner.evaluate(masks, **kwargs)
+        while done < total:
+            want = min(self.piece, total - done)
+            if self.budget.seconds is not None and self._per_mask > 0:
+                # under a time limit, a piece must fit in the time left (at least one mask)
+                want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
+            allowed = self.budget.allowed(want)
+            if allowed <= 0:
+                raise self._exhausted(f"{done} of {total} masks of this call scored")
+            before = self.budget.used_evaluations()
+            t0 = time.perf_counter()
+            out = self._inner.evaluate(masks[done:done + allowed], **kwargs)
+            per_mask = (time.perf_counter() - t0) / allowed
+            self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
+            self._record(hard[done:done + allowed], np.asarray(out["Mean"], dtype=np.float64), before)
+            parts.append(out)
+            done += allowed
+            if allowed < want:
+                raise self._exhausted(f"{done} of {total} masks of this call scored")
+        if len(parts) == 1:
+            return parts[0]
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+    def score(self, masks) -> np.ndarray:
+        """``Mean`` of each mask ``(B, Ne)`` as float64, NaN/Inf replaced by ``+inf``."""
+        return finite_or_inf(self.evaluate(masks)["Mean"])
+
+    def score_indices(self, selections) -> np.ndarray:
+        """:meth:`score` of ``(B, k)`` element indices."""
+        sel = np.asarray(selections, dtype=np.int64).reshape(-1, self.k) if self.k else \
+            np.zeros((0, 0), dtype=np.int64)
+        masks = np.zeros((sel.shape[0], self.n_elements), dtype=bool)
+        np.put_along_axis(masks, sel, True, axis=1)
+        return self.score(masks)
+
+    def mask_loss(self, weights, *args, **kwargs):
+        b = int(weights.shape[0]) if getattr(weights, "ndim", 1) == 2 else 1
+        if self.budget.allowed(b) < b:
+            raise self._exhausted(f"mask_loss of {b} weight vectors")
+        return self._inner.mask_loss(weights, *args, **kwargs)
+
+    def selection_loss(self, P, P_soft, *args, **kwargs):
+        if self.budget.allowed(1) < 1:
+            raise self._exhausted("selection_loss")
+        return self._inner.selection_loss(P, P_soft, *args, **kwargs)
+
+
+def is_legacy_selector(selector) -> bool:
+    """True when ``selector.select`` has the five-argument legacy signature
+    ``(objective, k, budget, seed, recorder)``."""
+    try:
+        params = inspect.signature(selector.select).parameters
+    except (TypeError, ValueError):
+        return False
+    positional = [p for p in params.values()
+                  if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    return "recorder" in params or "budget" in params or len(positional) >= 5
 
 
 def _looks_like_mask(elements, n_elements) -> bool:
@@ -324,6 +519,11 @@ def _looks_like_mask(elements, n_elements) -> bool:
 # selector base class
 # ---------------------------------------------------------------------------
 
+#: the option every selector has (added to each subclass's ``options``)
+POLISH_OPTION = Option(float, 0.0, "fraction of the budget kept for a final swap local search "
+                       "(first improvement) started from this selector's result; 0: none", lo=0.0, hi=0.9)
+
+
 class Selector:
     """Base class of every selection strategy (built-in or third-party).
 
@@ -333,20 +533,30 @@ class Selector:
     description : one line for ``arraysel list``
     options : ``{name: Option}`` declared options, validated on construction
     uses_gradients : calls ``mask_loss``/``selection_loss`` with gradients
-    deterministic : result depends on nothing but (objective, k, budget, seed);
-        under a pure evaluation budget, a time limit may cut runs at different points
+    deterministic : the result does not depend on the seed (``compare`` runs it
+        once instead of once per seed). Every selector, deterministic or not,
+        must be reproducible: the same (objective, k, seed) under the same
+        evaluation budget gives the same result
     needs_evaluations : spends objective evaluations (False only for fixed layouts)
 
     Subclasses implement :meth:`select`. Options are available as
-    ``self.options`` (a dict holding every declared option).
+    ``self.options`` (a dict holding every declared option). Every subclass
+    also has the option ``polish`` (:data:`POLISH_OPTION`), carried out by the
+    runner: the selector runs on ``1 - polish`` of the budget and a swap local
+    search from its result spends the rest.
     """
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     options: ClassVar[dict[str, Option]] = {}
     uses_gradients: ClassVar[bool] = False
-    deterministic: ClassVar[bool] = True
+    deterministic: ClassVar[bool] = False
     needs_evaluations: ClassVar[bool] = True
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "polish" not in cls.options:
+            cls.options = {**cls.options, "polish": POLISH_OPTION}
 
     def __init__(self, **options: Any):
         declared = type(self).options
@@ -381,7 +591,8 @@ class Selector:
         displays); None when it does not know in advance."""
         return None
 
-    def select(self, objective, k: int, budget: Budget, seed: int, recorder: Recorder) -> list[int]:
+    def select(self, objective: "BudgetedObjective", k: int, seed: int) -> list[int]:
+        """Search; return ``k`` distinct element indices (see the module docstring)."""
         raise NotImplementedError
 
 

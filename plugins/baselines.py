@@ -6,7 +6,7 @@ import time
 import numpy as np
 
 from arraysel.hookspecs import hookimpl
-from arraysel.selector import Option, Selector, finite_or_inf, numpy_rng
+from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng
 
 
 class UniformSelector(Selector):
@@ -20,12 +20,10 @@ class UniformSelector(Selector):
     def batch_size(self, n_elements, k):
         return 1
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         n = int(objective.n_elements)
         chosen = [(i * n) // k for i in range(k)]
-        if budget.allowed(1):
-            mean = objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))["Mean"][0]
-            recorder.report(chosen, mean)
+        objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
         return chosen
 
 
@@ -49,7 +47,7 @@ class RandomSelector(Selector):
         "chunk": Option(int, 1024, "most subsets per objective.evaluate call (smaller when masks "
                         "are slow, so a time budget is not overrun by much)", lo=1),
     }
-    deterministic = True
+    deterministic = False
 
     def batch_size(self, n_elements, k):
         return self.options["chunk"]
@@ -57,10 +55,11 @@ class RandomSelector(Selector):
     def planned_evaluations(self, n_elements, k):
         return self.options["n"]
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
         total, chunk = self.options["n"], self.options["chunk"]
+        budget = objective.budget
         best, best_mean = None, np.inf
         first = None
         drawn = 0
@@ -68,24 +67,26 @@ class RandomSelector(Selector):
         # about `target` seconds; the subsets drawn do not depend on chunking
         target = 2.0 if budget.seconds is None else min(2.0, max(0.05, 0.02 * budget.seconds))
         size = 1  # the first call is one mask, so a slow objective overruns by one mask at most
-        while drawn < total:
-            b = budget.allowed(min(size, total - drawn))
-            if b <= 0:
-                break
-            subsets = random_subsets(rng, b, n, k)
-            t0 = time.perf_counter()
-            if first is None:
-                first = subsets[0]
-            masks = np.zeros((b, n), dtype=bool)
-            np.put_along_axis(masks, subsets, True, axis=1)
-            means = finite_or_inf(objective.evaluate(masks)["Mean"])
-            drawn += b
-            per_mask = max((time.perf_counter() - t0) / b, 1e-9)
-            size = int(min(chunk, 4 * b, max(1, target / per_mask)))
-            i = int(np.argmin(means))
-            if means[i] < best_mean:
-                best, best_mean = subsets[i], float(means[i])
-                recorder.report(best.tolist(), best_mean)
+        try:
+            while drawn < total:
+                b = int(min(size, total - drawn, objective.remaining()))
+                if b <= 0:
+                    break
+                subsets = random_subsets(rng, b, n, k)
+                t0 = time.perf_counter()
+                if first is None:
+                    first = subsets[0]
+                masks = np.zeros((b, n), dtype=bool)
+                np.put_along_axis(masks, subsets, True, axis=1)
+                means = objective.score(masks)
+                drawn += b
+                per_mask = max((time.perf_counter() - t0) / b, 1e-9)
+                size = int(min(chunk, 4 * b, max(1, target / per_mask)))
+                i = int(np.argmin(means))
+                if means[i] < best_mean:
+                    best, best_mean = subsets[i], float(means[i])
+        except BudgetExhausted:
+            best = objective.best if objective.best is not None else best
         if best is None:  # no finite score (or no budget): one random subset
             best = first if first is not None else random_subsets(rng, 1, n, k)[0]
         return [int(i) for i in best]

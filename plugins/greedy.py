@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from arraysel.hookspecs import hookimpl
-from arraysel.selector import Option, Selector, finite_or_inf
+from arraysel.selector import BudgetExhausted, Option, Selector
 
 
 def _evenly(items: list[int], m: int) -> list[int]:
@@ -33,20 +33,26 @@ class GreedySelector(Selector):
     def batch_size(self, n_elements, k):
         return n_elements
 
-    def select(self, objective, k, budget, seed, recorder):
-        n = int(objective.n_elements)
-        backward = self.options["direction"] == "backward"
-        current = list(range(n)) if backward else []
-        ranking: list[int] | None = None  # candidates of the last batch, best first
+    def select(self, objective, k, seed):
+        return greedy_selection(objective, k, backward=self.options["direction"] == "backward")
+
+
+def greedy_selection(objective, k: int, backward: bool = True) -> list[int]:
+    """Greedy backward elimination (or forward selection) on a budgeted objective; when the
+    budget ends first, the remaining steps follow the last ranking (see the module docstring)."""
+    n = int(objective.n_elements)
+    current = list(range(n)) if backward else []
+    ranking: list[int] | None = None  # candidates of the last batch, best first
+    try:
         while len(current) != k:
             cands = current if backward else [i for i in range(n) if i not in current]
-            if budget.allowed(len(cands)) < len(cands):
+            if objective.remaining() < len(cands):
                 break
             masks = np.zeros((len(cands), n), dtype=bool)
             masks[:, current] = True
             for r, c in enumerate(cands):
                 masks[r, c] = not backward
-            means = finite_or_inf(objective.evaluate(masks)["Mean"])
+            means = objective.score(masks)
             order = np.lexsort((np.arange(len(cands)), means))
             ranking = [cands[i] for i in order]
             best = ranking[0]
@@ -54,21 +60,21 @@ class GreedySelector(Selector):
                 current.remove(best)
             else:
                 current.append(best)
-            if len(current) == k:
-                recorder.report(current, float(means[order[0]]))
-        if len(current) != k:  # budget ran out: finish without scoring
-            need = abs(len(current) - k)
-            rest = current if backward else [i for i in range(n) if i not in current]
-            pool = [c for c in (ranking or []) if c in rest]
-            for c in _evenly(rest, need) + rest:
-                if c not in pool:
-                    pool.append(c)
-            if backward:
-                drop = set(pool[:need])
-                current = [c for c in current if c not in drop]
-            else:
-                current = current + pool[:need]
-        return sorted(current)
+    except BudgetExhausted:
+        pass
+    if len(current) != k:  # budget ran out: finish without scoring
+        need = abs(len(current) - k)
+        rest = current if backward else [i for i in range(n) if i not in current]
+        pool = [c for c in (ranking or []) if c in rest]
+        for c in _evenly(rest, need) + rest:
+            if c not in pool:
+                pool.append(c)
+        if backward:
+            drop = set(pool[:need])
+            current = [c for c in current if c not in drop]
+        else:
+            current = current + pool[:need]
+    return sorted(current)
 
 
 @hookimpl

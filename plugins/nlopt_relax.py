@@ -48,31 +48,31 @@ class NLoptSelector(Selector):
                            "(only under a time or evaluation budget; 0: one run from k/Ne)", lo=0),
     }
     uses_gradients = True
-    deterministic = True
+    deterministic = False
 
     def batch_size(self, n_elements, k):
         return 2  # one mask_loss + at most one evaluate per NLopt call
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         import nlopt
 
+        budget = objective.budget
         n = int(objective.n_elements)
         alg = self.options["algorithm"]
         gradient = alg in _GRADIENT
         device, dtype = objective.device, objective.dtype
-        scored: dict[tuple, float] = {}
+        scored: set[tuple] = set()
         state: dict = {"last": None}
 
         def score(idx):
             key = tuple(idx)
-            if key in scored or not budget.allowed(1):
+            if key in scored or objective.remaining() < 1:
                 return
-            mean = float(objective.evaluate(indices_to_mask(key, n)[None, :])["Mean"][0])
-            scored[key] = mean
-            recorder.report(list(key), mean)
+            scored.add(key)
+            objective.evaluate(indices_to_mask(key, n)[None, :])
 
         def f(x, grad):
-            if budget.allowed(2) < 2:
+            if objective.remaining() < 2:
                 raise nlopt.ForcedStop()
             w = torch.tensor(np.asarray(x), dtype=dtype, device=device, requires_grad=gradient)
             w_eff = w if gradient else project_capped_simplex(w, float(k))
@@ -129,13 +129,13 @@ class NLoptSelector(Selector):
         first = x0
         limited = any(v is not None for v in (budget.seconds, budget.evaluations, budget.gradient_steps))
         for run in range(1 + (self.options["restarts"] if limited else 0)):
-            if run and budget.allowed(2) < 2:  # the same test as in f(); 0 once any limit is reached
+            if run and objective.remaining() < 2:  # the same test as in f(); 0 once any limit is reached
                 break
             if run:  # a random point of the capped simplex
                 x0 = project_capped_simplex(torch.tensor(rng.uniform(0.0, 2.0 * k / n, n)), float(k)).numpy()
             run_once(x0)
-        if recorder.best is not None:
-            return recorder.best
+        if objective.best is not None:
+            return objective.best
         return state["last"] if state["last"] is not None else top_k(first, k)
 
 

@@ -19,7 +19,7 @@ import torch
 from arraysel.errors import NumericalError
 from arraysel.hookspecs import hookimpl
 from arraysel.relax import cosine_temperature, sequential_selection
-from arraysel.selector import Option, Selector, indices_to_mask, torch_rng
+from arraysel.selector import BudgetExhausted, Option, Selector, indices_to_mask, torch_rng
 
 # Default learning rates, measured on arraysel.testing.ToyObjective (Ne=64, k=32,
 # 300 gradient steps, 3 seeds, best Mean; target 0.0404):
@@ -42,7 +42,7 @@ class MatrixSelector(Selector):
     """Training loop shared by the selection-matrix relaxations (``ste``, ``gumbel``)."""
 
     uses_gradients = True
-    deterministic = True
+    deterministic = False
     options = dict(_COMMON)
     #: consecutive NaN/Inf losses after which the loop stops (the logits no longer move)
     MAX_BAD_STEPS = 50
@@ -54,7 +54,7 @@ class MatrixSelector(Selector):
     def draw(self, logits: torch.Tensor, tau: float, generator: torch.Generator):
         raise NotImplementedError
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         n = int(objective.n_elements)
         device, dtype = objective.device, objective.dtype
         o = self.options
@@ -62,49 +62,48 @@ class MatrixSelector(Selector):
         init = torch.randn((n, k), generator=gen, device=device, dtype=dtype) * o["init_std"]
         logits = init.clone().requires_grad_(True)
         opt = torch.optim.Adam([logits], lr=o["lr"])
-        scored: dict[tuple, float] = {}
+        scored: set[tuple] = set()
         last = None
         bad_steps = 0
 
         def score(indices) -> None:
             key = tuple(sorted(indices))
-            if key in scored or not budget.allowed(1):
+            if key in scored:
                 return
-            mean = float(objective.evaluate(indices_to_mask(key, n)[None, :])["Mean"][0])
-            scored[key] = mean
-            recorder.report(list(key), mean)
+            scored.add(key)
+            objective.evaluate(indices_to_mask(key, n)[None, :])
 
-        for step in range(o["steps"]):
-            if budget.exhausted():
-                break
-            tau = cosine_temperature(step, o["tau_start"], o["tau_end"], o["anneal_steps"])
-            rel = self.draw(logits, tau, gen)
-            last = rel.indices
-            score(rel.indices)
-            if not budget.allowed(1):
-                break
-            opt.zero_grad(set_to_none=True)
-            try:
-                loss, _terms = objective.selection_loss(rel.P, rel.P_soft, step)
-            except NumericalError:
-                loss = None  # a degenerate draw: skip the step
-            if loss is None or not bool(torch.isfinite(loss.detach()).all()):
-                bad_steps += 1  # skip a NaN/Inf loss instead of poisoning the logits
-                if bad_steps >= self.MAX_BAD_STEPS:
-                    break  # the logits cannot move: keep the best selection scored so far
-                continue
-            bad_steps = 0
-            loss.backward()
-            if logits.grad is not None and bool(torch.isfinite(logits.grad).all()):
-                opt.step()
-        # the noise-free arg-max selection of the final logits
-        with torch.no_grad():
-            tau = cosine_temperature(o["steps"], o["tau_start"], o["tau_end"], o["anneal_steps"])
-            final = sequential_selection(logits.detach(), tau).indices
-        score(final)
-        if recorder.best is not None:
-            return recorder.best
-        return sorted(final if last is None else last)
+        try:
+            for step in range(o["steps"]):
+                tau = cosine_temperature(step, o["tau_start"], o["tau_end"], o["anneal_steps"])
+                rel = self.draw(logits, tau, gen)
+                last = rel.indices
+                score(rel.indices)
+                opt.zero_grad(set_to_none=True)
+                try:
+                    loss, _terms = objective.selection_loss(rel.P, rel.P_soft, step)
+                except NumericalError:
+                    loss = None  # a degenerate draw: skip the step
+                if loss is None or not bool(torch.isfinite(loss.detach()).all()):
+                    bad_steps += 1  # skip a NaN/Inf loss instead of poisoning the logits
+                    if bad_steps >= self.MAX_BAD_STEPS:
+                        break  # the logits cannot move: keep the best selection scored so far
+                    continue
+                bad_steps = 0
+                loss.backward()
+                if logits.grad is not None and bool(torch.isfinite(logits.grad).all()):
+                    opt.step()
+            # the noise-free arg-max selection of the final logits
+            with torch.no_grad():
+                tau = cosine_temperature(o["steps"], o["tau_start"], o["tau_end"], o["anneal_steps"])
+                final = sequential_selection(logits.detach(), tau).indices
+            last = final
+            score(final)
+        except BudgetExhausted:
+            pass
+        if objective.best is not None:
+            return objective.best
+        return sorted(last) if last is not None else list(range(k))
 
 
 class STESelector(MatrixSelector):

@@ -29,5 +29,6 @@ for _name in REGISTRY.names():
 
 
 def test_every_builtin_is_covered():
-    for name in ("uniform", "random", "ste", "gumbel", "nlopt", "greedy", "centre", "swap"):
-        assert "TestConformance_" + name in globals()
+    for name in ("uniform", "random", "ste", "gumbel", "nlopt", "greedy", "centre", "random-swap", "swap",
+                 "anneal", "genetic", "nevergrad"):
+        assert "TestConformance_" + name.replace("-", "_") in globals()

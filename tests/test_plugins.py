@@ -19,7 +19,7 @@ from arraysel.selector import Option, Selector
 ROOT = Path(__file__).resolve().parents[1]
 SINGLE_FILE = ROOT / "examples" / "single_file_plugin.py"
 EXAMPLE_SRC = ROOT / "examples" / "arraysel-example-plugin" / "src"
-BUILTINS = {"uniform", "random", "ste", "gumbel", "nlopt", "greedy"}
+BUILTINS = {"uniform", "random", "ste", "gumbel", "nlopt", "greedy", "swap", "anneal", "genetic", "nevergrad"}
 
 
 @pytest.fixture
@@ -49,7 +49,7 @@ def test_builtins_register_through_the_hook_with_origins():
     assert set(reg.names()) == BUILTINS
     assert reg.origin("uniform") == reg.origin("random") == "arraysel.baselines"
     assert reg.origin("ste") == "arraysel.ste"
-    with pytest.raises(Exception, match="known selectors: greedy, gumbel, nlopt, random, ste, uniform"):
+    with pytest.raises(Exception, match="known selectors: anneal, genetic, greedy, gumbel, nevergrad, nlopt, random, ste, swap, uniform"):
         reg["nope"]
 
 
@@ -147,15 +147,15 @@ def test_installed_style_plugin_through_entry_points(isolated_pm, monkeypatch, t
     try:
         assert cli.main(["list"]) == 0
         out = capsys.readouterr().out
-        line = next(l for l in out.splitlines() if l.startswith("swap "))
+        line = next(l for l in out.splitlines() if l.startswith("random-swap "))
         assert "example-swap (arraysel-example-plugin 0.1.0)" in line and "local search" in line
-        assert cli.main(_compare_args(tmp_path, "swap,uniform")) == 0
+        assert cli.main(_compare_args(tmp_path, "random-swap,uniform")) == 0
         table = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
-        assert list(table["config"]) == ["full", "swap", "uniform"]
+        assert list(table["config"]) == ["full", "random-swap", "uniform"]
         assert (table["error"] == "").all()
     finally:
         isolated_pm.unregister(name="example-swap")
-    assert "swap" not in get_registry(isolated_pm)
+    assert "random-swap" not in get_registry(isolated_pm)
 
 
 def test_plugin_object_registered_on_the_manager(isolated_pm, tmp_path, capsys):
@@ -202,7 +202,7 @@ def test_single_file_plugin_with_cli_option(isolated_pm, tmp_path, capsys):
 def test_cli_rejects_unknown_selector_and_bad_options(isolated_pm, tmp_path, capsys):
     assert cli.main(_compare_args(tmp_path, "ste,nosuch")) == 2
     err = capsys.readouterr().err
-    assert "unknown selector(s) nosuch" in err and "greedy, gumbel, nlopt, random, ste, uniform" in err
+    assert "unknown selector(s) nosuch" in err and "anneal, genetic, greedy, gumbel, nevergrad, nlopt, random, ste, swap, uniform" in err
     assert cli.main(_compare_args(tmp_path, "ste", "-o", "ste.nosuch=1")) == 2
     assert "has no option 'nosuch'" in capsys.readouterr().err
     assert cli.main(_compare_args(tmp_path, "ste", "-o", "ste.lr=abc")) == 2

@@ -11,7 +11,7 @@ import pytest
 from arraysel.commands.compare import build_objective
 from arraysel.errors import ArrayselError, ParameterError
 from arraysel.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.runner import NEVERGRAD_COLUMNS, ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
+from arraysel.runner import ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
 from arraysel.selector import Budget, BudgetExceededError, Option, Selector, check_selection
 from arraysel.testing import ToyObjective
 
@@ -143,8 +143,8 @@ def test_compare_writes_all_files(reg, tmp_path):
                     budget=Budget(evaluations=60, seconds=10), registry=reg, progress=False,
                     command_line=["arraysel", "compare"])
     names = {p.name for p in tmp_path.iterdir()}
-    assert {"table1.csv", "runs.csv", "trace.csv", "trace_nevergrad.csv", "run.json", "masks.png",
-            "psfs.png", "profiles.png", "trace.png"} <= names
+    assert {"table1.csv", "runs.csv", "trace.csv", "ioh", "run.json", "masks.png",
+            "psfs.png", "profiles.png", "trace.png", "anytime.png"} <= names
     assert not [n for n in names if n.endswith(".tmp")]
     t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
     assert list(t1.columns[:9]) == ["config", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds",
@@ -158,9 +158,12 @@ def test_compare_writes_all_files(reg, tmp_path):
     trace = pd.read_csv(tmp_path / "trace.csv")
     assert tuple(trace.columns) == TRACE_COLUMNS and set(trace["config"]) == {"ste", "random", "uniform"}
     for _, g in trace.groupby(["config", "seed"]):
-        assert (np.diff(g["best_Mean"]) < 0).all()
-    ng = pd.read_csv(tmp_path / "trace_nevergrad.csv")
-    assert tuple(ng.columns) == NEVERGRAD_COLUMNS and len(ng) == len(trace)
+        # improvements strictly decrease; the run ends with one `end` row at its last evaluation
+        assert list(g["event"]) == ["improvement"] * (len(g) - 1) + ["end"]
+        assert (np.diff(g["best_Mean"].iloc[:-1]) < 0).all()
+        assert g["best_Mean"].iloc[-1] == g["best_Mean"].min()
+        assert g["evaluations"].iloc[-1] >= g["evaluations"].iloc[:-1].max()
+    assert {p.name for p in (tmp_path / "ioh").iterdir()} == {"ste", "random", "uniform"}
     meta = json.loads((tmp_path / "run.json").read_text())
     assert meta["status"] == "finished" and meta["seeds"] == [0, 1]
     assert meta["scene"]["name"] == "toy" and meta["command_line"] == ["arraysel", "compare"]

@@ -15,7 +15,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "compare", help="compare selectors on a scene (Table 1, traces, figures)",
         description="Run each selector once per seed on the scene's objective, add the full-array "
-                    "reference row and write table1.csv, runs.csv, trace.csv, trace_nevergrad.csv, "
+                    "reference row and write table1.csv, runs.csv, trace.csv, IOHprofiler files (ioh/), "
                     "run.json and figures to --out. Rows are saved as each run finishes; after an "
                     "interruption, rerun the same command with --resume.")
     p.add_argument("--selectors", required=True, metavar="A,B,...",
@@ -27,7 +27,9 @@ def add_parser(subparsers) -> None:
                    help=f"wall-clock seconds per selector run (default {DEFAULT_BUDGET_S:g}; 0: no limit)")
     p.add_argument("--budget-evals", type=int, default=None, metavar="N",
                    help="objective evaluations per selector run (default: no limit)")
-    p.add_argument("--seeds", default="0", metavar="0,1,2", help="comma-separated seeds (default 0)")
+    p.add_argument("--seeds", default=None, metavar="0,1,2",
+                   help="comma-separated seeds, each selector runs once per seed (default: 0,1,2,3,4 for "
+                        "stochastic selectors and 0 alone for deterministic ones)")
     p.add_argument("--out", default="results/compare", metavar="DIR",
                    help="output folder (default results/compare)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
@@ -145,7 +147,7 @@ def run(args) -> int:
     registry = get_registry()
     names = parse_selectors(args.selectors, registry)
     options = parse_options(args.option, names, registry)
-    seeds = parse_seeds(args.seeds)
+    seeds = None if args.seeds is None else parse_seeds(args.seeds)
     if not math.isfinite(args.budget_s):
         raise ParameterError(f"--budget-s must be a finite number of seconds >= 0 (0: no time limit), "
                              f"got {args.budget_s}")
@@ -177,10 +179,11 @@ def run(args) -> int:
     finally:
         if executor is not None:
             executor.close()
-    cols = [c for c in ("config", "Mean", "L_PSF", "seconds", "evaluations", "error") if c in table]
+    cols = [c for c in ("config", "Mean", "Mean_median", "Mean_iqr", "Mean_best", "seeds", "seconds",
+                        "evaluations", "error") if c in table]
     with __import__("pandas").option_context("display.width", 160, "display.max_colwidth", 60):
         print(table[cols].to_string(index=False))
-    print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, trace_nevergrad.csv, run.json"
+    print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, ioh/, run.json"
           + ("" if args.no_figures else " and figures"))
     return _report_failures(args.out)
 

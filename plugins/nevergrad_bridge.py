@@ -1,0 +1,135 @@
+"""``nevergrad``: run any nevergrad optimizer on the selection problem (exact-k encodings).
+
+Written as a third-party plugin would be: it uses only arraysel's public API
+(``Selector``, ``Option``, ``hookimpl``, ``numpy_rng``, ``top_k``,
+``BudgetExhausted``) and imports nevergrad only when it runs
+(``pip install arraysel[nevergrad]``).
+
+Encodings (option ``encoding``), both exactly ``k`` elements for every point:
+
+* ``keys`` (random keys): an ``Array`` of ``Ne`` reals in ``[0, 1]``; the
+  selection is the ``k`` largest keys (ties to the lower index). Any
+  continuous or discrete optimizer works on it (NGOpt, CMA, DE,
+  DiscreteOnePlusOne, ...);
+* ``binary``: ``Ne`` choices in ``{0, 1}`` (``Choice([0, 1], repetitions=Ne)``),
+  repaired to ``k`` elements: surplus active elements are dropped, missing ones
+  added, at random (from the run's generator, so the run stays reproducible).
+  The optimizer is told the Mean of the repaired selection.
+
+The optimizer is ``nevergrad.optimizers.registry[optimizer]`` built with
+``num_workers = batch`` (1 for optimizers that cannot run in parallel); each
+step asks ``num_workers`` points, scores them in one ``objective.evaluate``
+call and tells the Means (NaN/Inf told as a large finite loss). nevergrad's own
+budget is ``ng_budget`` (default: the run's evaluation limit, else 20000);
+when it is used up before arraysel's budget a new optimizer starts (fresh
+random stream). nevergrad's warnings are silenced inside the run.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from arraysel.errors import ParameterError
+from arraysel.hookspecs import hookimpl
+from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng, top_k
+
+_DEFAULT_NG_BUDGET = 20_000
+
+
+def _nevergrad():
+    try:
+        import nevergrad as ng
+    except ImportError as exc:
+        raise ParameterError("the nevergrad selector needs the nevergrad package: "
+                             "pip install 'arraysel[nevergrad]'") from exc
+    return ng
+
+
+class NevergradSelector(Selector):
+    name = "nevergrad"
+    description = "any nevergrad optimizer (NGOpt, DiscreteOnePlusOne, ...) with an exact-k encoding"
+    options = {
+        "optimizer": Option(str, "NGOpt", "name in nevergrad.optimizers.registry, e.g. NGOpt, "
+                            "DiscreteOnePlusOne, PortfolioDiscreteOnePlusOne, CMA, TwoPointsDE"),
+        "encoding": Option(str, "keys", "keys: top-k of Ne random keys; binary: Ne bits repaired to k",
+                           choices=("keys", "binary")),
+        "batch": Option(int, 32, "points asked per step (nevergrad num_workers), scored in one call", lo=1),
+        "ng_budget": Option(int, None, "budget told to nevergrad (auto: the run's evaluation limit, "
+                            f"else {_DEFAULT_NG_BUDGET})", lo=1),
+    }
+    deterministic = False
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        try:
+            import nevergrad as ng
+        except ImportError:
+            return  # checked again, with the install hint, when the selector runs
+        if self.options["optimizer"] not in ng.optimizers.registry:
+            close = sorted(n for n in ng.optimizers.registry
+                           if n.lower().startswith(self.options["optimizer"][:3].lower()))[:8]
+            raise ParameterError(f"option nevergrad.optimizer = {self.options['optimizer']!r} is not a "
+                                 f"nevergrad optimizer; e.g. NGOpt, DiscreteOnePlusOne, "
+                                 f"PortfolioDiscreteOnePlusOne, CMA{'; similar: ' + ', '.join(close) if close else ''}")
+
+    def batch_size(self, n_elements, k):
+        return self.options["batch"]
+
+    def _make(self, ng, n: int, budget: int, rng: np.random.Generator):
+        if self.options["encoding"] == "keys":
+            param = ng.p.Array(shape=(n,), lower=0.0, upper=1.0)
+        else:
+            param = ng.p.Choice([0, 1], repetitions=n)
+        param.random_state = np.random.RandomState(int(rng.integers(2**31 - 1)))
+        opt = ng.optimizers.registry[self.options["optimizer"]](parametrization=param, budget=budget,
+                                                                 num_workers=self.options["batch"])
+        if getattr(opt, "no_parallelization", False):
+            opt = ng.optimizers.registry[self.options["optimizer"]](parametrization=param, budget=budget,
+                                                                     num_workers=1)
+        return opt
+
+    def _decode(self, value, n: int, k: int, rng: np.random.Generator) -> np.ndarray:
+        mask = np.zeros(n, dtype=bool)
+        if self.options["encoding"] == "keys":
+            mask[top_k(np.asarray(value, dtype=np.float64), k)] = True
+            return mask
+        mask[np.asarray(value, dtype=np.int64) > 0] = True
+        on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
+        if on.size > k:
+            mask[rng.choice(on, on.size - k, replace=False)] = False
+        elif on.size < k:
+            mask[rng.choice(off, k - on.size, replace=False)] = True
+        return mask
+
+    def select(self, objective, k, seed):
+        ng = _nevergrad()
+        n = int(objective.n_elements)
+        rng = numpy_rng(seed)
+        repair = numpy_rng(seed, stream=1)
+        limit = objective.budget.evaluations
+        ng_budget = self.options["ng_budget"] or (int(limit) if limit is not None else _DEFAULT_NG_BUDGET)
+        fallback = [(i * n) // k for i in range(k)]
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ng.errors.NevergradWarning)
+                warnings.simplefilter("ignore", RuntimeWarning)
+                while True:  # one optimizer per nevergrad budget
+                    opt = self._make(ng, n, ng_budget, rng)
+                    while opt.num_ask < ng_budget:
+                        todo = min(opt.num_workers, ng_budget - opt.num_ask)
+                        cands = [opt.ask() for _ in range(todo)]
+                        masks = np.stack([self._decode(c.value, n, k, repair) for c in cands])
+                        values = objective.score(masks)
+                        worst = np.max(values[np.isfinite(values)], initial=1.0)
+                        for c, v in zip(cands, values):
+                            opt.tell(c, float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6))
+        except BudgetExhausted:
+            pass
+        best = objective.best
+        return best if best is not None else fallback
+
+
+@hookimpl
+def arraysel_register_selectors(register):
+    register(NevergradSelector)

@@ -1,0 +1,245 @@
+"""Issue 13: the runner's bookkeeping (BudgetedObjective), the combinatorial selectors on a
+planted problem, polish, seeds over selectors, table statistics, IOHprofiler output, figures."""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from arraysel.errors import ParameterError
+from arraysel.registry import build_plugin_manager, get_registry
+from arraysel.reporting import plot_anytime
+from arraysel.runner import DEFAULT_SEEDS, Experiment, compare
+from arraysel.selector import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector
+from arraysel.testing import ToyObjective
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
+
+
+def brute_force_optimum(n: int, k: int) -> tuple[list[int], float]:
+    obj = ToyObjective(n, k)
+    combos = np.array(list(itertools.combinations(range(n), k)))
+    masks = np.zeros((len(combos), n), dtype=bool)
+    np.put_along_axis(masks, combos, True, axis=1)
+    means = obj.evaluate(masks)["Mean"]
+    i = int(np.argmin(means))
+    return combos[i].tolist(), float(means[i])
+
+
+# ---------------------------------------------------------------------------
+# the budgeted objective
+# ---------------------------------------------------------------------------
+
+def _view(evaluations=None, seconds=None, k=4, n=8):
+    obj = ToyObjective(n, k)
+    budget = Budget(seconds=seconds, evaluations=evaluations).start(obj)
+    rec = Recorder(obj, budget)
+    return obj, BudgetedObjective(obj, budget, rec, k), rec
+
+
+def test_budgeted_objective_scores_the_allowed_part_then_raises():
+    obj, view, rec = _view(evaluations=5)
+    masks = np.zeros((8, 8), dtype=bool)
+    for i in range(8):
+        masks[i, [(i + j) % 8 for j in range(4)]] = True
+    with pytest.raises(BudgetExhausted, match="5 of 8 masks"):
+        view.evaluate(masks)
+    assert obj.evaluations == 5
+    assert rec.best is not None and rec.reports >= 1
+    means = obj.evaluate(masks[:5])["Mean"]
+    assert rec.best_mean == pytest.approx(float(np.min(means)))
+    # the trace row sits at the evaluation that found the best, not at the end of the batch
+    assert rec.rows[-1]["evaluations"] == int(np.argmin(means)) + 1
+    with pytest.raises(BudgetExhausted):
+        view.evaluate(masks[:1])
+    with pytest.raises(BudgetExhausted):
+        view.mask_loss(np.ones((1, 8)))
+
+
+def test_budgeted_objective_records_only_k_selections_and_passes_attributes():
+    obj, view, rec = _view(evaluations=100)
+    view.evaluate(np.ones((2, 8), dtype=bool))  # 8 active elements, k = 4: not a selection
+    assert rec.best is None and obj.evaluations == 2
+    assert view.n_elements == 8 and view.device == obj.device and view.scene is obj.scene
+    assert view.evaluations == 2 and view.remaining() == 98
+    assert view.score_indices([[0, 2, 4, 6]]).shape == (1,)
+    assert view.best == [0, 2, 4, 6]
+
+
+class Endless(Selector):
+    name = "endless"
+    description = "scores random selections until the runner stops it"
+
+    def select(self, objective, k, seed):
+        rng = np.random.default_rng(seed)
+        while True:
+            masks = np.zeros((7, objective.n_elements), dtype=bool)
+            for m in masks:
+                m[rng.choice(objective.n_elements, k, replace=False)] = True
+            objective.evaluate(masks)
+
+
+def test_new_style_selector_holds_only_its_search():
+    exp = Experiment(ToyObjective(12, 6), Endless, budget=Budget(evaluations=50), seed=1)
+    row = exp.run()
+    assert row["error"] == "" and row["evaluations"] == 50       # clipped exactly, no overrun
+    assert exp.trace[-1]["event"] == "end" and exp.trace[-1]["evaluations"] == 50
+    best = min(t["best_Mean"] for t in exp.trace)
+    assert row["Mean"] == pytest.approx(best, rel=1e-6)           # the best recorded is returned
+
+
+def test_time_budget_stops_a_large_batch():
+    obj = ToyObjective(12, 6, delay=0.05, chunk=4)
+    row = Experiment(obj, Endless, budget=Budget(seconds=0.5), seed=0).run()
+    assert row["error"] == "" and row["seconds"] < 2.0
+
+
+class Legacy(Selector):
+    name = "legacy"
+    description = "the five-argument contract"
+
+    def select(self, objective, k, budget, seed, recorder):
+        chosen = list(range(k))
+        if budget.allowed(1):
+            mask = np.zeros((1, objective.n_elements), dtype=bool)
+            mask[0, chosen] = True
+            recorder.report(chosen, objective.evaluate(mask)["Mean"][0])
+        return chosen
+
+
+def test_legacy_selectors_still_work_with_a_deprecation_warning():
+    with pytest.warns(DeprecationWarning, match=r"select\(self, objective, k, seed\)"):
+        exp = Experiment(ToyObjective(12, 6), Legacy, budget=Budget(evaluations=5))
+        row = exp.run()
+    assert row["error"] == "" and row["elements"] == "0 1 2 3 4 5" and row["evaluations"] == 1
+    assert [t["event"] for t in exp.trace] == ["improvement", "end"]
+
+
+# ---------------------------------------------------------------------------
+# the combinatorial selectors find the planted optimum
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name,options,seeds", [
+    ("swap", {}, (0, 1)),
+    ("swap", {"start": "random", "mode": "best"}, (0,)),
+    ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
+    ("anneal", {}, (0, 1)),
+    ("genetic", {}, (0, 1)),
+    ("nevergrad", {}, (0,)),
+    ("uniform", {"polish": 0.9}, (0,)),
+])
+def test_selector_finds_the_planted_optimum(reg, name, options, seeds):
+    if name == "nevergrad":
+        pytest.importorskip("nevergrad")
+    best, best_mean = brute_force_optimum(14, 7)
+    for seed in seeds:
+        row = Experiment(ToyObjective(14, 7), name, options=options, budget=Budget(evaluations=1500),
+                         seed=seed, registry=reg).run()
+        assert row["error"] == ""
+        assert row["elements"] == " ".join(map(str, best)), (seed, row["Mean"], best_mean)
+
+
+def test_search_selectors_are_reproducible_per_seed(reg):
+    for name in ("swap", "anneal", "genetic"):
+        rows = [Experiment(ToyObjective(16, 8), name, budget=Budget(evaluations=300), seed=s,
+                           registry=reg).run() for s in (5, 5)]
+        assert rows[0]["elements"] == rows[1]["elements"] and rows[0]["Mean"] == rows[1]["Mean"]
+
+
+def test_bad_options_name_the_option(reg):
+    # start elements are checked against Ne and k when the run starts: the message lands in the row
+    row = Experiment(ToyObjective(14, 7), "swap", options={"elements": "0 1 2"}, registry=reg,
+                     budget=Budget(evaluations=10)).run()
+    assert "ParameterError: option elements must list k = 7" in row["error"]
+    row = Experiment(ToyObjective(14, 7), "swap", options={"elements": "0 1 2 3 4 5 99"}, registry=reg,
+                     budget=Budget(evaluations=10)).run()
+    assert "option elements: indices [99] are outside [0, 13]" in row["error"]
+    with pytest.raises(ParameterError, match=r"swap.polish = 2.0 is out of range; allowed: \[0.0, 0.9\]"):
+        reg["swap"](polish=2.0)
+    pytest.importorskip("nevergrad")
+    with pytest.raises(ParameterError, match="nevergrad.optimizer = 'NoSuchOpt' is not a nevergrad optimizer"):
+        reg["nevergrad"](optimizer="NoSuchOpt")
+
+
+def test_polish_improves_on_the_selector_within_the_same_budget(reg):
+    plain = Experiment(ToyObjective(16, 8), "random", budget=Budget(evaluations=400), seed=2,
+                       registry=reg).run()
+    polished_exp = Experiment(ToyObjective(16, 8), "random", options={"polish": 0.5},
+                              budget=Budget(evaluations=400), seed=2, registry=reg)
+    polished = polished_exp.run()
+    assert polished["config"] == "random(polish=0.5)" and polished["error"] == ""
+    assert polished["evaluations"] <= 400
+    assert polished["Mean"] < plain["Mean"]
+
+
+# ---------------------------------------------------------------------------
+# compare: seeds, statistics, IOHprofiler, figures
+# ---------------------------------------------------------------------------
+
+def test_default_seeds_run_deterministic_selectors_once(reg, tmp_path):
+    compare(ToyObjective(12, 6), ["uniform", "random"], out_dir=tmp_path, budget=Budget(evaluations=30),
+            registry=reg, progress=False, figures=False)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert list(runs[runs["config"] == "uniform"]["seed"]) == [DEFAULT_SEEDS[0]]
+    assert list(runs[runs["config"] == "random"]["seed"]) == list(DEFAULT_SEEDS)
+    t1 = pd.read_csv(tmp_path / "table1.csv").set_index("config")
+    means = runs[runs["config"] == "random"]["Mean"].to_numpy()
+    assert t1.loc["random", "Mean_median"] == pytest.approx(np.median(means))
+    assert t1.loc["random", "Mean_best"] == pytest.approx(means.min())
+    q25, q75 = np.percentile(means, [25, 75])
+    assert t1.loc["random", "Mean_iqr"] == pytest.approx(q75 - q25)
+    assert t1.loc["random", "seeds"] == 5 and t1.loc["uniform", "seeds"] == 1
+
+
+def test_ioh_files_load_in_iohinspector_and_match_runs(reg, tmp_path):
+    iohinspector = pytest.importorskip("iohinspector")
+    compare(ToyObjective(16, 8), ["uniform", "ste", "swap", "greedy"], out_dir=tmp_path, seeds=[0, 1],
+            budget=Budget(evaluations=200), registry=reg, progress=False, figures=False)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    runs = runs[runs["config"] != "full"]
+    dm = iohinspector.DataManager()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dm.add_folder(str(tmp_path / "ioh"))
+    ov = dm.overview.to_pandas()
+    assert set(ov["algorithm_name"]) == {"uniform", "ste", "swap", "greedy"}
+    assert len(ov) == len(runs)
+    for config, g in runs.groupby("config"):
+        o = ov[ov["algorithm_name"] == config]
+        assert sorted(o["evals"]) == sorted(g["evaluations"])
+        assert np.allclose(sorted(o["best_y"]), sorted(g["Mean"]), rtol=0, atol=0)
+        assert set(o["dimension"]) == {16} and set(o["function_name"]) == {"toy"}
+    data = dm.load(monotonic=True, include_meta_data=True).to_pandas()
+    for (config, run_id), g in data.groupby(["algorithm_name", "run_id"]):
+        assert g["evaluations"].min() == 1
+    meta = json.loads(next((tmp_path / "ioh" / "swap").glob("IOHprofiler_*.json")).read_text())
+    assert meta["maximization"] is False and len(meta["scenarios"][0]["runs"]) == 2
+
+
+def test_anytime_figure_shows_every_selector(reg, tmp_path):
+    from matplotlib.figure import Figure
+
+    compare(ToyObjective(16, 8), ["uniform", "random", "swap"], out_dir=tmp_path, seeds=[0, 1],
+            budget=Budget(evaluations=100), registry=reg, progress=False)
+    assert (tmp_path / "anytime.png").stat().st_size > 0
+    trace = pd.read_csv(tmp_path / "trace.csv")
+    fig = plot_anytime(trace, full_mean=0.01)
+    assert isinstance(fig, Figure)
+    ax_t, ax_e, ax_c = fig.axes[:3]
+    for ax in (ax_t, ax_e, ax_c):
+        labels = " ".join(line.get_label() for line in ax.get_lines())
+        assert all(name in labels or name in " ".join(t.get_text() for t in (ax.get_legend().get_texts()
+                                                                            if ax.get_legend() else []))
+                   for name in ("uniform", "random", "swap")), labels
+    # the one-evaluation run has a finite median curve
+    uniform = [line for line in ax_e.get_lines() if line.get_label().startswith("uniform")]
+    assert uniform and np.isfinite(uniform[0].get_ydata()).any()
+    assert math.isfinite(float(np.nanmin(uniform[0].get_ydata())))
