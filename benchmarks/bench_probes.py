@@ -42,6 +42,7 @@ def parse_args(argv=None):
     p.add_argument("--masks", type=int, default=1024, help="random masks timed per probe (default 1024)")
     p.add_argument("--steps", type=int, default=30, help="timed gradient steps per probe (default 30)")
     p.add_argument("--one", help=argparse.SUPPRESS)
+    p.add_argument("--build", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     for name in a.probes.split(","):
         if name not in PROBES:
@@ -63,8 +64,24 @@ def _masks(n, ne, k):
             "centre": centre}, C.random_masks(n, ne, k, seed=0)
 
 
+def build_one(name: str) -> dict:
+    """Build the probe's basis into the (empty) cache: the first-run precompute time."""
+    import resource
+    import time
+
+    from arraysel.objective import Objective
+    from arraysel.scene import load_scene
+
+    C.set_threads(None)
+    base, over = PROBES[name]
+    t0 = time.perf_counter()
+    Objective(load_scene(base, overrides=over))
+    return {"precompute_s": time.perf_counter() - t0,
+            "build_peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
+
+
 def run_one(name: str, masks: int, steps: int) -> dict:
-    """Measure one probe in this process (called in a child process)."""
+    """Measure one probe in this process (called in a child process, the basis cached)."""
     import resource
     import time
 
@@ -115,7 +132,7 @@ def run_one(name: str, masks: int, steps: int) -> dict:
            for i, n in enumerate(special)}
     fast = obj.psf.fast
     return {"probe": name, "n_elements": ne, "k": k, "ms_per_mask": per_mask * 1e3, "rss_gib": rss,
-            "precompute_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
+            "load_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
             "si_mse_vs_exact": fid, "exact_path_for": [n for i, n in enumerate(special) if bool(fb[i])],
             "fast_path": fast is not None, "rank": getattr(fast, "rank", None),
             "strips": getattr(fast, "strips", None), "kernel_tol": getattr(fast, "kernel_tol", None)}
@@ -126,20 +143,27 @@ def main(argv=None):
     if args.one:
         print(json.dumps(run_one(args.one, args.masks, args.steps)))
         return
+    if args.build:
+        print(json.dumps(build_one(args.build)))
+        return
     rows = []
     for name in args.probes.split(","):
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, ARRAYSEL_CACHE=cache)
-            out = subprocess.run([sys.executable, __file__, "--one", name, "--masks", str(args.masks),
-                                  "--steps", str(args.steps)], env=env, capture_output=True, text=True)
-        if out.returncode != 0:
-            print(out.stderr[-3000:], file=sys.stderr)
-            rows.append({"probe": name, "error": out.stderr.strip().splitlines()[-1:]})
+            outs = [subprocess.run([sys.executable, __file__, *flags], env=env, capture_output=True, text=True)
+                    for flags in (["--build", name],
+                                  ["--one", name, "--masks", str(args.masks), "--steps", str(args.steps)])]
+        bad = [o for o in outs if o.returncode != 0]
+        if bad:
+            print(bad[0].stderr[-3000:], file=sys.stderr)
+            rows.append({"probe": name, "error": bad[0].stderr.strip().splitlines()[-1:]})
             continue
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        rows.append({**json.loads(outs[0].stdout.strip().splitlines()[-1]),
+                     **json.loads(outs[1].stdout.strip().splitlines()[-1])})
         r = rows[-1]
         print(f"{r['probe']:>11} Ne {r['n_elements']:>3} k {r['k']:>3}: {r['ms_per_mask']:6.2f} ms/mask, "
-              f"{r['rss_gib']:.2f} GiB, precompute {r['precompute_s']:6.1f} s, "
+              f"resident {r['rss_gib']:.2f} GiB (build peak {r['build_peak_rss_gib']:.2f}), "
+              f"precompute {r['precompute_s']:6.1f} s, "
               f"{r['grad_steps_per_min']:7.0f} grad steps/min, fallbacks {100 * r['fallback_fraction']:.2f} %, "
               f"max SI-MSE vs exact {max(r['si_mse_vs_exact'].values()):.1e} "
               f"(exact path for {r['exact_path_for'] or 'none'})", flush=True)

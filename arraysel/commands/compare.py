@@ -168,7 +168,10 @@ def run(args) -> int:
                                  retries=retries)
     try:
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
-        notice = _exact_run_notice(objective, budget, len(names) * len(seeds))
+        from ..runner import DEFAULT_SEEDS
+        n_runs = sum(len(seeds) if seeds is not None else 1 if registry[n].deterministic else len(DEFAULT_SEEDS)
+                     for n in names)
+        notice = _exact_run_notice(objective, budget, n_runs)
         if notice:
             print(f"arraysel compare: {notice}", file=sys.stderr)
         table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
