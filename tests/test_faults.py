@@ -87,7 +87,7 @@ def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder, ca
     first = cache.load_or_build("t", ("k", 1), build, what="a test state", size_hint=3_000_000,
                                 seconds_hint=20, progress=True)
     err = capsys.readouterr().err
-    assert f"building a test state" in err and f"cached in {cache_folder} (about 3.0 MB)" in err
+    assert "building a test state" in err and f"cached in {cache_folder} (about 3.0 MB)" in err
     assert "about 20 s" in err and "/~20 s" in err  # the announcement and the progress bar
     second = cache.load_or_build("t", ("k", 1), build, what="a test state")
     assert calls == [1] and _same(first, _state()) and _same(second, _state())
