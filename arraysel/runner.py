@@ -191,6 +191,8 @@ class Experiment:
             if not error and not math.isfinite(metrics["Mean"]):
                 error = (f"NumericalError: the objective returned NaN/Inf for the selected elements "
                          f"(Mean = {metrics['Mean']})")
+        if not error and is_legacy_selector(selector):
+            error = _check_reported(obj, recorder, selection, metrics)
         self.selection = selection
         self.trace = [dict(r) for r in recorder.rows]
         obj_seconds = s1 - s0
@@ -231,6 +233,25 @@ def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Re
         return selector.select(view, k, seed)
     except BudgetExhausted:
         return _best_or_first(recorder)
+
+
+def _check_reported(obj, recorder: Recorder, selection, metrics: dict) -> str:
+    """A legacy plugin reports its own scores (``recorder.report``): check its best one against
+    the objective (the new contract records what the objective returns, nothing to check).
+    Returns an error text when they differ by more than float32 rounding, else ''."""
+    if recorder.best is None or not math.isfinite(recorder.best_mean):
+        return ""
+    best = list(recorder.best)
+    try:
+        true = metrics["Mean"] if selection is not None and best == list(selection) else \
+            _final_metrics(obj, best)["Mean"]
+    except Exception as exc:  # a reported selection the objective cannot score
+        return f"the plugin reported Mean {recorder.best_mean:.6g} for elements {best}, which the objective " \
+               f"cannot score: {_error_text(exc)}"
+    if not math.isfinite(true) or abs(true - recorder.best_mean) > 1e-3 * abs(true) + 1e-6:
+        return (f"the plugin reported Mean {recorder.best_mean:.6g} for elements {best}, the objective gives "
+                f"{true:.6g}: its trace cannot be trusted")
+    return ""
 
 
 def _best_or_first(recorder: Recorder) -> list[int]:

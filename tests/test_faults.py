@@ -821,3 +821,41 @@ def test_license_and_citation():
     titles = [r["title"] for r in cff["references"]]
     assert "End-to-end optimization of sparse ultrasound linear probes" in titles
     assert any("PyMUST" in t for t in titles) and cff["license"] == "MIT"
+
+
+def test_scores_a_legacy_plugin_reports_are_checked_against_the_objective():
+    """A legacy selector reports its own scores (recorder.report): a score that the objective does
+    not confirm turns the run into an error row instead of a flattering trace."""
+    from arraysel.runner import Experiment
+    from arraysel.selector import Budget, Selector
+    from arraysel.testing import ToyObjective
+
+    class Liar(Selector):
+        name = "liar"
+        description = "reports half the true Mean"
+        deterministic = True
+
+        def select(self, objective, k, budget, seed, recorder):
+            chosen = list(range(k))
+            mask = np.zeros((1, objective.n_elements), dtype=bool)
+            mask[0, chosen] = True
+            recorder.report(chosen, 0.5 * float(objective.evaluate(mask)["Mean"][0]))
+            return chosen
+
+    class Honest(Liar):
+        name = "honest"
+        description = "reports the true Mean"
+
+        def select(self, objective, k, budget, seed, recorder):
+            chosen = list(range(k))
+            mask = np.zeros((1, objective.n_elements), dtype=bool)
+            mask[0, chosen] = True
+            recorder.report(chosen, float(objective.evaluate(mask)["Mean"][0]))
+            return chosen
+
+    with pytest.warns(DeprecationWarning):
+        row = Experiment(ToyObjective(12, 6), Liar, budget=Budget(evaluations=5)).run()
+    assert "the plugin reported Mean" in row["error"] and "the objective gives" in row["error"]
+    with pytest.warns(DeprecationWarning):
+        row = Experiment(ToyObjective(12, 6), Honest, budget=Budget(evaluations=5)).run()
+    assert row["error"] == ""
