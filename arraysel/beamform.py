@@ -34,9 +34,23 @@ import torch
 from .errors import ParameterError, check_number
 
 
+def iq_lowpass(fs: float, fc: float, bandwidth: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Coefficients (b, a) of the I/Q demodulation's 5th-order Butterworth low-pass, of
+    normalised cut-off ``fc * bandwidth / fs`` (bandwidth in percent of fc; None: ``min(2 fc / fs,
+    0.5)``), applied forward and backward (:func:`iq_matrix`)."""
+    wn = min(2 * fc / fs, 0.5) if bandwidth is None else fc * bandwidth / 100 / fs
+    check_number("normalised IQ cut-off (fc * bandwidth / fs)", wn, lo=0, lo_open=True, hi=1, hi_open=True)
+    return _butter(float(wn))
+
+
 @lru_cache(maxsize=32)
-def _filtfilt_matrix(n_t: int, wn: float) -> np.ndarray:
-    b, a = scipy.signal.butter(5, wn)
+def _butter(wn: float) -> tuple[np.ndarray, np.ndarray]:
+    return scipy.signal.butter(5, wn)
+
+
+@lru_cache(maxsize=32)
+def _filtfilt_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None) -> np.ndarray:
+    b, a = iq_lowpass(fs, fc, bandwidth)
     return scipy.signal.filtfilt(b, a, np.eye(n_t), axis=0)
 
 
@@ -46,9 +60,7 @@ def iq_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None, t0: float
 
     bandwidth in percent of fc (None: cut-off at ``min(2 fc / fs, 0.5)``).
     """
-    wn = min(2 * fc / fs, 0.5) if bandwidth is None else fc * bandwidth / 100 / fs
-    check_number("normalised IQ cut-off (fc * bandwidth / fs)", wn, lo=0, lo_open=True, hi=1, hi_open=True)
-    F = _filtfilt_matrix(int(n_t), float(wn))
+    F = _filtfilt_matrix(int(n_t), float(fs), float(fc), None if bandwidth is None else float(bandwidth))
     t = np.arange(n_t) / fs + t0
     mix = np.exp(-2j * np.pi * fc * t)
     Q = 2 * F * mix[None, :]

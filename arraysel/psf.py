@@ -246,7 +246,13 @@ class PSFModel:
 
     def _window_estimate(self) -> int:
         """Samples per channel window (:meth:`_PairBasis._sample_ranges`), estimated from the
-        DAS plans of a subsampled grid (every 8th row and column and the grid's edges)."""
+        DAS plans of a subsampled grid (every 8th row and column and the grid's edges); computed
+        once per model (the memory guard and the cache's size hint both ask)."""
+        if getattr(self, "_window_samples", None) is None:
+            self._window_samples = self._estimate_window()
+        return self._window_samples
+
+    def _estimate_window(self) -> int:
         s = self.setup
         zi = torch.unique(torch.cat([torch.arange(0, s.n_z, 8), torch.tensor([s.n_z - 1])]))
         xi = torch.unique(torch.cat([torch.arange(0, s.n_x, 8), torch.tensor([s.n_x - 1])]))
@@ -947,9 +953,9 @@ class _PairBasis:
         ne = model.n_elements
         ntx = len(model.transmits)
         out = np.zeros((ntx, ne, self.T, ne), dtype=np.complex64)
-        bw = s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth
-        wn = s.probe.fc * bw / 100 / s.acq.fs
-        b_, a_ = scipy.signal.butter(5, wn)
+        from .beamform import iq_lowpass
+
+        b_, a_ = iq_lowpass(s.acq.fs, s.probe.fc, s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
         off = self.off.numpy()
         for n, t in enumerate(model.transmits):
             T = t.grid.n_time
