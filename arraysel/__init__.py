@@ -3,38 +3,43 @@
 ``import arraysel as asel`` gives the notebook API, imported lazily (``import
 arraysel`` itself loads neither torch nor pandas):
 
-* ``asel.load_scene(name_or_path)`` -- a :class:`~arraysel.scene.Scene`
+* ``asel.load_scene(name_or_path)`` -- a :class:`~arraysel.scenes.schema.Scene`
 * ``asel.build_objective(scene)`` / ``asel.Objective`` -- the PSF objective
 * ``asel.compare(scene, selectors, ...)`` -- DataFrames and Figures (:mod:`arraysel.api`)
 * ``asel.Budget``, ``asel.selectors()`` (the registered selector names), ``asel.cache_dir()``
+
+The layers, bottom up: :mod:`arraysel.physics`, :mod:`arraysel.scenes`, :mod:`arraysel.objective`,
+:mod:`arraysel.selectors`, :mod:`arraysel.run`, :mod:`arraysel.report`, :mod:`arraysel.e2e`,
+:mod:`arraysel.cli` (``docs/architecture.md``).
 """
 
 __version__ = "0.1.0"
 
 #: public name -> (module, attribute)
 _LAZY = {
-    "load_scene": ("arraysel.scene", "load_scene"),
-    "Scene": ("arraysel.scene", "Scene"),
-    "Objective": ("arraysel.objective", "Objective"),
-    "build_objective": ("arraysel.objective", "build_objective"),
+    "load_scene": ("arraysel.scenes.schema", "load_scene"),
+    "Scene": ("arraysel.scenes.schema", "Scene"),
+    "Objective": ("arraysel.objective.psf_objective", "Objective"),
+    "build_objective": ("arraysel.objective.psf_objective", "build_objective"),
     "compare": ("arraysel.api", "compare"),
     "CompareResult": ("arraysel.api", "CompareResult"),
-    "Budget": ("arraysel.selector", "Budget"),
-    "Selector": ("arraysel.selector", "Selector"),
-    "cache_dir": ("arraysel.cache", "cache_dir"),
+    "Budget": ("arraysel.selectors.contract", "Budget"),
+    "Selector": ("arraysel.selectors.contract", "Selector"),
+    "cache_dir": ("arraysel.io.cache", "cache_dir"),
 }
 
 __all__ = ["__version__", "selectors", *_LAZY]
 
+from arraysel import _compat  # noqa: E402  (old flat module paths keep importing, with a DeprecationWarning)
 
-def selectors() -> list:
-    """Names of the registered selectors (built-ins and installed plugins)."""
-    from .registry import get_registry
-
-    return list(get_registry().names())
+_compat.install()
 
 
 def __getattr__(name):
+    if name == "selectors":  # the package is callable: asel.selectors() lists the registered names
+        import importlib
+
+        return importlib.import_module("arraysel.selectors")
     if name in _LAZY:
         import importlib
 

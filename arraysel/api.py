@@ -9,7 +9,7 @@
 >>> res.figures["psfs"]  # matplotlib Figure
 
 Everything here is a thin layer over the modules that do the work
-(:mod:`arraysel.scene`, :mod:`arraysel.objective`, :mod:`arraysel.runner`).
+(:mod:`arraysel.scenes.schema`, :mod:`arraysel.objective.psf_objective`, :mod:`arraysel.run.experiment`).
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
 
     Parameters
     ----------
-    scene : scene name, ``.toml`` path, :class:`~arraysel.scene.Scene`, dict, or ``"toy"``
+    scene : scene name, ``.toml`` path, :class:`~arraysel.scenes.schema.Scene`, dict, or ``"toy"``
     selectors : selector names (see ``arraysel list``)
     seeds : each selector runs once per seed
     budget_s, budget_evals : per-run limits (seconds must be finite; at least one limit)
@@ -69,21 +69,21 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
 
     import pandas as pd
 
-    from . import reporting
-    from .runner import compare as _compare
-    from .selector import Budget
+    from arraysel.report import tables as reporting
+    from arraysel.run.experiment import compare as _compare
+    from arraysel.selectors.contract import Budget
 
     budget = Budget(seconds=budget_s, evaluations=budget_evals)
     if objective is None:
-        from .commands.compare import build_objective as _build
-        from .scene import Scene, load_scene
+        from arraysel.cli.compare import build_objective as _build
+        from arraysel.scenes.schema import Scene, load_scene
 
         if isinstance(scene, str) and scene == "toy":
             objective = _build("toy", device, dtype)
         else:
             import torch
 
-            from .objective import build_objective
+            from arraysel.objective.psf_objective import build_objective
             objective = build_objective(scene if isinstance(scene, Scene) else load_scene(scene), device=device,
                                         dtype=getattr(torch, dtype))
     if out_dir is None:

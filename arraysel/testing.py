@@ -2,7 +2,7 @@
 conformance suite :class:`SelectorConformance`.
 
 ``ToyObjective`` implements the same Objective contract as
-``arraysel.objective`` (evaluate / mask_loss / selection_loss / kernels /
+``arraysel.objective.psf_objective`` (evaluate / mask_loss / selection_loss / kernels /
 reference_kernel and the counters) on a smooth synthetic function of the
 mask, in micro-seconds instead of seconds. Its optimum is close to a known,
 spread-out target set (``objective.target``).
@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .errors import ParameterError, check_number
-from .relax import column_entropy, row_penalty
+from arraysel.errors import ParameterError, check_number
+from arraysel.selectors.relax import column_entropy, row_penalty
 
 __all__ = ["ToyScene", "ToyObjective", "SelectorConformance"]
 
@@ -260,7 +260,7 @@ class SelectorConformance:
             raise AssertionError("set selector_class or selector_name on the conformance test class")
         reg = self.registry
         if reg is None:
-            from .registry import build_plugin_manager, get_registry
+            from arraysel.selectors.registry import build_plugin_manager, get_registry
             reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
         return reg[self.selector_name]
 
@@ -269,8 +269,8 @@ class SelectorConformance:
         return ToyObjective(n, n // 2 if k is None else k, **kwargs)
 
     def run_experiment(self, objective, *, k: int | None = None, seed: int = 0, budget=None):
-        from .runner import Experiment
-        from .selector import Budget
+        from arraysel.run.experiment import Experiment
+        from arraysel.selectors.contract import Budget
         budget = Budget(evaluations=self.budget_evaluations) if budget is None else budget
         exp = Experiment(objective, self.get_class(), options=dict(self.selector_options),
                          budget=budget, seed=seed, k=k)
@@ -283,7 +283,7 @@ class SelectorConformance:
 
     # -- checks --------------------------------------------------------------
     def test_declared_attributes(self):
-        from .selector import Option, Selector
+        from arraysel.selectors.contract import Option, Selector
         cls = self.get_class()
         assert issubclass(cls, Selector)
         assert isinstance(cls.name, str) and cls.name
@@ -318,7 +318,7 @@ class SelectorConformance:
             assert t["evaluations"] <= self.budget_evaluations + slack
 
     def test_time_budget_respected(self):
-        from .selector import Budget
+        from arraysel.selectors.contract import Budget
         obj = self.make_objective(delay=0.002)
         _, row = self.run_experiment(obj, budget=Budget(seconds=self.budget_seconds))
         assert row["error"] == "", row["error"]

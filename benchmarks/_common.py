@@ -20,9 +20,9 @@ THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 def set_threads(n: int | None) -> None:
     """Limit BLAS/OpenMP threads and tune the allocator as the ``arraysel`` command does
-    (:func:`arraysel.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
+    (:func:`arraysel.run.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
     before numpy and torch do any work."""
-    from arraysel.allocator import tune_malloc
+    from arraysel.run.allocator import tune_malloc
 
     tune_malloc()
     if n is None:
@@ -118,7 +118,7 @@ def emit_json(record: dict) -> None:
 
 def cache_files() -> set | None:
     """Names of the fast-path basis files in the on-disk cache (None when the cache is off)."""
-    from arraysel.psf import cache_dir
+    from arraysel.physics.psf import cache_dir
 
     folder = cache_dir()
     if folder is None:

@@ -2,7 +2,7 @@
 
 One step, as the ``ste`` selector takes it on the paper scene: draw the
 (Ne, k) straight-through matrix from the logits
-(:func:`arraysel.relax.sequential_selection`, cosine temperature), evaluate
+(:func:`arraysel.selectors.relax.sequential_selection`, cosine temperature), evaluate
 ``Objective.selection_loss(P, P_soft)`` (PSF terms + L_ent + L_row; no data
 term), ``backward()`` and an Adam update of the logits. Forward (draw +
 loss) and backward (+ update) are timed separately for every step, after
@@ -50,8 +50,8 @@ def main(argv=None):
     import numpy as np
     import torch
 
-    from arraysel.objective import build_objective
-    from arraysel.relax import cosine_temperature, gumbel_noise, sequential_selection
+    from arraysel.objective.psf_objective import build_objective
+    from arraysel.selectors.relax import cosine_temperature, gumbel_noise, sequential_selection
 
     dtype = torch.float32 if args.dtype == "float32" else torch.float64
     with C.Timer() as t_pre:

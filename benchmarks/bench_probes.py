@@ -69,8 +69,8 @@ def build_one(name: str) -> dict:
     import resource
     import time
 
-    from arraysel.objective import Objective
-    from arraysel.scene import load_scene
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.scenes.schema import load_scene
 
     C.set_threads(None)
     base, over = PROBES[name]
@@ -88,10 +88,10 @@ def run_one(name: str, masks: int, steps: int) -> dict:
     import numpy as np
     import torch
 
-    from arraysel.metrics import si_mse
-    from arraysel.objective import Objective
-    from arraysel.relax import sequential_selection
-    from arraysel.scene import load_scene
+    from arraysel.objective.metrics import si_mse
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.selectors.relax import sequential_selection
+    from arraysel.scenes.schema import load_scene
 
     C.set_threads(None)
     base, over = PROBES[name]

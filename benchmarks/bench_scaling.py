@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     p.add_argument("--dtype", default="float32")
     args = p.parse_args(argv)
 
-    from arraysel.executors import (DaskExecutor, ProcessExecutor, SceneObjectiveFactory,
+    from arraysel.run.executors import (DaskExecutor, ProcessExecutor, SceneObjectiveFactory,
                                     ToyObjectiveFactory, distributed_random_search)
 
     toy = args.scene == "toy"
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     if toy:
         factory = ToyObjectiveFactory(64, 32, device=args.device, dtype=args.dtype)
     else:
-        from arraysel.scene import load_scene
+        from arraysel.scenes.schema import load_scene
         factory = SceneObjectiveFactory(load_scene(args.scene).to_dict(), device=args.device, dtype=args.dtype)
     counts = [int(w) for w in args.workers.split(",") if w.strip()]
 

@@ -35,8 +35,8 @@ def main(argv=None):
     import numpy as np
     import torch
 
-    from arraysel.allocator import tune_malloc
-    from arraysel.objective import Objective
+    from arraysel.run.allocator import tune_malloc
+    from arraysel.objective.psf_objective import Objective
 
     tune_malloc()
     if args.threads:

@@ -50,7 +50,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     import torch
 
-    from arraysel.objective import build_objective
+    from arraysel.objective.psf_objective import build_objective
 
     obj = build_objective("paper", dtype=torch.float32 if args.dtype == "float32" else torch.float64)
     fast = obj.psf.fast

@@ -2,7 +2,7 @@
 
 Reference: the exact path (``PSFModel(fast=False).kernels_exact``: simulator
 -> RF -> I/Q -> DAS on the whole grid) in float64 with the default
-:class:`~arraysel.simus.SimOptions`. Every other setting changes one knob
+:class:`~arraysel.physics.simus.SimOptions`. Every other setting changes one knob
 from that default and is scored by the SI-MSE of its kernels against the
 reference, for 4 fixed masks (the uniform 32-of-64 array and 3 random ones;
 the table reports the largest), and by its time per mask:
@@ -105,9 +105,9 @@ def main(argv=None):
     import numpy as np
     import torch
 
-    from arraysel.psf import PSFModel
-    from arraysel.scene import load_scene
-    from arraysel.simus import SimOptions, n_subelements
+    from arraysel.physics.psf import PSFModel
+    from arraysel.scenes.schema import load_scene
+    from arraysel.physics.simus import SimOptions, n_subelements
 
     dtypes = {"float32": torch.float32, "float64": torch.float64}
     base = load_scene("paper").psf_setup()

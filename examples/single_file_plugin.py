@@ -6,8 +6,8 @@
 It registers ``centre``: the k contiguous elements in the middle of the array
 (a compact aperture, the opposite of a spread-out one).
 """
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import Selector, indices_to_mask
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import Selector, indices_to_mask
 
 
 class CentreSelector(Selector):

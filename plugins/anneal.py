@@ -27,8 +27,8 @@ import math
 
 import numpy as np
 
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
 
 from .swap import START_CHOICES, start_selection
 

@@ -5,8 +5,8 @@ import time
 
 import numpy as np
 
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
 
 
 class UniformSelector(Selector):

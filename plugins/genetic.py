@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from arraysel.hookspecs import hookimpl
-from arraysel.localsearch import random_swaps
-from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.localsearch import random_swaps
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
 
 from .baselines import random_subsets
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import BudgetExhausted, Option, Selector
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector
 
 
 def _evenly(items: list[int], m: int) -> list[int]:

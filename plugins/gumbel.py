@@ -10,9 +10,9 @@ best-mask bookkeeping are those of ``ste``.
 """
 from __future__ import annotations
 
-from arraysel.hookspecs import hookimpl
-from arraysel.relax import gumbel_noise, sequential_selection
-from arraysel.selector import Option
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.relax import gumbel_noise, sequential_selection
+from arraysel.selectors.contract import Option
 
 from .ste import _COMMON, MatrixSelector
 

@@ -31,8 +31,8 @@ import warnings
 import numpy as np
 
 from arraysel.errors import ParameterError
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng, top_k
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng, top_k
 
 _DEFAULT_NG_BUDGET = 20_000
 

@@ -27,9 +27,9 @@ import numpy as np
 import torch
 
 from arraysel.errors import NumericalError
-from arraysel.hookspecs import hookimpl
-from arraysel.relax import project_capped_simplex
-from arraysel.selector import Option, Selector, indices_to_mask, numpy_rng, top_k
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.relax import project_capped_simplex
+from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k
 
 _GRADIENT = ("MMA", "SLSQP")
 _ALGORITHMS = {"MMA": "LD_MMA", "SLSQP": "LD_SLSQP", "CRS2": "GN_CRS2_LM", "ISRES": "GN_ISRES",

@@ -17,9 +17,9 @@ from __future__ import annotations
 import torch
 
 from arraysel.errors import NumericalError
-from arraysel.hookspecs import hookimpl
-from arraysel.relax import cosine_temperature, sequential_selection
-from arraysel.selector import BudgetExhausted, Option, Selector, indices_to_mask, torch_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.relax import cosine_temperature, sequential_selection
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, indices_to_mask, torch_rng
 
 # Default learning rates, measured on arraysel.testing.ToyObjective (Ne=64, k=32,
 # 300 gradient steps, 3 seeds, best Mean; target 0.0404):

@@ -8,7 +8,7 @@ improvement (all ``k (Ne - k)`` neighbours per step). At a local optimum it
 perturbs the best selection by ``perturb`` random swaps and descends again
 (iterated local search), and after ``restart_after`` non-improving
 perturbations it restarts from a random selection, until the budget is spent.
-See :mod:`arraysel.localsearch` for the algorithm.
+See :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ import re
 import numpy as np
 
 from arraysel.errors import ParameterError
-from arraysel.hookspecs import hookimpl
-from arraysel.localsearch import SwapSearch
-from arraysel.selector import BudgetExhausted, Option, Selector, numpy_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.localsearch import SwapSearch
+from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
 
 START_CHOICES = ("uniform", "random", "greedy", "elements")
 

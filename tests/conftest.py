@@ -10,7 +10,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 @pytest.fixture(scope="session")
 def paper_objective():
     """The paper scene's float32 objective, built once per test session (cached on disk)."""
-    from arraysel.objective import build_objective
+    from arraysel.objective.psf_objective import build_objective
 
     return build_objective("paper")
 

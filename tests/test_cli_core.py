@@ -3,7 +3,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from arraysel.cli import main
+from arraysel.cli.main import main
 
 
 def test_psf_command_writes_kernel_and_png(tmp_path, paper_objective):
@@ -52,7 +52,7 @@ def test_evaluate_rejects_bad_masks_with_line_number(tmp_path, capsys, line, msg
 
 
 def test_malloc_tuning_is_optional_and_idempotent(monkeypatch):
-    from arraysel import allocator
+    from arraysel.run import allocator
 
     monkeypatch.setattr(allocator, "_state", {})
     monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "off")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from arraysel.registry import build_plugin_manager, get_registry, load_plugin
+from arraysel.selectors.registry import build_plugin_manager, get_registry, load_plugin
 from arraysel.testing import SelectorConformance
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -1,4 +1,4 @@
-"""Tests of arraysel.data: IDX files, bundled samples, scatterer maps."""
+"""Tests of arraysel.e2e.data: IDX files, bundled samples, scatterer maps."""
 from __future__ import annotations
 
 import io
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel import data as D
-from arraysel.data import (SceneMaker, find_idx_files, genscat, grid_coordinates, load_dataset,
+from arraysel.e2e import data as D
+from arraysel.e2e.data import (SceneMaker, find_idx_files, genscat, grid_coordinates, load_dataset,
                            load_idx, points_to_map, read_idx, reflectivity_map, write_idx)
 from arraysel.errors import ParameterError
 
@@ -177,7 +177,7 @@ def test_bundled_samples(name):
 
 
 def test_auto_falls_back_to_sample_and_says_so(tmp_path, caplog):
-    with caplog.at_level(logging.WARNING, logger="arraysel.data"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.e2e.data"):
         x, _ = load_dataset("mnist", "test", source="auto", data_dir=tmp_path, limit=7)
     assert x.shape == (7, 1, 28, 28)
     assert "bundled mnist sample" in caplog.text and "t10k-images-idx3-ubyte" in caplog.text
@@ -185,7 +185,7 @@ def test_auto_falls_back_to_sample_and_says_so(tmp_path, caplog):
 
 def test_auto_prefers_idx(tmp_path, caplog):
     _write_split(tmp_path / "mnist", "test", n=3)
-    with caplog.at_level(logging.WARNING, logger="arraysel.data"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.e2e.data"):
         x, _ = load_dataset("mnist", "test", data_dir=tmp_path)
     assert x.shape == (3, 1, 28, 28) and "sample" not in caplog.text
 

@@ -1,4 +1,4 @@
-"""Tests of arraysel.delays against PyMUST's txdelay (used as an oracle only)."""
+"""Tests of arraysel.physics.delays against PyMUST's txdelay (used as an oracle only)."""
 from __future__ import annotations
 
 import math
@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from arraysel.delays import (circular_virtual_source, diverging_delays, focused_delays,
+from arraysel.physics.delays import (circular_virtual_source, diverging_delays, focused_delays,
                              plane_wave_delays, plane_wave_tilts)
 from arraysel.errors import ParameterError
-from arraysel.probes import Acquisition, get_probe
+from arraysel.physics.probes import Acquisition, get_probe
 
 pymust = pytest.importorskip("pymust")
 

@@ -1,4 +1,4 @@
-"""End-to-end training on a physics scene (arraysel.e2e, `arraysel train`), on a tiny scene."""
+"""End-to-end training on a physics scene (arraysel.e2e.pipeline, `arraysel train`), on a tiny scene."""
 from __future__ import annotations
 
 import csv
@@ -10,8 +10,8 @@ import sys
 import pytest
 import torch
 
-from arraysel.cli import main as cli_main
-from arraysel.scene import load_scene
+from arraysel.cli.main import main as cli_main
+from arraysel.scenes.schema import load_scene
 
 TINY = {"base": "paper-e2e", "name": "tiny-e2e",
         "probe": {"n_elements": 16}, "selection": {"k": 8},
@@ -37,15 +37,15 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 @pytest.fixture(scope="module")
 def tiny():
-    from arraysel.objective import build_objective
+    from arraysel.objective.psf_objective import build_objective
 
     scene = load_scene(TINY)
     return scene, build_objective(scene)
 
 
 def make_trainer(objective, images, image_size=16, **cfg):
-    from arraysel.data import SceneMaker
-    from arraysel.training import E2ETrainer, HardSTESelection
+    from arraysel.e2e.data import SceneMaker
+    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection
 
     def kernel_fn(w):
         return objective.psf.kernels(w[None])[0]
@@ -63,7 +63,7 @@ def make_trainer(objective, images, image_size=16, **cfg):
 
 @pytest.fixture(scope="module")
 def images():
-    from arraysel.data import load_dataset
+    from arraysel.e2e.data import load_dataset
 
     return load_dataset("mnist", "train", source="sample", limit=8)[0]
 
@@ -108,7 +108,7 @@ def test_learned_selection_has_k_distinct_elements(tiny, images):
 
 
 def test_kernel_is_cropped_to_the_image_size(tiny):
-    from arraysel.training import fit_kernel
+    from arraysel.e2e.trainer import fit_kernel
 
     _, obj = tiny
     ref = obj.reference_kernel()
@@ -121,7 +121,7 @@ def test_kernel_is_cropped_to_the_image_size(tiny):
 
 
 def test_settings_profiles():
-    from arraysel.e2e import resolve_settings
+    from arraysel.e2e.pipeline import resolve_settings
 
     scene = load_scene("paper-e2e")
     full = resolve_settings(scene, full=True)
@@ -135,7 +135,7 @@ def test_settings_profiles():
 
 
 def test_paper_scene_is_refused():
-    from arraysel.e2e import run_training
+    from arraysel.e2e.pipeline import run_training
     from arraysel.errors import ParameterError
 
     with pytest.raises(ParameterError, match="nothing to train"):
@@ -152,7 +152,7 @@ def test_cli_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert cli_main(argv) == 0
     printed = capsys.readouterr().out
     assert "step      3/3" in printed and "rec=" in printed and "PSNR" in printed
-    from arraysel.e2e import OUTPUT_FILES
+    from arraysel.e2e.pipeline import OUTPUT_FILES
     for name in OUTPUT_FILES:
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     assert not [p for p in os.listdir(out) if p.endswith(".tmp")]
@@ -177,7 +177,7 @@ def test_cli_runs_end_to_end_and_resumes(tmp_path, capsys):
 
 
 def test_resume_continues_the_checkpoint(tmp_path):
-    from arraysel.e2e import run_training
+    from arraysel.e2e.pipeline import run_training
 
     kw = dict(out_dir=str(tmp_path), steps=2, batch_size=2, image_size=16, base_channels=4,
               finetune_steps=0, n_test=2, figures=False, log=None, ista_layers=2)
@@ -192,13 +192,13 @@ def test_paper_scene_needs_no_network_and_no_data(paper_objective):
     """Building and evaluating the `paper` objective imports none of the training modules."""
     code = (
         "import sys\n"
-        "from arraysel.cli import build_parser\n"
+        "from arraysel.cli.main import build_parser\n"
         "build_parser()\n"
-        "from arraysel.objective import build_objective\n"
+        "from arraysel.objective.psf_objective import build_objective\n"
         "obj = build_objective('paper')\n"
         "res = obj.evaluate([[1.0, 0.0] * 32])\n"
         "assert res['L_PSF'][0] > 0\n"
-        "bad = [m for m in ('arraysel.recon', 'arraysel.data', 'arraysel.training', 'arraysel.e2e')"
+        "bad = [m for m in ('arraysel.e2e.recon', 'arraysel.e2e.data', 'arraysel.e2e.trainer', 'arraysel.e2e.pipeline')"
         " if m in sys.modules]\n"
         "print('IMPORTED', bad)\n"
     )

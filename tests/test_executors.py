@@ -1,4 +1,4 @@
-"""Tests of arraysel.executors: process pool and Dask executors for compare and random search.
+"""Tests of arraysel.run.executors: process pool and Dask executors for compare and random search.
 
 Workers are local processes; the Dask cluster listens on 127.0.0.1 only. Every
 test is bounded by an alarm (``TEST_LIMIT_S``). Selectors that kill their
@@ -16,13 +16,13 @@ import pandas as pd
 import pytest
 
 from arraysel.errors import ArrayselError, ParameterError
-from arraysel.executors import (
+from arraysel.run.executors import (
     LocalExecutor, ProcessExecutor, TaskFailed, ToyObjectiveFactory, distributed_evaluate,
     distributed_random_search, make_executor, objective_factory_for, random_subsets,
 )
-from arraysel.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.runner import ROW_COLUMNS, compare
-from arraysel.selector import Budget, Option, Selector, numpy_rng
+from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
+from arraysel.run.experiment import ROW_COLUMNS, compare
+from arraysel.selectors.contract import Budget, Option, Selector, numpy_rng
 from arraysel.testing import ToyObjective
 
 TEST_LIMIT_S = 60
@@ -242,7 +242,7 @@ def test_process_worker_death_loses_only_its_run(pool, reg, tmp_path):
 @pytest.fixture(scope="module")
 def dask_ex():
     pytest.importorskip("distributed")
-    from arraysel.executors import DaskExecutor
+    from arraysel.run.executors import DaskExecutor
     with DaskExecutor(workers=2, retries=1) as ex:
         yield ex
 

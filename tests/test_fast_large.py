@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel import psf as psf_mod
-from arraysel.metrics import si_mse
-from arraysel.probes import Acquisition, get_probe
-from arraysel.psf import PSFModel, PSFSetup, _PairBasis
+from arraysel.physics import psf as psf_mod
+from arraysel.objective.metrics import si_mse
+from arraysel.physics.probes import Acquisition, get_probe
+from arraysel.physics.psf import PSFModel, PSFSetup, _PairBasis
 
 
 def _setup(n_elements=8, probe="P4-2v", fc=3.5e6, n=24, pixel=1e-4, depth=2e-3, window=8):
@@ -75,8 +75,8 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.fast
     s = model.setup
-    from arraysel.beamform import das_plan
-    from arraysel.simus import spectra_to_rf
+    from arraysel.physics.beamform import das_plan
+    from arraysel.physics.simus import spectra_to_rf
 
     Z, X = torch.meshgrid(model._zg, model._xg, indexing="ij")
     for n, t in enumerate(model.transmits):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.metrics import si_mse
-from arraysel.objective import Objective
-from arraysel.scene import builtin_scenes, load_scene
+from arraysel.objective.metrics import si_mse
+from arraysel.objective.psf_objective import Objective
+from arraysel.scenes.schema import builtin_scenes, load_scene
 
 pytestmark = pytest.mark.slow
 

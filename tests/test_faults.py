@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel import atomic, cache
+from arraysel.io import atomic
+
+from arraysel.io import cache
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,7 +108,7 @@ def test_cache_bit_flip_is_reported_and_rebuilt(cache_folder, caplog):
     cache.load_or_build("t", ("k",), build)
     entry = _entry(cache_folder)
     _flip_bit(entry / "V.npy", 600_001)
-    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.io.cache"):
         again = cache.load_or_build("t", ("k",), build)
     assert calls == [1, 1] and _same(again, _state())
     msgs = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
@@ -131,7 +133,7 @@ def test_cache_partial_or_altered_entry_is_rebuilt(cache_folder, caplog, damage)
         np.save(entry / "meta.npy", np.array([3, 4, 5], dtype=np.int32))  # same values, other dtype
     else:
         (entry / "manifest.json").write_bytes(b"\xff\xfe not json")
-    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.io.cache"):
         again = cache.load_or_build("t", ("k",), build)
     assert calls == [1, 1] and _same(again, _state())
     assert sum("damaged" in r.getMessage() for r in caplog.records) == 1
@@ -157,7 +159,7 @@ _KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
     import torch
-    from arraysel import cache
+    from arraysel.io import cache
 
     real = np.lib.format.write_array
     count = [0]
@@ -192,7 +194,7 @@ def test_cache_kill_during_save_leaves_no_entry_and_the_next_run_cleans_up(cache
 _BUILDER_SCRIPT = textwrap.dedent("""
     import sys, time
     import torch
-    from arraysel import cache
+    from arraysel.io import cache
 
     def build():
         with open(sys.argv[1], "a") as fh:
@@ -230,12 +232,12 @@ def test_cache_off_and_location(monkeypatch, tmp_path):
 
 
 def test_cache_command_path_info_clear(cache_folder):
-    from arraysel.cli import main
+    from arraysel.cli.main import main
 
     cache.load_or_build("t", ("k",), _counting_builder()[0])
     (cache_folder / ".t-stale.1.abc.tmp").mkdir()
     (cache_folder / "psf-basis-0123.pt").write_bytes(b"old format")
-    out = subprocess.run([sys.executable, "-m", "arraysel.cli", "cache", "info"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "arraysel.cli.main", "cache", "info"], capture_output=True,
                          text=True, env=os.environ.copy())
     assert out.returncode == 0, out.stderr
     assert str(cache_folder) in out.stdout and "ok" in out.stdout
@@ -248,8 +250,8 @@ def test_cache_command_path_info_clear(cache_folder):
 def test_psf_basis_goes_through_the_checked_cache(cache_folder, caplog):
     """The PSF model stores its basis in the new cache; a bit flip in the stored basis is caught,
     reported and repaired, and the kernels stay the exact path's."""
-    from arraysel.probes import Acquisition, get_probe
-    from arraysel.psf import PSFModel, PSFSetup
+    from arraysel.physics.probes import Acquisition, get_probe
+    from arraysel.physics.psf import PSFModel, PSFSetup
 
     probe = get_probe("P4-2v", fc=3.5e6, n_elements=8)
     acq = Acquisition.for_probe(probe)
@@ -263,7 +265,7 @@ def test_psf_basis_goes_through_the_checked_cache(cache_folder, caplog):
     assert entry.name.startswith("psf-basis-")
     biggest = max((p for p in entry.iterdir() if p.suffix == ".npy"), key=lambda p: p.stat().st_size)
     _flip_bit(biggest, biggest.stat().st_size - 7, bit=6)
-    with caplog.at_level(logging.WARNING, logger="arraysel.cache"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.io.cache"):
         second = PSFModel(setup, margin=2, block=4)
     assert sum("damaged" in r.getMessage() for r in caplog.records) == 1
     k2 = second.kernels(w)
@@ -276,7 +278,8 @@ def test_psf_basis_goes_through_the_checked_cache(cache_folder, caplog):
 # ---------------------------------------------------------------------------
 
 def test_atomic_writers_follow_the_umask(tmp_path):
-    from arraysel import maskio, reporting
+    from arraysel.io import masks as maskio
+    from arraysel.report import tables as reporting
 
     old = os.umask(0o022)
     try:
@@ -313,8 +316,8 @@ def test_atomic_file_discards_on_error(tmp_path):
 
 _BAD_PLUGINS = textwrap.dedent("""
     import os, sys, time
-    from arraysel.hookspecs import hookimpl
-    from arraysel.selector import Selector, indices_to_mask
+    from arraysel.selectors.hookspecs import hookimpl
+    from arraysel.selectors.contract import Selector, indices_to_mask
 
 
     class _Base(Selector):
@@ -385,7 +388,7 @@ def _bad_plugin_file(tmp_path_factory):
 @pytest.fixture(autouse=True)
 def _own_plugin_manager(monkeypatch):
     """A process-wide plugin manager of the built-ins only, restored afterwards."""
-    from arraysel import registry
+    from arraysel.selectors import registry
 
     monkeypatch.delenv(registry.DISABLE_ENV, raising=False)
     registry.reset()
@@ -402,7 +405,7 @@ def bad_plugins(_bad_plugin_file):
 
 
 def _compare(out, selectors, *extra, budget_s="1", evals="10"):
-    from arraysel.cli import main
+    from arraysel.cli.main import main
 
     return main(["compare", "--selectors", selectors, "--scene", "toy", "--budget-s", budget_s,
                  "--budget-evals", evals, "--out", str(out), "--no-progress", "--no-figures", *extra])
@@ -464,8 +467,8 @@ def test_compare_resume_refuses_a_different_setup(tmp_path, bad_plugins, capsys,
 
 
 def test_compare_resume_refuses_another_scene_and_damaged_files(tmp_path, capsys):
-    from arraysel.runner import compare
-    from arraysel.selector import Budget
+    from arraysel.run.experiment import compare
+    from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
     from arraysel.errors import ParameterError
 
@@ -491,8 +494,8 @@ def test_compare_resume_refuses_another_scene_and_damaged_files(tmp_path, capsys
 def test_compare_resume_records_every_selector_and_seed(tmp_path):
     import json
 
-    from arraysel.runner import compare
-    from arraysel.selector import Budget
+    from arraysel.run.experiment import compare
+    from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
 
     out = tmp_path / "cmp"
@@ -514,8 +517,8 @@ def test_compare_refuses_non_finite_budgets(tmp_path, capsys, value):
 
 def test_compare_api_refuses_infinite_budget(tmp_path):
     from arraysel.errors import ParameterError
-    from arraysel.runner import compare
-    from arraysel.selector import Budget
+    from arraysel.run.experiment import compare
+    from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
 
     with pytest.raises(ParameterError, match="budget seconds"):
@@ -524,12 +527,12 @@ def test_compare_api_refuses_infinite_budget(tmp_path):
 
 
 def test_compare_unwritable_out_fails_before_the_objective_is_built(tmp_path, capsys, monkeypatch):
-    from arraysel.commands import compare as cmd
+    from arraysel.cli import compare as cmd
 
     blocker = tmp_path / "file"
     blocker.write_text("x")
     monkeypatch.setattr(cmd, "build_objective", lambda *a, **k: pytest.fail("objective was built"))
-    from arraysel.cli import main
+    from arraysel.cli.main import main
     assert main(["compare", "--selectors", "uniform", "--scene", "toy", "--out", str(blocker / "sub"),
                  "--no-progress"]) == 2
     err = capsys.readouterr().err
@@ -583,8 +586,8 @@ def _random_masks(path, n, ne=64, k=32, seed=0):
 
 
 def test_evaluate_streams_kernels_and_rows_in_chunks(tmp_path, tiny_scene, monkeypatch):
-    from arraysel.cli import main
-    from arraysel.commands import evaluate as ev
+    from arraysel.cli.main import main
+    from arraysel.cli import evaluate as ev
     import pandas as pd
 
     monkeypatch.setattr(ev, "CHUNK_WITH_KERNELS", 7)  # several chunks
@@ -599,7 +602,7 @@ def test_evaluate_streams_kernels_and_rows_in_chunks(tmp_path, tiny_scene, monke
     assert list(df["elements"]) == [" ".join(map(str, s)) for s in sels]
     d = np.load(psf)
     assert d["psf"].shape == (30, 16, 16) and d["psf_ref"].shape == (16, 16)
-    from arraysel.objective import build_objective, masks_from_indices
+    from arraysel.objective.psf_objective import build_objective, masks_from_indices
     obj = build_objective(tiny_scene)
     want = obj.evaluate(masks_from_indices(sels, 8, 4), return_kernels=True)
     assert np.allclose(d["psf"], want["kernels"], atol=1e-6)
@@ -608,7 +611,7 @@ def test_evaluate_streams_kernels_and_rows_in_chunks(tmp_path, tiny_scene, monke
 
 
 def test_evaluate_unwritable_psf_out_leaves_no_csv(tmp_path, tiny_scene, capsys):
-    from arraysel.cli import main
+    from arraysel.cli.main import main
 
     masks = tmp_path / "m.txt"
     masks.write_text("0 1 2 3\n")
@@ -624,8 +627,8 @@ def test_evaluate_unwritable_psf_out_leaves_no_csv(tmp_path, tiny_scene, capsys)
 
 @pytest.mark.parametrize("case", ["missing", "folder", "latin1", "binary", "no-selection", "parent-is-file"])
 def test_evaluate_path_and_encoding_errors_are_one_line(tmp_path, capsys, monkeypatch, case):
-    from arraysel.cli import main
-    from arraysel.commands import compare as cmp
+    from arraysel.cli.main import main
+    from arraysel.cli import compare as cmp
 
     monkeypatch.setattr(cmp, "build_objective", lambda *a, **k: pytest.fail("objective was built"))
     masks = tmp_path / "m.txt"
@@ -655,7 +658,7 @@ def test_evaluate_path_and_encoding_errors_are_one_line(tmp_path, capsys, monkey
 
 def test_long_mask_lines_are_linear(tmp_path):
     from arraysel.errors import SelectionError
-    from arraysel.maskio import iter_mask_lines, parse_elements
+    from arraysel.io.masks import iter_mask_lines, parse_elements
 
     idx = list(range(40_000))
     t0 = time.perf_counter()
@@ -676,7 +679,7 @@ def test_long_mask_lines_are_linear(tmp_path):
 # across the exec of a vfork-ed child)
 _MEMORY_SCRIPT = textwrap.dedent("""
     import sys
-    from arraysel.cli import main
+    from arraysel.cli.main import main
     code = main(["evaluate", "--scene", "toy", "--masks", sys.argv[1], "--out", sys.argv[2], "--no-progress"])
     with open("/proc/self/status") as fh:
         kb = next(int(l.split()[1]) for l in fh if l.startswith("VmHWM:"))
@@ -710,7 +713,7 @@ def test_evaluate_a_million_masks_under_a_memory_ceiling(tmp_path):
 
 
 def test_scene_relative_base_resolves_next_to_the_scene_file(tmp_path, monkeypatch):
-    from arraysel.scene import load_scene
+    from arraysel.scenes.schema import load_scene
 
     folder = tmp_path / "scenes"
     (folder / "sub").mkdir(parents=True)
@@ -725,7 +728,7 @@ def test_scene_relative_base_resolves_next_to_the_scene_file(tmp_path, monkeypat
 
 @pytest.mark.parametrize("case", ["folder", "latin1"])
 def test_scene_file_errors_are_one_line(tmp_path, capsys, case):
-    from arraysel.cli import main
+    from arraysel.cli.main import main
 
     path = tmp_path / "bad.toml"
     if case == "folder":
@@ -826,8 +829,8 @@ def test_license_and_citation():
 def test_scores_a_legacy_plugin_reports_are_checked_against_the_objective():
     """A legacy selector reports its own scores (recorder.report): a score that the objective does
     not confirm turns the run into an error row instead of a flattering trace."""
-    from arraysel.runner import Experiment
-    from arraysel.selector import Budget, Selector
+    from arraysel.run.experiment import Experiment
+    from arraysel.selectors.contract import Budget, Selector
     from arraysel.testing import ToyObjective
 
     class Liar(Selector):

@@ -1,4 +1,4 @@
-"""Known-answer tests of arraysel.metrics (SPEC sections 2 and 3)."""
+"""Known-answer tests of arraysel.objective.metrics (SPEC sections 2 and 3)."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from arraysel.errors import NumericalError, ParameterError
-from arraysel.metrics import (
+from arraysel.objective.metrics import (
     DEFAULT_WEIGHTS,
     PSF_TERMS,
     check_finite,
@@ -530,7 +530,7 @@ def test_terms_selection_returns_only_requested():
 
 def test_elementwise_reduction_path_matches_matmul_path(monkeypatch):
     # accelerators reduce with multiply-and-sum instead of matmul: check both agree (on CPU)
-    import arraysel.metrics as M
+    import arraysel.objective.metrics as M
 
     ks = _small_kernel(11).repeat(3, 1, 1)
     ks[2] = ks[2].conj() * 0.5

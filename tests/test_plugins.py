@@ -10,11 +10,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from arraysel import cli, registry
-from arraysel.hookspecs import hookimpl, hookspec
-from arraysel.registry import (DuplicateSelectorError, PluginLoadError, build_plugin_manager, get_registry,
+from arraysel import cli
+
+from arraysel.selectors import registry
+from arraysel.selectors.hookspecs import hookimpl, hookspec
+from arraysel.selectors.registry import (DuplicateSelectorError, PluginLoadError, build_plugin_manager, get_registry,
                                load_plugin)
-from arraysel.selector import Option, Selector
+from arraysel.selectors.contract import Option, Selector
 
 ROOT = Path(__file__).resolve().parents[1]
 SINGLE_FILE = ROOT / "examples" / "single_file_plugin.py"
@@ -217,7 +219,59 @@ def test_cli_rejects_unknown_selector_and_bad_options(isolated_pm, tmp_path, cap
 
 def test_installed_command_lists_builtins():
     exe = Path(sys.executable).with_name("arraysel")
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "arraysel.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "arraysel.cli.main"]
     out = subprocess.run(cmd + ["list"], capture_output=True, text=True, timeout=120, check=True).stdout
     names = {line.split()[0] for line in out.splitlines()[1:] if line.strip()}
     assert BUILTINS <= names
+
+
+@pytest.mark.parametrize("old, new", [("arraysel.selector", "arraysel.selectors.contract"),
+                                      ("arraysel.hookspecs", "arraysel.selectors.hookspecs"),
+                                      ("arraysel.registry", "arraysel.selectors.registry"),
+                                      ("arraysel.relax", "arraysel.selectors.relax"),
+                                      ("arraysel.psf", "arraysel.physics.psf"),
+                                      ("arraysel.runner", "arraysel.run.experiment"),
+                                      ("arraysel.commands.compare", "arraysel.cli.compare")])
+def test_old_module_paths_still_import_with_a_deprecation_naming_the_new_one(old, new):
+    """Plugins written against the flat 0.1 layout keep working; the warning says where to import from."""
+    import importlib
+    import sys
+    import warnings
+
+    sys.modules.pop(old, None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        module = importlib.import_module(old)
+    assert module is importlib.import_module(new)
+    messages = [str(w.message) for w in caught if issubclass(w.category, DeprecationWarning)]
+    assert any(old in m and new in m for m in messages), messages
+
+
+def test_a_plugin_written_against_the_flat_layout_registers_and_runs(isolated_pm):
+    """The 0.1 spelling (arraysel.selector / arraysel.hookspecs) still gives a working selector."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from arraysel.hookspecs import hookimpl as old_hookimpl
+        from arraysel.selector import Selector as OldSelector
+
+    class FirstK(OldSelector):
+        name = "first-k-old-style"
+        description = "the first k elements"
+
+        def select(self, objective, k, seed):
+            return list(range(k))
+
+    class Plugin:
+        @old_hookimpl
+        def arraysel_register_selectors(self, register):
+            register(FirstK)
+
+    isolated_pm.register(Plugin(), name="old-style")
+    from arraysel.selectors.registry import get_registry
+    from arraysel.testing import ToyObjective
+
+    registry = get_registry(isolated_pm)
+    assert "first-k-old-style" in registry.names()
+    assert registry["first-k-old-style"]().select(ToyObjective(8, 3), 3, 0) == [0, 1, 2]

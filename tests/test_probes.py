@@ -1,4 +1,4 @@
-"""Tests of arraysel.probes: catalogue vs PyMUST getparam, geometry, validation."""
+"""Tests of arraysel.physics.probes: catalogue vs PyMUST getparam, geometry, validation."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from arraysel.errors import ParameterError
-from arraysel.probes import (Acquisition, Probe, check_sampling, get_probe, list_probes,
+from arraysel.physics.probes import (Acquisition, Probe, check_sampling, get_probe, list_probes,
                              min_sampling_frequency)
 
 pymust = pytest.importorskip("pymust")

@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.delays import plane_wave_delays
-from arraysel.probes import Acquisition, get_probe
-from arraysel.psf import PSFModel, PSFSetup
-from arraysel.simus import simulate_rf
+from arraysel.physics.delays import plane_wave_delays
+from arraysel.physics.probes import Acquisition, get_probe
+from arraysel.physics.psf import PSFModel, PSFSetup
+from arraysel.physics.simus import simulate_rf
 from pymust_pipeline import si_mse
 
 pytest.importorskip("pymust")
@@ -103,7 +103,7 @@ def test_gradcheck_exact_path_soft_weights():
 
     def f(w):
         img = model.image(w)
-        from arraysel.psf import window_and_normalise
+        from arraysel.physics.psf import window_and_normalise
         return torch.view_as_real(window_and_normalise(img, 8, peak=peak[None]))
 
     assert torch.autograd.gradcheck(f, (w0,), eps=1e-6, atol=1e-6, rtol=1e-4)

@@ -1,4 +1,4 @@
-"""Tests of arraysel.recon: convolution operator, unrolled ISTA, head, metrics."""
+"""Tests of arraysel.e2e.recon: convolution operator, unrolled ISTA, head, metrics."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from arraysel.errors import ParameterError
-from arraysel.recon import (ConvolutionOperator, Reconstructor, ResidualHead, UnrolledISTA,
+from arraysel.e2e.recon import (ConvolutionOperator, Reconstructor, ResidualHead, UnrolledISTA,
                             complex_soft_threshold, convolve, features, mse, psnr, ssim)
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

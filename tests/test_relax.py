@@ -1,4 +1,4 @@
-"""Tests of arraysel.relax: temperature schedule, sequential draws, Gumbel noise, stability."""
+"""Tests of arraysel.selectors.relax: temperature schedule, sequential draws, Gumbel noise, stability."""
 from __future__ import annotations
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.relax import (column_entropy, cosine_temperature, gumbel_noise, project_capped_simplex,
+from arraysel.selectors.relax import (column_entropy, cosine_temperature, gumbel_noise, project_capped_simplex,
                             row_penalty, selection_weights, sequential_selection)
 
 DTYPES = [torch.float32, torch.float64]

@@ -1,4 +1,4 @@
-"""Tests of arraysel.runner / reporting: experiment rows, budgets, compare outputs, resume."""
+"""Tests of arraysel.run.experiment / reporting: experiment rows, budgets, compare outputs, resume."""
 from __future__ import annotations
 
 import json
@@ -8,11 +8,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from arraysel.commands.compare import build_objective
+from arraysel.cli.compare import build_objective
 from arraysel.errors import ArrayselError, ParameterError
-from arraysel.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.runner import ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
-from arraysel.selector import Budget, BudgetExceededError, Option, Selector, check_selection
+from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
+from arraysel.run.experiment import ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
+from arraysel.selectors.contract import Budget, BudgetExceededError, Option, Selector, check_selection
 from arraysel.testing import ToyObjective
 
 

@@ -15,11 +15,11 @@ import pandas as pd
 import pytest
 import torch
 
-from arraysel.cli import main
+from arraysel.cli.main import main
 from arraysel.errors import ParameterError
-from arraysel.objective import METRIC_NAMES, Objective, point_metric_names
-from arraysel.psf import PSFModel
-from arraysel.scene import SCHEMA, builtin_scenes, load_scene
+from arraysel.objective.psf_objective import METRIC_NAMES, Objective, point_metric_names
+from arraysel.physics.psf import PSFModel
+from arraysel.scenes.schema import SCHEMA, builtin_scenes, load_scene
 
 TINY = {"base": "paper", "probe": {"n_elements": 8}, "selection": {"k": 4}, "transmit": {"n_tx": 2},
         "grid": {"n_x": 16, "n_z": 16, "window": 8, "pixel_per_wavelength_fs": 1.0},
@@ -247,9 +247,9 @@ def test_worst_aggregate_and_gradients():
 
 
 def test_runs_csv_keeps_the_per_point_breakdown(two_points, tmp_path):
-    from arraysel.registry import build_plugin_manager, get_registry
-    from arraysel.runner import ROW_COLUMNS, compare
-    from arraysel.selector import Budget
+    from arraysel.selectors.registry import build_plugin_manager, get_registry
+    from arraysel.run.experiment import ROW_COLUMNS, compare
+    from arraysel.selectors.contract import Budget
 
     reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
     compare(two_points, ["uniform"], out_dir=tmp_path, budget=Budget(evaluations=4), registry=reg,
@@ -273,7 +273,7 @@ def test_end_to_end_scenes_take_one_point():
 # ---------------------------------------------------------------------------
 
 def test_exact_path_chunks_follow_the_memory_cap_and_agree(monkeypatch):
-    import arraysel.psf as psf_module
+    import arraysel.physics.psf as psf_module
 
     setup = load_scene(tiny()).psf_setup()
     big = PSFModel(setup, fast=False)
@@ -290,11 +290,11 @@ def test_exact_path_chunks_follow_the_memory_cap_and_agree(monkeypatch):
 
 
 def test_exact_path_says_so_once_with_time_estimates(caplog):
-    with caplog.at_level(logging.WARNING, logger="arraysel.objective"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.objective.psf_objective"):
         obj = Objective(load_scene(tiny()), fast=False)
         obj.evaluate(MASKS)
         obj.evaluate(MASKS)
-    msgs = [r.getMessage() for r in caplog.records if r.name == "arraysel.objective"]
+    msgs = [r.getMessage() for r in caplog.records if r.name == "arraysel.objective.psf_objective"]
     assert len(msgs) == 2, msgs
     assert "fast path disabled (fast=False); using the exact path: about" in msgs[0]
     assert "per mask (estimated)" in msgs[0] and "ARRAYSEL_MEMORY_GIB" in msgs[0]
@@ -352,8 +352,8 @@ def test_compare_ranks_by_the_chosen_aggregate(tmp_path, capsys):
 
 
 def test_compare_says_how_long_the_exact_path_takes(two_points):
-    from arraysel.commands.compare import _exact_run_notice
-    from arraysel.selector import Budget
+    from arraysel.cli.compare import _exact_run_notice
+    from arraysel.selectors.contract import Budget
 
     text = _exact_run_notice(two_points, Budget(evaluations=50), 3)
     assert "using the exact path" in text and "150 mask(s): about" in text and "(3 run(s) of 50)" in text
@@ -362,7 +362,7 @@ def test_compare_says_how_long_the_exact_path_takes(two_points):
 
 
 def test_end_to_end_scenes_only_warn_about_regions(caplog):
-    with caplog.at_level(logging.WARNING, logger="arraysel.scene"):
+    with caplog.at_level(logging.WARNING, logger="arraysel.scenes.schema"):
         load_scene({"base": "paper-e2e", "grid": {"n_x": 64, "n_z": 64, "window": 32}})
     assert any("metrics.r_main = 1.5 (24.0 px) does not fit grid.window = 32" in r.getMessage()
                for r in caplog.records)

@@ -12,10 +12,10 @@ import pandas as pd
 import pytest
 
 from arraysel.errors import ParameterError
-from arraysel.registry import build_plugin_manager, get_registry
-from arraysel.reporting import plot_anytime
-from arraysel.runner import DEFAULT_SEEDS, Experiment, compare
-from arraysel.selector import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector
+from arraysel.selectors.registry import build_plugin_manager, get_registry
+from arraysel.report.tables import plot_anytime
+from arraysel.run.experiment import DEFAULT_SEEDS, Experiment, compare
+from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector
 from arraysel.testing import ToyObjective
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from arraysel import metrics as M
-from arraysel.objective import Objective
-from arraysel.scene import load_scene
+from arraysel.objective import metrics as M
+from arraysel.objective.psf_objective import Objective
+from arraysel.scenes.schema import load_scene
 
 TINY = {"probe": {"n_elements": 8}, "selection": {"k": 4}, "transmit": {"n_tx": 1},
         "grid": {"n_x": 16, "n_z": 16, "window": 8, "pixel_per_wavelength_fs": 1.0},

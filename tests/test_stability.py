@@ -25,12 +25,12 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel import metrics as M
+from arraysel.objective import metrics as M
 from arraysel.errors import NumericalError, ParameterError
-from arraysel.probes import Acquisition, get_probe
-from arraysel.psf import PSFModel, PSFSetup, window_and_normalise
-from arraysel.recon import ConvolutionOperator, Reconstructor, UnrolledISTA, complex_soft_threshold
-from arraysel.relax import gumbel_noise, sequential_selection
+from arraysel.physics.probes import Acquisition, get_probe
+from arraysel.physics.psf import PSFModel, PSFSetup, window_and_normalise
+from arraysel.e2e.recon import ConvolutionOperator, Reconstructor, UnrolledISTA, complex_soft_threshold
+from arraysel.selectors.relax import gumbel_noise, sequential_selection
 
 FC = 3.5e6
 LAMBDA = 1540.0 / FC
@@ -250,7 +250,7 @@ def test_fast_path_too_large_falls_back_to_exact_path(monkeypatch, caplog):
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
     setup = make_setup(ne=16)
     monkeypatch.setenv("ARRAYSEL_BASIS_MAX_GIB", "1e-6")
-    with caplog.at_level("WARNING", logger="arraysel.psf"):
+    with caplog.at_level("WARNING", logger="arraysel.physics.psf"):
         m = PSFModel(setup, dtype=torch.float64, fast=True, margin=2, block=4)
     assert m.fast is None and m.basis_bytes() > 2 ** 10
     assert "ARRAYSEL_BASIS_MAX_GIB" in caplog.text
@@ -380,7 +380,7 @@ def test_fast_path_matches_exact_path(case):
     PSFModel's kernel_tol (5e-3) to the exact path, so every kernel is within 5e-3 in L2: a weak
     selection in the near field (a quarter wavelength from the probe, 5 elements) has a truncation
     error of 3.5e-2 and must be recomputed. Measured on certified kernels: <= 1.4e-3."""
-    from arraysel.psf import _PairBasis
+    from arraysel.physics.psf import _PairBasis
     masks = torch.cat([selections(16, 5), selections(16, 2), torch.ones(1, 16)])
     kf = model(ne=16, fast=True, dtype=torch.float64, **case).kernels(masks)
     ke = model(ne=16, fast=False, dtype=torch.float64, **case).kernels(masks)
@@ -577,10 +577,10 @@ def test_composite_loss_with_terms_1e4_apart(dtype):
     ("gumbel", {"tau_start": 1e-3, "tau_end": 1e-3, "lr": 1e3, "variant": "soft"}),
 ])
 def test_matrix_selectors_with_extreme_settings_return_valid_rows(selector, options):
-    from arraysel.objective import Objective
-    from arraysel.runner import Experiment
-    from arraysel.scene import load_scene
-    from arraysel.selector import Budget
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.run.experiment import Experiment
+    from arraysel.scenes.schema import load_scene
+    from arraysel.selectors.contract import Budget
 
     scene = load_scene({"base": "paper", "probe": {"n_elements": 16}, "selection": {"k": 4},
                         "transmit": {"n_tx": 1}, "grid": {"n_x": 32, "n_z": 32, "window": 16,

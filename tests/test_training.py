@@ -1,4 +1,4 @@
-"""Tests of arraysel.training with a toy differentiable kernel_fn (no physics)."""
+"""Tests of arraysel.e2e.trainer with a toy differentiable kernel_fn (no physics)."""
 from __future__ import annotations
 
 import copy
@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from arraysel.data import load_dataset
+from arraysel.e2e.data import load_dataset
 from arraysel.errors import ParameterError, SelectionError
-from arraysel.training import (E2ETrainer, HardSTESelection, LossWeights, TrainConfig,
+from arraysel.e2e.trainer import (E2ETrainer, HardSTESelection, LossWeights, TrainConfig,
                                entropy_loss, mask_to_weights, row_loss, tau_schedule, train_e2e)
 
 NE, K, N = 16, 6, 32

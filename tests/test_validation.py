@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.cli import main
+from arraysel.cli.main import main
 from arraysel.errors import ParameterError, SelectionError
-from arraysel.scene import load_scene
+from arraysel.scenes.schema import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,7 +119,7 @@ def test_scene_files_are_parsed_as_data_never_executed(tmp_path):
             pass
         assert not marker.exists()
     # the loader itself: tomllib only, no eval/exec/pickle/import of scene content
-    src = (ROOT / "arraysel" / "scene.py").read_text()
+    src = (ROOT / "arraysel" / "scenes" / "schema.py").read_text()
     tree = ast.parse(src)
     called = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
     assert not called & {"eval", "exec", "compile", "__import__"}
@@ -144,14 +144,14 @@ def test_scene_probe_name_is_checked():
     ([[]], None, r"selection 0: empty selection"),
 ])
 def test_masks_from_indices_rejects_bad_selections(sel, k, pattern):
-    from arraysel.objective import masks_from_indices
+    from arraysel.objective.psf_objective import masks_from_indices
 
     with pytest.raises(SelectionError, match=pattern):
         masks_from_indices(sel, 8, k)
 
 
 def test_masks_from_indices_accepts_valid():
-    from arraysel.objective import masks_from_indices
+    from arraysel.objective.psf_objective import masks_from_indices
 
     m = masks_from_indices([[0, 7, 3, 4], np.array([1, 2, 5, 6])], 8, 4)
     assert m.shape == (2, 8) and (m.sum(1) == 4).all()
@@ -161,7 +161,7 @@ def test_masks_from_indices_accepts_valid():
 def tiny_objective():
     import os as _os
 
-    from arraysel.objective import Objective
+    from arraysel.objective.psf_objective import Objective
 
     old = _os.environ.get("ARRAYSEL_CACHE")
     _os.environ["ARRAYSEL_CACHE"] = "off"
@@ -206,7 +206,7 @@ def test_objective_evaluate_indices_and_selection_loss_shapes(tiny_objective):
 # ---------------------------------------------------------------------------
 
 def _selector_returning(value, name):
-    from arraysel.selector import Selector
+    from arraysel.selectors.contract import Selector
 
     class Bad(Selector):
         description = "returns a fixed (invalid) result"
@@ -233,8 +233,8 @@ def _selector_returning(value, name):
     (lambda: torch.tensor([0, 1, 2, 2]), r"SelectionError: selection repeats"),
 ])
 def test_runner_catches_invalid_plugin_results(value, pattern):
-    from arraysel.runner import ROW_COLUMNS, Experiment
-    from arraysel.selector import Budget
+    from arraysel.run.experiment import ROW_COLUMNS, Experiment
+    from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
 
     row = Experiment(ToyObjective(8, 4), _selector_returning(value, "bad-result"),
@@ -245,8 +245,8 @@ def test_runner_catches_invalid_plugin_results(value, pattern):
 
 
 def test_runner_catches_invalid_result_on_a_physics_objective(tiny_objective):
-    from arraysel.runner import Experiment
-    from arraysel.selector import Budget
+    from arraysel.run.experiment import Experiment
+    from arraysel.selectors.contract import Budget
 
     row = Experiment(tiny_objective, _selector_returning([0, 1, 1, 2], "bad-physics"),
                      budget=Budget(evaluations=5)).run()
@@ -376,7 +376,7 @@ def test_checkpoint_with_pickled_code_is_refused(tmp_path):
 # ---------------------------------------------------------------------------
 
 def test_atomic_write_text_leaves_no_partial_file(tmp_path, monkeypatch):
-    from arraysel import reporting
+    from arraysel.report import tables as reporting
 
     target = tmp_path / "table1.csv"
     target.write_text("old complete content\n")
@@ -418,7 +418,7 @@ def test_atomic_write_text_leaves_no_partial_file(tmp_path, monkeypatch):
 
 
 def test_atomic_write_survives_interrupt_during_replace(tmp_path, monkeypatch):
-    from arraysel import reporting
+    from arraysel.report import tables as reporting
 
     target = tmp_path / "run.json"
     target.write_text("{}\n")
@@ -435,7 +435,7 @@ def test_atomic_write_survives_interrupt_during_replace(tmp_path, monkeypatch):
 
 
 def test_atomic_write_bytes_leaves_no_partial_file(tmp_path, monkeypatch):
-    from arraysel import maskio
+    from arraysel.io import masks as maskio
 
     target = tmp_path / "metrics.csv"
     target.write_bytes(b"old\n")
@@ -456,8 +456,8 @@ def test_atomic_write_bytes_leaves_no_partial_file(tmp_path, monkeypatch):
 def test_result_writers_go_through_the_atomic_helpers():
     """No result file is written with a bare open(..., 'w') / to_csv(path) / np.savez(path)."""
     bad = []
-    for rel in ("arraysel/reporting.py", "arraysel/runner.py", "arraysel/maskio.py",
-                "arraysel/commands/psf.py", "arraysel/commands/evaluate.py", "arraysel/commands/compare.py"):
+    for rel in ("arraysel/report/tables.py", "arraysel/run/experiment.py", "arraysel/io/masks.py",
+                "arraysel/cli/psf.py", "arraysel/cli/evaluate.py", "arraysel/cli/compare.py"):
         src = (ROOT / rel).read_text()
         # writes to a temporary file (fd / tmp) or a memory buffer (buf) are the atomic helpers
         for pat in (r"open\((?!fd)[^)]*['\"]w", r"\.to_csv\((?!index)", r"np\.savez(_compressed)?\((?!buf)",

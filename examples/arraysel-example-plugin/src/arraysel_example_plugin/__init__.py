@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from arraysel.hookspecs import hookimpl
-from arraysel.selector import Option, Selector, numpy_rng
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.contract import Option, Selector, numpy_rng
 
 
 class SwapSelector(Selector):

@@ -1,0 +1,52 @@
+"""Old flat module paths (before the 0.2 layout) keep importing, with a DeprecationWarning.
+
+``import arraysel.selector`` still works and gives :mod:`arraysel.selectors.contract` (the same module
+object, so ``isinstance`` and monkeypatching agree); the warning names the new path.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
+import warnings
+
+#: old module (under ``arraysel.``) -> where it lives now
+MOVED = {
+    "probes": "physics.probes", "delays": "physics.delays", "simus": "physics.simus",
+    "beamform": "physics.beamform", "psf": "physics.psf", "pairkernels": "physics.pairkernels",
+    "scene": "scenes.schema",
+    "atomic": "io.atomic", "cache": "io.cache", "maskio": "io.masks",
+    "metrics": "objective.metrics",
+    "selector": "selectors.contract", "hookspecs": "selectors.hookspecs", "registry": "selectors.registry",
+    "relax": "selectors.relax", "localsearch": "selectors.localsearch",
+    "runner": "run.experiment", "executors": "run.executors", "allocator": "run.allocator",
+    "reporting": "report.tables",
+    "data": "e2e.data", "recon": "e2e.recon", "training": "e2e.trainer", "e2e_figures": "e2e.figures",
+    "commands": "cli",
+    **{f"commands.{c}": f"cli.{c}" for c in ("compare", "evaluate", "list", "psf", "scenes", "cache", "train")},
+}
+
+
+class _Alias(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname.startswith("arraysel.") and fullname[len("arraysel."):] in MOVED:
+            return importlib.util.spec_from_loader(fullname, self)
+        return None
+
+    def create_module(self, spec):
+        new = "arraysel." + MOVED[spec.name[len("arraysel."):]]
+        warnings.warn(f"{spec.name} has moved to {new}; import from there (the old path will be removed in 0.3)",
+                      DeprecationWarning, stacklevel=3)
+        return importlib.import_module(new)
+
+    def exec_module(self, module):  # the target module is already executed
+        pass
+
+
+_FINDER = _Alias()
+
+
+def install() -> None:
+    if _FINDER not in sys.meta_path:
+        sys.meta_path.insert(0, _FINDER)  # before the path finder, so an old sub-module is never loaded twice

@@ -1,0 +1,41 @@
+"""``arraysel cache path|info|clear``: where the precomputation cache is, what it holds, removing it."""
+from __future__ import annotations
+
+from arraysel.errors import ParameterError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "cache", help="show or clear the on-disk cache of precomputed PSF bases",
+        description="The PSF fast path precomputes a basis per scene (about 1 GB for the paper scene, "
+                    "about 100 s on two cores) and keeps it in a cache folder: $ARRAYSEL_CACHE when set "
+                    "('off' disables the cache), else the platform's user cache folder. "
+                    "'path' prints the folder, 'info' lists its entries with their sizes and state, "
+                    "'clear' removes everything in it (entries are rebuilt when next needed).")
+    p.add_argument("action", choices=("path", "info", "clear"), help="what to do")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from arraysel.io.cache import _fmt_bytes, cache_dir, clear, list_entries
+
+    folder = cache_dir()
+    if folder is None:
+        if args.action == "path":
+            print("off")
+            return 0
+        raise ParameterError("the cache is off (ARRAYSEL_CACHE=off): there is nothing to show or clear")
+    if args.action == "path":
+        print(folder)
+    elif args.action == "info":
+        entries = list_entries(folder)
+        total = sum(e["bytes"] for e in entries)
+        print(f"cache folder: {folder}")
+        print(f"{len(entries)} item(s), {_fmt_bytes(total)} in all")
+        for e in entries:
+            when = f", created {e['created']}" if e["created"] else ""
+            print(f"  {e['name']}  {_fmt_bytes(e['bytes'])}  {e['status']}{when}")
+    else:
+        n, freed = clear(folder)
+        print(f"removed {n} item(s), {_fmt_bytes(freed)}, from {folder}")
+    return 0

@@ -1,0 +1,208 @@
+"""``arraysel compare``: run selectors on a scene and write Table 1, traces and figures."""
+from __future__ import annotations
+
+import math
+import sys
+
+from arraysel.errors import ParameterError, check_number
+from arraysel.selectors.registry import get_registry, load_plugin
+from arraysel.selectors.contract import Budget
+
+DEFAULT_BUDGET_S = 120.0
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compare", help="compare selectors on a scene (Table 1, traces, figures)",
+        description="Run each selector once per seed on the scene's objective, add the full-array "
+                    "reference row and write table1.csv, runs.csv, trace.csv, IOHprofiler files (ioh/), "
+                    "run.json and figures to --out. Rows are saved as each run finishes; after an "
+                    "interruption, rerun the same command with --resume.")
+    p.add_argument("--selectors", required=True, metavar="A,B,...",
+                   help="comma-separated selector names (see `arraysel list`)")
+    p.add_argument("--scene", default="paper",
+                   help="scene name or file (default: paper); 'toy' is the cheap synthetic objective "
+                        "of arraysel.testing (Ne=64, k=32), for trying selectors out")
+    p.add_argument("--budget-s", type=float, default=DEFAULT_BUDGET_S, metavar="S",
+                   help=f"wall-clock seconds per selector run (default {DEFAULT_BUDGET_S:g}; 0: no limit)")
+    p.add_argument("--budget-evals", type=int, default=None, metavar="N",
+                   help="objective evaluations per selector run (default: no limit)")
+    p.add_argument("--seeds", default=None, metavar="0,1,2",
+                   help="comma-separated seeds, each selector runs once per seed (default: 0,1,2,3,4 for "
+                        "stochastic selectors and 0 alone for deterministic ones)")
+    p.add_argument("--out", default="results/compare", metavar="DIR",
+                   help="output folder (default results/compare)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help="real dtype of the objective (default float32)")
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE_OR_PATH",
+                   help="load a selector plugin (module name or .py file) without installing it; repeatable")
+    p.add_argument("-o", "--option", action="append", default=[], metavar="SELECTOR.KEY=VALUE",
+                   help="selector option, e.g. -o ste.lr=1e-3 (repeatable; see `arraysel list -v`)")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the finished runs in --out/runs.csv and run only the missing ones (refused "
+                        "when the scene, k, dtype or budget differ from --out/run.json; seeds and "
+                        "selectors may be added)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results already in --out (without it, a folder holding the results "
+                        "of a compare run is refused)")
+    p.add_argument("--grace-s", type=float, default=None, metavar="S",
+                   help="seconds a run may go past --budget-s before its process is stopped and it gets "
+                        "an error row (default 30)")
+    p.add_argument("--in-process", action="store_true",
+                   help="run the selectors in this process instead of one child process per compare "
+                        "(faster start; a selector that hangs or exits then stops the whole compare)")
+    g = p.add_argument_group("parallel runs (see docs/distributed.md)")
+    g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
+                   help="where the (selector, seed) runs are computed: local (default: this process, "
+                        "one after another), process (a local process pool of --workers processes) or "
+                        "dask (a Dask cluster at --scheduler, or a local one with --workers processes; "
+                        "needs pip install arraysel[dask]). Results are the same as a local run")
+    g.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes for --executor process / dask without --scheduler "
+                        "(default: the number of CPU cores)")
+    g.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
+                   help="address of a running Dask scheduler (--executor dask)")
+    g.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="times a run is started again after its worker died or it failed (default 2)")
+    p.add_argument("--aggregate", choices=("mean", "worst"), default=None,
+                   help="headline metrics of a scene with several field points: the mean over the points or "
+                        "the worst point (default: the scene's metrics.aggregate, 'mean')")
+    p.add_argument("--no-figures", action="store_true", help="write tables only")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise ParameterError(f"--seeds must be comma-separated integers, got {text!r}") from None
+    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise ParameterError(f"--seeds must list distinct integers >= 0, got {text!r}")
+    return seeds
+
+
+def parse_selectors(text: str, registry) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if not names:
+        raise ParameterError("--selectors is empty; known selectors: " + ", ".join(registry.names()))
+    unknown = [n for n in names if n not in registry]
+    if unknown:
+        raise ParameterError(f"unknown selector(s) {', '.join(unknown)}; known selectors: "
+                             f"{', '.join(registry.names())} (load others with --plugin)")
+    if len(set(names)) != len(names):
+        raise ParameterError(f"--selectors lists a selector twice: {text!r}")
+    return names
+
+
+def parse_options(items: list[str], names: list[str], registry) -> dict[str, dict]:
+    """``["ste.lr=1e-3", ...]`` -> ``{"ste": {"lr": 0.001}}`` validated against declared options."""
+    raw: dict[str, dict[str, str]] = {n: {} for n in names}
+    for item in items:
+        key, sep, value = item.partition("=")
+        sel, dot, opt = key.strip().partition(".")
+        if not sep or not dot or not sel or not opt:
+            raise ParameterError(f"-o {item!r}: expected SELECTOR.KEY=VALUE, e.g. -o ste.lr=1e-3")
+        if sel not in raw:
+            raise ParameterError(f"-o {item!r}: selector {sel!r} is not in --selectors ({', '.join(names)})")
+        raw[sel][opt] = value
+    return {n: registry[n].parse_options(raw[n]) for n in names}
+
+
+def build_objective(scene: str, device: str, dtype_name: str, aggregate: str | None = None):
+    """The objective of ``scene`` (``toy``: :class:`arraysel.testing.ToyObjective`); ``aggregate``
+    overrides the scene's ``metrics.aggregate``."""
+    import torch
+
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ParameterError("--device cuda was given but torch sees no CUDA device")
+    dtype = getattr(torch, dtype_name)
+    if scene == "toy":
+        from arraysel.testing import ToyObjective
+        return ToyObjective(64, 32, device=device, dtype=dtype)
+    from arraysel.objective.psf_objective import build_objective as _build
+    from arraysel.scenes.schema import load_scene
+
+    over = {"metrics": {"aggregate": aggregate}} if aggregate else None
+    return _build(load_scene(scene, overrides=over), device=device, dtype=dtype)
+
+
+def _exact_run_notice(objective, budget, runs: int) -> str | None:
+    """The whole comparison's estimated time when the scene runs on the exact PSF path."""
+    if not any(p.fast is None for p in getattr(objective, "psfs", ())):
+        return None
+    if budget.evaluations is not None:
+        return f"{objective.exact_notice(budget.evaluations * runs)} ({runs} run(s) of {budget.evaluations})"
+    per = objective.estimate_seconds(1)
+    return (f"the exact PSF path takes about {per:.2g} s a mask: each of the {runs} run(s) stops at its "
+            f"{budget.seconds:g} s budget after about {int(budget.seconds / per)} evaluation(s)")
+
+
+def run(args) -> int:
+    from arraysel.run.experiment import compare
+
+    for spec in args.plugin:
+        load_plugin(spec)
+    registry = get_registry()
+    names = parse_selectors(args.selectors, registry)
+    options = parse_options(args.option, names, registry)
+    seeds = None if args.seeds is None else parse_seeds(args.seeds)
+    if not math.isfinite(args.budget_s):
+        raise ParameterError(f"--budget-s must be a finite number of seconds >= 0 (0: no time limit), "
+                             f"got {args.budget_s}")
+    budget_s = check_number("--budget-s", args.budget_s, lo=0)
+    grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
+    from arraysel.run.experiment import check_out_dir
+    check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
+    evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
+                                                                lo=1, integer=True)
+    budget = Budget(seconds=budget_s or None, evaluations=evals)
+    if budget.unlimited:
+        raise ParameterError("--budget-s 0 needs --budget-evals: a run must have some budget")
+    retries = check_number("--retries", args.retries, lo=0, hi=100, integer=True)
+    executor = None
+    if args.executor != "local" or args.workers is not None or args.scheduler:
+        from arraysel.run.executors import make_executor
+        executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
+                                 retries=retries)
+    try:
+        objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
+        from arraysel.run.experiment import DEFAULT_SEEDS
+        n_runs = sum(len(seeds) if seeds is not None else 1 if registry[n].deterministic else len(DEFAULT_SEEDS)
+                     for n in names)
+        notice = _exact_run_notice(objective, budget, n_runs)
+        if notice:
+            print(f"arraysel compare: {notice}", file=sys.stderr)
+        table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
+                        budget=budget, registry=registry, resume=args.resume,
+                        progress=not args.no_progress, figures=not args.no_figures,
+                        command_line=list(sys.argv), executor=executor, force=args.force,
+                        isolate=not args.in_process, grace_s=grace_s)
+    finally:
+        if executor is not None:
+            executor.close()
+    cols = [c for c in ("config", "Mean", "Mean_median", "Mean_iqr", "Mean_best", "seeds", "seconds",
+                        "evaluations", "error") if c in table]
+    with __import__("pandas").option_context("display.width", 160, "display.max_colwidth", 60):
+        print(table[cols].to_string(index=False))
+    print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, ioh/, run.json"
+          + ("" if args.no_figures else " and figures"))
+    return _report_failures(args.out)
+
+
+def _report_failures(out: str) -> int:
+    """Say which runs have an error row (from run.json); exit code 1 when any, else 0."""
+    import json
+    import os
+
+    try:
+        with open(os.path.join(out, "run.json"), "rb") as fh:
+            failed = json.loads(fh.read().decode("utf-8")).get("failed_runs", [])
+    except (OSError, ValueError):
+        return 0
+    if failed:
+        print(f"arraysel compare: {len(failed)} run(s) failed (see the error column of runs.csv): "
+              + ", ".join(failed), file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,106 @@
+"""``arraysel evaluate``: Table-1 metrics of the selections listed in a file.
+
+The mask file is read twice as a stream: once to validate every line (so a bad
+line is reported, with its number, before any work or output), then in chunks
+that are scored and written as they finish. Memory stays bounded whatever the
+number of masks; the CSV (and the ``--psf-out`` npz) grow in temporary files
+next to their targets and are renamed into place at the end, so a target is
+never half-written.
+"""
+from __future__ import annotations
+
+import sys
+
+from arraysel.errors import ParameterError
+
+#: masks scored per chunk (metrics only / with kernels kept for --psf-out)
+CHUNK = 4096
+CHUNK_WITH_KERNELS = 256
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("evaluate", help="score selections listed in a file",
+                              description="Score every selection of --masks (one per line, 0-based active "
+                                          "element indices separated by commas or spaces, '#' starts a "
+                                          "comment) and write one CSV row per selection, in order. Any "
+                                          "number of selections: they are read, scored and written in "
+                                          "chunks.")
+    p.add_argument("--scene", default="paper",
+                   help="scene name or .toml file (default paper); 'toy' is the cheap synthetic objective "
+                        "of arraysel.testing (Ne=64, k=32)")
+    p.add_argument("--masks", required=True, metavar="FILE", help="selections, one per line (UTF-8 text)")
+    p.add_argument("--out", default="metrics.csv", help="output CSV (default metrics.csv)")
+    p.add_argument("--psf-out", default=None, metavar="NPZ", help="also write the kernels (psf, psf_ref)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from arraysel.io.atomic import AtomicFile, StreamingNpz, check_writable
+    from arraysel.cli.compare import build_objective
+    from arraysel.io.masks import count_masks, iter_mask_chunks
+    from arraysel.objective.psf_objective import METRIC_NAMES
+
+    # every path, encoding and selection problem before any heavy work
+    if args.psf_out is not None and not args.psf_out.endswith(".npz"):
+        raise ParameterError(f"--psf-out must end with .npz, got {args.psf_out!r}")
+    check_writable(args.out, "--out")
+    if args.psf_out is not None:
+        check_writable(args.psf_out, "--psf-out")
+    if args.scene == "toy":
+        if args.psf_out is not None:
+            raise ParameterError("--psf-out needs a physics scene; the toy objective has no kernels")
+        ne, k, name = 64, 32, "toy"
+    else:
+        from arraysel.scenes.schema import load_scene
+
+        scene = load_scene(args.scene)
+        ne, k, name = scene.probe().n_elements, scene.k, scene.name
+    n = count_masks(args.masks, ne, k)
+
+    obj = build_objective(args.scene if args.scene == "toy" else scene, args.device, args.dtype)
+    kernels = args.psf_out is not None
+    chunk = CHUNK_WITH_KERNELS if kernels else CHUNK
+    with AtomicFile(args.out) as csv, (StreamingNpz(args.psf_out) if kernels else _Null()) as npz:
+        csv.write((",".join(("elements", *METRIC_NAMES)) + "\n").encode())
+        if kernels:
+            ref = obj.reference_kernel().cpu().numpy()
+            npz.begin("psf", (n, *ref.shape), ref.dtype)
+        bar = tqdm(total=n, unit="mask", desc="evaluate", file=sys.stderr, disable=args.no_progress or None,
+                   dynamic_ncols=True)
+        done = 0
+        for sels, masks in iter_mask_chunks(args.masks, ne, k, chunk):
+            res = obj.evaluate(masks, return_kernels=True) if kernels else obj.evaluate(masks)
+            cols = np.stack([np.asarray(res[m], dtype=np.float64) for m in METRIC_NAMES], axis=1)
+            lines = [" ".join(map(str, s)) + "," + ",".join(f"{v:.8g}" for v in row)
+                     for s, row in zip(sels, cols.tolist())]
+            csv.write(("\n".join(lines) + "\n").encode())
+            if kernels:
+                npz.write_rows(res["kernels"])
+            done += len(sels)
+            bar.update(len(sels))
+        bar.close()
+        if done != n:  # the file changed between the two passes
+            raise ParameterError(f"--masks: {args.masks!r} changed while it was read ({n} then {done} "
+                                 f"selections)")
+        if kernels:
+            npz.end()
+            npz.add("psf_ref", ref)
+            npz.commit()  # the kernels first: no CSV without its npz
+        csv.commit()
+    print(f"scored {n} selection(s) on scene {name!r}: wrote {args.out}"
+          + (f" and {args.psf_out}" if args.psf_out else ""))
+    return 0
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

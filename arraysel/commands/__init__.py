@@ -1,1 +1,0 @@
-"""One module per ``arraysel`` sub-command."""

@@ -1,0 +1,384 @@
+"""End-to-end training on a scene: the library side of ``arraysel train``.
+
+:func:`run_training` builds the scene's PSF objective, turns images of the
+scene's data set into scatterer maps, trains a HARD-STE selection jointly
+with the unrolled-ISTA reconstructor (:class:`arraysel.e2e.trainer.E2ETrainer`),
+and writes to ``out_dir``:
+
+* ``mask.txt`` (the learned selection, 0-based indices, one line, readable by
+  ``arraysel evaluate --masks``) and ``mask.json``;
+* ``table1.csv``: Table-1 metrics (:meth:`arraysel.objective.psf_objective.Objective.evaluate`)
+  of the learned, uniform, random and full selections;
+* ``reconstruction.csv``: MSE / PSNR / SSIM on held-out images for the same
+  selections, each with a copy of the trained reconstructor whose head is
+  fine-tuned for ``finetune_steps`` steps on that selection, and the same
+  metrics of the blurred measurement ``|Y|`` (``*_blurred`` columns);
+* ``history.csv`` (loss terms per step), ``settings.json`` (everything the
+  run depends on), ``checkpoint.pt`` (resumable);
+* figures (PNG): ``fig_mask.png``, ``fig_psf.png`` (learned and reference PSF
+  in dB, 40 dB range, lateral and axial profiles), ``fig_images.png`` (ground
+  truth, blurred, reconstructions), ``fig_loss.png``.
+
+Two profiles. ``full=True`` takes the scene's ``[data]`` and ``[training]``
+sections as they are (the paper: 128 x 128 images, batch 64, 100 epochs).
+The default *quick* profile is sized for a CPU: 64 x 64 images, batch 8, 300
+steps, head widths 16/32/64, the bundled data sample, the temperature decay
+shortened to half the run, and learning rates raised (mask 1e-2, ISTA 5e-3,
+head 1e-3) so the selection moves within a few hundred steps. Any value can
+be overridden (``overrides=``, or the command's flags).
+
+Files are written atomically. Nothing here is imported by the PSF objective:
+the ``paper`` scene builds no network and loads no data set.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from arraysel.errors import ParameterError, SelectionError, check_choice, check_number
+from arraysel.io.masks import atomic_write_bytes
+from arraysel.objective.psf_objective import METRIC_NAMES, build_objective, masks_from_indices
+from arraysel.scenes.schema import Scene, load_scene
+
+__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "OUTPUT_FILES"]
+
+#: the files a finished run leaves in its output folder
+OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "history.csv",
+                "settings.json", "checkpoint.pt", "fig_mask.png", "fig_psf.png", "fig_images.png",
+                "fig_loss.png")
+
+#: scene weight name -> trainer term name
+_TERM_OF_WEIGHT = {"L_PSF": "psf", "L_conv": "conv", "L_rec": "rec", "L_contrast": "contrast",
+                   "L_SLR": "slr", "L_ent": "ent", "L_row": "row"}
+_PSF_WEIGHTS = ("L_PSF", "L_contrast", "L_SLR")
+
+
+@dataclass
+class E2ESettings:
+    """Everything a training run depends on besides the scene's physics.
+
+    ``steps`` (when set) overrides ``epochs``. ``scatterers``: ``'points'``
+    (genscat-like speckle, ``scatterers_per_pixel`` on average, placed in
+    ``[depth_min, depth_max]``) or ``'image'`` (the image itself).
+    ``n_train`` / ``n_test``: keep only that many images (``None``: all).
+    ``finetune_steps`` (per selection, before the reconstruction metrics)
+    defaults to ``finetune_epochs`` epochs, or 100 steps when that is 0.
+    """
+
+    profile: str = "quick"
+    dataset: str = "mnist"
+    source: str = "auto"
+    image_size: int = 128
+    depth_min: float = 0.0
+    depth_max: float = 0.15
+    scatterers: str = "points"
+    scatterers_per_pixel: float = 1.25
+    batch_size: int = 64
+    epochs: int = 100
+    steps: int | None = None
+    lr_mask: float = 1e-4
+    lr_ista: float = 5e-4
+    lr_head: float = 1e-4
+    tau_start: float = 6.0
+    tau_end: float = 1.2
+    tau_steps: int | None = 1500
+    ista_layers: int = 8
+    base_channels: int = 32
+    finetune_steps: int | None = None
+    finetune_epochs: int = 0
+    n_train: int | None = None
+    n_test: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_choice("profile", self.profile, ("quick", "full"))
+        check_choice("dataset", self.dataset, ("mnist", "fashion"))
+        check_choice("source", self.source, ("auto", "sample", "idx"))
+        check_choice("scatterers", self.scatterers, ("points", "image"))
+        check_number("image_size", self.image_size, lo=8, hi=4096, integer=True)
+        check_number("depth_min", self.depth_min, lo=0)
+        if not self.depth_max > self.depth_min:
+            raise ParameterError(f"depth_max ({self.depth_max}) must be > depth_min ({self.depth_min})")
+        check_number("scatterers_per_pixel", self.scatterers_per_pixel, lo=0, lo_open=True)
+        check_number("batch_size", self.batch_size, lo=1, integer=True)
+        check_number("epochs", self.epochs, lo=0, integer=True)
+        for name in ("steps", "tau_steps", "finetune_steps"):
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), lo=0, integer=True)
+        for name in ("lr_mask", "lr_ista", "lr_head"):
+            check_number(name, getattr(self, name), lo=0)
+        check_number("tau_start", self.tau_start, lo=0, lo_open=True)
+        check_number("tau_end", self.tau_end, lo=0, lo_open=True)
+        check_number("finetune_epochs", self.finetune_epochs, lo=0, integer=True)
+        check_number("ista_layers", self.ista_layers, lo=1, integer=True)
+        check_number("base_channels", self.base_channels, lo=1, integer=True)
+        for name in ("n_train", "n_test"):
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), lo=1, integer=True)
+        check_number("seed", self.seed, lo=0, integer=True)
+
+
+#: the quick (CPU) profile's values; see the module docstring
+QUICK_PROFILE = dict(image_size=64, batch_size=8, steps=300, base_channels=16, source="sample",
+                     lr_mask=1e-2, lr_ista=5e-3, lr_head=1e-3, finetune_steps=25, tau_steps=None)
+
+
+def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E2ESettings:
+    """The run's settings: the scene's ``[data]``/``[training]``, then the quick
+    profile unless ``full``, then ``overrides`` (``None`` values are ignored)."""
+    d, t = scene.section("data"), scene.section("training")
+    base: dict[str, Any] = {"profile": "full" if full else "quick"}
+    for key in ("dataset", "source", "image_size", "depth_min", "depth_max"):
+        if key in d:
+            base[key] = d[key]
+    for key in ("epochs", "batch_size", "lr_mask", "lr_ista", "lr_head", "tau_start", "tau_end",
+                "tau_steps", "ista_layers"):
+        if key in t:
+            base[key] = t[key]
+    if t.get("steps"):
+        base["steps"] = t["steps"]
+    if "finetune_epochs" in t:
+        base["finetune_epochs"] = t["finetune_epochs"]
+    if not full:
+        base.update(QUICK_PROFILE)
+    fields = {f.name for f in dataclasses.fields(E2ESettings)}
+    for key, value in overrides.items():
+        if key not in fields:
+            raise ParameterError(f"unknown training setting {key!r}; allowed: {sorted(fields)}")
+        if value is not None:
+            base[key] = value
+            if key == "epochs" and overrides.get("steps") is None:
+                base["steps"] = None  # an explicit --epochs beats the profile's step count
+    return E2ESettings(**base)
+
+
+def baseline_masks(n_elements: int, k: int, seed: int = 0) -> dict[str, list[int]]:
+    """SPEC §4 baselines: ``uniform`` (``i * Ne // k``: every second element for
+    k = Ne/2), ``random`` (one random k-subset from ``seed``), ``full`` (all)."""
+    rng = np.random.default_rng(seed)
+    return {"uniform": [i * n_elements // k for i in range(k)],
+            "random": sorted(int(i) for i in rng.choice(n_elements, size=k, replace=False)),
+            "full": list(range(n_elements))}
+
+
+# ---------------------------------------------------------------------------
+# output helpers
+# ---------------------------------------------------------------------------
+
+def _write_text(path: str, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def _write_csv(path: str, rows: list[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: (f"{v:.8g}" if isinstance(v, float) else v) for k, v in r.items()})
+    _write_text(path, buf.getvalue())
+
+
+def _jsonable(settings: E2ESettings) -> dict[str, Any]:
+    return dataclasses.asdict(settings)
+
+
+# ---------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------
+
+def _print(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "results/train",
+                 full: bool = False, device: str = "cpu", dtype: torch.dtype = torch.float32,
+                 resume: bool = False, figures: bool = True, log: Callable[[str], None] | None = _print,
+                 log_every: int | None = None, threads: int | None = None,
+                 **overrides: Any) -> dict[str, Any]:
+    """Train an end-to-end selection on ``scene`` and write the outputs to ``out_dir``.
+
+    ``overrides``: any :class:`E2ESettings` field (``dataset``, ``epochs``,
+    ``steps``, ``seed``, ``image_size``, ...; ``None`` means "not given").
+    With ``resume=True`` a checkpoint in ``out_dir`` written with the same
+    settings is continued (a different setting raises ``ParameterError``).
+    ``threads``: torch intra-op threads for the run (restored afterwards);
+    default 1 for the quick profile on a CPU (its tensors are small, and
+    thread synchronisation then costs more than it gains: about 10x on a
+    busy 2-core machine), torch's own setting otherwise.
+    ``log`` receives the progress lines (``None``: silent). Returns a
+    summary: ``learned`` (indices), ``table1`` and ``reconstruction`` (lists
+    of row dicts), ``steps``, ``seconds``, ``files``.
+    """
+    if threads is None and not full and torch.device(device).type == "cpu":
+        threads = 1
+    old_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(check_number("threads", threads, lo=1, integer=True))
+    try:
+        return _run(scene, out_dir=out_dir, full=full, device=device, dtype=dtype, resume=resume,
+                    figures=figures, log=log, log_every=log_every, overrides=overrides)
+    finally:
+        torch.set_num_threads(old_threads)
+
+
+def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every, overrides):
+    from arraysel.e2e.data import SceneMaker, load_dataset
+    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection, LossWeights, TrainConfig
+
+    say = log or (lambda _msg: None)
+    t_start = time.perf_counter()
+    sc = scene if isinstance(scene, Scene) else load_scene(scene)
+    if not sc.needs_data:
+        raise ParameterError(f"scene {sc.name!r} gives L_conv and L_rec weight 0: there is nothing to "
+                             "train end to end (use `arraysel compare` for PSF-only selection, or a "
+                             "scene based on 'paper-e2e')")
+    settings = resolve_settings(sc, full=full, **overrides)
+    os.makedirs(out_dir, exist_ok=True)
+    ckpt_path = os.path.join(out_dir, "checkpoint.pt")
+    record = {"scene": sc.to_dict(), "settings": _jsonable(settings), "dtype": str(dtype)}
+    settings_path = os.path.join(out_dir, "settings.json")
+    if resume and os.path.isfile(ckpt_path) and os.path.isfile(settings_path):
+        with open(settings_path) as fh:
+            old = json.load(fh)
+        diff = sorted(k for k in set(old.get("settings", {})) | set(record["settings"])
+                      if old.get("settings", {}).get(k) != record["settings"].get(k))
+        if old.get("scene") != record["scene"]:
+            diff.insert(0, "scene")
+        if diff:
+            raise ParameterError(f"--resume: the checkpoint in {out_dir} was written with other settings "
+                                 f"({', '.join(diff)}); rerun with the same options or without --resume")
+    _write_text(settings_path, json.dumps(record, indent=2, default=str) + "\n")
+
+    # physics ------------------------------------------------------------------
+    objective = build_objective(sc, device=device, dtype=dtype)
+    ne, k = objective.n_elements, objective.k
+    kappa_ref = objective.reference_kernel()
+    wts = sc.weights
+    psf_needed = [n for n in _PSF_WEIGHTS if wts.get(n, 0.0) > 0]
+
+    def kernel_fn(w: torch.Tensor) -> torch.Tensor:
+        return objective.psf.kernels(w[None])[0]
+
+    def psf_terms(kappa: torch.Tensor) -> dict[str, torch.Tensor]:
+        m = objective.metrics_of_kernels(kappa[None], terms=psf_needed)
+        return {_TERM_OF_WEIGHT[n]: m[n][0] for n in psf_needed}
+
+    weights = LossWeights(**{term: wts.get(name, 0.0) for name, term in _TERM_OF_WEIGHT.items()})
+
+    # data ---------------------------------------------------------------------
+    s = settings
+    x_train, _ = load_dataset(s.dataset, "train", source=s.source, limit=s.n_train)
+    x_test, _ = load_dataset(s.dataset, "test", source=s.source, limit=s.n_test)
+    n = s.image_size
+    scene_fn = SceneMaker(n=n, mode=s.scatterers, depth_range=(s.depth_min, s.depth_max),
+                          n_scatterers=max(1, round(s.scatterers_per_pixel * n * n)))
+    steps_per_epoch = max(1, len(x_train) // s.batch_size)
+    total = s.steps if s.steps is not None else s.epochs * steps_per_epoch
+    tau_steps = s.tau_steps if s.tau_steps is not None else max(1, total // 2)
+    ft_steps = s.finetune_steps
+    if ft_steps is None:
+        ft_steps = s.finetune_epochs * steps_per_epoch or 100
+    config = TrainConfig(batch_size=s.batch_size, epochs=s.epochs, max_steps=total, lr_mask=s.lr_mask,
+                         lr_ista=s.lr_ista, lr_head=s.lr_head, tau_start=s.tau_start, tau_end=s.tau_end,
+                         tau_steps=tau_steps, seed=s.seed, checkpoint_every=0, progress=False)
+    selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed))
+    trainer = E2ETrainer(selection, kernel_fn, kappa_ref, x_train, psf_terms_fn=psf_terms,
+                         weights=weights, config=config, n_layers=s.ista_layers,
+                         base_channels=s.base_channels, scene_fn=scene_fn, checkpoint_path=ckpt_path,
+                         device=device, image_size=n)
+    say(f"arraysel train: scene {sc.name!r} ({s.profile} profile), Ne = {ne}, k = {k}, "
+        f"{s.dataset} ({len(x_train)} train / {len(x_test)} test images, {n}x{n}, {s.scatterers}), "
+        f"batch {s.batch_size}, {total} steps, device {device}")
+
+    # training -----------------------------------------------------------------
+    if resume and os.path.isfile(ckpt_path):
+        trainer.load_checkpoint(ckpt_path)
+        say(f"resumed from {ckpt_path} at step {trainer.step}")
+    elif os.path.isfile(ckpt_path):
+        say(f"starting from step 0 (an existing {ckpt_path} is overwritten; use --resume to continue it)")
+    every = log_every or max(1, min(500, total // 25))
+    t_train = time.perf_counter()
+    step0 = trainer.step
+    while trainer.step < total:
+        stop = min(total, (trainer.step // every + 1) * every)
+        trainer.train(stop)  # saves the checkpoint at ``stop``
+        rec = trainer.history[-1]
+        rate = (time.perf_counter() - t_train) / max(1, trainer.step - step0)
+        terms = " ".join(f"{key}={rec[key]:.4g}" for key in ("total", *_TERM_OF_WEIGHT.values())
+                         if key in rec)
+        say(f"step {trainer.step:>6d}/{total}  tau={rec['tau']:.3f}  {terms}  ({rate:.2f} s/step)")
+    train_seconds = time.perf_counter() - t_train
+
+    # the learned selection ----------------------------------------------------
+    learned = [int(i) for i in trainer.learned_indices().tolist()]
+    if len(learned) != k or len(set(learned)) != k:
+        raise SelectionError(f"the learned selection has {len(set(learned))} distinct elements, not k = {k}")
+    _write_text(os.path.join(out_dir, "mask.txt"),
+                f"# learned selection of scene {sc.name!r} after {trainer.step} steps "
+                f"(0-based element indices, k = {k} of {ne})\n" + ",".join(map(str, learned)) + "\n")
+    _write_text(os.path.join(out_dir, "mask.json"),
+                json.dumps({"scene": sc.name, "n_elements": ne, "k": k, "elements": learned,
+                            "steps": trainer.step, "seed": s.seed}, indent=2) + "\n")
+
+    # Table 1 ------------------------------------------------------------------
+    masks = {"learned": learned, **baseline_masks(ne, k, s.seed)}
+    res = objective.evaluate(masks_from_indices(list(masks.values()), ne), return_kernels=True)
+    table = [{"config": name, "n_active": len(idx), **{m: float(res[m][i]) for m in METRIC_NAMES},
+              "elements": " ".join(map(str, idx))} for i, (name, idx) in enumerate(masks.items())]
+    _write_csv(os.path.join(out_dir, "table1.csv"), table)
+
+    # reconstruction: one fine-tuned copy of the head per selection, same batches for each
+    snapshot = (trainer.generator.get_state(), trainer._perm, trainer._pos)
+    recons = {}
+    for name, idx in masks.items():
+        trainer.generator.set_state(snapshot[0])
+        trainer._perm, trainer._pos = snapshot[1], snapshot[2]
+        model = copy.deepcopy(trainer.reconstructor)
+        trainer.finetune_head(ft_steps, mask=idx, reconstructor=model)
+        recons[name] = model
+    trainer.generator.set_state(snapshot[0])
+    trainer._perm, trainer._pos = snapshot[1], snapshot[2]
+    ev = trainer.evaluate(x_test, {k_: v for k_, v in masks.items() if k_ != "learned"},
+                          reconstructors=recons, blurred=True, batch_size=min(64, len(x_test)))
+    rec_rows = [{"config": name, "n_active": len(masks[name]), "finetune_steps": ft_steps,
+                 **{key: ev[name][key] for key in ("mse", "psnr", "ssim", "mse_blurred",
+                                                   "psnr_blurred", "ssim_blurred")}}
+                for name in masks]
+    _write_csv(os.path.join(out_dir, "reconstruction.csv"), rec_rows)
+    hist_keys = list(dict.fromkeys(key for h in trainer.history for key in h))
+    _write_csv(os.path.join(out_dir, "history.csv"),
+               [{"step": i + 1, **{key: h.get(key, math.nan) for key in hist_keys}}
+                for i, h in enumerate(trainer.history)] or [{"step": 0}])
+
+    files = ["mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "history.csv",
+             "settings.json", "checkpoint.pt"]
+    if figures:
+        from arraysel.e2e.figures import write_figures
+
+        files += write_figures(out_dir, trainer=trainer, masks=masks, recons=recons,
+                               kernels=res["kernels"], kernel_ref=kappa_ref.detach().cpu().numpy(),
+                               pitch=objective.setup.pitch, n_elements=ne, images=x_test,
+                               table=table, reconstruction=rec_rows)
+    seconds = time.perf_counter() - t_start
+    for r in table:
+        say(f"{r['config']:>8s}  Mean={r['Mean']:.4g}  L_PSF={r['L_PSF']:.4g}  "
+            f"L_contrast={r['L_contrast']:.4g}  L_SLR={r['L_SLR']:.4g}")
+    for r in rec_rows:
+        say(f"{r['config']:>8s}  PSNR={r['psnr']:.2f} dB  SSIM={r['ssim']:.3f}   "
+            f"blurred |Y|: PSNR={r['psnr_blurred']:.2f} dB  SSIM={r['ssim_blurred']:.3f}")
+    say(f"learned elements: {','.join(map(str, learned))}")
+    say(f"done in {seconds:.0f} s (training {train_seconds:.0f} s); wrote {out_dir}/: {', '.join(files)}")
+    return {"learned": learned, "table1": table, "reconstruction": rec_rows, "steps": trainer.step,
+            "seconds": seconds, "train_seconds": train_seconds, "files": files,
+            "settings": settings, "history": trainer.history}

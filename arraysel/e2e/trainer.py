@@ -1,0 +1,686 @@
+"""End-to-end training of an element selection with the reconstruction network (SPEC section 3).
+
+The physics enters through one callable, ``kernel_fn(weights) -> kappa``:
+``weights`` is an ``(Ne,)`` float tensor (1 for an active element, 0 for an
+inactive one in the forward pass, with straight-through gradients) and
+``kappa`` the ``(n, n)`` complex PSF kernel, differentiable in ``weights``.
+
+Selection protocol
+------------------
+A *selection module* is an ``nn.Module`` called as
+``selection(tau, generator) -> (P, P_soft)``, both ``(Ne, k)``: ``P`` is the
+hard 0/1 selection matrix carrying the straight-through gradient and
+``P_soft`` the column-wise softmax probabilities. In ``eval()`` mode it must
+be deterministic (it then gives the learned selection). Element ``i`` is
+active when row ``i`` of ``P`` sums to 1; the trainer passes
+``weights = P.sum(1)`` to ``kernel_fn``. :class:`HardSTESelection` is the
+HARD-STE module of the SPEC.
+
+Loss (SPEC section 3)
+---------------------
+``total = w_psf L_PSF + w_conv L_conv + w_rec L_rec + w_contrast L_contrast
++ w_slr L_SLR + w_ent L_ent + w_row L_row`` with default weights
+10, 1, 10, 10, 10, 1, 10 (:class:`LossWeights`). A term whose weight is 0 is
+not computed. ``L_PSF``, ``L_contrast``, ``L_SLR`` come from
+``psf_terms_fn(kappa) -> dict`` (keys ``'psf'``, ``'contrast'`` and ``'slr'``,
+or ``'slr_q'`` and ``'slr_i'`` whose mean is taken); the others are computed
+here:
+
+* ``L_conv``: squared difference of ``Y_c = kappa (*) I_s`` and
+  ``Y_ref = kappa_ref (*) I_s`` (circular). ``conv_reduction='mean'``
+  (default) averages ``|Y_c - Y_ref|^2`` over pixels and batch, like
+  ``L_rec``; ``'sum'`` takes the per-image squared norm ``||Y_c - Y_ref||^2``
+  averaged over the batch (``n^2`` times larger).
+* ``L_rec = mean((I_hat - I_ref)^2)`` over pixels and batch.
+* ``L_ent``: mean over columns of the entropy ``-sum_i p_ij log p_ij`` of
+  ``P_soft`` (:func:`arraysel.objective.metrics.l_ent`).
+* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2`` (:func:`arraysel.objective.metrics.l_row`).
+  It is computed on ``P_soft``: the hard ``P`` drawn without replacement never
+  repeats an element, so the penalty on it would be identically zero.
+
+Image size
+----------
+The scenes are ``image_size x image_size`` (default: the kernel's size). When
+it differs from the kernel window, the data terms use the kernel cropped
+around its centre pixel (or zero-padded around it), :func:`fit_kernel`; the
+PSF terms always see the whole kernel.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import torch
+import torch.nn as nn
+from tqdm import tqdm
+
+from arraysel.e2e.data import SceneMaker
+from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
+                             check_number)
+from arraysel.objective.metrics import l_ent, l_row
+from arraysel.e2e.recon import ConvolutionOperator, Reconstructor, mse, psnr, ssim
+from arraysel.selectors.relax import cosine_temperature, sequential_selection
+
+__all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
+           "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "blurred_image"]
+
+log = logging.getLogger(__name__)
+
+KernelFn = Callable[[torch.Tensor], torch.Tensor]
+PSF_TERMS = ("psf", "contrast", "slr")
+CHECKPOINT_FORMAT = "arraysel-e2e-1"
+
+
+# ---------------------------------------------------------------------------
+# Selection
+# ---------------------------------------------------------------------------
+
+def tau_schedule(step: int, tau_start: float = 6.0, tau_end: float = 1.2,
+                 decay_steps: int = 1500) -> float:
+    """Cosine decay of the softmax temperature from ``tau_start`` (step 0) to
+    ``tau_end`` (step ``decay_steps``), constant afterwards
+    (:func:`arraysel.selectors.relax.cosine_temperature`)."""
+    return cosine_temperature(step, tau_start, tau_end, decay_steps)
+
+
+class HardSTESelection(nn.Module):
+    """HARD-STE selection of ``k`` of ``n_elements``: logits ``l`` of shape ``(Ne, k)``.
+
+    Columns are drawn one after another; for column ``j`` the elements already
+    chosen are masked out and ``p_j = softmax(l_j / tau)`` over the others.
+    In training mode (``sample=True``) the element is drawn from ``p_j``
+    with the ``generator`` passed in; in ``eval()`` mode, or with
+    ``sample=False``, it is the most probable one. The draw is
+    :func:`arraysel.selectors.relax.sequential_selection`. The output
+    is ``P = (P_hard - P_soft).detach() + P_soft``: exactly one-hot columns
+    with distinct rows in the forward pass, the softmax gradient backwards.
+
+    ``generator`` (optional) draws the initial logits ``init_std * N(0, 1)``;
+    without it they start at 0.
+    """
+
+    def __init__(self, n_elements: int, k: int, *, generator: torch.Generator | None = None,
+                 init_std: float = 0.01, sample: bool = True):
+        super().__init__()
+        ne = check_number("n_elements", n_elements, lo=1, integer=True)
+        k = check_number("k", k, lo=1, hi=ne, integer=True)
+        init = torch.zeros(ne, k)
+        if generator is not None:
+            init = check_number("init_std", init_std, lo=0) * torch.randn(ne, k, generator=generator)
+        self.logits = nn.Parameter(init)
+        self.sample = bool(sample)
+
+    @property
+    def n_elements(self) -> int:
+        return self.logits.shape[0]
+
+    @property
+    def k(self) -> int:
+        return self.logits.shape[1]
+
+    def forward(self, tau: float = 1.0, generator: torch.Generator | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        tau = check_number("tau", tau, lo=0, lo_open=True)
+        sampling = self.training and self.sample
+        if sampling and generator is None:
+            raise ParameterError("HardSTESelection samples in training mode: pass a "
+                                 "torch.Generator (or call .eval() / set sample=False)")
+        # the draw runs where the generator lives (the trainer's is on the CPU); the
+        # (Ne, k) logits are tiny, and moving them keeps the gradient path
+        where = generator.device if sampling else self.logits.device
+        rel = sequential_selection(self.logits.to(where), tau, hard=True, sample=sampling,
+                                   generator=generator if sampling else None)
+        dev = self.logits.device
+        return rel.P.to(dev), rel.P_soft.to(dev)
+
+    @torch.no_grad()
+    def indices(self, tau: float = 1.0) -> torch.Tensor:
+        """The deterministic (argmax) selection, sorted element indices ``(k,)``."""
+        was = self.training
+        self.eval()
+        try:
+            P, _ = self(tau)
+        finally:
+            self.train(was)
+        return torch.nonzero(P.sum(1) > 0.5).flatten().sort().values
+
+
+#: ``L_ent`` (mean column entropy of ``P_soft``): :func:`arraysel.objective.metrics.l_ent`
+entropy_loss = l_ent
+#: ``L_row`` (``sum_i relu(sum_j p_ij - 1)^2``): :func:`arraysel.objective.metrics.l_row`
+row_loss = l_row
+
+
+def fit_kernel(kappa: torch.Tensor, n: int) -> torch.Tensor:
+    """Crop (or zero-pad) an ``(h, h)`` kernel to ``(n, n)`` keeping its centre pixel.
+
+    Pixel ``(h // 2, h // 2)`` of ``kappa`` becomes pixel ``(n // 2, n // 2)``
+    of the result (the zero shift of :class:`~arraysel.e2e.recon.ConvolutionOperator`);
+    differentiable.
+    """
+    h = kappa.shape[-1]
+    if h == n:
+        return kappa
+    if h > n:
+        s = h // 2 - n // 2
+        return kappa[..., s:s + n, s:s + n]
+    s = n // 2 - h // 2
+    return torch.nn.functional.pad(kappa, (s, n - h - s, s, n - h - s))
+
+
+def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None
+                    ) -> torch.Tensor:
+    """Turn a mask into ``(Ne,)`` float weights.
+
+    ``mask``: a sequence/tensor of integer element indices (distinct, in
+    ``[0, Ne)``), or a bool/float tensor of length ``Ne`` (used as is).
+    """
+    t = torch.as_tensor(mask)
+    if t.dtype == torch.bool or t.is_floating_point():
+        if t.shape != (n_elements,):
+            raise SelectionError(f"a weight mask must have shape ({n_elements},), got {tuple(t.shape)}")
+        return t.to(device=device, dtype=torch.float32)
+    idx = t.flatten().long()
+    if idx.numel() == 0 or (idx < 0).any() or (idx >= n_elements).any():
+        raise SelectionError(f"element indices must lie in [0, {n_elements}), got {idx.tolist()}")
+    if idx.unique().numel() != idx.numel():
+        raise SelectionError(f"element indices repeat: {idx.tolist()}")
+    w = torch.zeros(n_elements, dtype=torch.float32)
+    w[idx] = 1.0
+    return w.to(device)
+
+
+# ---------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------
+
+@dataclass
+class LossWeights:
+    """Weights of the loss terms (SPEC section 3 defaults); 0 switches a term off."""
+
+    psf: float = 10.0
+    conv: float = 1.0
+    rec: float = 10.0
+    contrast: float = 10.0
+    slr: float = 10.0
+    ent: float = 1.0
+    row: float = 10.0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            check_number(f"weights.{f.name}", getattr(self, f.name), lo=0)
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation settings (SPEC section 3 defaults).
+
+    ``max_steps`` (when set) overrides ``epochs``; an epoch is
+    ``N // batch_size`` steps (the last partial batch is dropped, unless the
+    data set is smaller than one batch). Checkpoints are written every
+    ``checkpoint_every`` steps (0: only at the end) when a checkpoint path is
+    given. ``noise_std`` adds complex Gaussian noise of that standard
+    deviation to the measurements fed to the reconstructor (not to
+    ``L_conv``).
+    """
+
+    batch_size: int = 64
+    epochs: int = 100
+    max_steps: int | None = None
+    lr_mask: float = 1e-4
+    lr_ista: float = 5e-4
+    lr_head: float = 1e-4
+    tau_start: float = 6.0
+    tau_end: float = 1.2
+    tau_steps: int = 1500
+    seed: int = 0
+    checkpoint_every: int = 500
+    noise_std: float = 0.0
+    conv_reduction: str = "mean"
+    grad_clip: float | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        check_number("batch_size", self.batch_size, lo=1, integer=True)
+        check_number("epochs", self.epochs, lo=0, integer=True)
+        if self.max_steps is not None:
+            check_number("max_steps", self.max_steps, lo=0, integer=True)
+        for name in ("lr_mask", "lr_ista", "lr_head", "noise_std"):
+            check_number(name, getattr(self, name), lo=0)
+        check_number("tau_start", self.tau_start, lo=0, lo_open=True)
+        check_number("tau_end", self.tau_end, lo=0, lo_open=True)
+        check_number("tau_steps", self.tau_steps, lo=0, integer=True)
+        check_number("checkpoint_every", self.checkpoint_every, lo=0, integer=True)
+        check_number("seed", self.seed, integer=True)
+        check_choice("conv_reduction", self.conv_reduction, ("mean", "sum"))
+        if self.grad_clip is not None:
+            check_number("grad_clip", self.grad_clip, lo=0, lo_open=True)
+
+
+# ---------------------------------------------------------------------------
+# Trainer
+# ---------------------------------------------------------------------------
+
+def _as_images(data: Any) -> torch.Tensor:
+    if isinstance(data, (tuple, list)):
+        data = data[0]
+    x = torch.as_tensor(data)
+    if x.ndim == 3:
+        x = x[:, None]
+    if x.ndim != 4 or x.shape[1] != 1 or x.shape[0] < 1:
+        raise ParameterError(f"images must be (N, 1, H, W) (or an (images, labels) pair), "
+                             f"got {tuple(x.shape)}")
+    return x.float()
+
+
+class E2ETrainer:
+    """Joint training of a selection module and a :class:`~arraysel.e2e.recon.Reconstructor`.
+
+    Parameters
+    ----------
+    selection : selection module (see the module docstring), e.g. :class:`HardSTESelection`.
+    kernel_fn : ``weights (Ne,) -> kappa (n, n) complex``, differentiable.
+    kernel_ref : ``(n, n)`` complex reference kernel (all elements active).
+    train_images : ``(N, 1, H, W)`` float tensor in ``[0, 1]`` (or ``(images, labels)``).
+    psf_terms_fn : ``kappa -> {'psf', 'contrast', 'slr' (or 'slr_q', 'slr_i')}``;
+        needed when any of those weights is non-zero.
+    weights : :class:`LossWeights` or a mapping of its fields.
+    config : :class:`TrainConfig` or a mapping of its fields.
+    reconstructor : default ``Reconstructor(n_layers, base_channels=base_channels)``,
+        initialised from ``config.seed`` (the global RNG is left untouched).
+    scene_fn : ``(images, generator) -> (I_s, I_ref)``; default
+        ``SceneMaker(n=image_size, mode='image')`` (see :class:`arraysel.e2e.data.SceneMaker`).
+    image_size : side of the scenes (default: the kernel's); the data terms use
+        :func:`fit_kernel` of the kernel when it differs.
+    checkpoint_path : file for checkpoints (``None``: no checkpoints).
+    device : where the models and batches live (``'cpu'``, ``'cuda'``, ...).
+
+    Randomness comes from one ``torch.Generator`` (on the CPU) seeded with
+    ``config.seed``: data order, selection sampling, scene generation and
+    noise. A checkpoint stores it, so a resumed run continues identically.
+    """
+
+    def __init__(self, selection: nn.Module, kernel_fn: KernelFn, kernel_ref: torch.Tensor,
+                 train_images: Any, *, psf_terms_fn: Callable[[torch.Tensor], Mapping[str, torch.Tensor]] | None = None,
+                 weights: LossWeights | Mapping[str, float] | None = None,
+                 config: TrainConfig | Mapping[str, Any] | None = None,
+                 reconstructor: nn.Module | None = None, n_layers: int = 8, base_channels: int = 32,
+                 scene_fn: Callable | None = None, checkpoint_path: str | os.PathLike | None = None,
+                 device: str | torch.device = "cpu", image_size: int | None = None):
+        self.device = torch.device(device)
+        self.weights = weights if isinstance(weights, LossWeights) else LossWeights(**(weights or {}))
+        self.config = config if isinstance(config, TrainConfig) else TrainConfig(**(config or {}))
+        if any(getattr(self.weights, t) > 0 for t in PSF_TERMS) and psf_terms_fn is None:
+            raise ParameterError("psf_terms_fn is required while any of the weights psf, contrast, "
+                                 "slr is non-zero (set them to 0 to train without PSF terms)")
+        self.psf_terms_fn = psf_terms_fn
+        self.kernel_fn = kernel_fn
+        kernel_ref = torch.as_tensor(kernel_ref)
+        if kernel_ref.ndim != 2 or kernel_ref.shape[0] != kernel_ref.shape[1]:
+            raise ParameterError(f"kernel_ref must be (n, n), got {tuple(kernel_ref.shape)}")
+        self.kernel_ref = kernel_ref.to(self.device)
+        self.n = kernel_ref.shape[-1]
+        self.image_size = self.n if image_size is None else check_number("image_size", image_size,
+                                                                         lo=1, integer=True)
+        self.images = _as_images(train_images)
+        self.selection = selection.to(self.device)
+        if reconstructor is None:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(self.config.seed)
+                reconstructor = Reconstructor(n_layers, base_channels=base_channels)
+        self.reconstructor = reconstructor.to(self.device)
+        self.scene_fn = scene_fn if scene_fn is not None else SceneMaker(n=self.image_size, mode="image")
+        self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
+        self.generator = torch.Generator().manual_seed(self.config.seed)
+        self.optimizer = torch.optim.Adam(self._param_groups())
+        self.step = 0
+        self.history: list[dict[str, float]] = []
+        self._perm: torch.Tensor | None = None
+        self._pos = 0
+
+    # -- set-up helpers -----------------------------------------------------
+    def _param_groups(self) -> list[dict]:
+        c, r = self.config, self.reconstructor
+        groups = [{"params": list(self.selection.parameters()), "lr": c.lr_mask, "name": "mask"}]
+        if hasattr(r, "ista") and hasattr(r, "head"):
+            groups.append({"params": list(r.ista.parameters()), "lr": c.lr_ista, "name": "ista"})
+            groups.append({"params": list(r.head.parameters()), "lr": c.lr_head, "name": "head"})
+        else:  # a custom reconstructor without the two parts: everything at the head rate
+            groups.append({"params": list(r.parameters()), "lr": c.lr_head, "name": "head"})
+        return groups
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return max(1, len(self.images) // self.config.batch_size)
+
+    @property
+    def total_steps(self) -> int:
+        c = self.config
+        return c.max_steps if c.max_steps is not None else c.epochs * self.steps_per_epoch
+
+    def tau(self, step: int | None = None) -> float:
+        c = self.config
+        return tau_schedule(self.step if step is None else step, c.tau_start, c.tau_end, c.tau_steps)
+
+    def _next_batch(self) -> torch.Tensor:
+        n, bs = len(self.images), self.config.batch_size
+        if n <= bs:
+            self._perm = torch.randperm(n, generator=self.generator)
+            return self.images[self._perm]
+        if self._perm is None or self._pos + bs > n:
+            self._perm = torch.randperm(n, generator=self.generator)
+            self._pos = 0
+        idx = self._perm[self._pos:self._pos + bs]
+        self._pos += bs
+        return self.images[idx]
+
+    def _noise(self, y: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        s = self.config.noise_std
+        if s == 0:
+            return y
+        real = torch.float64 if y.dtype == torch.complex128 else torch.float32
+        nz = torch.complex(torch.randn(y.shape, generator=generator, dtype=real),
+                           torch.randn(y.shape, generator=generator, dtype=real))
+        return y + (s / math.sqrt(2)) * nz.to(y.device)
+
+    def _kernel(self, weights: torch.Tensor) -> torch.Tensor:
+        kappa = self.kernel_fn(weights)
+        if not isinstance(kappa, torch.Tensor) or kappa.shape != self.kernel_ref.shape:
+            shape = tuple(kappa.shape) if isinstance(kappa, torch.Tensor) else type(kappa).__name__
+            raise ParameterError(f"kernel_fn returned {shape}; expected {tuple(self.kernel_ref.shape)}")
+        return kappa
+
+    def operator(self, kappa: torch.Tensor) -> ConvolutionOperator:
+        """The forward model of a kernel on the scene grid (:func:`fit_kernel` to ``image_size``)."""
+        return ConvolutionOperator(fit_kernel(kappa, self.image_size))
+
+    # -- loss ---------------------------------------------------------------
+    def loss_terms(self, images: torch.Tensor, tau: float,
+                   generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """All non-zero-weight terms and their weighted sum ``'total'`` for one batch."""
+        gen = self.generator if generator is None else generator
+        w = self.weights
+        i_s, i_ref = self.scene_fn(images.to(self.device), gen)
+        P, p_soft = self.selection(tau, gen)
+        kappa = self._kernel(P.sum(1))
+        terms: dict[str, torch.Tensor] = {}
+        if any(getattr(w, t) > 0 for t in PSF_TERMS):
+            got = dict(self.psf_terms_fn(kappa))
+            if "slr" not in got and "slr_q" in got and "slr_i" in got:
+                got["slr"] = (got["slr_q"] + got["slr_i"]) / 2
+            for t in PSF_TERMS:
+                if getattr(w, t) > 0:
+                    if t not in got:
+                        raise ParameterError(f"psf_terms_fn returned keys {sorted(got)}; "
+                                             f"'{t}' is needed (weight {getattr(w, t)})")
+                    terms[t] = got[t]
+        if w.conv > 0 or w.rec > 0:
+            op = self.operator(kappa)
+            y_c = op.A(i_s)
+            if w.conv > 0:
+                d = y_c - self.operator(self.kernel_ref).A(i_s)
+                sq = d.real ** 2 + d.imag ** 2
+                terms["conv"] = (sq.mean() if self.config.conv_reduction == "mean"
+                                 else sq.flatten(1).sum(1).mean())
+            if w.rec > 0:
+                i_hat = self.reconstructor(self._noise(y_c, gen), op)
+                terms["rec"] = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
+        if w.ent > 0:
+            terms["ent"] = entropy_loss(p_soft)
+        if w.row > 0:
+            terms["row"] = row_loss(p_soft)
+        if not terms:
+            raise ParameterError("every loss weight is 0: nothing to train")
+        terms["total"] = sum(getattr(w, t) * v for t, v in terms.items())
+        return terms
+
+    # -- training -----------------------------------------------------------
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step on the next batch; returns the loss terms as floats."""
+        self.selection.train()
+        self.reconstructor.train()
+        tau = self.tau()
+        terms = self.loss_terms(self._next_batch(), tau)
+        total = terms["total"]
+        if not torch.isfinite(total):
+            raise NumericalError(f"step {self.step}: loss is {float(total)} "
+                                 f"({ {k: float(v) for k, v in terms.items()} })")
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        if self.config.grad_clip is not None:
+            params = [p for g in self.optimizer.param_groups for p in g["params"]]
+            torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
+        self.optimizer.step()
+        self.step += 1
+        rec = {k: float(v.detach()) for k, v in terms.items()}
+        rec["tau"] = tau
+        self.history.append(rec)
+        return rec
+
+    def train(self, max_steps: int | None = None, *, resume: bool = False) -> list[dict[str, float]]:
+        """Train until ``max_steps`` steps in all (default ``total_steps``).
+
+        With ``resume=True`` the checkpoint at ``checkpoint_path``, if present,
+        is loaded first (step, models, optimiser, RNG and data order) and
+        training goes on from its step. Returns the history (one dict of loss
+        terms per step, since step 0).
+        """
+        if resume:
+            if self.checkpoint_path is None:
+                raise ParameterError("resume=True needs a checkpoint_path")
+            if self.checkpoint_path.is_file():
+                self.load_checkpoint(self.checkpoint_path)
+                log.info("resumed from %s at step %d", self.checkpoint_path, self.step)
+            else:
+                log.info("no checkpoint at %s: starting from step 0", self.checkpoint_path)
+        target = self.total_steps if max_steps is None else check_number("max_steps", max_steps,
+                                                                         lo=0, integer=True)
+        every = self.config.checkpoint_every
+        bar = tqdm(total=target, initial=min(self.step, target), desc="e2e",
+                   disable=not self.config.progress, dynamic_ncols=True)
+        try:
+            while self.step < target:
+                rec = self.train_step()
+                bar.update(1)
+                bar.set_postfix({k: f"{v:.3g}" for k, v in rec.items()}, refresh=False)
+                if self.checkpoint_path is not None and every and self.step % every == 0:
+                    self.save_checkpoint()
+        finally:
+            bar.close()
+        if self.checkpoint_path is not None:
+            self.save_checkpoint()
+        return self.history
+
+    # -- checkpoints --------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "selection": self.selection.state_dict(),
+            "reconstructor": self.reconstructor.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "perm": self._perm,
+            "pos": self._pos,
+            "history": self.history,
+            "config": dataclasses.asdict(self.config),
+            "weights": dataclasses.asdict(self.weights),
+        }
+
+    def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
+        """Write a checkpoint atomically (temporary file in the same folder, then ``os.replace``)."""
+        path = Path(path) if path is not None else self.checkpoint_path
+        if path is None:
+            raise ParameterError("no checkpoint path given")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        from arraysel.io.atomic import AtomicFile
+
+        with AtomicFile(path) as fh:
+            torch.save(self.state_dict(), fh.fh)
+            fh.fh.flush()
+            os.fsync(fh.fh.fileno())
+            fh.commit()
+        return path
+
+    def load_checkpoint(self, path: str | os.PathLike | None = None) -> None:
+        """Restore a checkpoint written by :meth:`save_checkpoint` (``torch.load(weights_only=True)``)."""
+        path = Path(path) if path is not None else self.checkpoint_path
+        if path is None or not Path(path).is_file():
+            raise ParameterError(f"checkpoint {path} not found")
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise ParameterError(f"{path} is not an arraysel end-to-end checkpoint")
+        if state["weights"] != dataclasses.asdict(self.weights):
+            log.warning("checkpoint %s was trained with loss weights %s; now %s", path,
+                        state["weights"], dataclasses.asdict(self.weights))
+        self.selection.load_state_dict(state["selection"])
+        self.reconstructor.load_state_dict(state["reconstructor"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+        self._perm = state["perm"]
+        self._pos = int(state["pos"])
+        self.step = int(state["step"])
+        self.history = list(state["history"])
+
+    # -- after training -----------------------------------------------------
+    @torch.no_grad()
+    def learned_weights(self) -> torch.Tensor:
+        """The learned selection as ``(Ne,)`` 0/1 weights (selection in eval mode)."""
+        was = self.selection.training
+        self.selection.eval()
+        try:
+            P, _ = self.selection(self.tau(), None)
+        finally:
+            self.selection.train(was)
+        return (P.sum(1) > 0.5).float()
+
+    def learned_indices(self) -> torch.Tensor:
+        """Sorted indices ``(k,)`` of the learned active elements."""
+        return torch.nonzero(self.learned_weights()).flatten().cpu()
+
+    def _mask_weights(self, mask: Any) -> torch.Tensor:
+        ne = self.learned_weights().numel()
+        return mask_to_weights(mask, ne, self.device)
+
+    def finetune_head(self, steps: int, *, mask: Any = None, lr: float | None = None,
+                      include_ista: bool = False, reconstructor: nn.Module | None = None
+                      ) -> list[float]:
+        """Train the head alone (and the ISTA parameters with ``include_ista``) on ``L_rec``.
+
+        The selection is frozen: ``mask=None`` uses the learned selection,
+        otherwise ``mask`` (indices or ``(Ne,)`` weights, e.g. a baseline).
+        ``reconstructor`` (default: the trainer's own) is the model trained;
+        pass ``copy.deepcopy(trainer.reconstructor)`` to keep the original.
+        Uses a fresh Adam (``lr`` default ``config.lr_head``); batches and
+        noise come from the trainer's generator. Returns the loss per step.
+        """
+        steps = check_number("steps", steps, lo=0, integer=True)
+        recon = self.reconstructor if reconstructor is None else reconstructor.to(self.device)
+        with torch.no_grad():
+            w = self.learned_weights() if mask is None else self._mask_weights(mask)
+            op = self.operator(self._kernel(w.to(self.device)).detach())
+        params = list(recon.head.parameters()) if hasattr(recon, "head") else list(recon.parameters())
+        if include_ista and hasattr(recon, "ista"):
+            params += list(recon.ista.parameters())
+        trainable = {id(p) for p in params}
+        frozen = [p for p in recon.parameters() if id(p) not in trainable and p.requires_grad]
+        for p in frozen:
+            p.requires_grad_(False)
+        opt = torch.optim.Adam(params, lr=self.config.lr_head if lr is None else lr)
+        losses = []
+        recon.train()
+        try:
+            for _ in tqdm(range(steps), desc="finetune", disable=not self.config.progress):
+                i_s, i_ref = self.scene_fn(self._next_batch().to(self.device), self.generator)
+                i_hat = recon(self._noise(op.A(i_s), self.generator), op)
+                loss = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                losses.append(float(loss.detach()))
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+        return losses
+
+    @torch.no_grad()
+    def evaluate(self, images: Any, masks: Mapping[str, Any] | None = None, *,
+                 batch_size: int = 64, clamp: bool = True, seed: int | None = None,
+                 reconstructors: Mapping[str, nn.Module] | None = None, blurred: bool = False
+                 ) -> dict[str, dict[str, Any]]:
+        """MSE, PSNR (dB, data range 1) and SSIM on held-out images.
+
+        Returns ``{name: {'mse', 'psnr', 'ssim': float, 'indices': list of int}}``.
+        With ``blurred=True`` each row also holds ``'mse_blurred'``,
+        ``'psnr_blurred'``, ``'ssim_blurred'``: the same metrics of the
+        measurement's magnitude ``|Y|`` (the input of the reconstructor) as an
+        image, scaled per image by its least-squares gain to ``I_ref``
+        (:func:`blurred_image`) and clamped like ``I_hat``.
+
+        Rows: ``'learned'`` (the learned selection) and one per entry of
+        ``masks`` (name -> indices or ``(Ne,)`` weights). Each selection's
+        kernel comes from ``kernel_fn``; the reconstruction uses the trainer's
+        reconstructor, or ``reconstructors[name]`` when given (e.g. one
+        fine-tuned for that mask). ``I_hat`` is clamped to ``[0, 1]`` before
+        the metrics unless ``clamp=False``. Scenes and noise use a generator
+        seeded with ``seed`` (default ``config.seed + 1``), the same for every
+        row, so all masks see the same scenes.
+        """
+        imgs = _as_images(images)
+        bs = check_number("batch_size", batch_size, lo=1, integer=True)
+        rows = {"learned": self.learned_weights()}
+        for name, m in (masks or {}).items():
+            if name == "learned":
+                raise ParameterError("mask name 'learned' is reserved for the learned selection")
+            rows[name] = self._mask_weights(m)
+        out = {}
+        for name, w in rows.items():
+            recon = (reconstructors or {}).get(name, self.reconstructor)
+            was = recon.training
+            recon.eval()
+            gen = torch.Generator().manual_seed(self.config.seed + 1 if seed is None else seed)
+            op = self.operator(self._kernel(w.to(self.device)))
+            vals: dict[str, list] = {}
+            for start in range(0, len(imgs), bs):
+                i_s, i_ref = self.scene_fn(imgs[start:start + bs].to(self.device), gen)
+                y = self._noise(op.A(i_s), gen)
+                i_hat = recon(y, op)
+                i_ref = i_ref.to(i_hat.dtype)
+                pairs = [("", i_hat)]
+                if blurred:
+                    pairs.append(("_blurred", blurred_image(y, i_ref)))
+                for suffix, img in pairs:
+                    if clamp:
+                        img = img.clamp(0, 1)
+                    for key, fn in (("mse", mse), ("psnr", psnr), ("ssim", ssim)):
+                        vals.setdefault(key + suffix, []).append(fn(img, i_ref, reduction="none"))
+            recon.train(was)
+            out[name] = {k: float(torch.cat(v).mean()) for k, v in vals.items()}
+            out[name]["indices"] = torch.nonzero(w).flatten().cpu().tolist()
+        return out
+
+
+def blurred_image(y: torch.Tensor, i_ref: torch.Tensor) -> torch.Tensor:
+    """``g |y|`` with the per-image gain ``g = <|y|, I_ref> / <|y|, |y|>`` (least squares).
+
+    The measurement ``Y = kappa (*) I_s`` of a unit-norm kernel has an
+    arbitrary scale; this gain gives the plain blurred image its best fit to
+    the target before it is scored against it.
+    """
+    m = y.abs().to(i_ref.dtype)
+    num = (m * i_ref).flatten(1).sum(1)
+    den = (m * m).flatten(1).sum(1).clamp_min(torch.finfo(m.dtype).tiny)
+    return m * (num / den).view(-1, *([1] * (m.dim() - 1)))
+
+
+def train_e2e(selection: nn.Module, kernel_fn: KernelFn, kernel_ref: torch.Tensor, train_images: Any,
+              *, max_steps: int | None = None, resume: bool = False, **kwargs: Any) -> E2ETrainer:
+    """Build an :class:`E2ETrainer` (``kwargs`` as its constructor's) and train it; returns the trainer."""
+    trainer = E2ETrainer(selection, kernel_fn, kernel_ref, train_images, **kwargs)
+    trainer.train(max_steps, resume=resume)
+    return trainer

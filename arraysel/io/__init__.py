@@ -1,0 +1,2 @@
+"""Files: atomic writers, the on-disk cache and mask-file parsing.
+"""

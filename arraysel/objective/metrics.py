@@ -1,0 +1,671 @@
+"""PSF metrics (SPEC section 2) and training loss terms (SPEC section 3).
+
+Everything here is written with torch, works on any device, accepts
+float32/float64 and complex64/complex128 tensors, is batched over leading
+dimensions and is differentiable with respect to the kernel ``kappa``.
+Non-smooth points (the argmax that locates the peak, the max over the main
+lobe, the side-lobe quantile, ``|z|`` at ``z = 0``) give finite
+sub-gradients, never NaN.
+
+Conventions (see ``docs/metrics.md``):
+
+* a PSF kernel ``kappa`` has shape ``(..., H, W)``; axis ``-2`` is the row
+  axis, axis ``-1`` the column axis; ``pitch`` is the pixel pitch in metres,
+  one number for both axes or ``(pitch_rows, pitch_cols)``;
+* distances ``r`` are measured, in metres, from the pixel of the peak of
+  ``|kappa|`` (first maximum in row-major order when there are ties);
+* ``r_main`` and ``r_guard`` are given in wavelengths (multiples of
+  ``wavelength``, metres); region boundaries are inclusive, with a relative
+  tolerance of ``1e-9`` on ``r**2`` so that a pixel lying exactly on a
+  boundary (e.g. 24 pixels = 1.5 wavelengths at pitch wavelength/16) is
+  inside whatever the rounding of ``pitch`` and ``wavelength``.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Iterable, Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from arraysel.errors import NumericalError, ParameterError, check_number
+
+__all__ = [
+    "PSF_TERMS",
+    "DEFAULT_WEIGHTS",
+    "PSFRegions",
+    "safe_abs",
+    "si_mse",
+    "psf_regions",
+    "psf_metrics",
+    "circular_convolve",
+    "l_conv",
+    "l_rec",
+    "l_ent",
+    "l_row",
+    "composite_loss",
+    "check_finite",
+    "check_kernels",
+    "check_regions",
+]
+
+#: names of the quantities :func:`psf_metrics` can return, in SPEC order
+PSF_TERMS: tuple[str, ...] = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+
+#: weights of the total training loss, SPEC section 3 (read-only; copy with ``dict(...)``)
+DEFAULT_WEIGHTS: Mapping[str, float] = MappingProxyType({
+    "L_PSF": 10.0,
+    "L_conv": 1.0,
+    "L_rec": 10.0,
+    "L_contrast": 10.0,
+    "L_SLR": 10.0,
+    "L_ent": 1.0,
+    "L_row": 10.0,
+})
+
+# relative tolerance on r**2 for the inclusive region boundaries
+_BOUNDARY_RTOL = 1e-9
+
+
+# --------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------
+
+def _check_tensor(name: str, x: object) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise ParameterError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if not (x.is_floating_point() or x.is_complex()):
+        raise ParameterError(f"{name} must be a real floating or complex tensor, got dtype {x.dtype}")
+    return x
+
+
+def _check_kernel_shape(name: str, x: Tensor) -> None:
+    if x.dim() < 2:
+        raise ParameterError(f"{name} must have shape (..., H, W), got shape {tuple(x.shape)}")
+    if x.shape[-1] == 0 or x.shape[-2] == 0:
+        raise ParameterError(f"{name} must have a non-empty (H, W) window, got shape {tuple(x.shape)}")
+
+
+def _abs2(z: Tensor) -> Tensor:
+    """|z|**2, smooth everywhere (real output)."""
+    if z.is_complex():
+        return torch.view_as_real(z).square().sum(-1)
+    return z.square()
+
+
+def _safe_div(num: Tensor, den: Tensor) -> Tensor:
+    """num / den where den != 0, 0 elsewhere; finite gradient in both cases."""
+    nz = den != 0
+    return torch.where(nz, num / torch.where(nz, den, torch.ones_like(den)), torch.zeros_like(num))
+
+
+def safe_abs(z: Tensor) -> Tensor:
+    """``|z|`` for a real or complex tensor, with gradient 0 (not NaN) where ``z == 0``.
+
+    The value equals ``torch.abs(z)`` (no overflow for large entries); the
+    double ``where`` keeps the backward pass away from ``z / |z|`` at zero.
+    """
+    z = _check_tensor("z", z)
+    nz = z != 0
+    one = torch.ones((), dtype=z.dtype, device=z.device)
+    mag = torch.abs(torch.where(nz, z, one))
+    return torch.where(nz, mag, torch.zeros_like(mag))
+
+
+def check_finite(name: str, tensor: Tensor) -> Tensor:
+    """Return ``tensor`` if all its entries are finite; else raise :class:`NumericalError`.
+
+    The message names the quantity ``name`` and counts NaN and Inf entries.
+    (Costs one device synchronisation.)
+    """
+    if not isinstance(tensor, Tensor):
+        tensor = torch.as_tensor(tensor)
+    if tensor.is_floating_point() or tensor.is_complex():
+        finite = torch.isfinite(tensor)
+        if not bool(finite.all()):
+            n_nan = int(torch.isnan(tensor).sum())
+            n_bad = int((~finite).sum())
+            raise NumericalError(
+                f"{name} is not finite: {n_nan} NaN and {n_bad - n_nan} Inf value(s) "
+                f"out of {tensor.numel()} (shape {tuple(tensor.shape)})")
+    return tensor
+
+
+def check_kernels(kappa: Tensor, kappa_ref: Tensor | None = None) -> None:
+    """Raise :class:`NumericalError` if a PSF kernel is unusable for the metrics.
+
+    Checks that ``kappa`` (and ``kappa_ref`` when given) are finite and that
+    no kernel in the batch is identically zero (SI-MSE and the ratios of
+    :func:`psf_metrics` are undefined there; the differentiable functions
+    then return finite placeholder values instead of NaN). This helper
+    synchronises with the device: call it outside hot loops.
+    """
+    for name, x in (("kappa", kappa), ("kappa_ref", kappa_ref)):
+        if x is None:
+            continue
+        x = _check_tensor(name, x)
+        _check_kernel_shape(name, x)
+        check_finite(name, x)
+        zero = (x == 0).flatten(-2).all(-1)
+        if bool(zero.any()):
+            idx = [tuple(i) for i in torch.nonzero(zero).tolist()][:5]
+            where = "" if x.dim() == 2 else f" at batch index(es) {idx}"
+            raise NumericalError(f"{name} is identically zero{where}; its PSF metrics are undefined")
+
+
+# --------------------------------------------------------------------------
+# SI-MSE
+# --------------------------------------------------------------------------
+
+def _detached_scale(x: Tensor) -> Tensor:
+    """max(|Re|, |Im|) over the last two axes, detached; 1 where the kernel is zero."""
+    x = x.detach()
+    s = (torch.view_as_real(x).abs().amax(dim=(-3, -2, -1)) if x.is_complex()
+         else x.abs().amax(dim=(-2, -1)))
+    return torch.where(s > 0, s, torch.ones_like(s))
+
+
+def _divide_by_scale(x: Tensor, s: Tensor) -> Tensor:
+    """``x / s[..., None, None]`` for a real ``s > 0`` of shape ``x.shape[:-2]``.
+
+    A complex ``x`` is divided through its real view: torch promotes a real
+    divisor to complex, and its complex division returns inf/NaN for a
+    subnormal divisor (e.g. a float32 kernel whose largest entry is 1e-44).
+    """
+    if x.is_complex():
+        return torch.view_as_complex(torch.view_as_real(x.resolve_conj()) / s[..., None, None, None])
+    return x / s[..., None, None]
+
+
+def _use_matmul(x: Tensor) -> bool:
+    """Whether to reduce dot products with matmul (BLAS) rather than multiply-and-sum.
+
+    Only on CPU, where it is several times faster. On accelerators the
+    elementwise form is as fast (memory bound) and is never subject to
+    reduced-precision matmul modes (TF32 under
+    ``torch.set_float32_matmul_precision('high')``).
+    """
+    return x.device.type == "cpu"
+
+
+def _inner(u: Tensor, v: Tensor) -> Tensor:
+    """<u, v> = sum(conj(u) v) over the last two axes, leading axes broadcast."""
+    uf, vf = u.flatten(-2), v.flatten(-2)
+    if not _use_matmul(uf):
+        return (uf.conj() * vf).sum(-1)
+    if not (u.is_complex() or v.is_complex()):
+        return torch.matmul(uf.unsqueeze(-2), vf.unsqueeze(-1))[..., 0, 0]
+    # conj(sum(u conj(v))) with conj(v) materialised: in torch 2.x a matmul
+    # with a lazily conjugated operand takes a much slower path.
+    return torch.matmul(uf.unsqueeze(-2), vf.conj().resolve_conj().unsqueeze(-1))[..., 0, 0].conj()
+
+
+def _rowdot(x: Tensor, y: Tensor) -> Tensor:
+    """sum(x * y, -1) for real tensors of the same shape."""
+    if not _use_matmul(x):
+        return (x * y).sum(-1)
+    return torch.matmul(x.unsqueeze(-2), y.unsqueeze(-1))[..., 0, 0]
+
+
+def _sqnorm(u: Tensor) -> Tensor:
+    """||u||^2 over the last two axes (real), smooth everywhere."""
+    x = torch.view_as_real(u).flatten(-3) if u.is_complex() else u.flatten(-2)
+    return _rowdot(x, x)
+
+
+def _promote(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    dt = torch.promote_types(a.dtype, b.dtype)
+    return a.to(dt), b.to(dt)
+
+
+def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
+    """Scale-invariant MSE ``L_PSF`` of SPEC section 2.
+
+    ``||a* kappa - kappa_ref||^2 / ||kappa_ref||^2`` with
+    ``a* = <kappa, kappa_ref> / <kappa, kappa>`` and ``<u, v> = sum(conj(u) v)``
+    over the last two axes. ``kappa`` has shape ``(..., H, W)``;
+    ``kappa_ref`` broadcasts against it. Returns a real tensor of the
+    broadcast leading shape, in ``[0, 1]``.
+
+    Degenerate inputs give finite values, not NaN: a zero ``kappa`` gives
+    ``a* = 0`` (loss 1, gradient 0); a zero ``kappa_ref`` gives 0. Use
+    :func:`check_kernels` to reject them explicitly.
+    """
+    kappa = _check_tensor("kappa", kappa)
+    kappa_ref = _check_tensor("kappa_ref", kappa_ref)
+    _check_kernel_shape("kappa", kappa)
+    _check_kernel_shape("kappa_ref", kappa_ref)
+    try:
+        torch.broadcast_shapes(kappa.shape, kappa_ref.shape)
+    except RuntimeError as exc:
+        raise ParameterError(f"kappa {tuple(kappa.shape)} and kappa_ref {tuple(kappa_ref.shape)} "
+                             f"do not broadcast") from exc
+    k, r = _promote(kappa, kappa_ref)
+    # L is invariant to the scale of kappa and of kappa_ref separately: divide
+    # each kernel by a detached scale so float32 sums cannot under/overflow
+    # (no gradient is lost: the loss does not depend on those scales).
+    k = _divide_by_scale(k, _detached_scale(k))
+    r = _divide_by_scale(r, _detached_scale(r))
+    kk = _sqnorm(k)
+    kr = _inner(k, r)
+    rr = _sqnorm(r)
+    tiny = torch.finfo(kk.dtype).tiny
+    a = _safe_div(kr, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
+    # the residual is formed explicitly (not as rr - |kr|^2/kk) so that L = 0 is
+    # reached to rounding; it is insensitive to first order to errors in a*.
+    resid = _sqnorm(a[..., None, None] * k - r)
+    return _safe_div(resid, rr)
+
+
+# --------------------------------------------------------------------------
+# regions
+# --------------------------------------------------------------------------
+
+@dataclass
+class PSFRegions:
+    """Regions of a batch of PSF kernels, all relative to each kernel's peak.
+
+    Attributes
+    ----------
+    peak : LongTensor ``(..., 2)``
+        (row, column) index of the peak of ``|kappa|`` (first maximum).
+    main : BoolTensor ``(..., H, W)``
+        ``Omega_main = {r <= r_main}`` (always contains the peak).
+    side : BoolTensor ``(..., H, W)``
+        ``Omega_side = {r >= r_guard}`` (may be empty for a small window).
+    r : Tensor ``(..., H, W)`` or None
+        distance to the peak in metres (real dtype of ``kappa``); ``None``
+        when not requested.
+    """
+
+    peak: Tensor
+    main: Tensor
+    side: Tensor
+    r: Tensor | None = None
+
+
+def _parse_pitch(pitch: float | Sequence[float]) -> tuple[float, float]:
+    if isinstance(pitch, Tensor):
+        pitch = pitch.tolist()
+    if isinstance(pitch, (list, tuple)):
+        if len(pitch) != 2:
+            raise ParameterError(f"pitch must be a number or (pitch_rows, pitch_cols), got {pitch!r}")
+        return (check_number("pitch[0]", pitch[0], lo=0, lo_open=True),
+                check_number("pitch[1]", pitch[1], lo=0, lo_open=True))
+    p = check_number("pitch", pitch, lo=0, lo_open=True)
+    return p, p
+
+
+@functools.lru_cache(maxsize=32)
+def _offset_tables(h: int, w: int, pr: float, pc: float, r_main: float, r_guard: float):
+    """Tables over all offsets (di, dj), di in [-(h-1), h-1]: d^2, main mask, side mask (CPU)."""
+    di = torch.arange(-(h - 1), h, dtype=torch.float64) * pr
+    dj = torch.arange(-(w - 1), w, dtype=torch.float64) * pc
+    d2 = di[:, None] ** 2 + dj[None, :] ** 2
+    main = d2 <= (r_main ** 2) * (1 + _BOUNDARY_RTOL)
+    side = d2 >= (r_guard ** 2) * (1 - _BOUNDARY_RTOL)
+    return d2, main, side
+
+
+@functools.lru_cache(maxsize=16)
+def _device_masks(h: int, w: int, pr: float, pc: float, r_main: float, r_guard: float,
+                  device: torch.device, dtype: torch.dtype = torch.bool) -> tuple[Tensor, Tensor]:
+    """The main/side offset tables as ``dtype`` (bool or 0/1 float), cached on ``device``."""
+    _, main, side = _offset_tables(h, w, pr, pc, r_main, r_guard)
+    return main.to(device=device, dtype=dtype), side.to(device=device, dtype=dtype)
+
+
+def _scaled_abs2(kappa: Tensor) -> Tensor:
+    """|kappa / s|^2 flattened to (B, H*W), s = detached max(|Re|, |Im|) of each kernel.
+
+    The scale keeps the squares in range in float32 whatever the kernels'
+    units; every lobe ratio is scale invariant, so no gradient is lost.
+    """
+    b = kappa.shape[0]
+    xr = torch.view_as_real(kappa) if kappa.is_complex() else kappa[..., None]
+    xr = xr.reshape(b, -1, xr.shape[-1])
+    return (xr / _detached_scale(kappa)[:, None, None]).square().sum(-1)
+
+
+def _peak_index(k2: Tensor) -> Tensor:
+    """Argmax of ``k2`` of shape (B, N) (first on ties): (B,) long, no gradient."""
+    return torch.argmax(k2.detach(), dim=-1)
+
+
+def _regions_flat(kappa: Tensor, pitch, wavelength, r_main, r_guard, distance: bool,
+                  flat_peak: Tensor | None = None, mask_dtype: torch.dtype = torch.bool) -> PSFRegions:
+    """Regions for kappa of shape (B, H, W); masks as ``mask_dtype`` (bool or 0/1 float)."""
+    pr, pc = _parse_pitch(pitch)
+    lam = check_number("wavelength", wavelength, lo=0, lo_open=True)
+    rm = check_number("r_main", r_main, lo=0)
+    rg = check_number("r_guard", r_guard, lo=0)
+    if rg < rm:
+        raise ParameterError(f"r_guard = {r_guard!r} must be >= r_main = {r_main!r} (both in wavelengths)")
+    b, h, w = kappa.shape
+    dev = kappa.device
+    tmain, tside = _device_masks(h, w, pr, pc, rm * lam, rg * lam, dev, mask_dtype)
+    if flat_peak is None:
+        flat_peak = _peak_index(_scaled_abs2(kappa.detach()))
+    i0 = torch.div(flat_peak, w, rounding_mode="floor")
+    j0 = flat_peak - i0 * w
+    rows = torch.arange(h, device=dev)[None, :] - i0[:, None] + (h - 1)  # (B, H)
+    cols = torch.arange(w, device=dev)[None, :] - j0[:, None] + (w - 1)  # (B, W)
+    ri, ci = rows[:, :, None], cols[:, None, :]
+    main = tmain[ri, ci]
+    side = tside[ri, ci]
+    r = None
+    if distance:
+        rdt = kappa.real.dtype if kappa.is_complex() else kappa.dtype
+        d2 = _offset_tables(h, w, pr, pc, rm * lam, rg * lam)[0]
+        r = d2.sqrt().to(device=dev, dtype=rdt)[ri, ci]
+    return PSFRegions(peak=torch.stack([i0, j0], dim=-1), main=main, side=side, r=r)
+
+
+def _flatten_kernel(name: str, kappa: Tensor) -> tuple[Tensor, torch.Size]:
+    kappa = _check_tensor(name, kappa)
+    _check_kernel_shape(name, kappa)
+    lead = kappa.shape[:-2]
+    return kappa.reshape((-1,) + tuple(kappa.shape[-2:])), lead
+
+
+def psf_regions(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: float,
+                r_main: float = 1.5, r_guard: float = 2.5, distance: bool = True) -> PSFRegions:
+    """Peak, distance map and regions of each kernel of ``kappa`` ``(..., H, W)``.
+
+    ``r`` is the distance in metres from the pixel of the peak of ``|kappa|``
+    (argmax, first in row-major order on ties; no gradient flows through it)
+    using ``pitch`` (metres, one number or ``(rows, cols)``).
+    ``Omega_main = {r <= r_main * wavelength}``,
+    ``Omega_side = {r >= r_guard * wavelength}``, boundaries inclusive.
+    Each batch item has its own regions since its peak can be anywhere.
+    """
+    flat, lead = _flatten_kernel("kappa", kappa)
+    reg = _regions_flat(flat, pitch, wavelength, r_main, r_guard, distance)
+    hw = tuple(flat.shape[-2:])
+    return PSFRegions(peak=reg.peak.reshape(tuple(lead) + (2,)),
+                      main=reg.main.reshape(tuple(lead) + hw),
+                      side=reg.side.reshape(tuple(lead) + hw),
+                      r=None if reg.r is None else reg.r.reshape(tuple(lead) + hw))
+
+
+def check_regions(regions: PSFRegions) -> None:
+    """Raise :class:`ParameterError` if some kernel has an empty side region.
+
+    That happens when the window is too small for ``r_guard`` around the
+    peak; :func:`psf_metrics` then returns 0 for the side-lobe terms of that
+    kernel. (Synchronises with the device.)
+    """
+    empty = ~regions.side.flatten(-2).any(-1)
+    if bool(empty.any()):
+        raise ParameterError(
+            f"the side region r >= r_guard is empty for {int(empty.sum())} kernel(s): "
+            f"use a larger window or a smaller r_guard")
+
+
+# --------------------------------------------------------------------------
+# PSF metrics
+# --------------------------------------------------------------------------
+
+def _safe_sqrt(x: Tensor) -> Tensor:
+    """sqrt(x) for x > 0, 0 elsewhere; gradient 0 (not inf/NaN) at x <= 0."""
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def _masked_quantile(x: Tensor, mask: Tensor, q: float, transform=None) -> Tensor:
+    """Per-row quantile (linear interpolation, as torch.quantile) over ``mask``.
+
+    ``x`` (B, N) with ``x >= 0``; ``mask`` (B, N) of 0/1 in ``x``'s dtype.
+    Returns the q-quantile of ``transform(x)`` (an increasing function,
+    applied only to the two order statistics needed). Rows with an empty mask
+    give 0. One ``topk`` over the batch: only the ~(1 - q) N largest values
+    are needed, not a sort.
+    """
+    b, n_all = x.shape
+    n = mask.sum(-1).round().long()                     # (B,) count of masked pixels
+    n_eff = n.clamp_min(1)
+    k = min(n_all, int(math.ceil((1.0 - q) * (n_all - 1))) + 2)
+    vals = torch.addcmul(mask - 1, x, mask)             # x inside, sentinel -1 outside
+    top = torch.topk(vals, k, dim=-1, largest=True, sorted=True).values  # descending
+    rank_dt = torch.float32 if x.device.type == "mps" else torch.float64
+    pos = q * (n_eff - 1).to(rank_dt)                   # ascending rank, as torch.quantile
+    lo = torch.floor(pos)
+    hi = torch.ceil(pos)
+    frac = (pos - lo).to(x.dtype)
+    d_lo = (n_eff - 1 - lo.long()).clamp(0, k - 1)       # ascending rank -> descending index
+    d_hi = (n_eff - 1 - hi.long()).clamp(0, k - 1)
+    v_lo = top.gather(-1, d_lo[:, None]).squeeze(-1)
+    v_hi = top.gather(-1, d_hi[:, None]).squeeze(-1)
+    if transform is not None:
+        v_lo, v_hi = transform(v_lo), transform(v_hi)
+    res = v_lo + frac * (v_hi - v_lo)
+    return torch.where(n > 0, res, torch.zeros_like(res))
+
+
+def _parse_terms(terms: Iterable[str] | None, have_ref: bool) -> tuple[str, ...]:
+    if terms is None:
+        return PSF_TERMS if have_ref else tuple(t for t in PSF_TERMS if t not in ("L_PSF", "Mean"))
+    if isinstance(terms, str):
+        terms = (terms,)
+    out = []
+    for t in terms:
+        if t not in PSF_TERMS:
+            raise ParameterError(f"unknown PSF metric {t!r}; choose among {list(PSF_TERMS)}")
+        if t in ("L_PSF", "Mean") and not have_ref:
+            raise ParameterError(f"metric {t!r} needs kappa_ref")
+        if t not in out:
+            out.append(t)
+    return tuple(out)
+
+
+def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: float,
+                kappa_ref: Tensor | None = None, r_main: float = 1.5, r_guard: float = 2.5,
+                quantile: float = 0.99, terms: Iterable[str] | None = None) -> dict[str, Tensor]:
+    """PSF quality metrics of SPEC section 2 (Table 1 of the paper); lower is better.
+
+    Parameters
+    ----------
+    kappa : Tensor ``(..., H, W)`` (typically ``(B, H, W)`` or ``(H, W)``)
+        PSF kernels, real or complex.
+    pitch : float or (float, float)
+        pixel pitch in metres (rows, columns).
+    wavelength : float
+        lambda0 = c / fc in metres; ``r_main`` and ``r_guard`` are multiples of it.
+    kappa_ref : Tensor, optional
+        reference kernel(s) broadcastable to ``kappa``; needed for
+        ``L_PSF`` and ``Mean``.
+    r_main, r_guard : float
+        radii of ``Omega_main = {r <= r_main}`` and ``Omega_side = {r >= r_guard}``,
+        in wavelengths.
+    quantile : float
+        q of ``L_SLR_q`` (linear interpolation, like ``torch.quantile``).
+    terms : iterable of str, optional
+        subset of :data:`PSF_TERMS` to compute (default: all that the inputs
+        allow, i.e. without ``L_PSF``/``Mean`` when no ``kappa_ref``).
+
+    Returns
+    -------
+    dict mapping each requested name to a real tensor of shape ``kappa.shape[:-2]``
+    (0-dim for a single ``(H, W)`` kernel):
+
+    * ``L_PSF``: :func:`si_mse` ``(kappa, kappa_ref)``
+    * ``L_contrast``: mean(m^2 over side) / mean(m^2 over main)
+    * ``L_SLR_q``: quantile_q(m over side) / max(m over main)
+    * ``L_SLR_i``: sum(m^2 over side) / sum(m^2 over main)
+    * ``L_SLR``: (L_SLR_q + L_SLR_i) / 2
+    * ``Mean``: (L_PSF + L_contrast + L_SLR_q + L_SLR_i) / 4
+
+    with ``m = |kappa| / max|kappa|``. A kernel whose side region is empty
+    gets 0 for the side terms; a zero kernel gets 0 for the ratios (see
+    :func:`check_regions`, :func:`check_kernels`).
+    """
+    flat, lead = _flatten_kernel("kappa", kappa)
+    q = check_number("quantile", quantile, lo=0, hi=1)
+    want = _parse_terms(terms, kappa_ref is not None)
+    need = set(want)
+    if "L_SLR" in need:
+        need |= {"L_SLR_q", "L_SLR_i"}
+    if "Mean" in need:
+        need |= {"L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i"}
+
+    out: dict[str, Tensor] = {}
+    if "L_PSF" in need:
+        ref = _check_tensor("kappa_ref", kappa_ref)
+        _check_kernel_shape("kappa_ref", ref)
+        try:
+            shape = torch.broadcast_shapes(kappa.shape, ref.shape)
+        except RuntimeError:
+            shape = None
+        if shape != kappa.shape:
+            raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
+                                 f"shape {tuple(kappa.shape)}")
+        out["L_PSF"] = si_mse(kappa, ref).reshape(lead)
+
+    lobe_terms = need & {"L_contrast", "L_SLR_q", "L_SLR_i"}
+    if lobe_terms:
+        b, h, w = flat.shape
+        # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
+        # max(k2) cancels in every ratio below and is never divided out.
+        k2 = _scaled_abs2(flat)                                          # (B, N)
+        flat_peak = _peak_index(k2)
+        # kernels cut around their peak share one peak pixel (and so one pair of regions):
+        # then the masks are (1, N) and broadcast, instead of gathered per kernel
+        shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
+        rows = 1 if shared else b
+        reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
+                            flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
+        main = reg.main.reshape(rows, h * w)                             # 0/1 floats
+        side = reg.side.reshape(rows, h * w)
+        if {"L_contrast", "L_SLR_i"} & lobe_terms:
+            s_main = _rowdot(k2, main)
+            s_side = _rowdot(k2, side)
+            if "L_SLR_i" in lobe_terms:
+                out["L_SLR_i"] = _safe_div(s_side, s_main).reshape(lead)
+            if "L_contrast" in lobe_terms:
+                out["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1)),
+                                              _safe_div(s_main, main.sum(-1))).reshape(lead)
+        if "L_SLR_q" in lobe_terms:
+            # quantile of m = sqrt(k2 / max k2): sqrt is increasing, so rank k2.
+            # The peak is the global maximum and lies in the main lobe (r = 0), so
+            # max(m over main) is m at the peak.
+            main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
+            q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
+            out["L_SLR_q"] = _safe_div(q_side, main_max).reshape(lead)
+
+    if "L_SLR" in need:
+        out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])
+    if "Mean" in need:
+        out["Mean"] = 0.25 * (out["L_PSF"] + out["L_contrast"] + out["L_SLR_q"] + out["L_SLR_i"])
+    return {t: out[t] for t in want}
+
+
+# --------------------------------------------------------------------------
+# training terms (SPEC section 3)
+# --------------------------------------------------------------------------
+
+def circular_convolve(kappa: Tensor, image: Tensor) -> Tensor:
+    """Circular 2-D convolution ``Y = IFFT2(FFT2(kappa0) * FFT2(image))``.
+
+    ``kappa`` ``(..., h, w)`` with ``h <= H``, ``w <= W`` and ``image``
+    ``(..., H, W)``; leading dimensions broadcast. Centring convention: the
+    kernel pixel ``(h // 2, w // 2)`` (``(64, 64)`` for a 128 x 128 window,
+    where SPEC puts the peak) is the zero shift. ``kappa0`` is ``kappa``
+    zero-padded to ``(H, W)`` and rolled so that pixel goes to ``(0, 0)``
+    (for ``h = H``, ``w = W`` this is ``ifftshift``). Hence a delta kernel
+    at its centre returns ``image`` unchanged, and
+    ``Y[i, j] = sum_{a,b} kappa[a, b] image[(i - a + h//2) % H, (j - b + w//2) % W]``.
+    The result is real when both inputs are real, complex otherwise.
+    """
+    kappa = _check_tensor("kappa", kappa)
+    image = _check_tensor("image", image)
+    _check_kernel_shape("kappa", kappa)
+    _check_kernel_shape("image", image)
+    h, w = kappa.shape[-2:]
+    H, W = image.shape[-2:]
+    if h > H or w > W:
+        raise ParameterError(f"kernel window {h}x{w} is larger than the image {H}x{W}")
+    k0 = torch.nn.functional.pad(kappa, (0, W - w, 0, H - h)) if (h, w) != (H, W) else kappa
+    k0 = torch.roll(k0, shifts=(-(h // 2), -(w // 2)), dims=(-2, -1))
+    if not kappa.is_complex() and not image.is_complex():
+        k0, image = _promote(k0, image)
+        return torch.fft.irfft2(torch.fft.rfft2(k0) * torch.fft.rfft2(image), s=(H, W))
+    return torch.fft.ifft2(torch.fft.fft2(k0) * torch.fft.fft2(image))
+
+
+def l_conv(y_c: Tensor, y_ref: Tensor) -> Tensor:
+    """``L_conv``: squared L2 norm ``||Y_c - Y_ref||^2`` over the last two axes, mean over the rest."""
+    y_c = _check_tensor("Y_c", y_c)
+    y_ref = _check_tensor("Y_ref", y_ref)
+    _check_kernel_shape("Y_c", y_c)
+    d = _abs2(y_c - y_ref).sum((-2, -1))
+    return d.mean() if d.dim() else d
+
+
+def l_rec(i_hat: Tensor, i_ref: Tensor) -> Tensor:
+    """``L_rec``: mean of ``|I_hat - I_ref|^2`` over all pixels and batch items."""
+    i_hat = _check_tensor("I_hat", i_hat)
+    i_ref = _check_tensor("I_ref", i_ref)
+    return _abs2(i_hat - i_ref).mean()
+
+
+def l_ent(p_soft: Tensor) -> Tensor:
+    """``L_ent``: mean entropy (nats) of the columns of ``P_soft`` ``(..., Ne, k)``.
+
+    Column ``j`` is a distribution over the ``Ne`` elements (sums to 1);
+    ``H_j = -sum_i p_ij log p_ij`` with ``0 log 0 = 0`` (value and gradient
+    finite at exact zeros). Averaged over columns and leading dimensions.
+    """
+    p = _check_tensor("P_soft", p_soft)
+    if p.is_complex() or p.dim() < 2:
+        raise ParameterError(f"P_soft must be a real tensor of shape (..., Ne, k), got {p.dtype} "
+                             f"{tuple(p.shape)}")
+    pos = p > 0
+    logp = torch.log(torch.where(pos, p, torch.ones_like(p)))
+    ent = -torch.where(pos, p * logp, torch.zeros_like(p)).sum(-2)
+    return ent.mean()
+
+
+def l_row(p: Tensor) -> Tensor:
+    """``L_row``: ``sum_i relu(sum_j P_ij - 1)^2`` for ``P`` ``(..., Ne, k)``; mean over leading dims.
+
+    Penalises an element (row) used by more than one of the k columns.
+    """
+    p = _check_tensor("P", p)
+    if p.is_complex() or p.dim() < 2:
+        raise ParameterError(f"P must be a real tensor of shape (..., Ne, k), got {p.dtype} "
+                             f"{tuple(p.shape)}")
+    pen = torch.relu(p.sum(-1) - 1).pow(2).sum(-1)
+    return pen.mean() if pen.dim() else pen
+
+
+def composite_loss(terms: Mapping[str, Tensor], weights: Mapping[str, float] = DEFAULT_WEIGHTS) -> Tensor:
+    """Weighted sum ``sum_name weights[name] * terms[name]``.
+
+    Names with weight 0 are skipped (their term may be missing or even
+    non-finite); a term with no entry in ``weights`` is ignored; a non-zero
+    weight whose term is missing raises :class:`ParameterError`. A term that
+    is not a scalar (e.g. a ``(B,)`` metric) enters through its mean.
+    """
+    total: Tensor | None = None
+    for name, wt in weights.items():
+        wt = check_number(f"weights[{name!r}]", wt)
+        if wt == 0:
+            continue
+        if name not in terms:
+            raise ParameterError(f"loss term {name!r} has weight {wt} but was not computed; "
+                                 f"available: {sorted(terms)}")
+        t = terms[name]
+        if not isinstance(t, Tensor):
+            t = torch.as_tensor(t)
+        if t.is_complex():
+            raise ParameterError(f"loss term {name!r} is complex")
+        t = t.mean() if t.dim() else t
+        total = wt * t if total is None else total + wt * t
+    if total is None:
+        ref = next((t for t in terms.values() if isinstance(t, Tensor)), None)
+        return torch.zeros((), dtype=ref.dtype if ref is not None else torch.get_default_dtype(),
+                           device=ref.device if ref is not None else None)
+    return total

@@ -1,0 +1,413 @@
+"""The objective every selection strategy is judged by.
+
+:class:`Objective` wraps a scene's PSF model and metrics:
+
+* :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks,
+  returning every Table-1 metric (chunked, so memory stays bounded);
+* :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft
+  element weights (the same weights are the TX apodization and the RX
+  channel weights);
+* :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection
+  matrix (PSF terms + entropy + row terms; end-to-end terms on scenes that
+  weight them, through a data term the trainer attaches).
+
+It counts evaluated masks, gradient steps and the wall time spent inside it,
+so a comparison can report every strategy's budget and overhead.
+Only the terms with a non-zero weight are computed.
+
+A scene with several field points (``medium.points``) has one
+:class:`~arraysel.physics.psf.PSFModel` per point (``Objective.psfs``); each point's
+kernel is the window centred on its own peak, scored against its own full-array
+reference. The headline metrics (:data:`METRIC_NAMES`) are then the aggregate
+``metrics.aggregate`` chooses (the mean over the points, or the worst point),
+and :meth:`Objective.evaluate` adds every metric per point, their mean and
+their worst (:func:`point_metric_names`). A one-point scene returns exactly
+the headline metrics, as before. See ``docs/scenes.md``.
+
+When a point has no fast path, the objective logs once, when it is built, that
+it uses the exact path, with its estimated time per mask and memory
+(:meth:`Objective.exact_notice`), and the first evaluation of several masks
+logs its estimated duration.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+
+from arraysel.objective import metrics as M
+from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.physics.psf import PSFModel
+from arraysel.scenes.schema import Scene, load_scene
+
+_log = logging.getLogger(__name__)
+
+METRIC_NAMES = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+PSF_WEIGHT_KEYS = ("L_PSF", "L_contrast", "L_SLR")
+#: aggregates over the field points of a several-point scene
+AGGREGATES = ("mean", "worst")
+
+
+def point_metric_names(n_points: int) -> tuple[str, ...]:
+    """Breakdown keys of a scene with ``n_points`` field points (none for one point).
+
+    ``"<metric>@p<i>"`` for point i (in ``medium.points`` order), then
+    ``"<metric>@mean"`` and ``"<metric>@worst"`` (the largest value over the
+    points; every metric is lower-is-better).
+    """
+    if n_points <= 1:
+        return ()
+    names = [f"{m}@p{i}" for i in range(n_points) for m in METRIC_NAMES]
+    names += [f"{m}@{a}" for a in AGGREGATES for m in METRIC_NAMES]
+    return tuple(names)
+
+
+def _fmt_seconds(sec: float) -> str:
+    if sec < 1:
+        return f"{sec * 1e3:.0f} ms"
+    if sec < 120:
+        return f"{sec:.1f} s"
+    if sec < 7200:
+        return f"{sec / 60:.1f} min"
+    return f"{sec / 3600:.1f} h"
+
+
+def masks_from_indices(selections, n_elements: int, k: int | None = None) -> np.ndarray:
+    """(B, Ne) 0/1 float masks from lists of active element indices, validated.
+
+    Raises :class:`SelectionError` naming the offending selection (its position)
+    for a repeated, negative or out-of-range index, or a wrong count.
+    """
+    out = np.zeros((len(selections), n_elements), dtype=np.float64)
+    for i, sel in enumerate(selections):
+        idx = [int(v) for v in sel]
+        if any(v < 0 or v >= n_elements for v in idx):
+            raise SelectionError(f"selection {i}: element indices must be in [0, {n_elements - 1}], got {idx}")
+        if len(set(idx)) != len(idx):
+            raise SelectionError(f"selection {i}: repeated element index in {idx}")
+        if k is not None and len(idx) != k:
+            raise SelectionError(f"selection {i}: expected k = {k} elements, got {len(idx)}")
+        if not idx:
+            raise SelectionError(f"selection {i}: empty selection")
+        out[i, idx] = 1.0
+    return out
+
+
+class Objective:
+    """Batched, differentiable PSF objective of a scene (see module docstring).
+
+    Parameters
+    ----------
+    scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one.
+    device : "cpu" or "cuda" (or a torch.device).
+    dtype : torch.float32 (default) or torch.float64.
+    chunk : masks per batch inside :meth:`evaluate`.
+    """
+
+    metric_names = METRIC_NAMES
+
+    def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int = 256,
+                 fast: bool = True):
+        self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
+        self.device = torch.device(device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+        self.dtype = dtype
+        self.chunk = int(chunk)
+        self.fast_requested = bool(fast)
+        self.setups = self.scene.psf_setups()
+        setup = self.setups[0]
+        self.setup = setup
+        self.n_elements = setup.probe.n_elements
+        self.k = self.scene.k
+        #: field points (x, z) in metres, one PSF model each (``self.psfs``; ``self.psf`` is the first)
+        self.points = self.scene.points()
+        self.n_points = len(self.setups)
+        self.aggregate = str(self.scene.value("metrics", "aggregate"))
+        margin = int(self.scene.value("simulator", "fast_margin"))
+        block = int(self.scene.value("simulator", "fast_block"))
+        self.psfs = [PSFModel(s, dtype=dtype, device=self.device, fast=fast, margin=margin, block=block)
+                     for s in self.setups]
+        self.psf = self.psfs[0]
+        if self.n_points > 1:  # the points share the memory cap: each keeps its share of DAS plans
+            for p in self.psfs:
+                p.plan_cache_elements = max(1, p._plan_cache_limit() // self.n_points)
+            for p in self.psfs:
+                p.other_bytes = sum(q.plan_cache_bytes() + q.model_bytes() for q in self.psfs if q is not p)
+        self._announced = False
+        if any(p.fast is None for p in self.psfs):
+            _log.warning("%s", self.exact_notice())
+        self.metric_kw = dict(pitch=setup.pitch, wavelength=setup.wavelength,
+                              r_main=float(self.scene.length("metrics", "r_main")),
+                              r_guard=float(self.scene.length("metrics", "r_guard")),
+                              quantile=float(self.scene.value("metrics", "quantile")))
+        #: extra result keys of a several-point scene: every metric per point, their mean and worst
+        self.breakdown_names = point_metric_names(self.n_points)
+        self.weights = self.scene.weights
+        self.evaluations = 0
+        self.gradient_steps = 0
+        self.seconds = 0.0
+        self.fallbacks = 0
+        #: optional end-to-end data term: callable(kappa, P, P_soft, step) -> dict of terms
+        self.data_term: Callable | None = None
+
+    # ------------------------------------------------------------------ exact-path notice
+    def estimate_seconds(self, n_masks: int = 1) -> float:
+        """Estimated wall time (s) of :meth:`evaluate` on ``n_masks`` masks (every field point).
+
+        Exact-path points are estimated by :meth:`PSFModel.exact_seconds_per_mask`; fast-path
+        points count as free (their cost is milliseconds a mask).
+        """
+        total = 0.0
+        for p in self.psfs:
+            if p.fast is None:
+                total += n_masks * p.exact_seconds_per_mask(min(self.chunk, p.masks_per_batch(), max(1, n_masks)))
+                if p._ref is None:  # the full array's reference kernel comes first, once
+                    total += p.exact_seconds_per_mask(1)
+        return total
+
+    def exact_notice(self, n_masks: int | None = None) -> str:
+        """One line saying that (and why) the scene runs on the exact path, with time and memory."""
+        slow = [i for i, p in enumerate(self.psfs) if p.fast is None]
+        if not slow:
+            return f"scene {self.scene.name!r}: fast PSF path on every field point"
+        why = "disabled (fast=False)" if not self.fast_requested else "unavailable (its precomputation is over its cap)"
+        where = "" if self.n_points == 1 else f" for {len(slow)} of {self.n_points} field points"
+        per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.fast is None)
+        mem = max(p.exact_bytes(p.masks_per_batch()) for p in (self.psfs[i] for i in slow))
+        text = (f"scene {self.scene.name!r}: PSF fast path {why}{where}; using the exact path: about "
+                f"{_fmt_seconds(per)} per mask (estimated), memory up to {mem / 2 ** 30:.1f} GiB "
+                f"(cap {self.psfs[slow[0]].memory_limit / 2 ** 30:.1f} GiB, ARRAYSEL_MEMORY_GIB)")
+        if n_masks is not None:
+            text += f"; {n_masks} mask(s): about {_fmt_seconds(self.estimate_seconds(n_masks))}"
+        return text
+
+    # ------------------------------------------------------------------ helpers
+    def _timed(self):
+        obj = self
+
+        class _T:
+            def __enter__(self):
+                self.t = time.perf_counter()
+
+            def __exit__(self, *a):
+                obj.seconds += time.perf_counter() - self.t
+
+        return _T()
+
+    def as_masks(self, masks) -> torch.Tensor:
+        m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
+        if m.dim() == 1:
+            m = m[None]
+        if m.dim() != 2 or m.shape[1] != self.n_elements:
+            raise SelectionError(f"masks must have shape (B, {self.n_elements}), got {tuple(m.shape)}")
+        m = m.to(self.device, self.dtype)
+        if not bool(torch.isfinite(m).all()):
+            raise SelectionError("masks contain NaN or Inf")
+        if bool((m < 0).any()):
+            raise SelectionError("mask weights must be >= 0")
+        if bool((m.sum(1) == 0).any()):
+            bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
+            raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
+        return m
+
+    def _point_list(self, point):
+        if point is None:
+            return list(range(self.n_points))
+        if not isinstance(point, int) or not 0 <= point < self.n_points:
+            raise ParameterError(f"point = {point!r} is out of range; the scene has {self.n_points} field point(s)")
+        return [point]
+
+    def reference_kernel(self, point: int | None = None) -> torch.Tensor:
+        """The full-array PSF kernel: (window, window), or (P, window, window) for a several-point
+        scene when ``point`` is None."""
+        if point is None and self.n_points == 1:
+            point = 0
+        if point is not None:
+            return self.psfs[self._point_list(point)[0]].reference_kernel()
+        return torch.stack([p.reference_kernel() for p in self.psfs])
+
+    def kernels(self, masks, point: int | None = None) -> torch.Tensor:
+        """Complex PSF kernels, no grad: (B, window, window) for one point (``point`` or a
+        one-point scene), (B, P, window, window) for every point of a several-point scene."""
+        with torch.no_grad(), self._timed():
+            m = self.as_masks(masks)
+            pts = self._point_list(0 if point is None and self.n_points == 1 else point)
+            out = []
+            for p in pts:
+                model = self.psfs[p]
+                out.append(torch.cat([model.kernels(m[i:i + n]) for i, n in self._chunks(model, m.shape[0])]))
+            return out[0] if len(pts) == 1 and (point is not None or self.n_points == 1) else torch.stack(out, 1)
+
+    def metrics_of_kernels(self, kappa: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
+        """Metrics of kernels shaped as :meth:`kernels` returns them ((B,) or (B, P) values)."""
+        ref = self.reference_kernel().to(kappa.dtype)
+        return M.psf_metrics(kappa, kappa_ref=ref, terms=terms, **self.metric_kw)
+
+    def _chunks(self, model: PSFModel, n: int):
+        """(start, size) of the mask batches: ``chunk`` masks, fewer when the exact path's memory says so."""
+        step = max(1, min(self.chunk, model.masks_per_batch()))
+        return [(i, min(step, n - i)) for i in range(0, n, step)]
+
+    def _aggregate(self, per_point: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, worst) over points of per-point values [(B,), ...]; worst = largest (lower is better)."""
+        st = torch.stack(per_point, -1)
+        return st.mean(-1), st.amax(-1)
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, masks, return_kernels: bool = False) -> dict[str, np.ndarray]:
+        """Every Table-1 metric of a batch of masks: {name: float64 array (B,)}.
+
+        masks: (B, Ne) 0/1 (or weights >= 0), numpy or torch. No gradient.
+        With ``return_kernels`` the dict also holds ``"kernels"`` (B, w, w) complex.
+        """
+        with torch.no_grad(), self._timed():
+            m = self.as_masks(masks)
+            if not self._announced and m.shape[0] > 1 and any(p.fast is None for p in self.psfs):
+                self._announced = True
+                _log.warning("evaluating %d masks on the exact PSF path: about %s", m.shape[0],
+                             _fmt_seconds(self.estimate_seconds(int(m.shape[0]))))
+            per = [{k: [] for k in METRIC_NAMES} for _ in self.psfs]
+            kern: list = [[] for _ in self.psfs]
+            for p, model in enumerate(self.psfs):
+                ref = model.reference_kernel()
+                for i, n in self._chunks(model, m.shape[0]):
+                    k, fb = model.kernels(m[i:i + n], return_info=True)
+                    self.fallbacks += int(fb.sum())
+                    met = M.psf_metrics(k, kappa_ref=ref.to(k.dtype), **self.metric_kw)
+                    for name in METRIC_NAMES:
+                        per[p][name].append(met[name].double().cpu())
+                    if return_kernels:
+                        kern[p].append(k.cpu())
+            self.evaluations += int(m.shape[0])
+        per_np = [{name: torch.cat(v) for name, v in d.items()} for d in per]
+        if self.n_points == 1:
+            res = {name: v.numpy() for name, v in per_np[0].items()}
+        else:
+            res = {}
+            for name in METRIC_NAMES:
+                mean, worst = self._aggregate([d[name] for d in per_np])
+                res[name] = (mean if self.aggregate == "mean" else worst).numpy()
+                for p, d in enumerate(per_np):
+                    res[f"{name}@p{p}"] = d[name].numpy()
+                res[f"{name}@mean"] = mean.numpy()
+                res[f"{name}@worst"] = worst.numpy()
+        if return_kernels:
+            ks = [torch.cat(v).numpy() for v in kern]
+            res["kernels"] = ks[0] if self.n_points == 1 else np.stack(ks, 1)
+        return res
+
+    def evaluate_indices(self, selections) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` for lists of active element indices (validated, k enforced)."""
+        return self.evaluate(masks_from_indices(selections, self.n_elements, self.k))
+
+    # ------------------------------------------------------------------ losses
+    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
+        """Differentiable PSF metrics (B,) of soft element weights (B, Ne).
+
+        A several-point scene gives the aggregate over its points that
+        ``metrics.aggregate`` chooses (the mean, or the worst point: the largest value).
+        """
+        w = weights if weights.dim() == 2 else weights[None]
+        if w.shape[-1] != self.n_elements:
+            raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
+        w = w.to(self.device, self.dtype)
+        per = []
+        for model in self.psfs:
+            kappa = model.kernels(w)
+            ref = model.reference_kernel().to(kappa.dtype)
+            per.append(M.psf_metrics(kappa, kappa_ref=ref, terms=terms, **self.metric_kw))
+        if len(per) == 1:
+            return per[0]
+        out = {}
+        for name in per[0]:
+            mean, worst = self._aggregate([d[name] for d in per])
+            out[name] = mean if self.aggregate == "mean" else worst
+        return out
+
+    def _psf_loss(self, weights: torch.Tensor):
+        wts = {k: self.weights.get(k, 0.0) for k in PSF_WEIGHT_KEYS}
+        need = [k for k, v in wts.items() if v > 0]
+        terms_needed = []
+        for k in need:
+            terms_needed += ["L_SLR"] if k == "L_SLR" else [k]
+        if not terms_needed:
+            z = weights.sum(-1) * 0
+            return z, {}
+        terms = self.psf_terms(weights, terms=terms_needed)
+        total = sum(wts[k] * terms[k] for k in need)
+        return total, terms
+
+    def mask_loss(self, weights: torch.Tensor):
+        """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
+        with self._timed():
+            w = weights if weights.dim() == 2 else weights[None]
+            total, terms = self._psf_loss(w)
+            if not bool(torch.isfinite(total.detach()).all()):
+                raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
+            self.evaluations += int(w.shape[0])
+            if w.requires_grad:
+                self.gradient_steps += 1
+        return total, terms
+
+    def selection_loss(self, P: torch.Tensor, P_soft: torch.Tensor, step: int = 0):
+        """Training loss of a (Ne, k) selection matrix: (scalar total, terms).
+
+        Element weights are the row sums of P (clamped to [0, 1]); L_ent and
+        L_row act on P_soft; L_conv and L_rec come from :attr:`data_term`
+        on scenes that weight them.
+        """
+        with self._timed():
+            if P.dim() != 2 or P.shape[0] != self.n_elements:
+                raise SelectionError(f"P must have shape ({self.n_elements}, k), got {tuple(P.shape)}")
+            w = P.sum(1).clamp(0, 1)[None]
+            total, terms = self._psf_loss(w)
+            total = total.sum()
+            terms = {k: v.sum() for k, v in terms.items()}
+            if self.weights.get("L_ent", 0) > 0:
+                terms["L_ent"] = M.l_ent(P_soft)
+                total = total + self.weights["L_ent"] * terms["L_ent"]
+            if self.weights.get("L_row", 0) > 0:
+                # on P_soft, as the trainer and the toy objective: the straight-through P
+                # has one-hot columns over distinct elements, so its rows never sum past 1
+                terms["L_row"] = M.l_row(P_soft)
+                total = total + self.weights["L_row"] * terms["L_row"]
+            if self.scene.needs_data:
+                if self.data_term is None:
+                    raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "
+                                         "`arraysel train` (the data term is attached by the trainer)")
+                kappa = self.psf.kernels(w)
+                extra = self.data_term(kappa[0], P, P_soft, step)
+                for k, v in extra.items():
+                    terms[k] = v
+                    total = total + self.weights.get(k, 0.0) * v
+            if not bool(torch.isfinite(total.detach())):
+                raise NumericalError("selection_loss is not finite (NaN/Inf)")
+            self.evaluations += 1
+            if P.requires_grad:
+                self.gradient_steps += 1
+        return total, terms
+
+    def reset_counters(self):
+        self.evaluations = 0
+        self.gradient_steps = 0
+        self.seconds = 0.0
+        self.fallbacks = 0
+
+
+_CACHE: dict = {}
+
+
+def build_objective(scene="paper", device="cpu", dtype=torch.float32, **kw) -> Objective:
+    """Build (or reuse, within a process) the objective of a scene."""
+    sc = load_scene(scene) if not isinstance(scene, Scene) else scene
+    key = (repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
+    obj = _CACHE.get(key)
+    if obj is None:
+        obj = Objective(sc, device=device, dtype=dtype, **kw)
+        _CACHE[key] = obj
+    obj.reset_counters()
+    return obj

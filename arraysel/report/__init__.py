@@ -1,0 +1,2 @@
+"""Reporting: result tables, IOH traces and figures.
+"""

@@ -1,0 +1,2 @@
+"""Running comparisons: experiments (one selector, one seed), executors and the compare task.
+"""

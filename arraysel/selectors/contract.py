@@ -1,0 +1,670 @@
+"""The selector contract: :class:`Selector`, its declared :class:`Option` s, the
+:class:`Budget` of a run and the :class:`BudgetedObjective` through which the
+runner does the bookkeeping.
+
+A selector chooses which ``k`` of the objective's ``Ne`` elements stay active.
+It is built from validated options (``SelectorClass(**options)``) and run by
+
+    ``selector.select(objective, k, seed) -> list[int]``
+
+where
+
+* ``objective`` is a :class:`BudgetedObjective`: it follows the Objective
+  contract (``evaluate``, ``mask_loss``, ``selection_loss``, ``n_elements``,
+  ``device``, ``dtype`` and the counters, see ``docs/selectors.md``), counts
+  what the selector spends against the run's budget, records every hard
+  ``k``-selection it scores (the best-so-far trace) and raises
+  :class:`BudgetExhausted` once the budget is used up. A selector therefore
+  holds only its search: it needs no budget arithmetic and no trace code;
+  ``objective.best`` is the best selection scored so far and
+  ``objective.budget`` the run's started :class:`Budget` (for schedules);
+* ``seed`` is an ``int``; build generators from it with :func:`numpy_rng` and
+  :func:`torch_rng` (never use global random state).
+
+The returned list must hold exactly ``k`` distinct ints in ``[0, Ne)``. When
+:class:`BudgetExhausted` ends ``select`` the runner takes ``objective.best``.
+
+Legacy contract (still supported, deprecated): a selector whose ``select``
+takes five arguments, ``select(objective, k, budget, seed, recorder)``, gets
+the bare objective, the started :class:`Budget` and a :class:`Recorder`, and
+must ask ``budget.allowed(n)`` and call ``recorder.report(elements, mean)``
+itself, as before. The runner emits one :class:`DeprecationWarning` per class
+naming the change: drop ``budget`` and ``recorder`` from the signature.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import time
+from typing import Any, ClassVar, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number
+
+__all__ = [
+    "Option", "Selector", "Budget", "Recorder", "BudgetExceededError", "BudgetExhausted",
+    "BudgetedObjective", "POLISH_OPTION", "is_legacy_selector",
+    "numpy_rng", "torch_rng", "check_selection", "indices_to_mask", "mask_to_indices",
+    "top_k", "finite_or_inf",
+]
+
+
+class BudgetExceededError(ArrayselError, RuntimeError):
+    """A selector used more objective evaluations than its budget allowed."""
+
+
+class BudgetExhausted(ArrayselError):
+    """Raised by :class:`BudgetedObjective` when the run's budget is used up.
+
+    It ends the selector's search: the runner catches it and takes the best
+    ``k``-selection scored so far (``objective.best``). A selector may catch it
+    itself to return something else, but must not call the objective again.
+    """
+
+
+# ---------------------------------------------------------------------------
+# declared options
+# ---------------------------------------------------------------------------
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """One declared option of a selector.
+
+    Parameters
+    ----------
+    type : one of ``int``, ``float``, ``str``, ``bool``
+    default : the value used when the option is not given (``None`` allowed:
+        it then means "automatic", and the selector documents what it does)
+    help : one line shown by ``arraysel list -v`` and in the docs
+    choices : allowed values (for ``str`` options)
+    lo, hi : inclusive bounds for numbers (``None``: unbounded)
+    """
+
+    type: type
+    default: Any
+    help: str
+    choices: tuple | None = None
+    lo: float | None = None
+    hi: float | None = None
+
+    def parse(self, name: str, text: str) -> Any:
+        """Convert the string of ``-o key=value`` and validate it."""
+        text = text.strip()
+        if text.lower() in ("none", "auto") and self.default is None:
+            return None
+        try:
+            if self.type is bool:
+                low = text.lower()
+                if low in _TRUE:
+                    value: Any = True
+                elif low in _FALSE:
+                    value = False
+                else:
+                    raise ValueError(text)
+            elif self.type is int:
+                value = int(float(text)) if float(text).is_integer() else int(text)
+            elif self.type is float:
+                value = float(text)
+            else:
+                value = text
+        except ValueError:
+            raise ParameterError(f"option {name} = {text!r} is not a valid {self.type.__name__}") from None
+        return self.validate(name, value)
+
+    def validate(self, name: str, value: Any) -> Any:
+        """Return ``value`` converted to the option's type, or raise :class:`ParameterError`."""
+        if value is None:
+            if self.default is None:
+                return None
+            raise ParameterError(f"option {name} must not be None")
+        if self.type is bool:
+            if not isinstance(value, (bool, np.bool_)):
+                raise ParameterError(f"option {name} must be true or false, got {value!r}")
+            return bool(value)
+        if self.type in (int, float):
+            value = check_number(f"option {name}", value, lo=self.lo, hi=self.hi,
+                                 integer=self.type is int)
+            return self.type(value)
+        if not isinstance(value, str):
+            raise ParameterError(f"option {name} must be a string, got {value!r}")
+        if self.choices is not None:
+            check_choice(f"option {name}", value, self.choices)
+        return value
+
+    def describe(self) -> str:
+        """Short text: type, default, choices/range and help."""
+        extra = ""
+        if self.choices:
+            extra = f", one of {'|'.join(map(str, self.choices))}"
+        elif self.lo is not None or self.hi is not None:
+            extra = f", in [{'-inf' if self.lo is None else self.lo}, {'inf' if self.hi is None else self.hi}]"
+        default = "auto" if self.default is None else self.default
+        return f"{self.type.__name__}, default {default}{extra}: {self.help}"
+
+
+# ---------------------------------------------------------------------------
+# budget
+# ---------------------------------------------------------------------------
+
+class Budget:
+    """Limits of one selection run, measured on the objective's own counters.
+
+    Parameters
+    ----------
+    seconds : wall-clock seconds (``None``: unlimited)
+    evaluations : objective evaluations, i.e. masks scored by ``evaluate`` plus
+        masks passed to ``mask_loss``/``selection_loss`` (``None``: unlimited)
+    gradient_steps : calls of ``mask_loss``/``selection_loss`` with gradients
+        (``None``: unlimited)
+
+    A budget is *started* on an objective (:meth:`start`), which records the
+    objective's counters and the time; the queries below are relative to that
+    point. A budget that is queried before being started starts itself on the
+    objective given to :meth:`start` later, so always start it first
+    (the runner does).
+
+    Example
+    -------
+    >>> b = Budget(evaluations=100)          # doctest: +SKIP
+    >>> b.start(objective)
+    >>> while not b.exhausted():
+    ...     n = min(32, b.remaining_evaluations())
+    """
+
+    def __init__(self, seconds: float | None = None, evaluations: int | None = None,
+                 gradient_steps: int | None = None):
+        if seconds is not None:
+            seconds = check_number("budget seconds", seconds, lo=0, lo_open=True)
+        if evaluations is not None:
+            evaluations = check_number("budget evaluations", evaluations, lo=1, integer=True)
+        if gradient_steps is not None:
+            gradient_steps = check_number("budget gradient_steps", gradient_steps, lo=1, integer=True)
+        self.seconds = seconds
+        self.evaluations = evaluations
+        self.gradient_steps = gradient_steps
+        self._objective = None
+        self._t0 = 0.0
+        self._e0 = 0
+        self._g0 = 0
+
+    def __repr__(self) -> str:
+        return (f"Budget(seconds={self.seconds}, evaluations={self.evaluations}, "
+                f"gradient_steps={self.gradient_steps})")
+
+    def to_dict(self) -> dict:
+        return {"seconds": self.seconds, "evaluations": self.evaluations,
+                "gradient_steps": self.gradient_steps}
+
+    def fresh(self) -> "Budget":
+        """A new, unstarted budget with the same limits."""
+        return Budget(self.seconds, self.evaluations, self.gradient_steps)
+
+    @property
+    def unlimited(self) -> bool:
+        return self.seconds is None and self.evaluations is None and self.gradient_steps is None
+
+    # -- state --------------------------------------------------------------
+    def start(self, objective) -> "Budget":
+        """Record the objective's counters and the time; return ``self``."""
+        self._objective = objective
+        self._t0 = time.perf_counter()
+        self._e0 = int(objective.evaluations)
+        self._g0 = int(objective.gradient_steps)
+        return self
+
+    def _need_started(self):
+        if self._objective is None:
+            raise ArrayselError("Budget queried before start(objective) was called")
+
+    def elapsed(self) -> float:
+        """Seconds since :meth:`start`."""
+        self._need_started()
+        return time.perf_counter() - self._t0
+
+    def used_evaluations(self) -> int:
+        self._need_started()
+        return int(self._objective.evaluations) - self._e0
+
+    def used_gradient_steps(self) -> int:
+        self._need_started()
+        return int(self._objective.gradient_steps) - self._g0
+
+    def remaining_evaluations(self) -> int | float:
+        """Evaluations left (``math.inf`` when unlimited; never negative)."""
+        if self.evaluations is None:
+            return math.inf
+        return max(0, self.evaluations - self.used_evaluations())
+
+    def remaining_seconds(self) -> float:
+        if self.seconds is None:
+            return math.inf
+        return max(0.0, self.seconds - self.elapsed())
+
+    def allowed(self, n: int) -> int:
+        """How many of ``n`` evaluations may be spent now (0 when exhausted)."""
+        if self.exhausted():
+            return 0
+        return int(min(n, self.remaining_evaluations()))
+
+    def exhausted(self) -> bool:
+        """True once any limit is reached."""
+        self._need_started()
+        if self.seconds is not None and self.elapsed() >= self.seconds:
+            return True
+        if self.evaluations is not None and self.used_evaluations() >= self.evaluations:
+            return True
+        if self.gradient_steps is not None and self.used_gradient_steps() >= self.gradient_steps:
+            return True
+        return False
+
+    def fraction(self) -> float:
+        """Largest used fraction over the set limits, in [0, 1] (0 when unlimited)."""
+        self._need_started()
+        parts = [0.0]
+        if self.seconds is not None:
+            parts.append(self.elapsed() / self.seconds)
+        if self.evaluations is not None:
+            parts.append(self.used_evaluations() / self.evaluations)
+        if self.gradient_steps is not None:
+            parts.append(self.used_gradient_steps() / self.gradient_steps)
+        return float(min(1.0, max(parts)))
+
+
+# ---------------------------------------------------------------------------
+# trace recorder
+# ---------------------------------------------------------------------------
+
+class Recorder:
+    """Logs every improvement of the best evaluated ``k``-selection.
+
+    Each trace row holds ``seconds`` (since the budget started),
+    ``evaluations`` and ``gradient_steps`` (used so far by this run),
+    ``best_Mean`` and ``event`` (``"improvement"``, or ``"end"`` for the row
+    :meth:`finish` adds at the run's last evaluation and time). ``best`` is the
+    best selection reported so far (sorted list) or ``None``; selectors may
+    return it directly. ``first`` is the first selection reported, finite or not.
+    """
+
+    def __init__(self, objective, budget: Budget):
+        self.objective = objective
+        self.budget = budget
+        self.rows: list[dict] = []
+        self.best: list[int] | None = None
+        self.best_mean: float = math.inf
+        self.first: list[int] | None = None
+        self.reports = 0
+
+    def _indices(self, elements) -> list[int]:
+        if _looks_like_mask(elements, self.objective.n_elements):
+            return mask_to_indices(elements, self.objective.n_elements)
+        return sorted(int(i) for i in elements)
+
+    def report(self, elements: Iterable[int] | np.ndarray | torch.Tensor, mean: float, *,
+               evaluations: int | None = None) -> bool:
+        """Report an evaluated selection and its ``Mean``; return True if it improved.
+
+        ``elements`` is a list of indices or a boolean mask of length ``Ne``.
+        NaN/Inf values are ignored (never an improvement). ``evaluations``: the
+        run's evaluation count at which this selection was scored (default: the
+        count used so far).
+        """
+        self.reports += 1
+        mean = float(mean)
+        if self.first is None:
+            self.first = self._indices(elements)
+        if not math.isfinite(mean) or mean >= self.best_mean:
+            return False
+        self.best = self._indices(elements)
+        self.best_mean = mean
+        used = self.budget.used_evaluations()
+        self.rows.append({
+            "seconds": self.budget.elapsed(),
+            "evaluations": used if evaluations is None else min(int(evaluations), used),
+            "gradient_steps": self.budget.used_gradient_steps(),
+            "best_Mean": mean,
+            "event": "improvement",
+        })
+        return True
+
+    def report_batch(self, selections: np.ndarray, means: np.ndarray) -> bool:
+        """Report a batch (``(B, k)`` indices or ``(B, Ne)`` masks) at once; only its best counts."""
+        means = np.asarray(means, dtype=np.float64)
+        if means.size == 0:
+            return False
+        finite = np.where(np.isfinite(means), means, np.inf)
+        i = int(np.argmin(finite))
+        if not math.isfinite(finite[i]):
+            self.reports += 1
+            if self.first is None:
+                self.first = self._indices(selections[0])
+            return False
+        return self.report(selections[i], finite[i])
+
+    def finish(self) -> None:
+        """Add the ``end`` row: the best Mean so far at the run's last evaluation and time
+        (nothing when no finite Mean was reported)."""
+        if not math.isfinite(self.best_mean):
+            return
+        self.rows.append({
+            "seconds": self.budget.elapsed(),
+            "evaluations": self.budget.used_evaluations(),
+            "gradient_steps": self.budget.used_gradient_steps(),
+            "best_Mean": self.best_mean,
+            "event": "end",
+        })
+
+
+# ---------------------------------------------------------------------------
+# the objective a selector sees: counting, clipping, recording
+# ---------------------------------------------------------------------------
+
+class BudgetedObjective:
+    """The objective as a selector sees it: the runner's bookkeeping around the real one.
+
+    * ``evaluate(masks)`` scores the masks in pieces (at most ``piece`` masks,
+      and under a time limit no more than the time left allows at the measured
+      cost per mask; the budget is checked before each piece, so a time limit
+      stops a large batch early);
+      every mask with exactly ``k`` active elements is recorded (best-so-far
+      trace, at its own evaluation count). When the budget does not allow the
+      whole batch, the allowed first masks are scored and recorded, then
+      :class:`BudgetExhausted` is raised: a call either returns every score
+      asked for or ends the search (it never returns a shortened array);
+    * ``mask_loss`` / ``selection_loss`` raise :class:`BudgetExhausted` when the
+      budget does not allow the call (soft weights are counted, not recorded);
+    * every other attribute (``n_elements``, ``device``, ``dtype``, ``scene``,
+      ``kernels``, the counters ``evaluations``/``gradient_steps``/``seconds``)
+      is the wrapped objective's.
+
+    Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
+    :meth:`score_indices`, ``best`` / ``best_mean`` (best recorded so far),
+    ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
+    :meth:`remaining` (evaluations the budget allows now).
+    """
+
+    def __init__(self, objective, budget: Budget, recorder: Recorder, k: int, piece: int | None = None):
+        self._inner = objective
+        self.budget = budget
+        self.recorder = recorder
+        self.k = int(k)
+        self.n_elements = int(objective.n_elements)
+        default = int(getattr(objective, "chunk", 256) or 256)
+        self.piece = max(1, int(piece if piece is not None else min(default, 256)))
+        self._per_mask = 0.0  # running estimate of the seconds one mask costs
+
+    def __getattr__(self, name):  # everything not defined here is the wrapped objective's
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self._inner, name)
+
+    # -- bookkeeping -----------------------------------------------------------
+    @property
+    def best(self) -> list[int] | None:
+        return None if self.recorder.best is None else list(self.recorder.best)
+
+    @property
+    def best_mean(self) -> float:
+        return self.recorder.best_mean
+
+    def remaining(self) -> int | float:
+        """Evaluations the budget allows now (``math.inf`` when only time limits it, 0 when spent)."""
+        if self.budget.exhausted():
+            return 0
+        return self.budget.remaining_evaluations()
+
+    def _exhausted(self, what: str) -> BudgetExhausted:
+        return BudgetExhausted(f"the run's budget ({self.budget!r}) is used up ({what})")
+
+    def _record(self, masks: np.ndarray, means: np.ndarray, before: int) -> None:
+        ok = masks.sum(axis=1) == self.k
+        if not ok.any():
+            return
+        finite = np.where(ok & np.isfinite(means), means, np.inf)
+        i = int(np.argmin(finite))
+        if self.recorder.first is None:
+            self.recorder.first = mask_to_indices(masks[int(np.flatnonzero(ok)[0])])
+        if math.isfinite(finite[i]) and finite[i] < self.recorder.best_mean:
+            self.recorder.report(masks[i], float(finite[i]), evaluations=before + i + 1)
+        else:
+            self.recorder.reports += 1
+
+    # -- the Objective contract -----------------------------------------------
+    def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
+        if isinstance(masks, torch.Tensor):
+            masks = masks.detach().cpu().numpy()
+        masks = np.asarray(masks)
+        if masks.ndim == 1:
+            masks = masks[None, :]
+        hard = masks > 0.5
+        total = int(masks.shape[0])
+        parts: list[dict] = []
+        done = 0
+        if total == 0:
+            return self._inner.evaluate(masks, **kwargs)
+        while done < total:
+            want = min(self.piece, total - done)
+            if self.budget.seconds is not None and self._per_mask > 0:
+                # under a time limit, a piece must fit in the time left (at least one mask)
+                want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
+            allowed = self.budget.allowed(want)
+            if allowed <= 0:
+                raise self._exhausted(f"{done} of {total} masks of this call scored")
+            before = self.budget.used_evaluations()
+            t0 = time.perf_counter()
+            out = self._inner.evaluate(masks[done:done + allowed], **kwargs)
+            per_mask = (time.perf_counter() - t0) / allowed
+            self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
+            self._record(hard[done:done + allowed], np.asarray(out["Mean"], dtype=np.float64), before)
+            parts.append(out)
+            done += allowed
+            if allowed < want:
+                raise self._exhausted(f"{done} of {total} masks of this call scored")
+        if len(parts) == 1:
+            return parts[0]
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+    def score(self, masks) -> np.ndarray:
+        """``Mean`` of each mask ``(B, Ne)`` as float64, NaN/Inf replaced by ``+inf``."""
+        return finite_or_inf(self.evaluate(masks)["Mean"])
+
+    def score_indices(self, selections) -> np.ndarray:
+        """:meth:`score` of ``(B, k)`` element indices."""
+        sel = np.asarray(selections, dtype=np.int64).reshape(-1, self.k) if self.k else \
+            np.zeros((0, 0), dtype=np.int64)
+        masks = np.zeros((sel.shape[0], self.n_elements), dtype=bool)
+        np.put_along_axis(masks, sel, True, axis=1)
+        return self.score(masks)
+
+    def mask_loss(self, weights, *args, **kwargs):
+        b = int(weights.shape[0]) if getattr(weights, "ndim", 1) == 2 else 1
+        if self.budget.allowed(b) < b:
+            raise self._exhausted(f"mask_loss of {b} weight vectors")
+        return self._inner.mask_loss(weights, *args, **kwargs)
+
+    def selection_loss(self, P, P_soft, *args, **kwargs):
+        if self.budget.allowed(1) < 1:
+            raise self._exhausted("selection_loss")
+        return self._inner.selection_loss(P, P_soft, *args, **kwargs)
+
+
+def is_legacy_selector(selector) -> bool:
+    """True when ``selector.select`` has the five-argument legacy signature
+    ``(objective, k, budget, seed, recorder)``."""
+    try:
+        params = inspect.signature(selector.select).parameters
+    except (TypeError, ValueError):
+        return False
+    positional = [p for p in params.values()
+                  if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    return "recorder" in params or "budget" in params or len(positional) >= 5
+
+
+def _looks_like_mask(elements, n_elements) -> bool:
+    if isinstance(elements, torch.Tensor):
+        elements = elements.detach().cpu().numpy()
+    if isinstance(elements, np.ndarray):
+        return elements.dtype == bool or (elements.ndim == 1 and elements.shape[0] == n_elements
+                                          and elements.dtype.kind == "f")
+    return False
+
+
+# ---------------------------------------------------------------------------
+# selector base class
+# ---------------------------------------------------------------------------
+
+#: the option every selector has (added to each subclass's ``options``)
+POLISH_OPTION = Option(float, 0.0, "fraction of the budget kept for a final swap local search "
+                       "(first improvement) started from this selector's result; 0: none", lo=0.0, hi=0.9)
+
+
+class Selector:
+    """Base class of every selection strategy (built-in or third-party).
+
+    Class attributes
+    ----------------
+    name : registry key (lower case letters, digits, ``_`` and ``-``)
+    description : one line for ``arraysel list``
+    options : ``{name: Option}`` declared options, validated on construction
+    uses_gradients : calls ``mask_loss``/``selection_loss`` with gradients
+    deterministic : the result does not depend on the seed (``compare`` runs it
+        once instead of once per seed). Every selector, deterministic or not,
+        must be reproducible: the same (objective, k, seed) under the same
+        evaluation budget gives the same result
+    needs_evaluations : spends objective evaluations (False only for fixed layouts)
+
+    Subclasses implement :meth:`select`. Options are available as
+    ``self.options`` (a dict holding every declared option). Every subclass
+    also has the option ``polish`` (:data:`POLISH_OPTION`), carried out by the
+    runner: the selector runs on ``1 - polish`` of the budget and a swap local
+    search from its result spends the rest.
+    """
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    options: ClassVar[dict[str, Option]] = {}
+    uses_gradients: ClassVar[bool] = False
+    deterministic: ClassVar[bool] = False
+    needs_evaluations: ClassVar[bool] = True
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "polish" not in cls.options:
+            cls.options = {**cls.options, "polish": POLISH_OPTION}
+
+    def __init__(self, **options: Any):
+        declared = type(self).options
+        unknown = sorted(set(options) - set(declared))
+        if unknown:
+            known = ", ".join(sorted(declared)) or "(none)"
+            raise ParameterError(f"selector {self.name!r} has no option {', '.join(unknown)}; "
+                                 f"its options are: {known}")
+        values = {}
+        for key, opt in declared.items():
+            values[key] = opt.validate(f"{self.name}.{key}", options[key]) if key in options else opt.default
+        # instance attribute shadows the class-level declarations
+        self.options = values  # type: ignore[misc]
+
+    @classmethod
+    def parse_options(cls, pairs: dict[str, str]) -> dict[str, Any]:
+        """Convert ``{key: text}`` from ``-o key=value`` to validated values."""
+        out = {}
+        for key, text in pairs.items():
+            if key not in cls.options:
+                known = ", ".join(sorted(cls.options)) or "(none)"
+                raise ParameterError(f"selector {cls.name!r} has no option {key!r}; its options are: {known}")
+            out[key] = cls.options[key].parse(f"{cls.name}.{key}", text)
+        return out
+
+    def batch_size(self, n_elements: int, k: int) -> int:
+        """Most evaluations this selector may spend in one step (used as overrun slack)."""
+        return max(1, n_elements)
+
+    def planned_evaluations(self, n_elements: int, k: int) -> int | None:
+        """Evaluations the selector means to spend when the budget allows (for progress
+        displays); None when it does not know in advance."""
+        return None
+
+    def select(self, objective: "BudgetedObjective", k: int, seed: int) -> list[int]:
+        """Search; return ``k`` distinct element indices (see the module docstring)."""
+        raise NotImplementedError
+
+
+# ---------------------------------------------------------------------------
+# helpers for selector authors
+# ---------------------------------------------------------------------------
+
+def numpy_rng(seed: int, stream: int = 0) -> np.random.Generator:
+    """A numpy Generator for ``seed`` (independent ``stream`` s for several uses)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(stream)]))
+
+
+def torch_rng(seed: int, device: torch.device | str = "cpu", stream: int = 0) -> torch.Generator:
+    """A torch Generator on ``device`` seeded from ``seed`` and ``stream``."""
+    g = torch.Generator(device=torch.device(device))
+    g.manual_seed(int(np.random.SeedSequence([int(seed), int(stream)]).generate_state(1, np.uint64)[0]
+                      & 0x7FFF_FFFF_FFFF_FFFF))
+    return g
+
+
+def check_selection(selection: Any, n_elements: int, k: int) -> list[int]:
+    """Return ``selection`` as a sorted list of ints after checking it holds exactly
+    ``k`` distinct indices in ``[0, n_elements)``; raise :class:`SelectionError`."""
+    if isinstance(selection, torch.Tensor):
+        selection = selection.detach().cpu().tolist()
+    elif isinstance(selection, np.ndarray):
+        selection = selection.tolist()
+    if not isinstance(selection, Sequence) or isinstance(selection, (str, bytes)):
+        raise SelectionError(f"a selection must be a list of element indices, got {type(selection).__name__}")
+    out = []
+    for x in selection:
+        if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+            raise SelectionError(f"selection holds a non-integer entry {x!r}")
+        out.append(int(x))
+    bad = [i for i in out if not 0 <= i < n_elements]
+    if bad:
+        raise SelectionError(f"selection holds indices outside [0, {n_elements}): {bad[:5]}")
+    if len(set(out)) != len(out):
+        raise SelectionError(f"selection repeats elements: {sorted(out)}")
+    if len(out) != k:
+        raise SelectionError(f"selection holds {len(out)} elements, expected k = {k}")
+    return sorted(out)
+
+
+def indices_to_mask(indices: Iterable[int], n_elements: int) -> np.ndarray:
+    """Boolean mask ``(Ne,)`` with ``True`` at ``indices``."""
+    m = np.zeros(n_elements, dtype=bool)
+    m[list(indices)] = True
+    return m
+
+
+def mask_to_indices(mask, n_elements: int | None = None) -> list[int]:
+    """Sorted active indices of a mask (bool or 0/1)."""
+    if isinstance(mask, torch.Tensor):
+        mask = mask.detach().cpu().numpy()
+    return [int(i) for i in np.flatnonzero(np.asarray(mask) > 0.5)]
+
+
+def top_k(weights, k: int) -> list[int]:
+    """Indices of the ``k`` largest weights (ties broken by the lower index), sorted.
+
+    Non-finite weights rank last.
+    """
+    if isinstance(weights, torch.Tensor):
+        weights = weights.detach().cpu().double().numpy()
+    w = np.asarray(weights, dtype=np.float64).copy()
+    w[~np.isfinite(w)] = -np.inf
+    order = np.lexsort((np.arange(w.size), -w))  # by -w, then by index
+    return sorted(int(i) for i in order[:k])
+
+
+def finite_or_inf(values) -> np.ndarray:
+    """``values`` as float64 with NaN/Inf replaced by +inf (for argmin)."""
+    v = np.asarray(values, dtype=np.float64)
+    return np.where(np.isfinite(v), v, np.inf)
