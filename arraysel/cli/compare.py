@@ -111,7 +111,7 @@ def parse_options(items: list[str], names: list[str], registry) -> dict[str, dic
 
 
 def build_objective(scene: str, device: str, dtype_name: str, aggregate: str | None = None):
-    """The objective of ``scene`` (``toy``: :class:`arraysel.testing.ToyObjective`); ``aggregate``
+    """The objective of ``scene`` (``toy``: :class:`arraysel.objective.toy.ToyObjective`); ``aggregate``
     overrides the scene's ``metrics.aggregate``."""
     import torch
 
@@ -119,7 +119,7 @@ def build_objective(scene: str, device: str, dtype_name: str, aggregate: str | N
         raise ParameterError("--device cuda was given but torch sees no CUDA device")
     dtype = getattr(torch, dtype_name)
     if scene == "toy":
-        from arraysel.testing import ToyObjective
+        from arraysel.objective.toy import ToyObjective
         return ToyObjective(64, 32, device=device, dtype=dtype)
     from arraysel.objective.psf_objective import build_objective as _build
     from arraysel.scenes.schema import load_scene

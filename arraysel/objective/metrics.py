@@ -34,6 +34,7 @@ from torch import Tensor
 from arraysel.errors import NumericalError, ParameterError, check_number
 
 __all__ = [
+    "METRIC_NAMES",
     "PSF_TERMS",
     "DEFAULT_WEIGHTS",
     "PSFRegions",
@@ -53,7 +54,9 @@ __all__ = [
 ]
 
 #: names of the quantities :func:`psf_metrics` can return, in SPEC order
-PSF_TERMS: tuple[str, ...] = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+#: the Table-1 metrics, in table order: the one definition every module imports
+METRIC_NAMES: tuple[str, ...] = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+PSF_TERMS = METRIC_NAMES
 
 #: weights of the total training loss, SPEC section 3 (read-only; copy with ``dict(...)``)
 DEFAULT_WEIGHTS: Mapping[str, float] = MappingProxyType({

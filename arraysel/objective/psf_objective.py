@@ -45,7 +45,7 @@ from arraysel.scenes.schema import Scene, load_scene
 
 _log = logging.getLogger(__name__)
 
-METRIC_NAMES = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+METRIC_NAMES = M.METRIC_NAMES
 PSF_WEIGHT_KEYS = ("L_PSF", "L_contrast", "L_SLR")
 #: aggregates over the field points of a several-point scene
 AGGREGATES = ("mean", "worst")

@@ -121,7 +121,7 @@ class SceneObjectiveFactory(_Factory):
 
 @dataclasses.dataclass(frozen=True)
 class ToyObjectiveFactory(_Factory):
-    """Builds an :class:`arraysel.testing.ToyObjective` (tests, demos, benchmarks)."""
+    """Builds an :class:`arraysel.objective.toy.ToyObjective` (tests, demos, benchmarks)."""
 
     n_elements: int = 64
     k: int = 32
@@ -137,7 +137,7 @@ class ToyObjectiveFactory(_Factory):
     def __call__(self):
         import torch
 
-        from arraysel.testing import ToyObjective
+        from arraysel.objective.toy import ToyObjective
         return ToyObjective(self.n_elements, self.k, device=self.device, dtype=getattr(torch, self.dtype),
                             seed=self.seed, chunk=self.chunk, fail_after=self.fail_after,
                             nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
@@ -146,11 +146,11 @@ class ToyObjectiveFactory(_Factory):
 def objective_factory_for(objective) -> _Factory:
     """A factory that rebuilds ``objective`` on a worker.
 
-    Knows :class:`~arraysel.testing.ToyObjective` and objectives with a
+    Knows :class:`~arraysel.objective.toy.ToyObjective` and objectives with a
     ``scene`` that has ``to_dict()`` (the physics objective). Raises
     :class:`ParameterError` for anything else: pass ``objective_factory=``.
     """
-    from arraysel.testing import ToyObjective
+    from arraysel.objective.toy import ToyObjective
 
     if isinstance(objective, ToyObjective):
         return ToyObjectiveFactory(objective.n_elements, objective.k, device=str(objective.device),

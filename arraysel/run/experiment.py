@@ -14,11 +14,11 @@ files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``,
 ``trace.csv``, the IOHprofiler files under ``ioh/``, ``run.json``, then the figures).
 
 The objective is passed in (dependency injection), so any object following
-the Objective contract works, e.g. :class:`arraysel.testing.ToyObjective`.
+the Objective contract works, e.g. :class:`arraysel.objective.toy.ToyObjective`.
 
 Example
 -------
->>> from arraysel.testing import ToyObjective
+>>> from arraysel.objective.toy import ToyObjective
 >>> from arraysel.run.experiment import Experiment
 >>> from arraysel.selectors.contract import Budget
 >>> row = Experiment(ToyObjective(16, 8), "uniform", budget=Budget(evaluations=10)).run()
@@ -44,6 +44,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from arraysel.errors import ParameterError, check_number
+from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.errors import SelectionError
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder, Selector,
                        check_selection, indices_to_mask, is_legacy_selector, numpy_rng)
@@ -53,7 +54,7 @@ __all__ = [
     "config_label", "compare", "check_out_dir", "check_resume", "remove_results", "RESULT_FILES",
 ]
 
-METRICS = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
+METRICS = METRIC_NAMES
 #: columns of a run row, in this order
 ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "seconds", "evaluations",
                "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error")
