@@ -6,7 +6,6 @@ object, so ``isinstance`` and monkeypatching agree); the warning names the new p
 from __future__ import annotations
 
 import importlib
-import importlib.abc
 import importlib.util
 import sys
 import warnings
@@ -28,7 +27,9 @@ MOVED = {
 }
 
 
-class _Alias(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+class _Alias:
+    """A meta-path finder and loader (duck-typed: importing importlib.abc would cost every start ~10 ms)."""
+
     def find_spec(self, fullname, path=None, target=None):
         if fullname.startswith("arraysel.") and fullname[len("arraysel."):] in MOVED:
             return importlib.util.spec_from_loader(fullname, self)
