@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from arraysel.objective import metrics as M
+from arraysel.objective.losses import PSF_WEIGHT_KEYS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.physics.psf import PSFModel
 from arraysel.scenes.schema import Scene, load_scene
@@ -46,7 +47,6 @@ from arraysel.scenes.schema import Scene, load_scene
 _log = logging.getLogger(__name__)
 
 METRIC_NAMES = M.METRIC_NAMES
-PSF_WEIGHT_KEYS = ("L_PSF", "L_contrast", "L_SLR")
 #: aggregates over the field points of a several-point scene
 AGGREGATES = ("mean", "worst")
 
@@ -338,8 +338,7 @@ class Objective:
             z = weights.sum(-1) * 0
             return z, {}
         terms = self.psf_terms(weights, terms=terms_needed)
-        total = sum(wts[k] * terms[k] for k in need)
-        return total, terms
+        return psf_weighted_sum(terms, wts), terms
 
     def mask_loss(self, weights: torch.Tensor):
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
@@ -367,14 +366,9 @@ class Objective:
             total, terms = self._psf_loss(w)
             total = total.sum()
             terms = {k: v.sum() for k, v in terms.items()}
-            if self.weights.get("L_ent", 0) > 0:
-                terms["L_ent"] = M.l_ent(P_soft)
-                total = total + self.weights["L_ent"] * terms["L_ent"]
-            if self.weights.get("L_row", 0) > 0:
-                # on P_soft, as the trainer and the toy objective: the straight-through P
-                # has one-hot columns over distinct elements, so its rows never sum past 1
-                terms["L_row"] = M.l_row(P_soft)
-                total = total + self.weights["L_row"] * terms["L_row"]
+            reg = selection_terms(P_soft, {k: v for k, v in self.weights.items() if v > 0})
+            terms.update(reg)
+            total = total + weighted_sum(reg, self.weights)
             if self.scene.needs_data:
                 if self.data_term is None:
                     raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "

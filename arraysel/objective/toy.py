@@ -16,8 +16,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.selectors.relax import column_entropy, row_penalty
-
+from arraysel.objective.losses import DEFAULT_WEIGHTS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.objective.metrics import METRIC_NAMES
 
 __all__ = ["ToyScene", "ToyFailure", "ToyObjective"]
@@ -171,7 +170,7 @@ class ToyObjective:
         t0 = self._enter(w.shape[0])
         try:
             terms = self._terms(w)
-            total = 10 * terms["L_PSF"] + 10 * terms["L_contrast"] + 10 * terms["L_SLR"]
+            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS)
             self.evaluations += w.shape[0]
             if w.requires_grad:
                 self.gradient_steps += 1
@@ -189,10 +188,9 @@ class ToyObjective:
             w = P.to(self.dtype).sum(dim=1)[None, :]
             terms = self._terms(w)
             terms = {key: v[0] for key, v in terms.items()}
-            terms["L_ent"] = column_entropy(P_soft.to(self.dtype))
-            terms["L_row"] = row_penalty(P_soft.to(self.dtype))
-            total = (10 * terms["L_PSF"] + 10 * terms["L_contrast"] + 10 * terms["L_SLR"]
-                     + terms["L_ent"] + 10 * terms["L_row"])
+            reg = selection_terms(P_soft.to(self.dtype))
+            terms.update(reg)
+            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS) + weighted_sum(reg, DEFAULT_WEIGHTS)
             self.evaluations += 1
             if P.requires_grad or P_soft.requires_grad:
                 self.gradient_steps += 1

@@ -19,6 +19,8 @@ import math
 
 import torch
 
+from arraysel.objective.losses import l_ent, l_row
+
 __all__ = [
     "Relaxation", "cosine_temperature", "gumbel_noise", "sequential_selection",
     "selection_weights", "column_entropy", "row_penalty", "project_capped_simplex",
@@ -123,16 +125,10 @@ def selection_weights(P: torch.Tensor) -> torch.Tensor:
     return P.sum(dim=1).clamp(0.0, 1.0)
 
 
-def column_entropy(P_soft: torch.Tensor) -> torch.Tensor:
-    """Mean entropy (nats) of the columns of ``P_soft`` (``L_ent``, SPEC §3); finite for zeros."""
-    p = P_soft.clamp_min(0.0)
-    plogp = torch.where(p > 0, p * torch.log(p.clamp_min(torch.finfo(p.dtype).tiny)), torch.zeros_like(p))
-    return -plogp.sum(dim=0).mean()
-
-
-def row_penalty(P_soft: torch.Tensor) -> torch.Tensor:
-    """``sum_i relu(sum_j P_ij - 1)^2``: penalty for using an element in several columns (``L_row``)."""
-    return torch.relu(P_soft.sum(dim=1) - 1.0).pow(2).sum()
+#: ``L_ent``, the mean entropy (nats) of the columns of ``P_soft`` (:func:`arraysel.objective.losses.l_ent`)
+column_entropy = l_ent
+#: ``L_row = sum_i relu(sum_j P_ij - 1)^2`` (:func:`arraysel.objective.losses.l_row`)
+row_penalty = l_row
 
 
 def project_capped_simplex(w: torch.Tensor, k: float, iters: int = 60) -> torch.Tensor:
