@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
-from arraysel.objective.tensors import _abs2, _check_kernel_shape, _check_tensor
+from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
 # the training loss terms and their weights have one home, arraysel.objective.losses; these names stay
 # importable from here (tests, plugins and notebooks use them)
 from arraysel.objective.losses import (DEFAULT_WEIGHTS, composite_loss, l_conv, l_ent,  # noqa: F401

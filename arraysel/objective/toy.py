@@ -8,18 +8,19 @@ suite and plugin authors' conformance tests use it.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from typing import Any
 
 import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
+from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import DEFAULT_WEIGHTS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.objective.metrics import METRIC_NAMES
 
-__all__ = ["ToyScene", "ToyFailure", "ToyObjective"]
+__all__ = ["ToyScene", "ToyFailure", "ToyObjective", "ToyObjectiveFactory"]
 
 
 
@@ -210,6 +211,33 @@ class ToyObjective:
             k = k / norm[:, None, None]
         return k.to(torch.complex64 if self.dtype == torch.float32 else torch.complex128)
 
+    def worker_factory(self) -> "ToyObjectiveFactory":
+        """A picklable recipe that rebuilds this objective (with its failure settings) on a worker."""
+        return ToyObjectiveFactory(self.n_elements, self.k, device=str(self.device), dtype=dtype_name(self.dtype),
+                                   seed=int(self.scene.seed), chunk=self.chunk, fail_after=self.fail_after,
+                                   nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
+
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel ``(128, 128)``."""
         return self.kernels(np.ones((1, self.n_elements), dtype=bool))[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class ToyObjectiveFactory(WorkerFactory):
+    """Builds a :class:`ToyObjective` (on a worker: tests, demos, benchmarks)."""
+
+    n_elements: int = 64
+    k: int = 32
+    device: str = "cpu"
+    dtype: str = "float32"
+    seed: int = 0
+    chunk: int = 4096
+    fail_after: int | None = None
+    nan_element: int | None = None
+    always_nan: bool = False
+    delay: float = 0.0
+
+    def __call__(self):
+        return ToyObjective(self.n_elements, self.k, device=self.device, dtype=getattr(torch, self.dtype),
+                            seed=self.seed, chunk=self.chunk, fail_after=self.fail_after,
+                            nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
