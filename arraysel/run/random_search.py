@@ -9,7 +9,8 @@ chunk), do not depend on the executor or on the number of workers.
 Example
 -------
 >>> from arraysel.objective.toy import ToyObjectiveFactory
->>> from arraysel.run.executors import ProcessExecutor
+>>> from arraysel.selectors.contract import finite_or_inf
+from arraysel.run.executors import ProcessExecutor
 >>> from arraysel.run.random_search import distributed_random_search
 >>> with ProcessExecutor(workers=2) as ex:                              # doctest: +SKIP
 ...     res = distributed_random_search(ToyObjectiveFactory(64, 32), 100_000, None, 0, ex, 4096)
@@ -26,6 +27,7 @@ import numpy as np
 
 from arraysel.errors import ArrayselError, ParameterError, check_number
 from arraysel.run.executors import Executor, TaskFailed, as_executor as _as_executor
+from arraysel.selectors.contract import finite_or_inf
 
 __all__ = ["RandomSearchResult", "distributed_random_search", "distributed_evaluate", "random_subsets"]
 
@@ -38,11 +40,6 @@ def random_subsets(rng: np.random.Generator, batch: int, n: int, k: int) -> np.n
     return np.sort(np.argpartition(keys, k - 1, axis=1)[:, :k], axis=1)
 
 
-def _finite(values) -> np.ndarray:
-    v = np.asarray(values, dtype=np.float64)
-    return np.where(np.isfinite(v), v, np.inf)
-
-
 def _random_chunk(objective, item) -> dict:
     """Score one chunk of random masks; return its best (first minimum)."""
     index, seedseq, size, k = item
@@ -53,7 +50,7 @@ def _random_chunk(objective, item) -> dict:
     masks = np.zeros((size, n), dtype=bool)
     np.put_along_axis(masks, subsets, True, axis=1)
     t0 = time.perf_counter()
-    means = _finite(objective.evaluate(masks)["Mean"])
+    means = finite_or_inf(objective.evaluate(masks)["Mean"])
     seconds = time.perf_counter() - t0
     best = int(np.argmin(means))
     return {"chunk": index, "mean": float(means[best]), "position": best,
