@@ -165,3 +165,18 @@ def test_the_layer_table_is_the_documented_one():
             name = p.replace("arraysel_plugins", "plugins/").replace("arraysel.", "").replace("arraysel", "")
             if name:
                 assert name in doc, f"docs/architecture.md does not mention {name}"
+
+
+def test_no_library_module_uses_the_test_helpers():
+    """``arraysel.testing`` is for test authors: the CLI's ``--scene toy`` and the executors use the real
+    toy objective (``arraysel.objective.toy``)."""
+    users = sorted(m for m, targets in GRAPH.items() if "arraysel.testing" in targets)
+    assert users == []
+
+
+def test_executors_do_not_know_objective_classes():
+    """Workers rebuild an objective through its ``worker_factory()`` capability, not by its class."""
+    for m in ("arraysel.run.executors", "arraysel.run.workers", "arraysel.run.isolation",
+              "arraysel.run.random_search", "arraysel.run.compare_task", "arraysel.run.compare"):
+        assert not {t for t in GRAPH[m] if t.startswith("arraysel.objective.")}, m
+        assert "__name__ ==" not in MODULES[m].read_text(encoding="utf-8").replace("if __name__", "")
