@@ -62,7 +62,7 @@ from tqdm import tqdm
 from arraysel.e2e.data import SceneMaker
 from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
                              check_number)
-from arraysel.objective.metrics import l_ent, l_row
+from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import ConvolutionOperator, Reconstructor, mse, psnr, ssim
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
 
@@ -436,7 +436,7 @@ class E2ETrainer:
             terms["row"] = row_loss(p_soft)
         if not terms:
             raise ParameterError("every loss weight is 0: nothing to train")
-        terms["total"] = sum(getattr(w, t) * v for t, v in terms.items())
+        terms["total"] = weighted_sum(terms, {t: getattr(w, t) for t in terms})
         return terms
 
     # -- training -----------------------------------------------------------
