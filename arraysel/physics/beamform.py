@@ -116,10 +116,6 @@ class DASPlan:
     w: torch.Tensor
     rot: torch.Tensor
 
-    def apply(self, iq: torch.Tensor) -> torch.Tensor:
-        """Beamform I/Q signals ``iq`` (..., Ne, n_t) complex -> (..., Npix)."""
-        return das_apply(iq, self.i0, self.w, self.rot)
-
 
 def das_plan(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
              fnumber: float = 0.0, t0: float = 0.0, iq: bool = True, fc: float | None = None) -> DASPlan:
