@@ -123,3 +123,18 @@ def test_basis_memory_estimate_covers_the_build(no_cache):
     stored = sum(t.numel() * t.element_size() for t in fast.state().values() if isinstance(t, torch.Tensor))
     assert model.basis_bytes() >= stored
 
+
+
+def test_cached_basis_carries_the_window_estimate(monkeypatch, tmp_path):
+    """A cold start reads the memory guard's window estimate from the cached basis instead of
+    planning the grid again; it is the number the model computes."""
+    from arraysel.physics.psf.store import stored_window_estimate
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", str(tmp_path))
+    first = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    assert stored_window_estimate(first) == first._estimate_window()
+    second = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    assert second.window_estimate() == first._estimate_window()
+    assert second.basis_bytes() == first.basis_bytes()
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    assert stored_window_estimate(first) is None

@@ -77,6 +77,18 @@ _BOUNDARY_RTOL = 1e-9
 # small helpers
 # --------------------------------------------------------------------------
 
+
+def _broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` without its first-call import of torch's symbolic-shape machinery
+    (sympy: about a second of a cold start); raises RuntimeError when the shapes do not broadcast."""
+    import numpy as np
+
+    try:
+        return torch.Size(np.broadcast_shapes(*(tuple(s) for s in shapes)))
+    except ValueError as exc:
+        raise RuntimeError(str(exc)) from None
+
+
 def _check_tensor(name: str, x: object) -> Tensor:
     if not isinstance(x, Tensor):
         raise ParameterError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
@@ -242,7 +254,7 @@ def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
     _check_kernel_shape("kappa", kappa)
     _check_kernel_shape("kappa_ref", kappa_ref)
     try:
-        torch.broadcast_shapes(kappa.shape, kappa_ref.shape)
+        _broadcast_shapes(kappa.shape, kappa_ref.shape)
     except RuntimeError as exc:
         raise ParameterError(f"kappa {tuple(kappa.shape)} and kappa_ref {tuple(kappa_ref.shape)} "
                              f"do not broadcast") from exc
@@ -519,7 +531,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         ref = _check_tensor("kappa_ref", kappa_ref)
         _check_kernel_shape("kappa_ref", ref)
         try:
-            shape = torch.broadcast_shapes(kappa.shape, ref.shape)
+            shape = _broadcast_shapes(kappa.shape, ref.shape)
         except RuntimeError:
             shape = None
         if shape != kappa.shape:

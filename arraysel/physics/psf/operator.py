@@ -39,6 +39,7 @@ image is a quadratic form of the weights::
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -47,12 +48,12 @@ import numpy as np
 import torch
 
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
-from arraysel.physics.beamform import das_apply, das_plan, iq_matrix
+from arraysel.physics.beamform import das_apply, das_plan, das_positions, iq_matrix
 from arraysel.physics.delays import plane_wave_delays
 from arraysel.physics.psf.basis import PairBasis
 from arraysel.physics.psf.settings import basis_limit_bytes, memory_limit_bytes
 from arraysel.physics.psf.setup import PSFSetup
-from arraysel.physics.psf.store import load_or_build_basis
+from arraysel.physics.psf.store import load_or_build_basis, stored_window_estimate
 from arraysel.physics.psf.window import window_and_normalise
 from arraysel.physics.simus import (element_responses, grid_for_points, probe_response, pulse_spectrum,
                                     spectra_to_rf)
@@ -68,7 +69,14 @@ class Transmit:
     grid: object                #: the simulator's FrequencyGrid
     tx_field: torch.Tensor      #: (Ne, F) field at the scatterer from each transmitting element, R_j e^{i w tau_j}
     rx_factor: torch.Tensor     #: (Ne, F) receive factor C(f) R_e(f) of each receiving element
-    iq_matrix: torch.Tensor     #: (T, T) I/Q demodulation matrix
+    iq_band: tuple              #: (fs, fc, bandwidth %) of the I/Q demodulation
+
+    @functools.cached_property
+    def iq_matrix(self) -> torch.Tensor:
+        """(T, T) complex128 I/Q demodulation matrix (:func:`~arraysel.physics.beamform.iq_matrix`),
+        formed on first use: only the exact path needs it, and a cold start on the fast path
+        saves its filtering (and SciPy's import)."""
+        return iq_matrix(self.grid.n_time, *self.iq_band)
 
 
 class PSFModel:
@@ -128,6 +136,9 @@ class PSFModel:
         #: ``rank_tol``), or None when it is off or over its memory cap
         self.basis: PairBasis | None = None
         if fast:
+            # a cached basis carries the window estimate of the memory guard (the same number,
+            # without computing the plans it comes from)
+            self._window_samples = stored_window_estimate(self)
             need = self.basis_bytes()
             limit = basis_limit_bytes()
             if need > limit:
@@ -152,7 +163,7 @@ class PSFModel:
         cols = min(s.n_x, s.window + 2 * self.margin)
         npix, npix2 = rows * cols, rows * (s.n_x - cols)
         size = torch.finfo(self.dtype).bits // 8
-        T = self._window_estimate()
+        T = self.window_estimate()
         X = ntx * ne * T * ne * 8
         A = 2 * ntx * ne * T * ne * size
         sketch = PairBasis.sketch_columns
@@ -169,7 +180,7 @@ class PSFModel:
         stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
         return int(X + work + stored + (strips // size) * 8)
 
-    def _window_estimate(self) -> int:
+    def window_estimate(self) -> int:
         """Samples per channel window (:meth:`PairBasis._sample_ranges`), estimated from the
         DAS plans of a subsampled grid (every 8th row and column and the grid's edges); computed
         once per model (the memory guard and the cache's size hint both ask)."""
@@ -184,11 +195,14 @@ class PSFModel:
         Z, X = torch.meshgrid(self.z_grid[zi], self.x_grid[xi], indexing="ij")
         span = 2
         for t in self.transmits:
-            p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber, fc=s.probe.fc)
-            valid = p.rot.abs() > 0
+            # the first sample index of each (pixel, element) of the DAS plan, without the plan's
+            # weights and phase rotations
+            _, pos, valid = das_positions(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
+                                          fnumber=s.fnumber)
+            i0 = torch.floor(torch.where(valid, pos, torch.zeros_like(pos))).to(torch.long)
             if bool(valid.any()):
-                hi = torch.where(valid, p.i0, torch.full_like(p.i0, -1)).amax(0)
-                lo = torch.where(valid, p.i0, torch.full_like(p.i0, 1 << 40)).amin(0)
+                hi = torch.where(valid, i0, torch.full_like(i0, -1)).amax(0)
+                lo = torch.where(valid, i0, torch.full_like(i0, 1 << 40)).amin(0)
                 ok = hi >= lo
                 if bool(ok.any()):
                     span = max(span, int((hi - lo)[ok].max()) + 2)
@@ -234,7 +248,7 @@ class PSFModel:
     def model_bytes(self) -> int:
         """Memory (bytes) of the model's own tensors: per transmit the I/Q matrix (T x T complex128)
         and the spectra factors (Ne x F complex128 twice)."""
-        return sum(int(t.iq_matrix.numel()) * 16 + 2 * int(t.tx_field.numel()) * 16 for t in self.transmits)
+        return sum(int(t.grid.n_time) ** 2 * 16 + 2 * int(t.tx_field.numel()) * 16 for t in self.transmits)
 
     def _per_mask_bytes(self) -> int:
         s = self.setup
@@ -345,9 +359,8 @@ class PSFModel:
             H = probe_response(f, probe.fc, probe.bandwidth)
             P = pulse_spectrum(f, probe.fc, acq.tx_cycles)
             C = P * H * H * (grid.df * probe.width * s.reflectivity)
-            Q = iq_matrix(grid.n_time, acq.fs, probe.fc,
-                          probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
-            parts.append((delays, grid, G, R * C[None, :], Q))
+            band = (acq.fs, probe.fc, probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
+            parts.append((delays, grid, G, R * C[None, :], band))
         # A deep, attenuated or weak echo can lie below float32's normal range at its physical
         # scale; G and RC are divided by their largest magnitude over all transmits (the kernel is
         # normalised, so only the unit changes): spectra, RF, I/Q and images are in units of
@@ -359,8 +372,9 @@ class PSFModel:
                                  f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
         #: physical value of one unit of :meth:`spectra`, :meth:`rf`, :meth:`iq` and :meth:`image`
         self.image_scale = g_max * rc_max
-        for delays, grid, G, RC, Q in parts:
-            self.transmits.append(Transmit(delays=delays, grid=grid, tx_field=G / g_max, rx_factor=RC / rc_max, iq_matrix=Q))
+        for delays, grid, G, RC, band in parts:
+            self.transmits.append(Transmit(delays=delays, grid=grid, tx_field=G / g_max, rx_factor=RC / rc_max,
+                                           iq_band=band))
 
     def _weights(self, weights) -> torch.Tensor:
         w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
