@@ -118,7 +118,7 @@ def emit_json(record: dict) -> None:
 
 def cache_files() -> set | None:
     """Names of the fast-path basis files in the on-disk cache (None when the cache is off)."""
-    from arraysel.physics.psf import cache_dir
+    from arraysel.io.cache import cache_dir
 
     folder = cache_dir()
     if folder is None:

@@ -92,7 +92,7 @@ def main(argv=None):
 
     # which steps needed the exact path (measured after the timing, no gradients)
     fb = np.zeros(len(masks), dtype=bool)
-    fast = obj.psf.fast
+    fast = obj.psf.basis
     if fast is not None and hasattr(fast, "kernels"):
         with torch.no_grad():
             W = torch.stack(masks).to(obj.device, dtype)

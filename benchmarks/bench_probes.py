@@ -130,7 +130,7 @@ def run_one(name: str, masks: int, steps: int) -> dict:
         ke = obj.psf.kernels_exact(w)
     fid = {n: float(si_mse(kf[i].to(torch.complex128), ke[i].to(torch.complex128)))
            for i, n in enumerate(special)}
-    fast = obj.psf.fast
+    fast = obj.psf.basis
     return {"probe": name, "n_elements": ne, "k": k, "ms_per_mask": per_mask * 1e3, "rss_gib": rss,
             "load_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
             "si_mse_vs_exact": fid, "exact_path_for": [n for i, n in enumerate(special) if bool(fb[i])],

@@ -102,7 +102,7 @@ def main(argv=None):
         if args.warmup_masks:
             obj.evaluate(C.random_masks(args.warmup_masks, seed=args.seed + 10_000))
     precompute_s = t_basis.s + t_warm.s
-    fast = obj.psf.fast
+    fast = obj.psf.basis
 
     # (b) batched evaluation: kernels + every Table-1 metric
     obj.reset_counters()

@@ -1,11 +1,13 @@
 """Memory of what the fast path precomputes, measured on the objective itself.
 
-Lists every tensor held by ``Objective.psf.fast`` and by the stored
-full-rank basis it is truncated from (``fast.finer``; tensors that share
+Lists every tensor held by ``Objective.psf.basis`` and by the stored
+full-rank basis it is truncated from (``basis.finer``; tensors that share
 storage are counted once): ``U``/``V`` the compressed pair images on the
-window + margin region, ``H2`` the strips' pair images, ``Hc`` the core's,
-``A`` the pair I/Q signals of the certificate, ``S1``/``S2`` the sparse block
-matrices, with shape, dtype and size, plus the
+window + margin region, ``strip_images`` the strips' pair images (and their
+block factors ``strip_left``/``strip_right``), ``core_images`` the core's,
+``pair_channels`` the pair I/Q signals of the certificate,
+``block_envelopes_e``/``block_envelopes_band`` the sparse block matrices,
+with shape, dtype and size, plus the
 exact-path DAS plans cached by ``PSFModel`` after one exact evaluation.
 
 Usage::
@@ -53,10 +55,10 @@ def main(argv=None):
     from arraysel.objective.psf_objective import build_objective
 
     obj = build_objective("paper", dtype=torch.float32 if args.dtype == "float32" else torch.float64)
-    fast = obj.psf.fast
+    fast = obj.psf.basis
     rows, record = [], {}
     seen = set()  # storages counted once: the run-time basis is a truncated view of the stored one
-    views = ([("fast.finer", fast.finer)] if getattr(fast, "finer", None) is not None else []) + [("fast", fast)]
+    views = ([("basis.finer", fast.finer)] if getattr(fast, "finer", None) is not None else []) + [("basis", fast)]
     for prefix, obj_ in views:
         for name, val in sorted(vars(obj_).items()):
             if isinstance(val, torch.Tensor) and (val.numel() > 0 or val.layout != torch.strided):
@@ -69,7 +71,7 @@ def main(argv=None):
                 record[f"{prefix}.{name}"] = b
     total = sum(record.values())
     rows.append(["fast basis, total", "", f"{total / 2**20:.1f} MiB"])
-    info = {k: getattr(fast, k) for k in ("rank", "rank_tail", "T", "L", "shape", "npix", "npix2")
+    info = {k: getattr(fast, k) for k in ("rank", "rank_tail", "window_samples", "max_run", "shape", "npix", "npix2")
             if hasattr(fast, k)}
     if not args.no_exact:
         obj.psf.kernels_exact(torch.ones(1, obj.n_elements))

@@ -149,11 +149,11 @@ def main(argv=None):
         info = dict(describe(setup, model), precompute_source=source)
         k, s_mask = time_fast(model, dtype)
         ranked = []
-        full = model.fast.finer or model.fast
+        full = model.basis.finer or model.basis
         for tol in rank_tols:
-            model.fast = full.truncated(full.rank_for(tol))
+            model.basis = full.truncated(full.rank_for(tol))
             kr, sr = time_fast(model, dtype)
-            ranked.append((f"{tol:g} (rank {model.fast.rank})", kr, sr))
+            ranked.append((f"{tol:g} (rank {model.basis.rank})", kr, sr))
         del model
         gc.collect()
         return k, s_mask, t_setup.s, info, ranked

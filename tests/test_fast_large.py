@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.physics import psf as psf_mod
 from arraysel.objective.metrics import si_mse
 from arraysel.physics.probes import Acquisition, get_probe
-from arraysel.physics.psf import PSFModel, PSFSetup, _PairBasis
+from arraysel.physics.psf import PairBasis, PSFModel, PSFSetup
 
 
 def _setup(n_elements=8, probe="P4-2v", fc=3.5e6, n=24, pixel=1e-4, depth=2e-3, window=8):
@@ -34,9 +33,9 @@ def no_cache(monkeypatch):
 def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, columns):
     """With fewer sketch columns than pairs (36 here) the basis is compressed from the sketch;
     its per-pixel and window error bounds still cover the exact image on E."""
-    monkeypatch.setattr(_PairBasis, "sketch_columns", columns)
+    monkeypatch.setattr(PairBasis, "sketch_columns", columns)
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4, rank_tol=1e-12)
-    fast = model.fast.finer or model.fast
+    fast = model.basis.finer or model.basis
     assert fast.missed >= 0 and fast.rank <= columns
     w = _weights(8, 6)
     with torch.no_grad():
@@ -47,7 +46,7 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
     n = model.setup.window
     werr = (img - ref)[:, :n, :n].abs().reshape(w.shape[0], -1).norm(dim=1)
     assert bool((werr <= win_err * (1 + 1e-9) + 1e-12).all())
-    k, ok = model.fast.kernels(w)
+    k, ok = model.basis.kernels(w)
     ke = model.kernels_exact(w)
     for i in range(w.shape[0]):
         if bool(ok[i]):
@@ -57,9 +56,9 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
 def test_without_strips_fast_equals_exact(no_cache, monkeypatch):
     """Above the strip budget the strips are not built: loose blocks are beamformed exactly
     from the windowed channels, and the kernels still equal the exact path's."""
-    monkeypatch.setattr(psf_mod, "_STRIP_MAX_BYTES", 0)
+    monkeypatch.setattr(PairBasis, "strip_max_bytes", 0)
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
-    assert not model.fast.strips and model.fast.npix2 == 0
+    assert not model.basis.strips and model.basis.npix2 == 0
     w = _weights(8, 5, seed=3)
     w[0] = 0
     w[0, [0, 7]] = 1  # the two outermost elements: side lobes beside E
@@ -73,26 +72,24 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
     """The channel windows hold every sample any grid pixel reads, and the windowed pair I/Q
     equals the I/Q matrix applied to the full record."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
-    fast = model.fast
+    fast = model.basis
     s = model.setup
-    from arraysel.physics.beamform import das_plan, iq_matrix
+    from arraysel.physics.beamform import das_plan
     from arraysel.physics.simus import spectra_to_rf
 
-    Z, X = torch.meshgrid(model._zg, model._xg, indexing="ij")
+    Z, X = torch.meshgrid(model.z_grid, model.x_grid, indexing="ij")
     for n, t in enumerate(model.transmits):
         p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber, fc=s.probe.fc)
         valid = p.rot.abs() > 0
-        local = p.i0 - fast.off[n][None, :]
-        assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.T - 1).all())
-        spec = t.RC[:, None, :] * t.G[None, :, :]
-        Q = iq_matrix(t.grid.n_time, s.acq.fs, s.probe.fc,
-                      s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
-        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ Q.T  # (e, j, T)
+        local = p.i0 - fast.window_offset[n][None, :]
+        assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.window_samples - 1).all())
+        spec = t.rx_factor[:, None, :] * t.tx_field[None, :, :]
+        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ t.iq_matrix.T  # (e, j, T)
         ne = model.n_elements
         Ac = fast.pair_iq()
         for e in range(ne):
-            o = int(fast.off[n, e])
-            k = min(fast.T, iq.shape[-1] - o)
+            o = int(fast.window_offset[n, e])
+            k = min(fast.window_samples, iq.shape[-1] - o)
             ref = iq[e, :, o:o + k]
             assert float((Ac[:, n, e, :k] - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
         # the channels of a selection are its weighted sums of the pair signals
@@ -106,15 +103,15 @@ def test_gradcheck_fast_path_128_elements(no_cache):
     """Gradients of the fast kernels of a 128-element probe (sketched build) in float64."""
     setup = _setup(n_elements=128, probe="L11-5v", fc=7.6e6, n=32, pixel=2.5e-5, depth=6e-3, window=12)
     model = PSFModel(setup, dtype=torch.float64, fast=True, margin=2, block=4)
-    assert model.fast is not None
+    assert model.basis is not None
     w0 = torch.linspace(0.5, 1.0, 128, dtype=torch.float64)[None]
-    k, ok = model.fast.kernels(w0)
+    k, ok = model.basis.kernels(w0)
     assert bool(ok.all())
     ke = model.kernels_exact(w0)
     assert float(si_mse(k[0], ke[0])) < 1e-6
 
     def f(w):
-        return torch.view_as_real(model.fast.kernels(w)[0])
+        return torch.view_as_real(model.basis.kernels(w)[0])
 
     assert torch.autograd.gradcheck(f, (w0.clone().requires_grad_(True),), eps=1e-6, atol=1e-6, rtol=1e-4)
 
@@ -122,7 +119,22 @@ def test_gradcheck_fast_path_128_elements(no_cache):
 def test_basis_memory_estimate_covers_the_build(no_cache):
     """The guard's estimate is of the right size: at least the stored tensors."""
     model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
-    fast = model.fast.finer or model.fast
+    fast = model.basis.finer or model.basis
     stored = sum(t.numel() * t.element_size() for t in fast.state().values() if isinstance(t, torch.Tensor))
     assert model.basis_bytes() >= stored
 
+
+
+def test_cached_basis_carries_the_window_estimate(monkeypatch, tmp_path):
+    """A cold start reads the memory guard's window estimate from the cached basis instead of
+    planning the grid again; it is the number the model computes."""
+    from arraysel.physics.psf.store import stored_window_estimate
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", str(tmp_path))
+    first = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    assert stored_window_estimate(first) == first._estimate_window()
+    second = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    assert second.window_estimate() == first._estimate_window()
+    assert second.basis_bytes() == first.basis_bytes()
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    assert stored_window_estimate(first) is None

@@ -33,7 +33,7 @@ def test_fast_equals_exact_on_builtin_scene(name):
     obj = Objective(name)
     w = _masks(obj.n_elements, obj.k)
     for point, model in enumerate(obj.psfs):
-        assert model.fast is not None, f"{name}: point {point} has no fast path"
+        assert model.basis is not None, f"{name}: point {point} has no fast path"
         with torch.no_grad():
             kf, exact = model.kernels(w, return_info=True)
             ke = model.kernels_exact(w)

@@ -59,7 +59,7 @@ from arraysel.errors import ArrayselError, ParameterError
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["FORMAT", "BLOCK", "cache_dir", "entry_name", "save_state", "load_state", "load_or_build",
+__all__ = ["FORMAT", "BLOCK", "cache_dir", "entry_name", "save_state", "load_state", "load_or_build", "peek",
            "list_entries", "clear", "DamagedEntry"]
 
 FORMAT = 1
@@ -272,9 +272,10 @@ def _verify_blocks(path: str, items: list[tuple[str, dict]], block: int) -> None
             f.close()
 
 
-def load_state(path: str, verify: str | None = None) -> dict:
+def load_state(path: str, verify: str | None = None, only=None) -> dict:
     """The tensors of the entry at ``path``, memory-mapped (copy-on-write: writing to one does not
-    touch the file). ``verify``: ``full`` or ``size`` (default :func:`verify_mode`).
+    touch the file). ``verify``: ``full`` or ``size`` (default :func:`verify_mode`); ``only``: the
+    names of the tensors to load (and verify), default all.
 
     Raises :class:`DamagedEntry` naming the first fault found."""
     import numpy as np
@@ -284,6 +285,11 @@ def load_state(path: str, verify: str | None = None) -> dict:
     manifest = _read_manifest(path)
     block = int(manifest.get("block", BLOCK))
     items = list(manifest["tensors"].items())
+    if only is not None:
+        missing = set(only) - set(manifest["tensors"])
+        if missing:
+            raise DamagedEntry(f"tensor {sorted(missing)[0]!r} is not in the entry")
+        items = [(k, info) for k, info in items if k in set(only)]
     arrays = {}
     for key, info in items:
         fpath = os.path.join(path, str(info.get("file", "")))
@@ -478,6 +484,22 @@ def _try_load(path: str) -> tuple[dict | None, str]:
         return load_state(path), ""
     except DamagedEntry as exc:
         return None, str(exc)
+
+
+def peek(kind: str, key_parts, names) -> dict | None:
+    """The tensors ``names`` of the entry cached under ``(kind, key_parts)``, verified like
+    :func:`load_state` (only those), or None when the cache is off, the entry is absent, lacks one
+    of them or is damaged (a later full load reports and rebuilds a damaged entry)."""
+    folder = cache_dir()
+    if folder is None:
+        return None
+    path = os.path.join(folder, entry_name(kind, key_parts))
+    if not os.path.isdir(path):
+        return None
+    try:
+        return load_state(path, only=list(names))
+    except DamagedEntry:
+        return None
 
 
 def _report(path: str, what: str, why: str) -> None:

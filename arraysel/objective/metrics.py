@@ -71,6 +71,18 @@ _BOUNDARY_RTOL = 1e-9
 # small helpers
 # --------------------------------------------------------------------------
 
+
+def _broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` without its first-call import of torch's symbolic-shape machinery
+    (sympy: about a second of a cold start); raises RuntimeError when the shapes do not broadcast."""
+    import numpy as np
+
+    try:
+        return torch.Size(np.broadcast_shapes(*(tuple(s) for s in shapes)))
+    except ValueError as exc:
+        raise RuntimeError(str(exc)) from None
+
+
 def _safe_div(num: Tensor, den: Tensor) -> Tensor:
     """num / den where den != 0, 0 elsewhere; finite gradient in both cases."""
     nz = den != 0
@@ -214,7 +226,7 @@ def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
     _check_kernel_shape("kappa", kappa)
     _check_kernel_shape("kappa_ref", kappa_ref)
     try:
-        torch.broadcast_shapes(kappa.shape, kappa_ref.shape)
+        _broadcast_shapes(kappa.shape, kappa_ref.shape)
     except RuntimeError as exc:
         raise ParameterError(f"kappa {tuple(kappa.shape)} and kappa_ref {tuple(kappa_ref.shape)} "
                              f"do not broadcast") from exc
@@ -491,7 +503,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         ref = _check_tensor("kappa_ref", kappa_ref)
         _check_kernel_shape("kappa_ref", ref)
         try:
-            shape = torch.broadcast_shapes(kappa.shape, ref.shape)
+            shape = _broadcast_shapes(kappa.shape, ref.shape)
         except RuntimeError:
             shape = None
         if shape != kappa.shape:

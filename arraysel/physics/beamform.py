@@ -27,8 +27,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import scipy.interpolate
-import scipy.signal
 import torch
 
 from arraysel.errors import ParameterError, check_number
@@ -45,11 +43,15 @@ def iq_lowpass(fs: float, fc: float, bandwidth: float | None) -> tuple[np.ndarra
 
 @lru_cache(maxsize=32)
 def _butter(wn: float) -> tuple[np.ndarray, np.ndarray]:
+    import scipy.signal  # imported on first use: it costs a noticeable part of a cold start
+
     return scipy.signal.butter(5, wn)
 
 
 @lru_cache(maxsize=32)
 def _filtfilt_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None) -> np.ndarray:
+    import scipy.signal
+
     b, a = iq_lowpass(fs, fc, bandwidth)
     return scipy.signal.filtfilt(b, a, np.eye(n_t), axis=0)
 
@@ -81,6 +83,8 @@ def transmit_distance(x: torch.Tensor, z: torch.Tensor, delays, probe, c: float)
     if n_tx == 0:
         raise ParameterError("delays: at least one element must transmit (finite delay)")
     if n_tx > 1:
+        import scipy.interpolate  # imported on first use: it costs a noticeable part of a cold start
+
         idx = np.arange(n_tx, dtype=np.float64)
         fine = np.linspace(0, n_tx - 1, 4 * n_tx)
         kind = "cubic" if n_tx > 3 else "linear"
@@ -116,14 +120,12 @@ class DASPlan:
     w: torch.Tensor
     rot: torch.Tensor
 
-    def apply(self, iq: torch.Tensor) -> torch.Tensor:
-        """Beamform I/Q signals ``iq`` (..., Ne, n_t) complex -> (..., Npix)."""
-        return das_apply(iq, self.i0, self.w, self.rot)
 
-
-def das_plan(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
-             fnumber: float = 0.0, t0: float = 0.0, iq: bool = True, fc: float | None = None) -> DASPlan:
-    """Build the DAS interpolation plan for pixels (x, z) (flattened) and one transmit."""
+def das_positions(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
+                  fnumber: float = 0.0, t0: float = 0.0):
+    """Sample positions of a DAS plan: ``(tau, pos, valid)``, each (Npix, Ne): the two-way delay
+    (s), its position in samples, and whether the sample lies in the record and the element in
+    the f-number aperture (what :func:`das_plan` builds its plan from)."""
     check_number("fnumber", fnumber, lo=0.0)
     x = x.reshape(-1)
     z = z.reshape(-1)
@@ -142,6 +144,13 @@ def das_plan(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: floa
         else:
             the_t = torch.as_tensor(the, dtype=x.dtype, device=x.device)
             valid &= (torch.asin(dxe / drx) - the_t).abs() <= math.atan(1 / 2 / fnumber)
+    return tau, pos, valid
+
+
+def das_plan(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
+             fnumber: float = 0.0, t0: float = 0.0, iq: bool = True, fc: float | None = None) -> DASPlan:
+    """Build the DAS interpolation plan for pixels (x, z) (flattened) and one transmit."""
+    tau, pos, valid = das_positions(x, z, delays, probe, fs, c, n_t, fnumber=fnumber, t0=t0)
     posc = torch.where(valid, pos, torch.zeros_like(pos))
     i0 = torch.floor(posc)
     w = posc - i0

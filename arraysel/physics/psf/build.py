@@ -1,0 +1,305 @@
+"""Building the fast path's pair basis: the samples each block reads, the windowed pair I/Q
+signals, the pair images and their compression (exact Gram or randomised sketch), and the
+low-rank factors of the strip blocks.
+
+:class:`BasisBuild` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`; it reads from
+the model only its public interface (``setup``, ``n_elements``, ``transmits``, ``x_grid``,
+``z_grid``, ``block``, ``dtype``, ``device``) and from the basis its layout (``rows``, ``cols``,
+``shape``, ``npix``, ``pairs_e``/``pairs_j``, ``core_pix``, ``segment``).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from arraysel.physics.beamform import das_plan
+from arraysel.physics.simus import spectra_to_rf
+
+
+def pixel_norms(H: torch.Tensor) -> torch.Tensor:
+    """Norm over pairs of each pixel's complex column of a (P, 2 Npix) [re | im] matrix: (Npix,)."""
+    n = H.shape[1] // 2
+    return ((H[:, :n] ** 2).sum(0) + (H[:, n:] ** 2).sum(0)).sqrt()
+
+
+class Compression(NamedTuple):
+    """The truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E (:meth:`BasisBuild._compress`)."""
+
+    #: (P, rank) orthonormal, or None when no compression pays (then ``V`` is ``H`` itself)
+    U: torch.Tensor | None
+    #: (rank, 2 Npix) ``U^T H`` (or ``H``)
+    V: torch.Tensor
+    rank: int
+    #: energy fraction of ``H`` the truncation discards
+    rank_tail: float
+    #: largest residual pixel-column norm ``max_p |(I - U U^T) H_p|`` (exact, from ``|H_p|^2 - |V_p|^2``)
+    pixel_residual: float
+    #: largest pixel-column norm of ``H``
+    column_norm: float
+    #: rigorous bound of the spectral norm of ``(I - U U^T) H`` (the next singular value plus
+    #: the Frobenius norm of what a sketch missed)
+    spectral_tail: float
+    #: Frobenius norm of what the sketch missed, ``|(I - Q Q^T) H|_F`` (0 for the exact build)
+    missed: float
+    #: (P, 2 ncore) the pair images of the core pixels ([re | im])
+    core_images: torch.Tensor
+
+
+class BasisBuild:
+    """The precomputation steps of :class:`~arraysel.physics.psf.basis.PairBasis` (see there)."""
+
+    #: rank of the per-block factors of the strip pair images (:meth:`_strip_factors`)
+    strip_rank = 16
+
+    def _strip_factors(self, H2: torch.Tensor):
+        """Rank-``strip_rank`` factors of the pair images of every whole strip block (block-major
+        ``H2`` in float64): ``M_q = W S Z^T`` (SVD from the 2 b^2 x 2 b^2 Gram matrix) gives
+        ``SF[q] = W_r S_r`` (P, r), ``SG[q] = Z_r^T`` (r, 2 b^2), ``SS[q] = S_r`` and ``Snext[q]``
+        (a safe upper bound of ``S_{r+1}``). Then ``|c M_q - (c SF) SG|`` at a pixel is at most
+        ``|c_perp| Snext`` with ``|c_perp|^2 = |c|^2 - |(c SF) / SS|^2``: a cheap, rigorous bound of
+        a block's image that clears most loose blocks without reading its ``2 b^2`` columns."""
+        model = self.model
+        bb2 = 2 * model.block ** 2
+        nw = int((self.strip_block_col >= 0).sum())
+        r = min(self.strip_rank, bb2)
+        P = H2.shape[0]
+        if nw == 0:
+            self.strip_left = torch.zeros(0, P, r, dtype=model.dtype, device=model.device)
+            self.strip_right = torch.zeros(0, r, bb2, dtype=model.dtype, device=model.device)
+            self.strip_sigma = torch.zeros(0, r, dtype=model.dtype, device=model.device)
+            self.strip_sigma_next = torch.zeros(0, dtype=torch.float64, device=model.device)
+            return
+        SF, SG, SS, SN = [], [], [], []
+        for q0 in range(0, nw, 64):
+            q1 = min(nw, q0 + 64)
+            M = H2[:, q0 * bb2:q1 * bb2].reshape(P, q1 - q0, bb2).permute(1, 0, 2)  # (n, P, 2b^2)
+            gram = M.transpose(1, 2) @ M
+            evals, evecs = torch.linalg.eigh(gram)
+            evals, evecs = evals.flip(-1).clamp(min=0), evecs.flip(-1)
+            sig = evals.sqrt()
+            Z = evecs[:, :, :r]
+            SF.append(M @ Z)                                   # W_r S_r
+            SG.append(Z.transpose(1, 2))
+            SS.append(sig[:, :r])
+            # eigenvalues of the Gram matrix are accurate to ~eps * sigma_1^2
+            tail = sig[:, r] if r < bb2 else torch.zeros_like(sig[:, 0])
+            SN.append((tail * (1 + 1e-6) + 1e-7 * sig[:, 0]))
+        self.strip_left = torch.cat(SF).to(model.device, model.dtype)
+        self.strip_right = torch.cat(SG).to(model.device, model.dtype)
+        self.strip_sigma = torch.cat(SS).to(model.device, model.dtype)
+        self.strip_sigma_next = torch.cat(SN).to(model.device)
+
+    # -- sample ranges and windowed pair I/Q -------------------------------------------------
+    def _sample_ranges(self):
+        """Samples read by the grid's pixels, block by block, from the block centres.
+
+        The transmit distance (a minimum of 1-Lipschitz distances) and each receive distance
+        are 1-Lipschitz in the pixel position, so over a block of half-diagonal ``r`` the
+        sample position ``(d_TX + d_RX) fs / c`` of a pixel lies within ``2 r fs / c`` of the
+        centre's: the ranges below contain every sample a pixel of the block reads (they may
+        hold a sample or two more, which only loosens the bounds). Channels outside the
+        f-number aperture are kept (a bound only grows).
+
+        Returns ``lo``, ``hi`` (ntx, nbz, nbx, Ne): per block and (transmit, element) the
+        first and last sample index a pixel may read (``hi < lo`` where none can), and sets
+        ``window_offset`` (ntx, Ne): the first sample of each channel's window, and
+        ``window_samples``: the window length (a multiple of :attr:`segment`). Every sample any grid pixel reads lies in
+        ``[window_offset, window_offset + window_samples - 1]``, so channels are kept, precomputed and enveloped on that window
+        only (its length follows the grid, not the record)."""
+        from arraysel.physics.beamform import transmit_distance
+
+        model = self.model
+        s = model.setup
+        b = model.block
+        nbz, nbx = -(-s.n_z // b), -(-s.n_x // b)
+        p = s.pitch
+        zc = float(model.z_grid[0]) + (torch.arange(nbz, dtype=torch.float64) * b + (b - 1) / 2) * p
+        xc = float(model.x_grid[0]) + (torch.arange(nbx, dtype=torch.float64) * b + (b - 1) / 2) * p
+        Z, X = torch.meshgrid(zc, xc, indexing="ij")
+        r = math.sqrt(2) * (b - 1) / 2 * p
+        xe, ze, _, _ = s.probe.element_positions()
+        drx = torch.sqrt((X[..., None] - torch.as_tensor(xe)) ** 2 + (Z[..., None] - torch.as_tensor(ze)) ** 2)
+        slack = 2 * r * s.acq.fs / s.acq.c + 1e-9
+        los, his = [], []
+        for t in model.transmits:
+            dtx = transmit_distance(X, Z, t.delays, s.probe, s.acq.c)
+            pos = (dtx[..., None] + drx) / s.acq.c * s.acq.fs
+            lo = torch.floor(pos - slack).clamp(min=0)
+            hi = torch.floor(pos + slack) + 1
+            n_t = t.grid.n_time
+            can = (pos + slack >= 0) & (pos - slack <= n_t - 2)
+            hi = hi.clamp(max=n_t - 1)
+            los.append(torch.where(can, lo, torch.full_like(lo, 1 << 40)).long())
+            his.append(torch.where(can, hi, torch.full_like(hi, -1)).long())
+        lo, hi = torch.stack(los), torch.stack(his)  # (ntx, nbz, nbx, Ne)
+        first = lo.amin(dim=(1, 2))
+        last = hi.amax(dim=(1, 2))
+        read = last >= first
+        self.window_offset = torch.where(read, first, torch.zeros_like(first))
+        span = int(torch.where(read, last - first + 1, torch.ones_like(first)).max())
+        self.window_samples = -(-max(span, 2) // self.segment) * self.segment
+        return lo, hi
+
+    def _windowed_pair_iq(self) -> np.ndarray:
+        """I/Q of every (rx e, tx j) pair on each channel's window: ``X[n, e, t, j]`` (ntx, Ne, T, Ne)
+        complex64, sample ``off[n, e] + t`` of the record (zero past its end).
+
+        The RF of a pair is the inverse FFT of ``RC_e(f) G_nj(f)``; the I/Q demodulation
+        (mixing, zero-phase Butterworth low-pass, factor 2) is applied with SciPy's
+        ``filtfilt`` along time, which is the same linear map as :func:`iq_matrix`."""
+        import scipy.signal
+
+        model = self.model
+        s = model.setup
+        ne = model.n_elements
+        ntx = len(model.transmits)
+        out = np.zeros((ntx, ne, self.window_samples, ne), dtype=np.complex64)
+        from arraysel.physics.beamform import iq_lowpass
+
+        b_, a_ = iq_lowpass(s.acq.fs, s.probe.fc, s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
+        off = self.window_offset.numpy()
+        for n, t in enumerate(model.transmits):
+            T = t.grid.n_time
+            mix = np.exp(-2j * np.pi * s.probe.fc * np.arange(T) / s.acq.fs)
+            step = max(1, 2 ** 24 // (ne * T))
+            for e0 in range(0, ne, step):
+                e1 = min(ne, e0 + step)
+                spec = t.rx_factor[e0:e1, None, :] * t.tx_field[None, :, :]
+                rf = spectra_to_rf(spec, t.grid).numpy()  # (ce, Ne, T)
+                iq = 2 * scipy.signal.filtfilt(b_, a_, rf * mix, axis=-1)
+                for e in range(e0, e1):
+                    o = int(off[n, e])
+                    k = max(0, min(self.window_samples, T - o))
+                    out[n, e, :k, :] = iq[e - e0, :, o:o + k].T
+        return out
+
+    def _local_plan(self, rows: slice, cols: torch.Tensor):
+        """DAS plan of the pixels (rows x cols) for the pair-image kernel: (i0 local to the
+        channel windows, weight, rotation re, im), each (ntx, Ne, Npix) numpy."""
+        model = self.model
+        s = model.setup
+        Z, X = torch.meshgrid(model.z_grid[rows], model.x_grid[cols], indexing="ij")
+        out = [[], [], [], []]
+        for n, t in enumerate(model.transmits):
+            p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                         fc=s.probe.fc)
+            i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
+            out[0].append(i0.T.to(torch.int32))
+            out[1].append(p.w.T.to(torch.float32))
+            out[2].append(p.rot.real.T.to(torch.float32))
+            out[3].append(p.rot.imag.T.to(torch.float32))
+        return tuple(np.ascontiguousarray(torch.stack(a).numpy()) for a in out)
+
+    #: most pair rows the kernel fills at once (bounds the build's working memory)
+    build_rows = 512
+
+    def _pair_image_blocks(self, X: np.ndarray, plan: tuple):
+        """Yield ``(r0, H)``: the symmetric pair images of rows ``r0 .. r0 + len(H)`` as a
+        (rows, 2 Npix) float64 tensor [re | im]."""
+        from arraysel.physics.pairkernels import pair_images, pair_row_blocks
+
+        ne = self.model.n_elements
+        npix = plan[0].shape[2]
+        rows = max(ne, self.build_rows * max(1, 20736 // max(1, npix)))
+        r0 = 0
+        for e0, e1, nr in pair_row_blocks(ne, rows):
+            out = torch.from_numpy(pair_images(X, plan, e0, e1))  # (Npix, nr, 2)
+            yield r0, torch.cat([out[:, :, 0].T, out[:, :, 1].T], dim=1)
+            r0 += nr
+
+    def _dense_pair_images(self, X: np.ndarray, plan: tuple) -> torch.Tensor:
+        """All symmetric pair images on the plan's pixels: (P, 2 Npix) float64 [re | im]."""
+        return torch.cat([H for _, H in self._pair_image_blocks(X, plan)], dim=0)
+
+    #: real columns of the randomised range sketch of the pair images on E (probes whose
+    #: pair count exceeds it are compressed from the sketch; smaller ones exactly)
+    sketch_columns = 2400
+
+    def _compress(self, X: np.ndarray, plan: tuple, rank_tol: float, progress=None) -> Compression:
+        """Truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E, with ``U``
+        orthonormal (P, r) and ``V = U^T H``.
+
+        Small probes (P <= :attr:`sketch_columns`): ``H`` is formed and the P x P Gram matrix
+        diagonalised (exact). Larger ones: two passes over row blocks of ``H`` that are never
+        all held at once: a subsampled randomised Fourier sketch ``Y = H S`` (random signs,
+        2-D FFT of each pair image, random frequencies) gives an orthonormal ``Q`` spanning
+        the pairs' dominant subspace; the second pass forms ``B = Q^T H``, the pixels' column
+        norms and the core columns; the SVD of ``B`` gives ``U = Q W``, ``V = W^T B``.
+
+        Returns a :class:`Compression` record.
+        """
+        model = self.model
+        P = self.pairs_e.numel()
+        npix = self.npix
+        core = torch.cat([self.core_pix, npix + self.core_pix])
+        if P <= self.sketch_columns:
+            H = self._dense_pair_images(X, plan)
+            if progress is not None:
+                progress.step("pair images on E")
+            col = pixel_norms(H)
+            Hc = H[:, core].to(model.device, model.dtype)
+            gram = H @ H.T
+            evals, evecs = torch.linalg.eigh(gram)
+            evals = evals.flip(0).clamp(min=0)
+            evecs = evecs.flip(1)
+            total = float(evals.sum())
+            tail = total - torch.cumsum(evals, 0)
+            rank = int(torch.nonzero(tail <= rank_tol * total).flatten()[0]) + 1
+            # U @ V costs P*R + R*N per selection against P*N for H itself
+            if rank * (P + H.shape[1]) >= 0.9 * P * H.shape[1]:
+                return Compression(U=None, V=H.to(model.device, model.dtype), rank=P, rank_tail=0.0,
+                                   pixel_residual=0.0, column_norm=float(col.max()), spectral_tail=0.0,
+                                   missed=0.0, core_images=Hc)
+            U = evecs[:, :rank]
+            V = U.T @ H
+            rho = float((col ** 2 - pixel_norms(V) ** 2).clamp(min=0).sqrt().max())
+            return Compression(U=U.to(model.device, model.dtype), V=V.to(model.device, model.dtype), rank=rank,
+                               rank_tail=float(tail[rank - 1] / total), pixel_residual=rho,
+                               column_norm=float(col.max()),
+                               spectral_tail=float(evals[rank].sqrt()) if rank < P else 0.0,
+                               missed=0.0, core_images=Hc)
+        h, w = self.shape
+        L = min(self.sketch_columns, 2 * npix) // 2
+        gen = torch.Generator().manual_seed(20261123)
+        signs = torch.where(torch.rand(npix, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
+        freqs = torch.randperm(npix, generator=gen)[:L]
+        Y = torch.empty(P, 2 * L, dtype=torch.float64)
+        for r0, H in self._pair_image_blocks(X, plan):
+            z = torch.complex(H[:, :npix], H[:, npix:]) * signs
+            f = torch.fft.fft2(z.reshape(-1, h, w), norm="ortho").reshape(z.shape[0], npix)[:, freqs]
+            Y[r0:r0 + H.shape[0], :L] = f.real
+            Y[r0:r0 + H.shape[0], L:] = f.imag
+        if progress is not None:
+            progress.step("sketch of the pair images on E")
+        Q = torch.linalg.qr(Y)[0]
+        del Y
+        B = torch.zeros(Q.shape[1], 2 * npix, dtype=torch.float64)
+        col2 = torch.zeros(npix, dtype=torch.float64)
+        Hc = torch.empty(P, core.numel(), dtype=torch.float64)
+        for r0, H in self._pair_image_blocks(X, plan):
+            r1 = r0 + H.shape[0]
+            B.addmm_(Q[r0:r1].T, H)
+            col2 += H[:, :npix].square().sum(0) + H[:, npix:].square().sum(0)
+            Hc[r0:r1] = H[:, core]
+        if progress is not None:
+            progress.step("projection of the pair images on E")
+        evals, W = torch.linalg.eigh(B @ B.T)
+        evals = evals.flip(0).clamp(min=0)
+        W = W.flip(1)
+        total = float(col2.sum())
+        missed = max(0.0, total - float(evals.sum()))
+        tail = total - torch.cumsum(evals, 0)
+        ok = torch.nonzero(tail <= rank_tol * total).flatten()
+        rank = int(ok[0]) + 1 if ok.numel() else evals.numel()
+        U = Q @ W[:, :rank]
+        V = W[:, :rank].T @ B
+        nxt = float(evals[rank].sqrt()) if rank < evals.numel() else 0.0
+        missed = math.sqrt(missed) * (1 + 1e-6)
+        rho = float((col2 - pixel_norms(V) ** 2).clamp(min=0).sqrt().max())
+        return Compression(U=U.to(model.device, model.dtype), V=V.to(model.device, model.dtype), rank=rank,
+                           rank_tail=float(tail[rank - 1] / total), pixel_residual=rho,
+                           column_norm=float(col2.max().sqrt()), spectral_tail=nxt * (1 + 1e-6) + missed,
+                           missed=missed, core_images=Hc.to(model.device, model.dtype))

@@ -1,0 +1,532 @@
+"""Point-spread function (PSF) synthesis for batches of element selections.
+
+The paper scene (SPEC §1): one point scatterer, ``n_tx`` plane-wave
+transmits, RF -> I/Q -> delay-and-sum, the compound image summed coherently,
+and the complex 128 x 128 window centred on the peak of its magnitude,
+normalised to unit L2 norm, is the PSF kernel ``kappa``.
+
+A selection enters as element weights ``m`` (``(B, Ne)``, 0/1 masks or soft
+weights in [0, 1]) used both as TX apodization and as RX channel weights.
+For one scatterer the echo received by element ``e`` is a superposition of
+the contributions transmitted by every element ``j``, and every later step
+(inverse FFT, demodulation, DAS, compounding) is linear, so the compound
+image is a quadratic form of the weights::
+
+    I(p) = sum_{e, j} m_e m_j H_ej(p)
+
+:class:`PSFModel` offers two ways to evaluate it:
+
+* the *exact path* (:meth:`PSFModel.image`) runs the simulator -> RF -> I/Q
+  -> DAS pipeline for each selection, on any set of pixels (the whole grid by
+  default), chunked over pixels to bound memory;
+* the *fast path* (:meth:`PSFModel.kernels`) precomputes the pair images
+  ``H_ej`` on a region ``E`` around the scatterer (the PSF window plus a
+  margin), so that the image of a batch of selections is one matrix product
+  of the pair products ``m_e m_j`` with ``H`` (a truncated SVD ``U V`` of it,
+  with a rigorous bound of the truncation error of every pixel and window).
+  Because the SPEC searches the peak over the whole grid, the fast path also
+  precomputes, for 8 x 8 blocks of pixels outside ``E``, the samples each
+  block reads from each channel: the envelopes of a selection's I/Q channels
+  there bound ``|I|`` on the block (``PairBasis``, certificates). A selection
+  whose peak in ``E`` (less its error bound) beats every block bound, or whose
+  loose blocks are settled exactly (strip pair images, their low-rank
+  factors, or block-wise DAS), and whose window fits in ``E``, provably has
+  its global peak there; a kernel whose error bound is too large is retried
+  at the stored rank; any other selection is recomputed by the exact path on
+  the whole grid. The result is therefore the SPEC's kernel, up to the stated
+  error bound (5e-3 relative L2; the actual error is typically below 1e-3),
+  for every selection.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
+from arraysel.physics.beamform import das_apply, das_plan, das_positions, iq_matrix
+from arraysel.physics.delays import plane_wave_delays
+from arraysel.physics.psf.basis import PairBasis
+from arraysel.physics.psf.settings import basis_limit_bytes, memory_limit_bytes
+from arraysel.physics.psf.setup import PSFSetup
+from arraysel.physics.psf.store import load_or_build_basis, stored_window_estimate
+from arraysel.physics.psf.window import window_and_normalise
+from arraysel.physics.simus import (element_responses, grid_for_points, probe_response, pulse_spectrum,
+                                    spectra_to_rf, spectra_to_rf_maps)
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass
+class Transmit:
+    """One plane-wave transmit of a :class:`PSFModel` (spectra in units of ``image_scale``)."""
+
+    delays: np.ndarray          #: (Ne,) transmit delays (s)
+    grid: object                #: the simulator's FrequencyGrid
+    tx_field: torch.Tensor      #: (Ne, F) field at the scatterer from each transmitting element, R_j e^{i w tau_j}
+    rx_factor: torch.Tensor     #: (Ne, F) receive factor C(f) R_e(f) of each receiving element
+    iq_band: tuple              #: (fs, fc, bandwidth %) of the I/Q demodulation
+
+    @functools.cached_property
+    def iq_matrix(self) -> torch.Tensor:
+        """(T, T) complex128 I/Q demodulation matrix (:func:`~arraysel.physics.beamform.iq_matrix`),
+        formed on first use: only the exact path needs it, and a cold start on the fast path
+        saves its filtering (and SciPy's import)."""
+        return iq_matrix(self.grid.n_time, *self.iq_band)
+
+    def iq_map(self) -> torch.Tensor:
+        """Real (2F, 2T) float64 matrix ``M`` with ``[Re S, Im S] @ M = [Re IQ, Im IQ]``, where
+        ``IQ = spectra_to_rf(S, grid) @ iq_matrix.T``: the exact path's spectra -> RF -> I/Q,
+        composed in float64 (see :meth:`PSFModel.iq`)."""
+        a, b = spectra_to_rf_maps(self.grid)
+        qt = iq_matrix(self.grid.n_time, *self.iq_band).T  # not kept: only the composed map is
+        m = torch.cat([a.to(torch.complex128) @ qt, b.to(torch.complex128) @ qt], dim=0)  # (2F, T)
+        return torch.cat([m.real, m.imag], dim=1)
+
+
+class PSFModel:
+    """Batched, differentiable PSF synthesis for one scene.
+
+    Parameters
+    ----------
+    setup : :class:`PSFSetup`.
+    dtype : real dtype of the computation (torch.float32 or torch.float64).
+    device : torch device.
+    margin : pixels added on each side of the window for the fast path's
+        exact region ``E``; block : side (pixels) of the bound blocks.
+    fast : build (or load) the fast path's pair basis; False: the exact path only.
+    plan_cache_elements : DAS plan entries (pixels x elements) the exact path keeps.
+    rank_tol : energy fraction the fast path's truncated SVD of the pair images on ``E`` may
+        discard (``benchmarks/work_precision.py`` measures error and time against it). The
+        stored basis keeps more (``BUILD_RANK_TOL`` of :mod:`~arraysel.physics.psf.basis`);
+        every kernel carries a rigorous error bound, and one whose bound exceeds ``kernel_tol``
+        of its norm is retried at the stored rank, then on the exact path, so this trades speed
+        only against how often that happens.
+
+    The precomputation itself always runs in float64.
+
+    Attributes used by the pair basis (its whole view of the model): ``setup``,
+    ``n_elements``, ``transmits`` (:class:`Transmit` records), ``x_grid``, ``z_grid`` (float64
+    pixel coordinates), ``margin``, ``block``, ``dtype``, ``cdtype``, ``device``.
+    """
+
+    def __init__(self, setup: PSFSetup, dtype=torch.float32, device="cpu", margin: int = 8, block: int = 8,
+                 fast: bool = True, plan_cache_elements: int = 80_000_000, rank_tol: float = 1e-6):
+        if dtype not in (torch.float32, torch.float64):
+            raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
+        self.setup = setup
+        self.dtype = dtype
+        self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+        self.device = torch.device(device)
+        self.n_elements = setup.probe.n_elements
+        self.margin = int(check_number("margin", margin, lo=0, hi=4096, integer=True))
+        self.block = int(check_number("block", block, lo=1, hi=4096, integer=True))
+        self.rank_tol = float(check_number("rank_tol", rank_tol, lo=0, hi=1, lo_open=True, hi_open=True))
+        self._build_transmits()
+        self.x_grid = torch.as_tensor(setup.x, dtype=torch.float64)
+        self.z_grid = torch.as_tensor(setup.z, dtype=torch.float64)
+        self._plans: dict = {}
+        self._iq_maps: dict = {}  # transmit -> its spectra -> I/Q map in the model's dtype (exact path)
+        self._plan_elements = 0
+        #: DAS plan entries (pixels x elements) kept in memory for the exact path
+        self.plan_cache_elements = plan_cache_elements
+        #: memory (bytes) the exact path may use (``ARRAYSEL_MEMORY_GIB``); its batches follow from it
+        self.memory_limit = memory_limit_bytes()
+        #: the exact path's baseline: interpreter, torch and the model (a constant: what else the
+        #: process holds is not this scene's to budget)
+        self.baseline_bytes = _BASELINE_BYTES
+        #: memory other models of the same objective keep (their DAS plans), set by the objective
+        self.other_bytes = 0
+        self._check_exact_memory()
+        #: the certified fast path (a :class:`~arraysel.physics.psf.basis.PairBasis` truncated to
+        #: ``rank_tol``), or None when it is off or over its memory cap
+        self.basis: PairBasis | None = None
+        if fast:
+            # a cached basis carries the window estimate of the memory guard (the same number,
+            # without computing the plans it comes from)
+            self._window_samples = stored_window_estimate(self)
+            need = self.basis_bytes()
+            limit = basis_limit_bytes()
+            if need > limit:
+                _log.warning("PSF fast path disabled: its precomputation would need %.1f GiB (> %.1f GiB, "
+                             "set ARRAYSEL_BASIS_MAX_GIB to allow more); using the exact path",
+                             need / 2 ** 30, limit / 2 ** 30)
+            else:
+                full = load_or_build_basis(self)
+                self.basis = full.truncated(full.rank_for(self.rank_tol))
+        self._ref = None
+
+    def basis_bytes(self) -> int:
+        """Estimated peak memory (bytes) of building the fast path's basis (see
+        :class:`PairBasis`): the windowed pair I/Q signals, the pair images of E (all of them
+        for small probes, row blocks and a sketch for larger ones), the strips' pair images
+        when they are kept, and the stored tensors."""
+        s = self.setup
+        ne = self.n_elements
+        ntx = len(s.tilts)
+        pairs = ne * (ne + 1) // 2
+        rows = min(s.n_z, s.window + 2 * self.margin)
+        cols = min(s.n_x, s.window + 2 * self.margin)
+        npix, npix2 = rows * cols, rows * (s.n_x - cols)
+        size = torch.finfo(self.dtype).bits // 8
+        T = self.window_estimate()
+        X = ntx * ne * T * ne * 8
+        A = 2 * ntx * ne * T * ne * size
+        sketch = PairBasis.sketch_columns
+        if pairs <= sketch:
+            work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
+            rank = pairs
+        else:
+            blk = max(ne, PairBasis.build_rows * max(1, 20736 // max(1, npix)))
+            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8
+            rank = sketch
+        strips = size * pairs * 2 * npix2
+        if strips > PairBasis.strip_max_bytes:
+            strips = 0
+        stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
+        return int(X + work + stored + (strips // size) * 8)
+
+    def window_estimate(self) -> int:
+        """Samples per channel window (:meth:`PairBasis._sample_ranges`), estimated from the
+        DAS plans of a subsampled grid (every 8th row and column and the grid's edges); computed
+        once per model (the memory guard and the cache's size hint both ask)."""
+        if getattr(self, "_window_samples", None) is None:
+            self._window_samples = self._estimate_window()
+        return self._window_samples
+
+    def _estimate_window(self) -> int:
+        s = self.setup
+        zi = torch.unique(torch.cat([torch.arange(0, s.n_z, 8), torch.tensor([s.n_z - 1])]))
+        xi = torch.unique(torch.cat([torch.arange(0, s.n_x, 8), torch.tensor([s.n_x - 1])]))
+        Z, X = torch.meshgrid(self.z_grid[zi], self.x_grid[xi], indexing="ij")
+        span = 2
+        for t in self.transmits:
+            # the first sample index of each (pixel, element) of the DAS plan, without the plan's
+            # weights and phase rotations
+            _, pos, valid = das_positions(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
+                                          fnumber=s.fnumber)
+            i0 = torch.floor(torch.where(valid, pos, torch.zeros_like(pos))).to(torch.long)
+            if bool(valid.any()):
+                hi = torch.where(valid, i0, torch.full_like(i0, -1)).amax(0)
+                lo = torch.where(valid, i0, torch.full_like(i0, 1 << 40)).amin(0)
+                ok = hi >= lo
+                if bool(ok.any()):
+                    span = max(span, int((hi - lo)[ok].max()) + 2)
+        return -(-(span + 8) // 4) * 4
+
+    # ------------------------------------------------------------------ exact path: memory
+    # The exact path's peak resident memory, in bytes, for a batch of ``batch`` masks (no autograd):
+    #   baseline: interpreter, torch and the model (``baseline_bytes``, a constant)
+    # + DAS plans kept: entries (pixel, element, transmit) x (i0 + w + rot), capped at a quarter
+    #   of ``memory_limit``; in a several-point objective also its siblings' plans and tensors
+    #   (``other_bytes``)
+    # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries
+    # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and RF on
+    #   the way, the whole-grid image (row chunks, their concatenation, its magnitude)
+    # + one DAS call: _DAS_TEMPS (B, pixels x Ne) complex temporaries (gathered samples, their
+    #   index, differences, products), its pixels chosen to keep this near _DAS_BYTES;
+    # all but the baseline times _HEAP_FACTOR, the heap growth (fragmentation, blocks glibc
+    # keeps) measured on top of the live tensors by ``benchmarks/exact_memory.py``.
+    # :meth:`exact_chunking` picks the batch so the total stays within ``memory_limit``.
+
+    def _sizes(self):
+        c = 8 if self.dtype == torch.float32 else 16
+        T = max(t.grid.n_time for t in self.transmits)
+        nfft = max(t.grid.n_fft for t in self.transmits)
+        F = max(int(t.grid.f.numel()) for t in self.transmits)
+        return c, T, nfft, F
+
+    def _plan_rows(self) -> int:
+        return max(1, (2 ** 21) // max(1, self.setup.n_x * self.n_elements))
+
+    def plan_cache_bytes(self) -> int:
+        """Memory (bytes) of the DAS plans the exact path keeps (whole grid, every transmit, capped)."""
+        c = 8 if self.dtype == torch.float32 else 16
+        return self._plan_cache_limit() * (8 + c // 2 + c)
+
+    def _plan_cache_limit(self) -> int:
+        """Plan entries kept: ``plan_cache_elements``, at most a quarter of ``memory_limit``, at most all."""
+        s = self.setup
+        c = 8 if self.dtype == torch.float32 else 16
+        quarter = self.memory_limit // 4 // (8 + c // 2 + c)
+        return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
+
+    def model_bytes(self) -> int:
+        """Memory (bytes) of the model's own tensors: per transmit the spectra -> I/Q map (2F x 2T in
+        the model's dtype) and the spectra factors (Ne x F complex128 twice)."""
+        size = torch.finfo(self.dtype).bits // 8
+        return sum(4 * int(t.tx_field.shape[-1]) * int(t.grid.n_time) * size + 2 * int(t.tx_field.numel()) * 16
+                   for t in self.transmits)
+
+    def _per_mask_bytes(self) -> int:
+        s = self.setup
+        c, T, nfft, F = self._sizes()
+        ne = self.n_elements
+        return len(self.transmits) * ne * T * c + 2 * ne * (F + nfft) * c + (2 * c + c // 2) * s.n_z * s.n_x
+
+    def _das_pixels(self, batch: int) -> int:
+        s = self.setup
+        c = self._sizes()[0]
+        want = _DAS_BYTES // max(1, _DAS_TEMPS * batch * self.n_elements * c)
+        return int(min(s.n_z * s.n_x, max(s.n_x, want)))
+
+    def exact_bytes(self, batch: int, pixels: int | None = None) -> int:
+        """Estimated peak resident memory (bytes) of the process during an exact-path evaluation of
+        ``batch`` masks with DAS calls of ``pixels`` pixels (default: :meth:`exact_chunking`'s)."""
+        s = self.setup
+        c = self._sizes()[0]
+        if pixels is None:
+            pixels = self._das_pixels(batch)
+        build = 12 * self._plan_rows() * s.n_x * self.n_elements * 8
+        das = _DAS_TEMPS * batch * pixels * self.n_elements * c
+        work = self.plan_cache_bytes() + self.other_bytes + build + batch * self._per_mask_bytes() + das
+        return int(self.baseline_bytes + _HEAP_FACTOR * work)
+
+    def exact_chunking(self, batch: int | None = None) -> tuple[int, int]:
+        """(masks per batch, pixels per DAS call) of the exact path within ``memory_limit``.
+
+        With ``batch`` given, only the pixels per DAS call are chosen for it.
+        """
+        if batch is None:
+            batch = _EXACT_MAX_BATCH
+            while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
+                batch = max(1, min(batch - 1, int(batch * 0.85)))
+        return batch, self._das_pixels(batch)
+    def masks_per_batch(self) -> int:
+        """Masks an evaluation should hand to :meth:`kernels` at once (bounded memory on the exact path)."""
+        if self.basis is not None:
+            return _EXACT_MAX_BATCH
+        return self.exact_chunking()[0]
+
+    def exact_seconds_per_mask(self, batch: int | None = None) -> float:
+        """Estimated wall time (s) of one mask on the exact path (whole-grid image), at ``batch`` masks
+        per call (default: :meth:`exact_chunking`'s).
+
+        Calibrated once by timing one DAS plan chunk (build and apply) of this grid, so the
+        estimate costs a fraction of a second and reflects the machine's current load.
+        """
+        import time
+
+        if batch is None:
+            batch = self.exact_chunking()[0]
+        if getattr(self, "_calib", None) is None:
+            s = self.setup
+            rows = slice(0, min(s.n_z, self._plan_rows()))
+            t = self.transmits[0]
+            t0 = time.perf_counter()
+            Z, X = torch.meshgrid(self.z_grid[rows], self.x_grid, indexing="ij")
+            plan = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                            fc=s.probe.fc)
+            plan.w, plan.rot = plan.w.to(self.device, self.dtype), plan.rot.to(self.device, self.cdtype)
+            plan.i0 = plan.i0.to(self.device)
+            t1 = time.perf_counter()
+            iq = torch.ones(2, self.n_elements, t.grid.n_time, dtype=self.cdtype, device=self.device)
+            das = []
+            for _ in range(2):  # the first call pays for allocations
+                t2 = time.perf_counter()
+                das_apply(iq, plan.i0, plan.w, plan.rot)
+                das.append((time.perf_counter() - t2) / 2)
+            self._calib = ((t1 - t0) / (rows.stop * s.n_x), min(das) / (rows.stop * s.n_x))
+        per_px_plan, per_px_das = self._calib
+        s = self.setup
+        pixels = len(self.transmits) * s.n_z * s.n_x
+        total = pixels * self.n_elements
+        cached = min(1.0, self._plan_cache_limit() / max(1, total))
+        # DAS for every mask; plans that do not fit the cache are rebuilt on every call
+        return pixels * (per_px_das + (1 - cached) * per_px_plan / max(1, batch))
+
+    def _check_exact_memory(self) -> None:
+        """Refuse, before any work, a scene whose exact path cannot fit ``memory_limit`` even one mask
+        and one grid row at a time."""
+        need = self.exact_bytes(1, pixels=self.setup.n_x)
+        if need > self.memory_limit:
+            s = self.setup
+            raise ParameterError(
+                f"this scene needs about {need / 2 ** 30:.1f} GiB for one mask on the exact PSF path (grid "
+                f"{s.n_x} x {s.n_z} pixels, {self.n_elements} elements, {len(self.transmits)} transmits), more "
+                f"than the memory cap of {self.memory_limit / 2 ** 30:.1f} GiB: reduce grid.n_x / grid.n_z "
+                f"(or coarsen grid.pixel), or raise the cap with ARRAYSEL_MEMORY_GIB")
+
+    # ------------------------------------------------------------------ exact path
+    def _build_transmits(self):
+        s = self.setup
+        probe, acq = s.probe, s.acq
+        xs, zs = s.scatterer_position
+        xt = torch.tensor([xs], dtype=torch.float64)
+        zt = torch.tensor([zs], dtype=torch.float64)
+        delays_all = plane_wave_delays(probe, list(s.tilts), acq.c)
+        self.transmits = []
+        parts = []
+        for delays in delays_all:
+            grid = grid_for_points(xt, zt, delays, probe, acq, s.options)
+            f = grid.f
+            R = element_responses(xt, zt, f, probe, acq.c, acq.attenuation, s.options)[0]  # (Ne, F)
+            w = 2 * math.pi * f
+            tau = torch.as_tensor(delays, dtype=torch.float64)
+            G = R * torch.polar(torch.ones_like(tau[:, None] * w), tau[:, None] * w)
+            H = probe_response(f, probe.fc, probe.bandwidth)
+            P = pulse_spectrum(f, probe.fc, acq.tx_cycles)
+            C = P * H * H * (grid.df * probe.width * s.reflectivity)
+            band = (acq.fs, probe.fc, probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
+            parts.append((delays, grid, G, R * C[None, :], band))
+        # A deep, attenuated or weak echo can lie below float32's normal range at its physical
+        # scale; G and RC are divided by their largest magnitude over all transmits (the kernel is
+        # normalised, so only the unit changes): spectra, RF, I/Q and images are in units of
+        # ``image_scale``.
+        g_max = max(float(G.abs().max()) for _, _, G, _, _ in parts)
+        rc_max = max(float(RC.abs().max()) for _, _, _, RC, _ in parts)
+        if not (g_max > 0 and rc_max > 0 and math.isfinite(g_max) and math.isfinite(rc_max)):
+            raise NumericalError(f"the echo of the scatterer is zero or not finite (|G| max {g_max:.3g}, "
+                                 f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
+        #: physical value of one unit of :meth:`spectra`, :meth:`rf`, :meth:`iq` and :meth:`image`
+        self.image_scale = g_max * rc_max
+        for delays, grid, G, RC, band in parts:
+            self.transmits.append(Transmit(delays=delays, grid=grid, tx_field=G / g_max, rx_factor=RC / rc_max,
+                                           iq_band=band))
+
+    def _weights(self, weights) -> torch.Tensor:
+        w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
+        if w.dim() == 1:
+            w = w[None]
+        if w.dim() != 2 or w.shape[-1] != self.n_elements:
+            raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
+        w = w.to(device=self.device, dtype=self.dtype)
+        return w
+
+    def spectra(self, weights, tx: int) -> torch.Tensor:
+        """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne), in units of ``image_scale``."""
+        t = self.transmits[tx]
+        w = self._weights(weights)
+        G = t.tx_field.to(self.device, self.cdtype)
+        RC = t.rx_factor.to(self.device, self.cdtype)
+        field_ = w.to(self.cdtype) @ G  # (B, F): field at the scatterer
+        return w.to(self.cdtype)[:, :, None] * RC[None] * field_[:, None, :]
+
+    def rf(self, weights, tx: int) -> torch.Tensor:
+        """RF signals (B, Ne, T) of transmit ``tx`` (element-major, time last), in units of ``image_scale``."""
+        return spectra_to_rf(self.spectra(weights, tx), self.transmits[tx].grid)
+
+    def iq(self, weights, tx: int) -> torch.Tensor:
+        """I/Q signals (B, Ne, T) of transmit ``tx``: the I/Q demodulation of :meth:`rf`, computed
+        from the spectra in one product with the composed linear map (:meth:`Transmit.iq_map`,
+        formed on first use and kept in the model's dtype).
+
+        Composing the maps in float64 first matters in float32: a strongly attenuated echo has
+        out-of-band (low-frequency) content orders of magnitude above the in-band part that forms
+        the PSF; an RF record in float32 carries rounding noise at the level of the former across
+        the whole band, which the I/Q filter would pass. Here each spectral bin enters with the
+        weight the filter gives it, so rounding stays relative to what reaches the I/Q signal.
+        """
+        if tx not in self._iq_maps:
+            self._iq_maps[tx] = self.transmits[tx].iq_map().to(self.device, self.dtype)
+        s = self.spectra(weights, tx)
+        y = torch.cat([s.real, s.imag], dim=-1) @ self._iq_maps[tx]
+        t = y.shape[-1] // 2
+        return torch.complex(y[..., :t], y[..., t:])
+
+    def _plan(self, tx: int, rows: slice, cols: slice):
+        """DAS plan of transmit ``tx`` on grid rows/cols; whole-grid plans are cached by row blocks."""
+        key = (tx, rows.start, rows.stop, cols.start, cols.stop)
+        plan = self._plans.get(key)
+        if plan is None:
+            s = self.setup
+            Z, X = torch.meshgrid(self.z_grid[rows], self.x_grid[cols], indexing="ij")
+            plan = das_plan(X, Z, self.transmits[tx].delays, s.probe, s.acq.fs, s.acq.c,
+                            self.transmits[tx].grid.n_time, fnumber=s.fnumber, fc=s.probe.fc)
+            plan.w = plan.w.to(self.device, self.dtype)
+            plan.rot = plan.rot.to(self.device, self.cdtype)
+            plan.i0 = plan.i0.to(self.device)
+            size = plan.i0.numel()
+            if self._plan_elements + size <= self._plan_cache_limit():
+                self._plans[key] = plan
+                self._plan_elements += size
+        return plan
+
+    def image(self, weights, rows: slice | None = None, cols: slice | None = None,
+              rows_per_chunk: int | None = None) -> torch.Tensor:
+        """Exact compound image (B, nz', nx') on grid rows/cols (default: whole grid).
+
+        In units of :attr:`image_scale`; differentiable with respect to ``weights``.
+        """
+        rows = rows or slice(0, self.setup.n_z)
+        cols = cols or slice(0, self.setup.n_x)
+        w = self._weights(weights)
+        iqs = [self.iq(w, n) for n in range(len(self.transmits))]
+        nz = rows.stop - rows.start
+        nx = cols.stop - cols.start
+        if rows_per_chunk is None:
+            rows_per_chunk = max(1, (2 ** 21) // max(1, nx * self.n_elements))
+        # DAS of a plan chunk in pixel sub-chunks, so that the (B, pixels x Ne) temporaries fit
+        sub = self.exact_chunking(int(w.shape[0]))[1]
+        out = []
+        for r0 in range(rows.start, rows.stop, rows_per_chunk):
+            r = slice(r0, min(rows.stop, r0 + rows_per_chunk))
+            acc = 0
+            for n, iq in enumerate(iqs):
+                p = self._plan(n, r, cols)
+                npix = p.i0.shape[0]
+                if npix <= sub:
+                    acc = acc + das_apply(iq, p.i0, p.w, p.rot)
+                else:
+                    acc = acc + torch.cat([das_apply(iq, p.i0[j:j + sub], p.w[j:j + sub], p.rot[j:j + sub])
+                                           for j in range(0, npix, sub)], dim=-1)
+            out.append(acc.reshape(w.shape[0], r.stop - r.start, nx))
+        return torch.cat(out, dim=1) if len(out) > 1 else out[0].reshape(w.shape[0], nz, nx)
+
+    def kernels_exact(self, weights) -> torch.Tensor:
+        """SPEC kernels (B, window, window) from the exact whole-grid image, in batches of
+        :meth:`exact_chunking`'s size (bounded memory whatever B)."""
+        w = self._weights(weights)
+        step = self.exact_chunking()[0]
+        if w.shape[0] <= step:
+            return window_and_normalise(self.image(w), self.setup.window)
+        return torch.cat([window_and_normalise(self.image(w[i:i + step]), self.setup.window)
+                          for i in range(0, w.shape[0], step)])
+
+    # ------------------------------------------------------------------ fast path
+    def kernels(self, weights, return_info: bool = False):
+        """SPEC kernels (B, window, window) complex; differentiable w.r.t. weights.
+
+        Uses the precomputed pair basis when the peak provably lies in its
+        region, the exact path otherwise.
+        """
+        w = self._weights(weights)
+        if self.basis is None:
+            k = self.kernels_exact(w)
+            return (k, torch.zeros(w.shape[0], dtype=torch.bool)) if return_info else k
+        k, ok = self.basis.kernels(w)
+        bad = torch.nonzero(~ok).flatten()
+        if bad.numel():
+            ke = self.kernels_exact(w[bad])
+            k = k.clone() if not k.requires_grad else k
+            k = k.index_put((bad,), ke.to(k.dtype)) if k.requires_grad else k.index_copy(0, bad, ke.to(k.dtype))
+        return (k, ~ok) if return_info else k
+
+    @property
+    def fast(self) -> PairBasis | None:
+        """The pair basis (:attr:`basis`) under its 0.1 name; new code reads :attr:`basis`."""
+        return self.basis
+
+    def reference_kernel(self) -> torch.Tensor:
+        """The full-array kernel (window, window), cached."""
+        if self._ref is None:
+            with torch.no_grad():
+                self._ref = self.kernels(torch.ones(1, self.n_elements))[0]
+        return self._ref
+
+
+#: resident memory of ``import arraysel`` and one model (measured: 0.28 GiB after the imports)
+_BASELINE_BYTES = 450 * 2 ** 20
+#: target size of one DAS call's temporaries, and how many (B, pixels x Ne) complex arrays they are
+_DAS_BYTES = 128 * 2 ** 20
+_DAS_TEMPS = 6
+#: resident heap per byte of live tensors (measured by benchmarks/exact_memory.py)
+_HEAP_FACTOR = 1.2
+#: largest batch the exact path hands to DAS at once
+_EXACT_MAX_BATCH = 256
+
+

@@ -1,0 +1,305 @@
+"""Settling the selections the certificates alone do not: the certified kernel evaluation of the
+fast path, the peak located among near-ties (settled from the core's exact pair images or by
+delay-and-sum at the tied pixels), and loose blocks cleared by the strips' low-rank factors,
+their exact pair images, or block-wise delay-and-sum.
+
+:class:`Refinement` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from arraysel.physics.beamform import das_apply, das_plan
+from arraysel.physics.psf.window import cut_windows, window_start
+
+
+class Refinement:
+    """Peak location, refinement and the certified kernels of
+    :class:`~arraysel.physics.psf.basis.PairBasis` (see the module)."""
+
+    #: at most this many pixels tied with the peak (within the error bound) are settled exactly
+    max_ties = 256
+
+    #: largest bound of the relative L2 error of a fast-path kernel window (else: exact path);
+    #: a sketched basis (large probes) carries the sketch's term in every bound and uses
+    #: :data:`self.sketch_kernel_tol` instead
+    kernel_tol = 5e-3
+
+    #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
+    refine_max_blocks = 256
+
+    #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of
+    #: index, weight and rotation)
+    plan_cache_bytes = 256 * 2 ** 20
+
+    @property
+    def plan_cache_blocks(self) -> int:
+        """Block DAS plans kept in memory (from :attr:`plan_cache_bytes`)."""
+        model = self.model
+        per = len(model.transmits) * model.block ** 2 * model.n_elements * (8 + 4 + 8)
+        return max(16, self.plan_cache_bytes // per)
+
+    def _plans_for_blocks(self, blocks: list) -> list:
+        """DAS plans (per block: one (i0, w, rot) per transmit) of the pixels of the grid blocks
+        ``blocks`` ((qz, qx) pairs), row-major, clipped to the grid. Cached; the missing blocks are
+        planned together (one :func:`das_plan` call per transmit)."""
+        missing = list(dict.fromkeys(q for q in blocks if q not in self._block_plans))
+        made = {}
+        if missing:
+            model = self.model
+            s = model.setup
+            b = model.block
+            zs, xs, sizes = [], [], []
+            for qz, qx in missing:
+                Z, X = torch.meshgrid(model.z_grid[qz * b:(qz + 1) * b], model.x_grid[qx * b:(qx + 1) * b],
+                                      indexing="ij")
+                zs.append(Z.reshape(-1))
+                xs.append(X.reshape(-1))
+                sizes.append(Z.numel())
+            Z, X = torch.cat(zs), torch.cat(xs)
+            per_tx = []
+            for n, t in enumerate(model.transmits):
+                p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                             fc=s.probe.fc)
+                # sample indices local to the channel windows (see _sample_ranges)
+                i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
+                per_tx.append((i0.to(model.device).split(sizes), p.w.to(model.device, model.dtype).split(sizes),
+                               p.rot.to(model.device, model.cdtype).split(sizes)))
+            for i, q in enumerate(missing):
+                made[q] = [(i0[i], wt[i], rot[i]) for i0, wt, rot in per_tx]
+                if len(self._block_plans) < self.plan_cache_blocks:
+                    self._block_plans[q] = made[q]
+        return [self._block_plans.get(q) or made[q] for q in blocks]
+
+    def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
+        """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
+        ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
+        plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
+        img = 0
+        for n in range(len(self.model.transmits)):
+            parts = [tuple(a[r] for a in pl[n]) if rows is not None else pl[n] for pl, r in
+                     zip(plans, rows if rows is not None else [None] * len(plans))]
+            i0, wt, rot = (torch.cat([pt[j] for pt in parts]) for j in range(3))
+            img = img + das_apply(X[n], i0, wt, rot)
+        return img
+
+    def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
+        """(n, B) float64 upper bounds of ``max |I|`` on the whole strip blocks ``slots`` (their
+        order in ``strip_images``) for pair products ``c`` (B, P), from the rank-r factors
+        (:meth:`_strip_factors`): ``|(c SF) SG| + |c_perp| S_{r+1}`` plus rounding allowances."""
+        if slack is None:
+            slack = self._rounding(c)
+        bb = self.model.block ** 2
+        sl = slots.to(c.device)
+        cf = torch.matmul(c[None], self.strip_left[sl])                                  # (n, B, r)
+        v = torch.matmul(cf, self.strip_right[sl]).view(sl.numel(), c.shape[0], 2, bb)
+        peak = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(-1).sqrt()
+        cw2 = (cf / self.strip_sigma[sl][:, None, :]).square().sum(-1).double()
+        cn2 = (c.double() ** 2).sum(1)[None]
+        # |c_perp|, widened for the rounding of |c W_r|^2 (float32)
+        cperp = ((cn2 - cw2).clamp(min=0) + 1e-6 * cn2).sqrt()
+        # rounding of the two float32 products: 2 sqrt(P) u |c| S_1, on top of strip_images' own
+        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * self.strip_sigma[sl][:, :1].double()
+        return peak.double() * (1 + 1e-4) + cperp * self.strip_sigma_next[sl][:, None] + rnd + 2 * slack.double()
+
+    def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None, tier: int = 2) -> torch.Tensor:
+        """Settle selections whose certificate failed: (B,) True where the exact image on every
+        block (outside E for tier 1, outside the band for tier 2) whose bound reaches
+        ``threshold`` (the peak less its error bound) stays below it.
+
+        Blocks wholly inside the strips (tier 1) take their values from the precomputed strip
+        pair images, one small product per block for all selections at once (block-major
+        columns of ``strip_images``); other blocks are delay-and-summed from the selection's I/Q channels
+        (:meth:`channels`). Either way a selection with a few loose blocks costs far less than
+        a whole-grid exact image.
+        """
+        B = w.shape[0]
+        out = torch.zeros(B, dtype=torch.bool)
+        S = self.block_envelopes_e if tier == 1 else self.block_envelopes_band
+        if S.shape[0] == 0 or B == 0:
+            return out
+        blocks = self.blocks1 if tier == 1 else self.blocks2
+        w = w.detach()
+        clear = self.bound(w, tier, per_block=True, env=env) < threshold[None]  # (nQ, B)
+        strip = torch.zeros(S.shape[0], dtype=torch.bool)
+        if tier == 1 and self.npix2:
+            # blocks wholly inside the strips: their pair images are precomputed (exact to rounding)
+            col0 = self.strip_block_col
+            strip = col0 >= 0
+            todo = torch.nonzero(strip & ~clear.all(1).cpu()).flatten()
+            c = self._pairs(w)
+            slack = self._rounding(c)
+            bb = self.model.block ** 2
+            if todo.numel():
+                # first the rank-r factors: their bound below the threshold clears a block
+                slot = col0[todo] // (2 * bb)
+                for part in torch.split(torch.arange(todo.numel()), 256):
+                    bound = self.strip_bounds(c, slot[part], slack)
+                    clear[todo[part]] |= (bound * (1 + 1e-4) < threshold.double()[None]).to(clear.device)
+                todo = todo[~clear[todo].all(1).cpu()]
+            if todo.numel():
+                limit = (threshold / (1 + 1e-4) - slack).square()
+                # runs of blocks adjacent in strip_images (gaps of up to 2 blocks are computed too)
+                slot = col0[todo] // (2 * bb)
+                cut = torch.nonzero(slot[1:] - slot[:-1] > 3).flatten() + 1
+                for run in torch.tensor_split(todo, cut.tolist()):
+                    first, last = int(col0[run[0]]), int(col0[run[-1]]) + 2 * bb
+                    v = (c @ self.strip_images[:, first:last]).view(B, -1, 2, bb)
+                    peak2 = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(2)  # (B, blocks)
+                    at = (col0[run] - first) // (2 * bb)
+                    clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
+        clear = clear.cpu()
+        X = None
+        for i in range(B):
+            left = torch.nonzero(~clear[:, i]).flatten()
+            if not left.numel():
+                out[i] = True
+                continue
+            if bool(strip[left].any()) or left.numel() > self.refine_max_blocks:
+                continue  # a strip block reaches the peak, or too many blocks to beamform
+            if X is None:
+                X = self.channels(w)
+            img = self._das(X[i], [tuple(int(v) for v in blocks[q]) for q in left.tolist()])
+            out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
+        return out
+
+    def _exact_pixels(self, X: torch.Tensor, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+        """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
+        channels ``X`` (ntx, Ne, T) (delay-and-sum with the cached block plans, as the exact path)."""
+        s = self.model.setup
+        b = self.model.block
+        zi, xi = zi.cpu(), xi.cpu()
+        blocks, rows, order = [], [], []
+        qz, qx = zi // b, xi // b
+        for z_, x_ in torch.unique(torch.stack([qz, qx], 1), dim=0).tolist():
+            sel = torch.nonzero((qz == z_) & (qx == x_)).flatten()
+            bw = min(b, s.n_x - x_ * b)
+            blocks.append((z_, x_))
+            rows.append((zi[sel] - z_ * b) * bw + (xi[sel] - x_ * b))
+            order.append(sel)
+        vals = self._das(X, blocks, rows)
+        out = torch.empty_like(vals)
+        out[torch.cat(order).to(vals.device)] = vals
+        return out
+
+    def _locate(self, img: torch.Tensor, eps: torch.Tensor, w: torch.Tensor, row0: int, col0: int):
+        """Peak pixel of the exact image, from an approximation ``img`` (B, h, wd) at grid offset
+        (row0, col0) whose |.| error is at most ``eps`` (B,).
+
+        Every pixel within 2 eps of the approximate peak may be the exact peak: those are
+        evaluated exactly (:meth:`_exact_pixels`) and the largest wins (the first in row-major
+        order, as ``argmax`` on the exact image). Returns the peak's grid row and column, a lower
+        bound ``thr`` of the exact peak value and a flag (False: more than :attr:`max_ties` ties,
+        or an all-zero image).
+        """
+        B, h, wd = img.shape
+        with torch.no_grad():
+            mag = img.detach().abs().reshape(B, -1)
+            val, arg = mag.max(dim=1)
+            cand = mag >= (val - 2 * eps)[:, None]
+            n = cand.sum(dim=1)
+            ok = (val > 0) & (n <= self.max_ties)
+            amb = torch.nonzero(ok & (n > 1)).flatten()
+            if amb.numel():
+                arg = arg.clone()
+                if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
+                    amb = self._settle_in_core(cand, amb, arg, w)
+            if amb.numel():
+                X = self.channels(w[amb].detach())
+                for i, b in enumerate(amb.tolist()):
+                    idx = torch.nonzero(cand[b]).flatten()
+                    v = self._exact_pixels(X[i], idx // wd + row0, idx % wd + col0).abs()
+                    arg[b] = idx[int(torch.argmax(v))]
+        return arg // wd + row0, arg % wd + col0, val - eps, ok
+
+    def _settle_in_core(self, cand: torch.Tensor, amb: torch.Tensor, arg: torch.Tensor, w: torch.Tensor):
+        """Settle the near-ties ``cand`` (B, npix) on E of the selections ``amb`` whose candidates
+        all lie in the core, from the core's exact pair images (one product for all of them);
+        writes their peak index into ``arg`` and returns the selections left (candidates
+        outside the core)."""
+        pos = getattr(self, "_core_pos", None)
+        if pos is None or pos.device != cand.device:
+            pos = torch.full((self.npix,), -1, dtype=torch.long)
+            pos[self.core_pix] = torch.arange(self.core_pix.numel())
+            pos = self._core_pos = pos.to(cand.device)
+        ca = cand[amb]
+        inside = ~(ca & (pos < 0)[None]).any(1)
+        sel = amb[inside]
+        if sel.numel():
+            union = torch.nonzero(ca[inside].any(0)).flatten()
+            cols = pos[union]
+            nc = self.core_images.shape[1] // 2
+            v = self._pairs(w[sel].detach()) @ self.core_images[:, torch.cat([cols, cols + nc])]
+            nu = union.numel()
+            mag2 = torch.addcmul(v[:, nu:].square(), v[:, :nu], v[:, :nu])
+            mag2 = torch.where(ca[inside][:, union], mag2, torch.full_like(mag2, -1.0))
+            arg[sel] = union[mag2.argmax(dim=1)]
+        return amb[~inside]
+
+    def _windows(self, pz, px, rows, cols):
+        s = self.model.setup
+        z0 = window_start(pz, s.window, s.n_z)
+        x0 = window_start(px, s.window, s.n_x)
+        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
+               (x0 + s.window <= cols.stop)
+        return z0, x0, fits
+
+    def kernels(self, w: torch.Tensor):
+        """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
+
+        Certified: the exact peak is located (pixels tied with the approximate peak within the
+        error bound are evaluated exactly), its window fits in the region, and the lower bound of
+        the peak beats the bound of |I| outside the region (tier 1: E; tier 2: the band, whose
+        loose blocks are then beamformed exactly, :meth:`refine`).
+        """
+        s = self.model.setup
+        with torch.no_grad():
+            wd = w.detach()
+            env = self.envelopes(wd)
+        img, eps, win_err = self.images(w, with_error=True)
+        pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
+        z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
+        with torch.no_grad():
+            ok = ok & fits
+            passed = ok & (self.bound(wd, 1, env=env) < thr)
+            retry = torch.nonzero(ok & ~passed).flatten()
+            if retry.numel():
+                passed[retry] = self.refine(wd[retry], thr[retry], env=env[:, retry], tier=1).to(passed.device)
+            ok = passed
+        z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
+        x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
+        out, norm = cut_windows(img, z0e, x0e, s.window)
+        ok = ok & (win_err <= self.kernel_tol * norm)
+        todo = torch.nonzero(~ok).flatten()
+        if todo.numel() and self.npix2:
+            w2 = w[todo]
+            band = self.band_images(w2, img[todo])
+            pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.rows.start, 0)
+            z02, x02, fits2 = self._windows(pz2, px2, self.rows, slice(0, s.n_x))
+            with torch.no_grad():
+                ok2 = ok2 & fits2
+                env2 = env[:, todo]
+                passed = ok2 & (self.bound(wd[todo], 2, env=env2) < thr2)
+                retry = torch.nonzero(ok2 & ~passed).flatten()
+                if retry.numel():
+                    passed[retry] = self.refine(wd[todo][retry], thr2[retry], env=env2[:, retry]).to(passed.device)
+            z0b = torch.where(passed, z02 - self.rows.start, torch.zeros_like(z02))
+            k2, norm2 = cut_windows(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
+            passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
+            sel = torch.nonzero(passed).flatten()
+            if sel.numel():
+                out = out.index_put((todo[sel],), k2[sel])
+                ok = ok.clone()
+                ok[todo[sel]] = True
+        todo = torch.nonzero(~ok).flatten()
+        if todo.numel() and self.finer is not None:
+            # a tighter error bound (the full stored rank) settles most of the rest
+            k3, ok3 = self.finer.kernels(w[todo])
+            sel = torch.nonzero(ok3.to(todo.device)).flatten()
+            if sel.numel():
+                out = out.index_put((todo[sel],), k3[sel])
+                ok = ok.clone()
+                ok[todo[sel]] = True
+        return out, ok.cpu()
