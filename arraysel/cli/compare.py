@@ -113,7 +113,7 @@ def parse_options(items: list[str], names: list[str], registry) -> dict[str, dic
 
 def _exact_run_notice(objective, budget, runs: int) -> str | None:
     """The whole comparison's estimated time when the scene runs on the exact PSF path."""
-    if not any(p.fast is None for p in getattr(objective, "psfs", ())):
+    if not any(p.basis is None for p in getattr(objective, "psfs", ())):
         return None
     if budget.evaluations is not None:
         return f"{objective.exact_notice(budget.evaluations * runs)} ({runs} run(s) of {budget.evaluations})"

@@ -115,11 +115,11 @@ class Objective:
         self.psf = self.psfs[0]
         if self.n_points > 1:  # the points share the memory cap: each keeps its share of DAS plans
             for p in self.psfs:
-                p.plan_cache_elements = max(1, p._plan_cache_limit() // self.n_points)
+                p.plan_cache_elements = max(1, p.plan_cache_limit() // self.n_points)
             for p in self.psfs:
                 p.other_bytes = sum(q.plan_cache_bytes() + q.model_bytes() for q in self.psfs if q is not p)
         self._announced = False
-        if any(p.fast is None for p in self.psfs):
+        if any(p.basis is None for p in self.psfs):
             _log.warning("%s", self.exact_notice())
         self.metric_kw = dict(pitch=setup.pitch, wavelength=setup.wavelength,
                               r_main=float(self.scene.length("metrics", "r_main")),
@@ -142,7 +142,7 @@ class Objective:
         """
         total = 0.0
         for p in self.psfs:
-            if p.fast is None:
+            if p.basis is None:
                 total += n_masks * p.exact_seconds_per_mask(min(self.chunk, p.masks_per_batch(), max(1, n_masks)))
                 if p._ref is None:  # the full array's reference kernel comes first, once
                     total += p.exact_seconds_per_mask(1)
@@ -150,12 +150,12 @@ class Objective:
 
     def exact_notice(self, n_masks: int | None = None) -> str:
         """One line saying that (and why) the scene runs on the exact path, with time and memory."""
-        slow = [i for i, p in enumerate(self.psfs) if p.fast is None]
+        slow = [i for i, p in enumerate(self.psfs) if p.basis is None]
         if not slow:
             return f"scene {self.scene.name!r}: fast PSF path on every field point"
         why = "disabled (fast=False)" if not self.fast_requested else "unavailable (its precomputation is over its cap)"
         where = "" if self.n_points == 1 else f" for {len(slow)} of {self.n_points} field points"
-        per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.fast is None)
+        per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.basis is None)
         mem = max(p.exact_bytes(p.masks_per_batch()) for p in (self.psfs[i] for i in slow))
         text = (f"scene {self.scene.name!r}: PSF fast path {why}{where}; using the exact path: about "
                 f"{_fmt_seconds(per)} per mask (estimated), memory up to {mem / 2 ** 30:.1f} GiB "
@@ -245,7 +245,7 @@ class Objective:
         """
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            if not self._announced and m.shape[0] > 1 and any(p.fast is None for p in self.psfs):
+            if not self._announced and m.shape[0] > 1 and any(p.basis is None for p in self.psfs):
                 self._announced = True
                 _log.warning("evaluating %d masks on the exact PSF path: about %s", m.shape[0],
                              _fmt_seconds(self.estimate_seconds(int(m.shape[0]))))

@@ -246,9 +246,9 @@ class PSFModel:
     def plan_cache_bytes(self) -> int:
         """Memory (bytes) of the DAS plans the exact path keeps (whole grid, every transmit, capped)."""
         c = 8 if self.dtype == torch.float32 else 16
-        return self._plan_cache_limit() * (8 + c // 2 + c)
+        return self.plan_cache_limit() * (8 + c // 2 + c)
 
-    def _plan_cache_limit(self) -> int:
+    def plan_cache_limit(self) -> int:
         """Plan entries kept: ``plan_cache_elements``, at most a quarter of ``memory_limit``, at most all."""
         s = self.setup
         c = 8 if self.dtype == torch.float32 else 16
@@ -335,7 +335,7 @@ class PSFModel:
         s = self.setup
         pixels = len(self.transmits) * s.n_z * s.n_x
         total = pixels * self.n_elements
-        cached = min(1.0, self._plan_cache_limit() / max(1, total))
+        cached = min(1.0, self.plan_cache_limit() / max(1, total))
         # DAS for every mask; plans that do not fit the cache are rebuilt on every call
         return pixels * (per_px_das + (1 - cached) * per_px_plan / max(1, batch))
 
@@ -441,7 +441,7 @@ class PSFModel:
             plan.rot = plan.rot.to(self.device, self.cdtype)
             plan.i0 = plan.i0.to(self.device)
             size = plan.i0.numel()
-            if self._plan_elements + size <= self._plan_cache_limit():
+            if self._plan_elements + size <= self.plan_cache_limit():
                 self._plans[key] = plan
                 self._plan_elements += size
         return plan
