@@ -12,9 +12,17 @@ Encodings (option ``encoding``), both exactly ``k`` elements for every point:
   continuous or discrete optimizer works on it (NGOpt, CMA, DE,
   DiscreteOnePlusOne, ...);
 * ``binary``: ``Ne`` choices in ``{0, 1}`` (``Choice([0, 1], repetitions=Ne)``),
-  repaired to ``k`` elements: surplus active elements are dropped, missing ones
-  added, at random (from the run's generator, so the run stays reproducible).
-  The optimizer is told the Mean of the repaired selection.
+  repaired to ``k`` elements: surplus active elements are dropped, missing
+  ones added, at random (from the run's generator, so the run stays
+  reproducible). Option ``repair``:
+
+  - ``lamarck`` (default): the optimizer is told the *repaired* point with its
+    Mean (nevergrad's "tell not asked"), so its state holds only exact-k
+    selections and a one-bit mutation of one becomes a random swap; for
+    optimizers that cannot be told points they did not ask, the asked point
+    is told instead;
+  - ``random``: the asked point is told the Mean of its repaired selection
+    (the same point may then score differently on another ask).
 
 The optimizer is ``nevergrad.optimizers.registry[optimizer]`` built with
 ``num_workers = batch`` (1 for optimizers that cannot run in parallel); each
@@ -46,6 +54,18 @@ def _nevergrad():
     return ng
 
 
+def _tell_repaired(ng, opt, asked, mask: np.ndarray, loss: float) -> bool:
+    """Tell ``opt`` the repaired selection ``mask`` (a point it did not ask) with
+    ``loss``; an optimizer that refuses such points is told ``asked`` instead.
+    Returns whether repaired points may be told from now on."""
+    try:
+        opt.tell(opt.parametrization.spawn_child(new_value=tuple(int(b) for b in mask)), loss)
+        return True
+    except ng.errors.TellNotAskedNotSupportedError:
+        opt.tell(asked, loss)
+        return False
+
+
 class NevergradSelector(Selector):
     name = "nevergrad"
     description = "any nevergrad optimizer (NGOpt, DiscreteOnePlusOne, ...) with an exact-k encoding"
@@ -54,6 +74,8 @@ class NevergradSelector(Selector):
                             "DiscreteOnePlusOne, PortfolioDiscreteOnePlusOne, CMA, TwoPointsDE"),
         "encoding": Option(str, "keys", "keys: top-k of Ne random keys; binary: Ne bits repaired to k",
                            choices=("keys", "binary")),
+        "repair": Option(str, "lamarck", "binary encoding: random drops/adds to k, then tell the "
+                         "repaired point (lamarck) or the asked one (random)", choices=("lamarck", "random")),
         "batch": Option(int, 32, "points asked per step (nevergrad num_workers), scored in one call", lo=1),
         "ng_budget": Option(int, None, "budget told to nevergrad (auto: the run's evaluation limit, "
                             f"else {_DEFAULT_NG_BUDGET})", lo=1),
@@ -107,6 +129,7 @@ class NevergradSelector(Selector):
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
         repair = numpy_rng(seed, stream=1)
+        lamarck = self.options["encoding"] == "binary" and self.options["repair"] == "lamarck"
         limit = objective.budget.evaluations
         ng_budget = self.options["ng_budget"] or (int(limit) if limit is not None else _DEFAULT_NG_BUDGET)
         fallback = [(i * n) // k for i in range(k)]
@@ -122,8 +145,12 @@ class NevergradSelector(Selector):
                         masks = np.stack([self._decode(c.value, n, k, repair) for c in cands])
                         values = objective.score(masks)
                         worst = np.max(values[np.isfinite(values)], initial=1.0)
-                        for c, v in zip(cands, values):
-                            opt.tell(c, float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6))
+                        for c, m, v in zip(cands, masks, values):
+                            loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
+                            if lamarck and int(np.sum(np.asarray(c.value) > 0)) != k:
+                                lamarck = _tell_repaired(ng, opt, c, m, loss)
+                            else:
+                                opt.tell(c, loss)
         except BudgetExhausted:
             pass
         best = objective.best

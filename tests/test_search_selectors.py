@@ -135,6 +135,7 @@ def test_legacy_selectors_still_work_with_a_deprecation_warning():
     ("anneal", {}, (0, 1)),
     ("genetic", {}, (0, 1)),
     ("nevergrad", {}, (0,)),
+    ("nevergrad", {"encoding": "binary", "optimizer": "DiscreteOnePlusOne"}, (0, 1, 2)),
     ("uniform", {"polish": 0.9}, (0,)),
 ])
 def test_selector_finds_the_planted_optimum(reg, name, options, seeds):
@@ -146,6 +147,28 @@ def test_selector_finds_the_planted_optimum(reg, name, options, seeds):
                          seed=seed, registry=reg).run()
         assert row["error"] == ""
         assert row["elements"] == " ".join(map(str, best)), (seed, row["Mean"], best_mean)
+
+
+def test_nevergrad_binary_lamarck_repair_tells_exact_k_points(reg, monkeypatch):
+    ng = pytest.importorskip("nevergrad")
+    told = []
+    tell = ng.optimizers.base.Optimizer.tell
+
+    def spy(self, candidate, loss, *args, **kwargs):
+        told.append(int(np.sum(np.asarray(candidate.value) > 0)))
+        return tell(self, candidate, loss, *args, **kwargs)
+
+    monkeypatch.setattr(ng.optimizers.base.Optimizer, "tell", spy)
+    row = Experiment(ToyObjective(14, 7), "nevergrad", options={"encoding": "binary",
+                     "optimizer": "DiscreteOnePlusOne"}, budget=Budget(evaluations=200), seed=0,
+                     registry=reg).run()
+    assert row["error"] == "" and len(told) >= 150
+    assert set(told) == {7}  # every point told holds exactly k elements
+    told.clear()
+    row = Experiment(ToyObjective(14, 7), "nevergrad", options={"encoding": "binary", "repair": "random",
+                     "optimizer": "DiscreteOnePlusOne"}, budget=Budget(evaluations=200), seed=0,
+                     registry=reg).run()
+    assert row["error"] == "" and len(set(told)) > 1  # the asked points, not repaired
 
 
 def test_search_selectors_are_reproducible_per_seed(reg):
