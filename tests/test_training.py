@@ -385,6 +385,29 @@ def test_no_drift_after_psf_warmup_on_the_toy_objective(images):
     assert changed <= 1, (sel_warm, t.learned_indices().tolist())
 
 
+def test_warm_start_from_the_best_psf_only_selection_does_not_drift(images):
+    """warm_start_margin: the joint phase starts from the best selection of the PSF-only warm-up
+    (by the balanced PSF terms) and keeps it through a long joint phase."""
+    kfn = toy_kernel_fn()
+    psf_fn = toy_psf_terms(kfn(torch.ones(NE)))
+    warm = 40
+    sel = HardSTESelection(NE, K, generator=torch.Generator().manual_seed(1), sample=False)
+    t = make_trainer(images, selection=sel, balance="initial", balance_batches=1, psf_warmup=warm,
+                     lr_mask=5e-2, joint_lr_mask=1e-4, tau_steps=warm, warm_start_margin=2.0,
+                     lr_head=1e-3, lr_ista=5e-3, max_steps=warm)
+    start = _psf_of(t, psf_fn)
+    t.train()
+    best_score, best_sel = t.warm_best
+    assert t.learned_indices().tolist() == sorted(best_sel)
+    after_warmup = _psf_of(t, psf_fn)
+    assert after_warmup < 0.8 * start
+    t.train(warm + 150)
+    assert t.learned_indices().tolist() == sorted(best_sel)  # no drift at all
+    assert _psf_of(t, psf_fn) == pytest.approx(after_warmup)
+    with pytest.raises(ParameterError, match="arg-max"):
+        make_trainer(images, psf_warmup=5, warm_start_margin=1.0)
+
+
 def test_decimate_kernel_keeps_centre_and_unit_norm():
     from arraysel.e2e.trainer import decimate_kernel
 

@@ -76,7 +76,7 @@ class E2ESettings:
     defaults to ``finetune_epochs`` epochs, or 100 steps when that is 0.
 
     ``convolution``, ``kernel_stride``, ``target``, ``noise_std``,
-    ``balance``, ``reblur``, ``psf_warmup``, ``joint_lr_mask``: as :class:`arraysel.e2e.trainer.TrainConfig`;
+    ``balance``, ``reblur``, ``psf_warmup``, ``joint_lr_mask``, ``warm_start_margin``: as :class:`arraysel.e2e.trainer.TrainConfig`;
     ``sample_selection``: the HARD-STE columns are sampled from ``p_j`` in
     training (``True``, the documented default) or taken as their arg-max
     (``False``, like the ``ste`` selector's default ``draw='argmax'``: less
@@ -124,6 +124,7 @@ class E2ESettings:
     joint_lr_mask: float | None = None
     recon_steps: int = 0
     sample_selection: bool = True
+    warm_start_margin: float = 0.0
 
     def __post_init__(self) -> None:
         check_choice("profile", self.profile, ("quick", "full"))
@@ -157,6 +158,7 @@ class E2ESettings:
         check_number("noise_std", self.noise_std, lo=0)
         check_choice("balance", self.balance, ("none", "initial"))
         check_number("recon_steps", self.recon_steps, lo=0, integer=True)
+        check_number("warm_start_margin", self.warm_start_margin, lo=0)
         check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
         if self.joint_lr_mask is not None:
             check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
@@ -168,7 +170,7 @@ QUICK_PROFILE = dict(image_size=64, kernel_stride=2, convolution="linear", targe
                      reblur=True, batch_size=8, steps=450, psf_warmup=300, tau_steps=300,
                      base_channels=8, ista_layers=5, source="sample", lr_mask=3e-3,
                      joint_lr_mask=1e-4, lr_ista=5e-3, lr_head=1e-3, finetune_steps=25,
-                     recon_steps=120, sample_selection=False)
+                     recon_steps=120, sample_selection=False, warm_start_margin=2.0)
 
 
 def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E2ESettings:
@@ -342,7 +344,8 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
                          tau_steps=tau_steps, seed=s.seed, checkpoint_every=0, progress=False,
                          convolution=s.convolution, kernel_stride=s.kernel_stride, target=s.target,
                          noise_std=s.noise_std, balance=s.balance, reblur=s.reblur,
-                         psf_warmup=psf_warmup, joint_lr_mask=s.joint_lr_mask)
+                         psf_warmup=psf_warmup, joint_lr_mask=s.joint_lr_mask,
+                         warm_start_margin=s.warm_start_margin if psf_warmup else 0.0)
     selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed),
                                  sample=s.sample_selection)
     trainer = E2ETrainer(selection, kernel_fn, kappa_ref, x_train, psf_terms_fn=psf_terms,

@@ -299,6 +299,14 @@ class TrainConfig:
       instead of a random draw. ``joint_lr_mask`` (default ``lr_mask``) is
       the mask's learning rate after it: a lower one keeps the data terms'
       noisy gradient from pulling the selection away from it (drift).
+      ``warm_start_margin > 0`` (needs a selection module with ``logits``
+      drawn by arg-max, ``sample=False``): during the warm-up the trainer
+      keeps the selection with the lowest weighted (balanced) PSF terms seen
+      so far (the arg-max draw of a step is the deterministic selection, so
+      this costs nothing), and at the end of the warm-up sets the logits to
+      that selection, ``margin`` on its element in each column and 0
+      elsewhere: the joint phase starts from the PSF-only optimum, and a
+      selection change then needs a logit change of about ``margin``.
     """
 
     batch_size: int = 64
@@ -324,6 +332,7 @@ class TrainConfig:
     reblur: bool = False
     psf_warmup: int = 0
     joint_lr_mask: float | None = None
+    warm_start_margin: float = 0.0
 
     def __post_init__(self) -> None:
         check_number("batch_size", self.batch_size, lo=1, integer=True)
@@ -344,6 +353,7 @@ class TrainConfig:
         check_choice("balance", self.balance, ("none", "initial"))
         check_number("balance_batches", self.balance_batches, lo=1, integer=True)
         check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
+        check_number("warm_start_margin", self.warm_start_margin, lo=0)
         if self.joint_lr_mask is not None:
             check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
         if self.grad_clip is not None:
@@ -434,6 +444,11 @@ class E2ETrainer:
         self._pos = 0
         self.term_scales: dict[str, float] = {}
         self._ref_op: ConvolutionOperator | None = None
+        self.warm_best: tuple[float, list[int]] | None = None
+        if self.config.warm_start_margin > 0 and self.config.psf_warmup > 0 and (
+                not hasattr(self.selection, "logits") or getattr(self.selection, "sample", True)):
+            raise ParameterError("warm_start_margin > 0 needs a selection module with logits drawn "
+                                 "by arg-max (HardSTESelection(..., sample=False))")
 
     # -- set-up helpers -----------------------------------------------------
     def _param_groups(self) -> list[dict]:
@@ -591,6 +606,18 @@ class E2ETrainer:
         return terms
 
     # -- training -----------------------------------------------------------
+    @torch.no_grad()
+    def _warm_start(self, indices: list[int]) -> None:
+        """Logits = ``warm_start_margin`` on ``indices[j]`` in column ``j``, 0 elsewhere; the
+        mask's Adam state is reset (its moments belong to the old logits)."""
+        logits = self.selection.logits
+        logits.zero_()
+        for j, e in enumerate(sorted(indices)):
+            logits[e, j] = self.config.warm_start_margin
+        self.optimizer.state.pop(logits, None)
+        log.info("step %d: warm start from the best PSF-only selection (score %.4g): %s",
+                 self.step, self.warm_best[0], sorted(indices))
+
     def _set_mask_lr(self, lr: float) -> None:
         for g in self.optimizer.param_groups:
             if g.get("name") == "mask":
@@ -615,6 +642,11 @@ class E2ETrainer:
         if not torch.isfinite(total):
             raise NumericalError(f"step {self.step}: loss is {float(total)} "
                                  f"({ {k: float(v) for k, v in terms.items()} })")
+        if warm and self.config.warm_start_margin > 0:
+            score = float(sum(getattr(self.weights, t) * terms[t].detach() / self.term_scales.get(t, 1.0)
+                              for t in PSF_TERMS if t in terms))
+            if self.warm_best is None or score < self.warm_best[0]:
+                self.warm_best = (score, self.selection.indices(tau).tolist())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         if self.config.grad_clip is not None:
@@ -622,6 +654,8 @@ class E2ETrainer:
             torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
         self.optimizer.step()
         self.step += 1
+        if warm and self.step == self.config.psf_warmup and self.warm_best is not None:
+            self._warm_start(self.warm_best[1])
         rec = {k: float(v.detach()) for k, v in terms.items()}
         rec["tau"] = tau
         self.history.append(rec)
@@ -678,6 +712,7 @@ class E2ETrainer:
             "config": dataclasses.asdict(self.config),
             "weights": dataclasses.asdict(self.weights),
             "term_scales": dict(self.term_scales),
+            "warm_best": None if self.warm_best is None else [self.warm_best[0], list(self.warm_best[1])],
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -715,6 +750,8 @@ class E2ETrainer:
         self.step = int(state["step"])
         self.history = list(state["history"])
         self.term_scales = {str(k): float(v) for k, v in state.get("term_scales", {}).items()}
+        wb = state.get("warm_best")
+        self.warm_best = None if wb is None else (float(wb[0]), [int(i) for i in wb[1]])
 
     # -- after training -----------------------------------------------------
     @torch.no_grad()
