@@ -13,6 +13,9 @@ and writes to ``out_dir``:
   selections, each with a copy of the trained reconstructor whose head is
   fine-tuned for ``finetune_steps`` steps on that selection, and the same
   metrics of the blurred measurement ``|Y|`` (``*_blurred`` columns);
+* ``comparison.csv`` (also printed): per selection Table-1 ``Mean``,
+  ``L_PSF``, PSNR / SSIM of the reconstruction and of ``|Y|``, and whether
+  the learned selection beats it on Mean, PSNR and SSIM;
 * ``history.csv`` (loss terms per step), ``settings.json`` (everything the
   run depends on), ``checkpoint.pt`` (resumable);
 * figures (PNG): ``fig_mask.png``, ``fig_psf.png`` (learned and reference PSF
@@ -51,10 +54,12 @@ from arraysel.io.masks import atomic_write_bytes
 from arraysel.objective.psf_objective import METRIC_NAMES, build_objective, masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
 
-__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "OUTPUT_FILES"]
+__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
+           "format_comparison", "OUTPUT_FILES"]
 
 #: the files a finished run leaves in its output folder
-OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "history.csv",
+OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "comparison.csv",
+                "history.csv",
                 "settings.json", "checkpoint.pt", "fig_mask.png", "fig_psf.png", "fig_images.png",
                 "fig_loss.png")
 
@@ -232,6 +237,33 @@ def _write_csv(path: str, rows: list[dict[str, Any]]) -> None:
 
 def _jsonable(settings: E2ESettings) -> dict[str, Any]:
     return dataclasses.asdict(settings)
+
+
+def comparison_rows(table: list[dict[str, Any]], rec_rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per selection: Table-1 ``Mean`` and ``L_PSF``, held-out PSNR / SSIM of the
+    reconstruction and of the blurred measurement, and whether the learned selection beats
+    it on all three of Mean, PSNR and SSIM (``learned_wins``; empty on the learned row)."""
+    t1 = {r["config"]: r for r in table}
+    rec = {r["config"]: r for r in rec_rows}
+    le = (t1["learned"]["Mean"], rec["learned"]["psnr"], rec["learned"]["ssim"])
+    rows = []
+    for name in rec:
+        mean, ps, ss = t1[name]["Mean"], rec[name]["psnr"], rec[name]["ssim"]
+        wins = "" if name == "learned" else ("yes" if le[0] < mean and le[1] > ps and le[2] > ss else "no")
+        rows.append({"config": name, "Mean": float(mean), "L_PSF": float(t1[name]["L_PSF"]),
+                     "psnr": float(ps), "ssim": float(ss), "psnr_blurred": float(rec[name]["psnr_blurred"]),
+                     "ssim_blurred": float(rec[name]["ssim_blurred"]), "learned_wins": wins})
+    return rows
+
+
+def format_comparison(rows: list[dict[str, Any]]) -> list[str]:
+    """The comparison as printed lines (a fixed-width table)."""
+    out = [f"{'selection':>12s} {'Mean':>8s} {'L_PSF':>8s} {'PSNR dB':>8s} {'SSIM':>6s} "
+           f"{'|Y| PSNR':>9s} {'|Y| SSIM':>9s}  learned better on all three"]
+    for r in rows:
+        out.append(f"{r['config']:>12s} {r['Mean']:8.4f} {r['L_PSF']:8.4f} {r['psnr']:8.2f} "
+                   f"{r['ssim']:6.3f} {r['psnr_blurred']:9.2f} {r['ssim_blurred']:9.3f}  {r['learned_wins']}")
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -450,15 +482,15 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
                                kernels=res["kernels"], kernel_ref=kappa_ref.detach().cpu().numpy(),
                                pitch=objective.setup.pitch, n_elements=ne, images=x_test,
                                table=table, reconstruction=rec_rows)
+    comparison = comparison_rows(table, rec_rows)
+    _write_csv(os.path.join(out_dir, "comparison.csv"), comparison)
+    files.insert(4, "comparison.csv")
     seconds = time.perf_counter() - t_start
-    for r in table:
-        say(f"{r['config']:>8s}  Mean={r['Mean']:.4g}  L_PSF={r['L_PSF']:.4g}  "
-            f"L_contrast={r['L_contrast']:.4g}  L_SLR={r['L_SLR']:.4g}")
-    for r in rec_rows:
-        say(f"{r['config']:>8s}  PSNR={r['psnr']:.2f} dB  SSIM={r['ssim']:.3f}   "
-            f"blurred |Y|: PSNR={r['psnr_blurred']:.2f} dB  SSIM={r['ssim_blurred']:.3f}")
+    for line in format_comparison(comparison):
+        say(line)
     say(f"learned elements: {','.join(map(str, learned))}")
-    say(f"done in {seconds:.0f} s (training {train_seconds:.0f} s); wrote {out_dir}/: {', '.join(files)}")
+    say(f"done in {seconds:.0f} s (training {train_seconds:.0f} s, reconstructors "
+        f"{recon_seconds:.0f} s); wrote {out_dir}/: {', '.join(files)}")
     return {"learned": learned, "table1": table, "reconstruction": rec_rows, "steps": trainer.step,
             "seconds": seconds, "train_seconds": train_seconds, "recon_seconds": recon_seconds,
             "files": files,
