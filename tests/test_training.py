@@ -441,3 +441,28 @@ def test_linear_envelope_target_and_stride_in_training(images):
     torch.testing.assert_close(t.reference_operator().A(i_s).abs(), i_ref, atol=1e-5, rtol=1e-5)
     terms = t.loss_terms(images[:4], 1.0)
     assert all(torch.isfinite(v) for v in terms.values())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_quick_profile_data_model_trains_on_cuda(images):
+    """The quick profile's path (linear convolution, stride, envelope target, reblur, balance,
+    warm-up with warm start, fresh reconstructor) runs on CUDA."""
+    from arraysel.e2e.data import SceneMaker
+    from arraysel.e2e.recon import Reconstructor
+
+    kfn = toy_kernel_fn()
+    kref = kfn(torch.ones(NE)).cuda()
+    t = E2ETrainer(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0), sample=False),
+                   kfn, kref, images,
+                   psf_terms_fn=lambda k: toy_psf_terms(kref.cpu())(k.cpu()),
+                   base_channels=4, n_layers=2, image_size=16, device="cuda",
+                   scene_fn=SceneMaker(n=16, mode="points", n_scatterers=300, random_phase=True),
+                   config=dict(batch_size=4, progress=False, convolution="linear", kernel_stride=2,
+                               target="envelope", reblur=True, noise_std=0.01, balance="initial",
+                               psf_warmup=2, warm_start_margin=2.0, max_steps=3))
+    t.train()
+    assert all(math.isfinite(h["total"]) for h in t.history) and t.warm_best is not None
+    model = Reconstructor(2, base_channels=4).init_magnitude_base()
+    t.finetune_head(2, mask=t.learned_indices().tolist(), reconstructor=model, include_ista=True)
+    ev = t.evaluate(images[:4], {"uniform": list(range(0, NE, NE // K))[:K]}, blurred=True)
+    assert all(math.isfinite(v) for row in ev.values() for k, v in row.items() if k != "indices")
