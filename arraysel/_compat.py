@@ -19,11 +19,19 @@ MOVED = {
     "metrics": "objective.metrics",
     "selector": "selectors.contract", "hookspecs": "selectors.hookspecs", "registry": "selectors.registry",
     "relax": "selectors.relax", "localsearch": "selectors.localsearch",
-    "runner": "run.experiment", "executors": "run.executors", "allocator": "run.allocator",
+    "runner": "run._legacy_runner", "executors": "run._legacy_executors", "allocator": "run.allocator",
     "reporting": "report.tables",
     "data": "e2e.data", "recon": "e2e.recon", "training": "e2e.trainer", "e2e_figures": "e2e.figures",
     "commands": "cli",
     **{f"commands.{c}": f"cli.{c}" for c in ("compare", "evaluate", "list", "psf", "scenes", "cache", "train")},
+}
+#: old modules whose names now live in several modules: where each went (said in the warning)
+SPLIT = {
+    "runner": "Experiment in arraysel.run.experiment, compare in arraysel.run.compare, the output-folder "
+              "checks in arraysel.run.outdir, ROW_COLUMNS in arraysel.report.columns",
+    "executors": "the executors in arraysel.run.executors, the random search in arraysel.run.random_search, "
+                 "the objective factories next to their objectives (arraysel.objective.psf_objective, "
+                 "arraysel.objective.toy), IsolatedWorker in arraysel.run.isolation",
 }
 
 
@@ -37,8 +45,10 @@ class _Alias:
 
     def create_module(self, spec):
         new = "arraysel." + MOVED[spec.name[len("arraysel."):]]
-        warnings.warn(f"{spec.name} has moved to {new}; import from there (the old path will be removed in 0.3)",
-                      DeprecationWarning, stacklevel=3)
+        old = spec.name[len("arraysel."):]
+        where = f" ({SPLIT[old]})" if old in SPLIT else ""
+        warnings.warn(f"{spec.name} has moved to {new}{where}; import from there (the old path will be removed "
+                      f"in 0.3)", DeprecationWarning, stacklevel=3)
         return importlib.import_module(new)
 
     def exec_module(self, module):  # the target module is already executed

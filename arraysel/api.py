@@ -9,7 +9,7 @@
 >>> res.figures["psfs"]  # matplotlib Figure
 
 Everything here is a thin layer over the modules that do the work
-(:mod:`arraysel.scenes.schema`, :mod:`arraysel.objective.psf_objective`, :mod:`arraysel.run.experiment`).
+(:mod:`arraysel.scenes.schema`, :mod:`arraysel.objective.psf_objective`, :mod:`arraysel.run.compare`).
 """
 from __future__ import annotations
 
@@ -69,13 +69,13 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
 
     import pandas as pd
 
-    from arraysel.report import tables as reporting
-    from arraysel.run.experiment import compare as _compare
+    from arraysel.report import plots
+    from arraysel.run.compare import compare as _compare
     from arraysel.selectors.contract import Budget
 
     budget = Budget(seconds=budget_s, evaluations=budget_evals)
     if objective is None:
-        from arraysel.cli.compare import build_objective as _build
+        from arraysel.objective.build import objective_for as _build
         from arraysel.scenes.schema import Scene, load_scene
 
         if isinstance(scene, str) and scene == "toy":
@@ -90,7 +90,7 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
         out_dir = tempfile.mkdtemp(prefix="arraysel-compare-")
     opts = options or {}
     sels = [(name, opts.get(name, {})) for name in selectors]
-    with reporting.collect_figures() as figs:
+    with plots.collect_figures() as figs:
         table = _compare(objective, sels, out_dir=out_dir, seeds=list(seeds), budget=budget, resume=resume,
                          force=force, progress=progress, figures=figures, isolate=isolate, grace_s=grace_s,
                          command_line=["arraysel.compare(...)"])

@@ -56,3 +56,10 @@ def check_choice(name: str, value: Any, choices: Iterable[Any]) -> Any:
     if value not in choices:
         raise ParameterError(f"{name} = {value!r} is not allowed; choose one of {choices}")
     return value
+
+
+def error_text(exc: BaseException) -> str:
+    """``"TypeName: message"`` on one line (``"TypeName"`` when the message is empty): how a run's
+    failure is written into a row, a log line or a :class:`~arraysel.run.workers.TaskFailed`."""
+    text = str(exc).strip().replace("\n", " ")
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -18,15 +18,7 @@ and pytest runs every check on ``MySelector``.
 """
 from __future__ import annotations
 
-import math
-import time
 from typing import Any
-
-import numpy as np
-import torch
-
-from arraysel.errors import ParameterError, check_number
-from arraysel.selectors.relax import column_entropy, row_penalty
 
 from arraysel.objective.toy import ToyFailure, ToyObjective, ToyScene  # noqa: F401  (re-exported for test authors)
 

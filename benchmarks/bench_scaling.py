@@ -36,8 +36,10 @@ def main(argv=None) -> int:
     p.add_argument("--dtype", default="float32")
     args = p.parse_args(argv)
 
-    from arraysel.run.executors import (DaskExecutor, ProcessExecutor, SceneObjectiveFactory,
-                                    ToyObjectiveFactory, distributed_random_search)
+    from arraysel.objective.psf_objective import SceneObjectiveFactory
+    from arraysel.objective.toy import ToyObjectiveFactory
+    from arraysel.run.executors import DaskExecutor, ProcessExecutor
+    from arraysel.run.random_search import distributed_random_search
 
     toy = args.scene == "toy"
     masks = args.masks or (200_000 if toy else 1024)

@@ -16,12 +16,13 @@ import pandas as pd
 import pytest
 
 from arraysel.errors import ArrayselError, ParameterError
-from arraysel.run.executors import (
-    LocalExecutor, ProcessExecutor, TaskFailed, ToyObjectiveFactory, distributed_evaluate,
-    distributed_random_search, make_executor, objective_factory_for, random_subsets,
-)
+from arraysel.objective.toy import ToyObjectiveFactory
+from arraysel.run.executors import LocalExecutor, ProcessExecutor, TaskFailed, make_executor
+from arraysel.run.random_search import distributed_evaluate, distributed_random_search, random_subsets
+from arraysel.run.workers import objective_factory_for
 from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.run.experiment import ROW_COLUMNS, compare
+from arraysel.report.columns import ROW_COLUMNS
+from arraysel.run.compare import compare
 from arraysel.selectors.contract import Budget, Option, Selector, numpy_rng
 from arraysel.testing import ToyObjective
 

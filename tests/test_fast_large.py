@@ -75,7 +75,7 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.fast
     s = model.setup
-    from arraysel.physics.beamform import das_plan
+    from arraysel.physics.beamform import das_plan, iq_matrix
     from arraysel.physics.simus import spectra_to_rf
 
     Z, X = torch.meshgrid(model._zg, model._xg, indexing="ij")
@@ -85,7 +85,9 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
         local = p.i0 - fast.off[n][None, :]
         assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.T - 1).all())
         spec = t.RC[:, None, :] * t.G[None, :, :]
-        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ t.Q.T  # (e, j, T)
+        Q = iq_matrix(t.grid.n_time, s.acq.fs, s.probe.fc,
+                      s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
+        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ Q.T  # (e, j, T)
         ne = model.n_elements
         Ac = fast.pair_iq()
         for e in range(ne):

@@ -467,7 +467,7 @@ def test_compare_resume_refuses_a_different_setup(tmp_path, bad_plugins, capsys,
 
 
 def test_compare_resume_refuses_another_scene_and_damaged_files(tmp_path, capsys):
-    from arraysel.run.experiment import compare
+    from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
     from arraysel.errors import ParameterError
@@ -494,7 +494,7 @@ def test_compare_resume_refuses_another_scene_and_damaged_files(tmp_path, capsys
 def test_compare_resume_records_every_selector_and_seed(tmp_path):
     import json
 
-    from arraysel.run.experiment import compare
+    from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
 
@@ -517,7 +517,7 @@ def test_compare_refuses_non_finite_budgets(tmp_path, capsys, value):
 
 def test_compare_api_refuses_infinite_budget(tmp_path):
     from arraysel.errors import ParameterError
-    from arraysel.run.experiment import compare
+    from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
     from arraysel.testing import ToyObjective
 

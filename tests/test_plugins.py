@@ -230,7 +230,8 @@ def test_installed_command_lists_builtins():
                                       ("arraysel.registry", "arraysel.selectors.registry"),
                                       ("arraysel.relax", "arraysel.selectors.relax"),
                                       ("arraysel.psf", "arraysel.physics.psf"),
-                                      ("arraysel.runner", "arraysel.run.experiment"),
+                                      ("arraysel.runner", "arraysel.run._legacy_runner"),
+                                      ("arraysel.executors", "arraysel.run._legacy_executors"),
                                       ("arraysel.commands.compare", "arraysel.cli.compare")])
 def test_old_module_paths_still_import_with_a_deprecation_naming_the_new_one(old, new):
     """Plugins written against the flat 0.1 layout keep working; the warning says where to import from."""

@@ -128,3 +128,13 @@ def test_project_capped_simplex(k):
     torch.testing.assert_close(x.sum(dim=-1), torch.full((3,), k, dtype=torch.float64), atol=1e-9, rtol=0)
     feasible = torch.full((10,), k / 10, dtype=torch.float64)
     torch.testing.assert_close(project_capped_simplex(feasible, k), feasible, atol=1e-9, rtol=0)
+
+
+def test_decay_length_is_named_tau_steps_like_the_scene_key():
+    import warnings
+
+    assert cosine_temperature(750, 6.0, 1.2, tau_steps=1500) == pytest.approx(3.6)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cosine_temperature(750, 6.0, 1.2, steps=1500) == pytest.approx(3.6)
+    assert any(issubclass(w.category, DeprecationWarning) and "tau_steps" in str(w.message) for w in caught)

@@ -11,7 +11,9 @@ import pytest
 from arraysel.cli.compare import build_objective
 from arraysel.errors import ArrayselError, ParameterError
 from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.run.experiment import ROW_COLUMNS, TRACE_COLUMNS, Experiment, compare
+from arraysel.report.columns import ROW_COLUMNS, TRACE_COLUMNS
+from arraysel.run.compare import compare
+from arraysel.run.experiment import Experiment
 from arraysel.selectors.contract import Budget, BudgetExceededError, Option, Selector, check_selection
 from arraysel.testing import ToyObjective
 

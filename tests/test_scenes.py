@@ -248,7 +248,8 @@ def test_worst_aggregate_and_gradients():
 
 def test_runs_csv_keeps_the_per_point_breakdown(two_points, tmp_path):
     from arraysel.selectors.registry import build_plugin_manager, get_registry
-    from arraysel.run.experiment import ROW_COLUMNS, compare
+    from arraysel.report.columns import ROW_COLUMNS
+    from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
 
     reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))

@@ -13,8 +13,9 @@ import pytest
 
 from arraysel.errors import ParameterError
 from arraysel.selectors.registry import build_plugin_manager, get_registry
-from arraysel.report.tables import plot_anytime
-from arraysel.run.experiment import DEFAULT_SEEDS, Experiment, compare
+from arraysel.report.plots import plot_anytime
+from arraysel.run.compare import DEFAULT_SEEDS, compare
+from arraysel.run.experiment import Experiment
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector
 from arraysel.testing import ToyObjective
 

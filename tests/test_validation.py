@@ -376,6 +376,7 @@ def test_checkpoint_with_pickled_code_is_refused(tmp_path):
 # ---------------------------------------------------------------------------
 
 def test_atomic_write_text_leaves_no_partial_file(tmp_path, monkeypatch):
+    from arraysel.io import atomic
     from arraysel.report import tables as reporting
 
     target = tmp_path / "table1.csv"
@@ -399,14 +400,14 @@ def test_atomic_write_text_leaves_no_partial_file(tmp_path, monkeypatch):
             self.fh.flush()
             raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(reporting.os, "fdopen", lambda fd, *a, **k: Half(real_fdopen(fd, *a, **k)))
+    monkeypatch.setattr(atomic.os, "fdopen", lambda fd, *a, **k: Half(real_fdopen(fd, *a, **k)))
     with pytest.raises(OSError, match="No space left"):
         reporting.atomic_write_text(target, "new content " * 1000)
     monkeypatch.undo()
     assert target.read_text() == "old complete content\n"  # the old file is untouched
     assert sorted(p.name for p in tmp_path.iterdir()) == ["table1.csv"]  # no temporary left behind
     # a new file that fails is not created at all
-    monkeypatch.setattr(reporting.os, "fdopen", lambda fd, *a, **k: Half(real_fdopen(fd, *a, **k)))
+    monkeypatch.setattr(atomic.os, "fdopen", lambda fd, *a, **k: Half(real_fdopen(fd, *a, **k)))
     with pytest.raises(OSError):
         reporting.atomic_write_text(tmp_path / "runs.csv", "x" * 100)
     monkeypatch.undo()
@@ -418,6 +419,7 @@ def test_atomic_write_text_leaves_no_partial_file(tmp_path, monkeypatch):
 
 
 def test_atomic_write_survives_interrupt_during_replace(tmp_path, monkeypatch):
+    from arraysel.io import atomic
     from arraysel.report import tables as reporting
 
     target = tmp_path / "run.json"
@@ -426,7 +428,7 @@ def test_atomic_write_survives_interrupt_during_replace(tmp_path, monkeypatch):
     def boom(src, dst):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(reporting.os, "replace", boom)
+    monkeypatch.setattr(atomic.os, "replace", boom)
     with pytest.raises(KeyboardInterrupt):
         reporting.write_json(target, {"a": 1})
     monkeypatch.undo()

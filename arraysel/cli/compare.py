@@ -6,6 +6,7 @@ import sys
 
 from arraysel.errors import ParameterError, check_number
 from arraysel.selectors.registry import get_registry, load_plugin
+from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it
 from arraysel.selectors.contract import Budget
 
 DEFAULT_BUDGET_S = 120.0
@@ -22,7 +23,7 @@ def add_parser(subparsers) -> None:
                    help="comma-separated selector names (see `arraysel list`)")
     p.add_argument("--scene", default="paper",
                    help="scene name or file (default: paper); 'toy' is the cheap synthetic objective "
-                        "of arraysel.testing (Ne=64, k=32), for trying selectors out")
+                        "arraysel.objective.toy (Ne=64, k=32), for trying selectors out")
     p.add_argument("--budget-s", type=float, default=DEFAULT_BUDGET_S, metavar="S",
                    help=f"wall-clock seconds per selector run (default {DEFAULT_BUDGET_S:g}; 0: no limit)")
     p.add_argument("--budget-evals", type=int, default=None, metavar="N",
@@ -110,24 +111,6 @@ def parse_options(items: list[str], names: list[str], registry) -> dict[str, dic
     return {n: registry[n].parse_options(raw[n]) for n in names}
 
 
-def build_objective(scene: str, device: str, dtype_name: str, aggregate: str | None = None):
-    """The objective of ``scene`` (``toy``: :class:`arraysel.objective.toy.ToyObjective`); ``aggregate``
-    overrides the scene's ``metrics.aggregate``."""
-    import torch
-
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ParameterError("--device cuda was given but torch sees no CUDA device")
-    dtype = getattr(torch, dtype_name)
-    if scene == "toy":
-        from arraysel.objective.toy import ToyObjective
-        return ToyObjective(64, 32, device=device, dtype=dtype)
-    from arraysel.objective.psf_objective import build_objective as _build
-    from arraysel.scenes.schema import load_scene
-
-    over = {"metrics": {"aggregate": aggregate}} if aggregate else None
-    return _build(load_scene(scene, overrides=over), device=device, dtype=dtype)
-
-
 def _exact_run_notice(objective, budget, runs: int) -> str | None:
     """The whole comparison's estimated time when the scene runs on the exact PSF path."""
     if not any(p.fast is None for p in getattr(objective, "psfs", ())):
@@ -140,7 +123,7 @@ def _exact_run_notice(objective, budget, runs: int) -> str | None:
 
 
 def run(args) -> int:
-    from arraysel.run.experiment import compare
+    from arraysel.run.compare import compare
 
     for spec in args.plugin:
         load_plugin(spec)
@@ -153,7 +136,7 @@ def run(args) -> int:
                              f"got {args.budget_s}")
     budget_s = check_number("--budget-s", args.budget_s, lo=0)
     grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
-    from arraysel.run.experiment import check_out_dir
+    from arraysel.run.outdir import check_out_dir
     check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
     evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
                                                                 lo=1, integer=True)
@@ -168,7 +151,7 @@ def run(args) -> int:
                                  retries=retries)
     try:
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
-        from arraysel.run.experiment import DEFAULT_SEEDS
+        from arraysel.run.compare import DEFAULT_SEEDS
         n_runs = sum(len(seeds) if seeds is not None else 1 if registry[n].deterministic else len(DEFAULT_SEEDS)
                      for n in names)
         notice = _exact_run_notice(objective, budget, n_runs)

@@ -29,6 +29,7 @@ def run(args) -> int:
     from arraysel.scenes.schema import load_scene
 
     from arraysel.io.atomic import check_writable
+    from arraysel.report.plots import psf_figure, save_figure
 
     if not args.out.endswith(".npz"):
         raise ParameterError(f"--out must end with .npz, got {args.out!r}")
@@ -54,39 +55,6 @@ def run(args) -> int:
     print(f"wrote {args.out}")
     if args.plot:
         png = args.out[:-4] + ".png"
-        plot_psf(kernel, ref, obj.setup.pitch, elements, ne, png)
+        save_figure(psf_figure(kernel, ref, obj.setup.pitch, elements, ne), png)
         print(f"wrote {png}")
     return 0
-
-
-def plot_psf(kernel, ref, pitch, elements, n_elements, path, dyn_range_db: float = 40.0) -> None:
-    """PSF and reference in dB (``dyn_range_db`` range) with the mask, to ``path`` (PNG, atomic)."""
-    import io
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from arraysel.io.masks import atomic_write_bytes
-
-    n = kernel.shape[0]
-    ext = np.array([-n / 2, n / 2, n / 2, -n / 2]) * pitch * 1e3
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4), gridspec_kw={"width_ratios": [1, 1, 1.2]})
-    for ax, k, title in ((axes[0], kernel, "selection"), (axes[1], ref, "full array")):
-        db = 20 * np.log10(np.abs(k) / np.abs(k).max() + 1e-12)
-        im = ax.imshow(db, vmin=-dyn_range_db, vmax=0, cmap="gray", extent=ext)
-        ax.set_title(f"PSF, {title}")
-        ax.set_xlabel("x (mm)")
-    axes[0].set_ylabel("z - z_peak (mm)")
-    fig.colorbar(im, ax=axes[:2], label="dB")
-    mask = np.zeros(n_elements)
-    mask[list(elements)] = 1
-    axes[2].bar(np.arange(n_elements), mask, width=0.8)
-    axes[2].set_title(f"active elements ({len(elements)} of {n_elements})")
-    axes[2].set_xlabel("element")
-    axes[2].set_yticks([])
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())

@@ -62,7 +62,7 @@ from tqdm import tqdm
 from arraysel.e2e.data import SceneMaker
 from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
                              check_number)
-from arraysel.objective.metrics import l_ent, l_row
+from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
@@ -214,7 +214,8 @@ def balanced_total(terms: Mapping[str, torch.Tensor], weights: "LossWeights",
     this the larger one decides the selection alone.
     """
     scales = scales or {}
-    return sum(getattr(weights, t) * v / scales.get(t, 1.0) for t, v in terms.items() if t != "total")
+    scaled = {t: v / scales.get(t, 1.0) for t, v in terms.items() if t != "total"}
+    return weighted_sum(scaled, {t: getattr(weights, t) for t in scaled})
 
 
 def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None

@@ -121,11 +121,3 @@ def _masks(sels: list[list[int]], n_elements: int) -> np.ndarray:
     rows = np.repeat(np.arange(len(sels)), [len(s) for s in sels])
     m[rows, np.fromiter((i for s in sels for i in s), dtype=np.int64, count=len(rows))] = 1.0
     return m
-
-
-def read_mask_file(path: str, n_elements: int, k: int | None) -> list[list[int]]:
-    """Every selection of a mask file as a list (see :func:`iter_mask_lines`)."""
-    out = list(iter_mask_lines(path, n_elements, k))
-    if not out:
-        raise SelectionError(f"--masks: file {path!r} holds no selection")
-    return out

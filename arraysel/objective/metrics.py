@@ -25,13 +25,17 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from types import MappingProxyType
-from typing import Iterable, Mapping, Sequence
+from typing import Iterable, Sequence
 
 import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
+from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
+# the training loss terms and their weights have one home, arraysel.objective.losses; these names stay
+# importable from here (tests, plugins and notebooks use them)
+from arraysel.objective.losses import (DEFAULT_WEIGHTS, composite_loss, l_conv, l_ent,  # noqa: F401
+                                       l_rec, l_row)
 
 __all__ = [
     "METRIC_NAMES",
@@ -58,16 +62,6 @@ __all__ = [
 METRIC_NAMES: tuple[str, ...] = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
 PSF_TERMS = METRIC_NAMES
 
-#: weights of the total training loss, SPEC section 3 (read-only; copy with ``dict(...)``)
-DEFAULT_WEIGHTS: Mapping[str, float] = MappingProxyType({
-    "L_PSF": 10.0,
-    "L_conv": 1.0,
-    "L_rec": 10.0,
-    "L_contrast": 10.0,
-    "L_SLR": 10.0,
-    "L_ent": 1.0,
-    "L_row": 10.0,
-})
 
 # relative tolerance on r**2 for the inclusive region boundaries
 _BOUNDARY_RTOL = 1e-9
@@ -76,28 +70,6 @@ _BOUNDARY_RTOL = 1e-9
 # --------------------------------------------------------------------------
 # small helpers
 # --------------------------------------------------------------------------
-
-def _check_tensor(name: str, x: object) -> Tensor:
-    if not isinstance(x, Tensor):
-        raise ParameterError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if not (x.is_floating_point() or x.is_complex()):
-        raise ParameterError(f"{name} must be a real floating or complex tensor, got dtype {x.dtype}")
-    return x
-
-
-def _check_kernel_shape(name: str, x: Tensor) -> None:
-    if x.dim() < 2:
-        raise ParameterError(f"{name} must have shape (..., H, W), got shape {tuple(x.shape)}")
-    if x.shape[-1] == 0 or x.shape[-2] == 0:
-        raise ParameterError(f"{name} must have a non-empty (H, W) window, got shape {tuple(x.shape)}")
-
-
-def _abs2(z: Tensor) -> Tensor:
-    """|z|**2, smooth everywhere (real output)."""
-    if z.is_complex():
-        return torch.view_as_real(z).square().sum(-1)
-    return z.square()
-
 
 def _safe_div(num: Tensor, den: Tensor) -> Tensor:
     """num / den where den != 0, 0 elsewhere; finite gradient in both cases."""
@@ -566,7 +538,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
 
 
 # --------------------------------------------------------------------------
-# training terms (SPEC section 3)
+# circular convolution (the imaging model of the data terms)
 # --------------------------------------------------------------------------
 
 def circular_convolve(kappa: Tensor, image: Tensor) -> Tensor:
@@ -596,79 +568,3 @@ def circular_convolve(kappa: Tensor, image: Tensor) -> Tensor:
         k0, image = _promote(k0, image)
         return torch.fft.irfft2(torch.fft.rfft2(k0) * torch.fft.rfft2(image), s=(H, W))
     return torch.fft.ifft2(torch.fft.fft2(k0) * torch.fft.fft2(image))
-
-
-def l_conv(y_c: Tensor, y_ref: Tensor) -> Tensor:
-    """``L_conv``: squared L2 norm ``||Y_c - Y_ref||^2`` over the last two axes, mean over the rest."""
-    y_c = _check_tensor("Y_c", y_c)
-    y_ref = _check_tensor("Y_ref", y_ref)
-    _check_kernel_shape("Y_c", y_c)
-    d = _abs2(y_c - y_ref).sum((-2, -1))
-    return d.mean() if d.dim() else d
-
-
-def l_rec(i_hat: Tensor, i_ref: Tensor) -> Tensor:
-    """``L_rec``: mean of ``|I_hat - I_ref|^2`` over all pixels and batch items."""
-    i_hat = _check_tensor("I_hat", i_hat)
-    i_ref = _check_tensor("I_ref", i_ref)
-    return _abs2(i_hat - i_ref).mean()
-
-
-def l_ent(p_soft: Tensor) -> Tensor:
-    """``L_ent``: mean entropy (nats) of the columns of ``P_soft`` ``(..., Ne, k)``.
-
-    Column ``j`` is a distribution over the ``Ne`` elements (sums to 1);
-    ``H_j = -sum_i p_ij log p_ij`` with ``0 log 0 = 0`` (value and gradient
-    finite at exact zeros). Averaged over columns and leading dimensions.
-    """
-    p = _check_tensor("P_soft", p_soft)
-    if p.is_complex() or p.dim() < 2:
-        raise ParameterError(f"P_soft must be a real tensor of shape (..., Ne, k), got {p.dtype} "
-                             f"{tuple(p.shape)}")
-    pos = p > 0
-    logp = torch.log(torch.where(pos, p, torch.ones_like(p)))
-    ent = -torch.where(pos, p * logp, torch.zeros_like(p)).sum(-2)
-    return ent.mean()
-
-
-def l_row(p: Tensor) -> Tensor:
-    """``L_row``: ``sum_i relu(sum_j P_ij - 1)^2`` for ``P`` ``(..., Ne, k)``; mean over leading dims.
-
-    Penalises an element (row) used by more than one of the k columns.
-    """
-    p = _check_tensor("P", p)
-    if p.is_complex() or p.dim() < 2:
-        raise ParameterError(f"P must be a real tensor of shape (..., Ne, k), got {p.dtype} "
-                             f"{tuple(p.shape)}")
-    pen = torch.relu(p.sum(-1) - 1).pow(2).sum(-1)
-    return pen.mean() if pen.dim() else pen
-
-
-def composite_loss(terms: Mapping[str, Tensor], weights: Mapping[str, float] = DEFAULT_WEIGHTS) -> Tensor:
-    """Weighted sum ``sum_name weights[name] * terms[name]``.
-
-    Names with weight 0 are skipped (their term may be missing or even
-    non-finite); a term with no entry in ``weights`` is ignored; a non-zero
-    weight whose term is missing raises :class:`ParameterError`. A term that
-    is not a scalar (e.g. a ``(B,)`` metric) enters through its mean.
-    """
-    total: Tensor | None = None
-    for name, wt in weights.items():
-        wt = check_number(f"weights[{name!r}]", wt)
-        if wt == 0:
-            continue
-        if name not in terms:
-            raise ParameterError(f"loss term {name!r} has weight {wt} but was not computed; "
-                                 f"available: {sorted(terms)}")
-        t = terms[name]
-        if not isinstance(t, Tensor):
-            t = torch.as_tensor(t)
-        if t.is_complex():
-            raise ParameterError(f"loss term {name!r} is complex")
-        t = t.mean() if t.dim() else t
-        total = wt * t if total is None else total + wt * t
-    if total is None:
-        ref = next((t for t in terms.values() if isinstance(t, Tensor)), None)
-        return torch.zeros((), dtype=ref.dtype if ref is not None else torch.get_default_dtype(),
-                           device=ref.device if ref is not None else None)
-    return total

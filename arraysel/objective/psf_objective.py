@@ -8,8 +8,8 @@
   element weights (the same weights are the TX apodization and the RX
   channel weights);
 * :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection
-  matrix (PSF terms + entropy + row terms; end-to-end terms on scenes that
-  weight them, through a data term the trainer attaches).
+  matrix (PSF terms + entropy + row terms, :mod:`arraysel.objective.losses`;
+  a scene that weights the end-to-end terms is trained by ``arraysel train``).
 
 It counts evaluated masks, gradient steps and the wall time spent inside it,
 so a comparison can report every strategy's budget and overhead.
@@ -31,22 +31,24 @@ logs its estimated duration.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
-from typing import Callable
 
 import numpy as np
 import torch
 
 from arraysel.objective import metrics as M
+from arraysel.objective.contract import WorkerFactory, dtype_name
+from arraysel.objective.losses import PSF_WEIGHT_KEYS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.selection import masks_from_indices  # noqa: F401  (one home; imported from here by older code)
 from arraysel.physics.psf import PSFModel
 from arraysel.scenes.schema import Scene, load_scene
 
 _log = logging.getLogger(__name__)
 
 METRIC_NAMES = M.METRIC_NAMES
-PSF_WEIGHT_KEYS = ("L_PSF", "L_contrast", "L_SLR")
 #: aggregates over the field points of a several-point scene
 AGGREGATES = ("mean", "worst")
 
@@ -73,27 +75,6 @@ def _fmt_seconds(sec: float) -> str:
     if sec < 7200:
         return f"{sec / 60:.1f} min"
     return f"{sec / 3600:.1f} h"
-
-
-def masks_from_indices(selections, n_elements: int, k: int | None = None) -> np.ndarray:
-    """(B, Ne) 0/1 float masks from lists of active element indices, validated.
-
-    Raises :class:`SelectionError` naming the offending selection (its position)
-    for a repeated, negative or out-of-range index, or a wrong count.
-    """
-    out = np.zeros((len(selections), n_elements), dtype=np.float64)
-    for i, sel in enumerate(selections):
-        idx = [int(v) for v in sel]
-        if any(v < 0 or v >= n_elements for v in idx):
-            raise SelectionError(f"selection {i}: element indices must be in [0, {n_elements - 1}], got {idx}")
-        if len(set(idx)) != len(idx):
-            raise SelectionError(f"selection {i}: repeated element index in {idx}")
-        if k is not None and len(idx) != k:
-            raise SelectionError(f"selection {i}: expected k = {k} elements, got {len(idx)}")
-        if not idx:
-            raise SelectionError(f"selection {i}: empty selection")
-        out[i, idx] = 1.0
-    return out
 
 
 class Objective:
@@ -151,8 +132,6 @@ class Objective:
         self.gradient_steps = 0
         self.seconds = 0.0
         self.fallbacks = 0
-        #: optional end-to-end data term: callable(kappa, P, P_soft, step) -> dict of terms
-        self.data_term: Callable | None = None
 
     # ------------------------------------------------------------------ exact-path notice
     def estimate_seconds(self, n_masks: int = 1) -> float:
@@ -338,8 +317,7 @@ class Objective:
             z = weights.sum(-1) * 0
             return z, {}
         terms = self.psf_terms(weights, terms=terms_needed)
-        total = sum(wts[k] * terms[k] for k in need)
-        return total, terms
+        return psf_weighted_sum(terms, wts), terms
 
     def mask_loss(self, weights: torch.Tensor):
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
@@ -357,8 +335,8 @@ class Objective:
         """Training loss of a (Ne, k) selection matrix: (scalar total, terms).
 
         Element weights are the row sums of P (clamped to [0, 1]); L_ent and
-        L_row act on P_soft; L_conv and L_rec come from :attr:`data_term`
-        on scenes that weight them.
+        L_row act on P_soft (:mod:`arraysel.objective.losses`). A scene that
+        weights L_conv or L_rec is trained end to end (``arraysel train``), not here.
         """
         with self._timed():
             if P.dim() != 2 or P.shape[0] != self.n_elements:
@@ -367,29 +345,26 @@ class Objective:
             total, terms = self._psf_loss(w)
             total = total.sum()
             terms = {k: v.sum() for k, v in terms.items()}
-            if self.weights.get("L_ent", 0) > 0:
-                terms["L_ent"] = M.l_ent(P_soft)
-                total = total + self.weights["L_ent"] * terms["L_ent"]
-            if self.weights.get("L_row", 0) > 0:
-                # on P_soft, as the trainer and the toy objective: the straight-through P
-                # has one-hot columns over distinct elements, so its rows never sum past 1
-                terms["L_row"] = M.l_row(P_soft)
-                total = total + self.weights["L_row"] * terms["L_row"]
+            reg = selection_terms(P_soft, {k: v for k, v in self.weights.items() if v > 0})
+            terms.update(reg)
+            total = total + weighted_sum(reg, self.weights)
             if self.scene.needs_data:
-                if self.data_term is None:
-                    raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "
-                                         "`arraysel train` (the data term is attached by the trainer)")
-                kappa = self.psf.kernels(w)
-                extra = self.data_term(kappa[0], P, P_soft, step)
-                for k, v in extra.items():
-                    terms[k] = v
-                    total = total + self.weights.get(k, 0.0) * v
+                raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "
+                                     "`arraysel train` (end-to-end training computes those terms)")
             if not bool(torch.isfinite(total.detach())):
                 raise NumericalError("selection_loss is not finite (NaN/Inf)")
             self.evaluations += 1
             if P.requires_grad:
                 self.gradient_steps += 1
         return total, terms
+
+    def worker_factory(self) -> "SceneObjectiveFactory | None":
+        """A picklable recipe that rebuilds this objective on a worker (the scene, device, dtype
+        and chunk); ``None`` for a subclass, which must give its own."""
+        if type(self) is not Objective:
+            return None
+        return SceneObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
+                                     chunk=int(self.chunk))
 
     def reset_counters(self):
         self.evaluations = 0
@@ -411,3 +386,28 @@ def build_objective(scene="paper", device="cpu", dtype=torch.float32, **kw) -> O
         _CACHE[key] = obj
     obj.reset_counters()
     return obj
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObjectiveFactory(WorkerFactory):
+    """Builds the physics objective of a scene with :func:`build_objective` (on a worker).
+
+    Parameters
+    ----------
+    scene : the scene as a dictionary (``Scene.to_dict()``)
+    device : ``"cpu"`` or ``"cuda"`` (on the worker)
+    dtype : ``"float32"`` or ``"float64"``
+    chunk : masks per batch inside ``Objective.evaluate``
+    """
+
+    scene: dict
+    device: str = "cpu"
+    dtype: str = "float32"
+    chunk: int = 256
+
+    def __hash__(self):  # the dict field is not hashable; the key is
+        return hash(self.key())
+
+    def __call__(self):
+        return build_objective(load_scene(dict(self.scene)), device=self.device,
+                               dtype=getattr(torch, self.dtype), chunk=self.chunk)

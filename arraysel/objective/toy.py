@@ -8,19 +8,19 @@ suite and plugin authors' conformance tests use it.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from typing import Any
 
 import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.selectors.relax import column_entropy, row_penalty
-
+from arraysel.objective.contract import WorkerFactory, dtype_name
+from arraysel.objective.losses import DEFAULT_WEIGHTS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.objective.metrics import METRIC_NAMES
 
-__all__ = ["ToyScene", "ToyFailure", "ToyObjective"]
+__all__ = ["ToyScene", "ToyFailure", "ToyObjective", "ToyObjectiveFactory"]
 
 
 
@@ -171,7 +171,7 @@ class ToyObjective:
         t0 = self._enter(w.shape[0])
         try:
             terms = self._terms(w)
-            total = 10 * terms["L_PSF"] + 10 * terms["L_contrast"] + 10 * terms["L_SLR"]
+            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS)
             self.evaluations += w.shape[0]
             if w.requires_grad:
                 self.gradient_steps += 1
@@ -189,10 +189,9 @@ class ToyObjective:
             w = P.to(self.dtype).sum(dim=1)[None, :]
             terms = self._terms(w)
             terms = {key: v[0] for key, v in terms.items()}
-            terms["L_ent"] = column_entropy(P_soft.to(self.dtype))
-            terms["L_row"] = row_penalty(P_soft.to(self.dtype))
-            total = (10 * terms["L_PSF"] + 10 * terms["L_contrast"] + 10 * terms["L_SLR"]
-                     + terms["L_ent"] + 10 * terms["L_row"])
+            reg = selection_terms(P_soft.to(self.dtype))
+            terms.update(reg)
+            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS) + weighted_sum(reg, DEFAULT_WEIGHTS)
             self.evaluations += 1
             if P.requires_grad or P_soft.requires_grad:
                 self.gradient_steps += 1
@@ -212,6 +211,33 @@ class ToyObjective:
             k = k / norm[:, None, None]
         return k.to(torch.complex64 if self.dtype == torch.float32 else torch.complex128)
 
+    def worker_factory(self) -> "ToyObjectiveFactory":
+        """A picklable recipe that rebuilds this objective (with its failure settings) on a worker."""
+        return ToyObjectiveFactory(self.n_elements, self.k, device=str(self.device), dtype=dtype_name(self.dtype),
+                                   seed=int(self.scene.seed), chunk=self.chunk, fail_after=self.fail_after,
+                                   nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
+
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel ``(128, 128)``."""
         return self.kernels(np.ones((1, self.n_elements), dtype=bool))[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class ToyObjectiveFactory(WorkerFactory):
+    """Builds a :class:`ToyObjective` (on a worker: tests, demos, benchmarks)."""
+
+    n_elements: int = 64
+    k: int = 32
+    device: str = "cpu"
+    dtype: str = "float32"
+    seed: int = 0
+    chunk: int = 4096
+    fail_after: int | None = None
+    nan_element: int | None = None
+    always_nan: bool = False
+    delay: float = 0.0
+
+    def __call__(self):
+        return ToyObjective(self.n_elements, self.k, device=self.device, dtype=getattr(torch, self.dtype),
+                            seed=self.seed, chunk=self.chunk, fail_after=self.fail_after,
+                            nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)

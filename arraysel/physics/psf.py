@@ -52,7 +52,7 @@ from arraysel.physics.delays import plane_wave_delays
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.physics.probes import Acquisition, Probe, check_sampling
 from arraysel.physics.simus import (SimOptions, element_responses, grid_for_points, probe_response, pulse_spectrum,
-                    spectra_to_rf)
+                    spectra_to_rf, spectra_to_rf_maps)
 
 _log = logging.getLogger(__name__)
 
@@ -148,7 +148,7 @@ class _Transmit:
     grid: object              # FrequencyGrid
     G: torch.Tensor           # (Ne, F) TX contributions R_j e^{i w tau_j}
     RC: torch.Tensor          # (Ne, F) RX spectra factor C(f) R_e(f)
-    Q: torch.Tensor           # (T, T) I/Q matrix
+    IQ: torch.Tensor          # (2F, 2T) real: [Re S, Im S] @ IQ = [Re I/Q, Im I/Q] (spectra -> RF -> I/Q)
 
 
 def _window_start(peak: torch.Tensor, size: int, n: int) -> torch.Tensor:
@@ -307,9 +307,10 @@ class PSFModel:
         return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
 
     def model_bytes(self) -> int:
-        """Memory (bytes) of the model's own tensors: per transmit the I/Q matrix (T x T complex128)
-        and the spectra factors (Ne x F complex128 twice)."""
-        return sum(int(t.Q.numel()) * 16 + 2 * int(t.G.numel()) * 16 for t in self.transmits)
+        """Memory (bytes) of the model's own tensors: per transmit the spectra -> I/Q map (2F x 2T
+        in the model's dtype) and the spectra factors (Ne x F complex128 twice)."""
+        return sum(int(t.IQ.numel()) * t.IQ.element_size() + 2 * int(t.G.numel()) * 16
+                   for t in self.transmits)
 
     def _per_mask_bytes(self) -> int:
         s = self.setup
@@ -422,7 +423,7 @@ class PSFModel:
             C = P * H * H * (grid.df * probe.width * s.reflectivity)
             Q = iq_matrix(grid.n_time, acq.fs, probe.fc,
                           probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
-            parts.append((delays, grid, G, R * C[None, :], Q))
+            parts.append((delays, grid, G, R * C[None, :], _spectra_to_iq_map(grid, Q)))
         # A deep, attenuated or weak echo can lie below float32's normal range at its physical
         # scale; G and RC are divided by their largest magnitude over all transmits (the kernel is
         # normalised, so only the unit changes): spectra, RF, I/Q and images are in units of
@@ -434,8 +435,9 @@ class PSFModel:
                                  f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
         #: physical value of one unit of :meth:`spectra`, :meth:`rf`, :meth:`iq` and :meth:`image`
         self.image_scale = g_max * rc_max
-        for delays, grid, G, RC, Q in parts:
-            self.transmits.append(_Transmit(delays=delays, grid=grid, G=G / g_max, RC=RC / rc_max, Q=Q))
+        for delays, grid, G, RC, IQ in parts:
+            self.transmits.append(_Transmit(delays=delays, grid=grid, G=G / g_max, RC=RC / rc_max,
+                                            IQ=IQ.to(self.device, self.dtype)))
 
     def _weights(self, weights) -> torch.Tensor:
         w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
@@ -460,10 +462,19 @@ class PSFModel:
         return spectra_to_rf(self.spectra(weights, tx), self.transmits[tx].grid)
 
     def iq(self, weights, tx: int) -> torch.Tensor:
-        """I/Q signals (B, Ne, T) of transmit ``tx``."""
-        rf = self.rf(weights, tx)
-        Q = self.transmits[tx].Q.to(self.device, self.cdtype)
-        return rf.to(self.cdtype) @ Q.T
+        """I/Q signals (B, Ne, T) of transmit ``tx``: the I/Q demodulation of :meth:`rf`, computed
+        from the spectra in one product with the composed linear map (:func:`_spectra_to_iq_map`).
+
+        Composing the maps in float64 first matters in float32: a strongly attenuated echo has
+        out-of-band (low-frequency) content orders of magnitude above the in-band part that forms
+        the PSF; an RF record in float32 carries rounding noise at the level of the former across
+        the whole band, which the I/Q filter would pass. Here each spectral bin enters with the
+        weight the filter gives it, so rounding stays relative to what reaches the I/Q signal.
+        """
+        s = self.spectra(weights, tx)
+        y = torch.cat([s.real, s.imag], dim=-1) @ self.transmits[tx].IQ
+        t = y.shape[-1] // 2
+        return torch.complex(y[..., :t], y[..., t:])
 
     def _plan(self, tx: int, rows: slice, cols: slice):
         """DAS plan of transmit ``tx`` on grid rows/cols; whole-grid plans are cached by row blocks."""
@@ -649,6 +660,15 @@ class _BuildProgress:
 
     def close(self):
         _log.info("basis built in %.1f s", self._time() - self.t0)
+
+
+def _spectra_to_iq_map(grid, Q: torch.Tensor) -> torch.Tensor:
+    """Real (2F, 2T) float64 matrix ``M`` with ``[Re S, Im S] @ M = [Re IQ, Im IQ]``, where
+    ``IQ = spectra_to_rf(S, grid) @ Q.T`` (the exact path's spectra -> RF -> I/Q), composed in float64."""
+    a, b = spectra_to_rf_maps(grid)
+    qt = Q.to(torch.complex128).T
+    m = torch.cat([a.to(torch.complex128) @ qt, b.to(torch.complex128) @ qt], dim=0)  # (2F, T)
+    return torch.cat([m.real, m.imag], dim=1)
 
 
 def window_and_normalise(img: torch.Tensor, size: int, peak=None) -> torch.Tensor:

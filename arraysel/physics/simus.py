@@ -275,6 +275,16 @@ def spectra_to_rf(spectra: torch.Tensor, grid: FrequencyGrid) -> torch.Tensor:
     return rf[..., :grid.n_time]
 
 
+def spectra_to_rf_maps(grid: FrequencyGrid) -> tuple[torch.Tensor, torch.Tensor]:
+    """Real matrices ``(A, B)``, each (F, n_time) float64, of the linear map :func:`spectra_to_rf`:
+    ``spectra_to_rf(S, grid) == S.real @ A + S.imag @ B`` for spectra ``S`` (..., F) on ``grid``.
+
+    Built by applying :func:`spectra_to_rf` itself to unit spectra, so both forms agree exactly.
+    """
+    eye = torch.eye(int(grid.f.numel()), dtype=torch.complex128)
+    return spectra_to_rf(eye, grid), spectra_to_rf(1j * eye, grid)
+
+
 def simulate_rf(x, z, rc, delays, probe, acq, tx_apod=None, rx_apod=None,
                 options: SimOptions = SimOptions(), dtype=torch.float64, device=None):
     """RF signals of a medium of point scatterers for one transmit (SIMUS, 2-D).

@@ -37,12 +37,13 @@ import dataclasses
 import inspect
 import math
 import time
-from typing import Any, ClassVar, Iterable, Sequence
+from typing import Any, ClassVar, Iterable
 
 import numpy as np
 import torch
 
-from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number
+from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
+from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 
 __all__ = [
     "Option", "Selector", "Budget", "Recorder", "BudgetExceededError", "BudgetExhausted",
@@ -611,44 +612,6 @@ def torch_rng(seed: int, device: torch.device | str = "cpu", stream: int = 0) ->
     g.manual_seed(int(np.random.SeedSequence([int(seed), int(stream)]).generate_state(1, np.uint64)[0]
                       & 0x7FFF_FFFF_FFFF_FFFF))
     return g
-
-
-def check_selection(selection: Any, n_elements: int, k: int) -> list[int]:
-    """Return ``selection`` as a sorted list of ints after checking it holds exactly
-    ``k`` distinct indices in ``[0, n_elements)``; raise :class:`SelectionError`."""
-    if isinstance(selection, torch.Tensor):
-        selection = selection.detach().cpu().tolist()
-    elif isinstance(selection, np.ndarray):
-        selection = selection.tolist()
-    if not isinstance(selection, Sequence) or isinstance(selection, (str, bytes)):
-        raise SelectionError(f"a selection must be a list of element indices, got {type(selection).__name__}")
-    out = []
-    for x in selection:
-        if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
-            raise SelectionError(f"selection holds a non-integer entry {x!r}")
-        out.append(int(x))
-    bad = [i for i in out if not 0 <= i < n_elements]
-    if bad:
-        raise SelectionError(f"selection holds indices outside [0, {n_elements}): {bad[:5]}")
-    if len(set(out)) != len(out):
-        raise SelectionError(f"selection repeats elements: {sorted(out)}")
-    if len(out) != k:
-        raise SelectionError(f"selection holds {len(out)} elements, expected k = {k}")
-    return sorted(out)
-
-
-def indices_to_mask(indices: Iterable[int], n_elements: int) -> np.ndarray:
-    """Boolean mask ``(Ne,)`` with ``True`` at ``indices``."""
-    m = np.zeros(n_elements, dtype=bool)
-    m[list(indices)] = True
-    return m
-
-
-def mask_to_indices(mask, n_elements: int | None = None) -> list[int]:
-    """Sorted active indices of a mask (bool or 0/1)."""
-    if isinstance(mask, torch.Tensor):
-        mask = mask.detach().cpu().numpy()
-    return [int(i) for i in np.flatnonzero(np.asarray(mask) > 0.5)]
 
 
 def top_k(weights, k: int) -> list[int]:

@@ -16,8 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import torch
+
+from arraysel.objective.losses import l_ent, l_row
 
 __all__ = [
     "Relaxation", "cosine_temperature", "gumbel_noise", "sequential_selection",
@@ -25,16 +28,22 @@ __all__ = [
 ]
 
 
-def cosine_temperature(step: int, tau_start: float = 6.0, tau_end: float = 1.2, steps: int = 1500) -> float:
+def cosine_temperature(step: int, tau_start: float = 6.0, tau_end: float = 1.2, tau_steps: int = 1500, *,
+                       steps: int | None = None) -> float:
     """Cosine decay of the temperature from ``tau_start`` (step 0) to ``tau_end``
-    (step ``steps``), constant afterwards.
+    (step ``tau_steps``, the scene key ``training.tau_steps``), constant afterwards.
+    ``steps=`` is the old keyword of ``tau_steps`` (deprecated).
 
     >>> cosine_temperature(0), cosine_temperature(1500), cosine_temperature(10**6)
     (6.0, 1.2, 1.2)
     """
-    if steps <= 0:
+    if steps is not None:
+        warnings.warn("cosine_temperature(steps=...) is now cosine_temperature(tau_steps=...), the name of the "
+                      "scene key training.tau_steps", DeprecationWarning, stacklevel=2)
+        tau_steps = steps
+    if tau_steps <= 0:
         return float(tau_end)
-    t = min(max(step, 0), steps) / steps
+    t = min(max(step, 0), tau_steps) / tau_steps
     return float(tau_end + 0.5 * (tau_start - tau_end) * (1.0 + math.cos(math.pi * t)))
 
 
@@ -123,16 +132,10 @@ def selection_weights(P: torch.Tensor) -> torch.Tensor:
     return P.sum(dim=1).clamp(0.0, 1.0)
 
 
-def column_entropy(P_soft: torch.Tensor) -> torch.Tensor:
-    """Mean entropy (nats) of the columns of ``P_soft`` (``L_ent``, SPEC §3); finite for zeros."""
-    p = P_soft.clamp_min(0.0)
-    plogp = torch.where(p > 0, p * torch.log(p.clamp_min(torch.finfo(p.dtype).tiny)), torch.zeros_like(p))
-    return -plogp.sum(dim=0).mean()
-
-
-def row_penalty(P_soft: torch.Tensor) -> torch.Tensor:
-    """``sum_i relu(sum_j P_ij - 1)^2``: penalty for using an element in several columns (``L_row``)."""
-    return torch.relu(P_soft.sum(dim=1) - 1.0).pow(2).sum()
+#: ``L_ent``, the mean entropy (nats) of the columns of ``P_soft`` (:func:`arraysel.objective.losses.l_ent`)
+column_entropy = l_ent
+#: ``L_row = sum_i relu(sum_j P_ij - 1)^2`` (:func:`arraysel.objective.losses.l_row`)
+row_penalty = l_row
 
 
 def project_capped_simplex(w: torch.Tensor, k: float, iters: int = 60) -> torch.Tensor:

@@ -1,0 +1,326 @@
+"""Every figure arraysel draws: each function returns a matplotlib :class:`~matplotlib.figure.Figure`
+and the caller (a command, ``compare``) saves it with :func:`save_figure` (atomic PNG,
+:data:`DPI`). Nothing here selects a matplotlib backend or touches pyplot state: figures are
+built with the object API (``matplotlib.figure.Figure``), so notebooks keep their own backend.
+
+One style: PSF images in dB over :data:`DYN_RANGE_DB` (grey map, peak at 0 dB), profiles down
+to :data:`PROFILE_FLOOR_DB`, axes in millimetres from the peak when the pixel pitch is known
+(pixels otherwise, e.g. the toy objective's synthetic kernels).
+
+Public helpers for other figure modules (``arraysel.e2e.figures``): :func:`db`,
+:func:`extent_mm`, :func:`psf_image` (one PSF on an axis), :func:`mask_strip` (active
+elements, one row per selection).
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import io
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["DYN_RANGE_DB", "PROFILE_FLOOR_DB", "DPI", "db", "extent_mm", "psf_image", "mask_strip",
+           "masks_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
+           "ecdf_targets", "save_figure", "collect_figures"]
+
+#: dynamic range (dB) of every PSF image
+DYN_RANGE_DB = 40.0
+#: lower limit (dB) of every PSF profile plot
+PROFILE_FLOOR_DB = -60.0
+#: resolution of every saved figure
+DPI = 110
+
+#: where :func:`collect_figures` keeps the figures :func:`save_figure` saves (None: not kept)
+_FIGURES: "contextvars.ContextVar[dict | None]" = contextvars.ContextVar("arraysel_figures", default=None)
+
+
+def _figure(**kw):
+    from matplotlib.figure import Figure
+
+    return Figure(**kw)
+
+
+# ---------------------------------------------------------------------------
+# saving
+# ---------------------------------------------------------------------------
+
+def save_figure(fig, path: str | Path) -> None:
+    """Write ``fig`` as a PNG (:data:`DPI`, tight box) to ``path`` atomically (:mod:`arraysel.io.atomic`)."""
+    from arraysel.io.atomic import atomic_write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())
+    sink = _FIGURES.get()
+    if sink is not None:
+        sink[Path(path).stem] = fig
+
+
+@contextlib.contextmanager
+def collect_figures():
+    """Context manager: the figures saved inside it are also kept, ``{file stem: Figure}``
+    (the Python API returns them to notebooks)."""
+    sink: dict = {}
+    token = _FIGURES.set(sink)
+    try:
+        yield sink
+    finally:
+        _FIGURES.reset(token)
+
+
+# ---------------------------------------------------------------------------
+# building blocks
+# ---------------------------------------------------------------------------
+
+def db(k: np.ndarray, ref_peak: float | None = None) -> np.ndarray:
+    """``20 log10(|k| / ref_peak)`` (``ref_peak``: the peak of ``|k|`` itself), floored at -240 dB."""
+    mag = np.abs(np.asarray(k))
+    peak = float(mag.max()) if ref_peak is None else float(ref_peak)
+    return 20 * np.log10(np.maximum(mag / max(peak, np.finfo(float).tiny), 1e-12))
+
+
+def extent_mm(shape: tuple[int, int], pitch: float | None) -> list[float] | None:
+    """``imshow`` extent (left, right, bottom, top) in mm of a ``(rows, cols)`` window centred on its
+    middle pixel, rows going down; ``None`` without a pitch (pixel axes)."""
+    if pitch is None:
+        return None
+    rows, cols = shape
+    return [-cols / 2 * pitch * 1e3, cols / 2 * pitch * 1e3, rows / 2 * pitch * 1e3, -rows / 2 * pitch * 1e3]
+
+
+def _axis_labels(ax, pitch: float | None) -> None:
+    if pitch is None:
+        ax.set_xlabel("lateral pixel")
+        ax.set_ylabel("axial pixel")
+    else:
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("z - z_peak (mm)")
+
+
+def psf_image(ax, kernel: np.ndarray, pitch: float | None = None, *, ref_peak: float | None = None,
+              title: str | None = None, ticks: bool = True):
+    """Draw ``|kernel|`` in dB (:data:`DYN_RANGE_DB`, relative to ``ref_peak`` or its own peak) on
+    ``ax``, in mm when ``pitch`` (metres per pixel) is given; returns the image (for a colorbar)."""
+    im = ax.imshow(db(kernel, ref_peak), vmin=-DYN_RANGE_DB, vmax=0, cmap="gray",
+                   extent=extent_mm(np.shape(kernel), pitch))
+    if title is not None:
+        ax.set_title(title, fontsize=8)
+    if ticks:
+        _axis_labels(ax, pitch)
+    else:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    return im
+
+
+def mask_strip(ax, labels: Sequence[str], masks: np.ndarray) -> None:
+    """Active elements (black), one row per selection: ``masks`` ``(rows, Ne)`` of 0/1."""
+    masks = np.asarray(masks, dtype=float).reshape(len(labels), -1)
+    if len(labels):
+        ax.imshow(masks, aspect="auto", cmap="Greys", vmin=0, vmax=1, interpolation="nearest")
+    ax.set_yticks(range(len(labels)), list(labels))
+    ax.set_xlabel("element index")
+    ax.set_title("active elements")
+
+
+# ---------------------------------------------------------------------------
+# figures of ``arraysel compare``
+# ---------------------------------------------------------------------------
+
+def masks_figure(labels: Sequence[str], masks: np.ndarray):
+    """``masks.png``: the active elements of every configuration."""
+    fig = _figure(figsize=(8, 0.4 * max(len(labels), 1) + 1.2))
+    mask_strip(fig.subplots(), labels, masks)
+    return fig
+
+
+def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
+    """``psfs.png``: the full array's PSF, then each configuration's, in dB relative to the full array's peak."""
+    peak = float(np.abs(ref).max())
+    cols = min(4, len(labels) + 1)
+    rows = math.ceil((len(labels) + 1) / cols)
+    fig = _figure(figsize=(3 * cols, 3 * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    im = None
+    for ax, (lab, kk) in zip(axes, [("full (reference)", ref)] + list(zip(labels, kernels))):
+        im = psf_image(ax, kk, pitch, ref_peak=peak, title=lab, ticks=False)
+    for ax in axes[len(labels) + 1:]:
+        ax.axis("off")
+    fig.colorbar(im, ax=list(axes), label="dB", shrink=0.8)
+    return fig
+
+
+def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
+    """``profiles.png``: lateral and axial profiles through each PSF's peak, against the full array's."""
+    peak = float(np.abs(ref).max())
+    fig = _figure(figsize=(10, 4))
+    ax_l, ax_a = fig.subplots(1, 2)
+    for lab, kk in [("full", ref)] + list(zip(labels, kernels)):
+        r, c = np.unravel_index(int(np.argmax(np.abs(kk))), kk.shape)
+        style = dict(color="k", lw=2) if lab == "full" else dict(lw=1)
+        x_l = np.arange(kk.shape[1]) - c
+        x_a = np.arange(kk.shape[0]) - r
+        if pitch is not None:
+            x_l, x_a = x_l * pitch * 1e3, x_a * pitch * 1e3
+        ax_l.plot(x_l, db(kk[r, :], peak), label=lab, **style)
+        ax_a.plot(x_a, db(kk[:, c], peak), label=lab, **style)
+    unit = "pixel" if pitch is None else "mm"
+    for ax, what in ((ax_l, "lateral"), (ax_a, "axial")):
+        ax.set_ylim(PROFILE_FLOOR_DB, 3)
+        ax.set_xlabel(f"{what} distance from the peak ({unit})")
+        ax.set_ylabel("dB")
+        ax.set_title(f"{what} profile through the peak")
+    ax_a.legend(fontsize=7)
+    return fig
+
+
+def trace_figure(trace, full_mean: float | None = None):
+    """``trace.png``: the best Mean against time of every run (log time)."""
+    fig = _figure(figsize=(7, 4.5))
+    ax = fig.subplots()
+    if trace is not None and len(trace):
+        for (config, seed), g in trace.groupby(["config", "seed"], sort=False):
+            g = g.sort_values("seconds")
+            x = np.maximum(g["seconds"].to_numpy(float), 1e-4)
+            y = g["best_Mean"].to_numpy(float)
+            line, = ax.step(x, y, where="post", label=f"{config} (seed {seed})")
+            ax.plot(x[-1:], y[-1:], marker="o", ms=4, color=line.get_color())  # single-point runs too
+        ax.set_xscale("log")
+        ax.legend(fontsize=7)
+    if full_mean is not None and np.isfinite(full_mean):
+        ax.axhline(float(full_mean), color="k", ls="--", lw=1, label="full")
+    ax.set_xlabel("seconds")
+    ax.set_ylabel("best Mean")
+    ax.set_title("best Mean vs time")
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# ``arraysel psf --plot``
+# ---------------------------------------------------------------------------
+
+def psf_figure(kernel: np.ndarray, ref: np.ndarray, pitch: float | None, elements: Sequence[int], n_elements: int):
+    """One selection's PSF and the full array's, each in dB of its own peak, with the mask."""
+    fig = _figure(figsize=(12, 4))
+    axes = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 1, 1.2]})
+    im = None
+    for ax, k, title in ((axes[0], kernel, "selection"), (axes[1], ref, "full array")):
+        im = psf_image(ax, k, pitch, title=f"PSF, {title}")
+    axes[1].set_ylabel("")
+    fig.colorbar(im, ax=list(axes[:2]), label="dB")
+    mask = np.zeros(n_elements)
+    mask[list(elements)] = 1
+    axes[2].bar(np.arange(n_elements), mask, width=0.8)
+    axes[2].set_title(f"active elements ({len(elements)} of {n_elements})")
+    axes[2].set_xlabel("element")
+    axes[2].set_yticks([])
+    return fig
+
+
+
+def _best_at(g, x: np.ndarray, column: str) -> np.ndarray:
+    """Best-so-far Mean of one run at the points ``x`` of ``column`` (+inf before its first row;
+    after its last row the run's final best holds)."""
+    g = g.sort_values([column, "best_Mean"], ascending=[True, False])
+    xs = g[column].to_numpy(float)
+    ys = np.minimum.accumulate(g["best_Mean"].to_numpy(float))
+    idx = np.searchsorted(xs, x, side="right") - 1
+    return np.where(idx >= 0, ys[np.clip(idx, 0, None)], np.inf)
+
+
+def _grid(values: np.ndarray, points: int = 200) -> np.ndarray:
+    v = values[np.isfinite(values) & (values > 0)]
+    if not v.size:
+        return np.array([1.0])
+    lo, hi = float(v.min()), float(v.max())
+    if hi <= lo:
+        hi = lo * 1.01
+    return np.unique(np.concatenate([np.geomspace(lo, hi, points), v]))
+
+
+def ecdf_targets(trace, count: int = 51) -> np.ndarray:
+    """Targets of the ECDF: ``count`` values spaced evenly in log(Mean) between the best
+    Mean any run reached and the largest first value of a run."""
+    firsts = trace.sort_values("evaluations").groupby(["config", "seed"], sort=False)["best_Mean"].first()
+    lo = float(trace["best_Mean"].min())
+    hi = float(firsts.max())
+    if not (np.isfinite(lo) and np.isfinite(hi)) or lo <= 0 or hi <= lo:
+        return np.array([lo])
+    return np.geomspace(hi, lo, count)
+
+
+def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | None = None):
+    """Anytime comparison over seeds; returns a matplotlib ``Figure`` (the caller saves it).
+
+    Panels: per config, the median over its runs of the best-so-far Mean with
+    the interquartile band, (a) against wall seconds and (b) against
+    evaluations (log x), and (c) the ECDF of (run, target) pairs reached
+    against seconds, COCO / IOHanalyzer style: for each run and each target of
+    :func:`ecdf_targets`, the time the run's best first reached the target;
+    the curve is the fraction of all (run, target) pairs of the config reached
+    by then. Every config appears, runs of one evaluation included (their curve
+    starts at that point, marked, and holds to the end of the x range).
+    ``full_mean`` draws the full array's Mean as a dashed line.
+    """
+    fig = _figure(figsize=(15, 4.6))
+    ax_t, ax_e, ax_c = fig.subplots(1, 3)
+    if trace is None or not len(trace):
+        for ax in (ax_t, ax_e, ax_c):
+            ax.text(0.5, 0.5, "no trace", ha="center", va="center", transform=ax.transAxes)
+        return fig
+    trace = trace[np.isfinite(trace["best_Mean"].astype(float))].copy()
+    trace["seconds"] = np.maximum(trace["seconds"].astype(float), 1e-4)
+    trace["evaluations"] = np.maximum(trace["evaluations"].astype(float), 1.0)
+    targets = ecdf_targets(trace) if targets is None else np.asarray(targets, dtype=float)
+    colours = {}
+    for config, gc in trace.groupby("config", sort=False):
+        runs = [g for _, g in gc.groupby("seed", sort=False)]
+        colour = None
+        for ax, column, label in ((ax_t, "seconds", "seconds"), (ax_e, "evaluations", "evaluations")):
+            x = _grid(trace[column].to_numpy(float))
+            y = np.array([_best_at(g, x, column) for g in runs])
+            with np.errstate(invalid="ignore"):
+                q25, med, q75 = np.percentile(y, [25, 50, 75], axis=0)
+            ok = np.isfinite(med)
+            line, = ax.step(x[ok], med[ok], where="post", color=colour, lw=1.5,
+                            label=f"{config} ({len(runs)} run{'s' if len(runs) != 1 else ''})")
+            colour = line.get_color()
+            band = ok & np.isfinite(q25) & np.isfinite(q75)
+            ax.fill_between(x[band], q25[band], q75[band], step="post", color=colour, alpha=0.2, lw=0)
+            if ok.any():
+                first = int(np.flatnonzero(ok)[0])
+                ax.plot([x[first]], [med[first]], marker="o", ms=4, color=colour)
+            ax.set_xscale("log")
+            ax.set_xlabel(label)
+        colours[config] = colour
+        # ECDF of (run, target) pairs over time
+        hits = []
+        for g in runs:
+            g = g.sort_values("seconds")
+            best = np.minimum.accumulate(g["best_Mean"].to_numpy(float))
+            secs = g["seconds"].to_numpy(float)
+            for tgt in targets:
+                reached = np.flatnonzero(best <= tgt)
+                hits.append(secs[reached[0]] if reached.size else np.inf)
+        hits = np.sort(np.asarray(hits, dtype=float))
+        x = _grid(trace["seconds"].to_numpy(float))
+        frac = np.searchsorted(hits, x, side="right") / max(len(hits), 1)
+        ax_c.step(x, frac, where="post", color=colour, label=config)
+        ax_c.plot([x[-1]], [frac[-1]], marker="o", ms=4, color=colour)
+    for ax, what in ((ax_t, "time"), (ax_e, "evaluations")):
+        if full_mean is not None and np.isfinite(full_mean):
+            ax.axhline(full_mean, color="k", ls="--", lw=1, label="full array")
+        ax.set_yscale("log")
+        ax.set_ylabel("best Mean so far (median, IQR band)")
+        ax.set_title(f"best Mean vs {what}")
+    ax_t.legend(fontsize=7)
+    ax_c.set_xscale("log")
+    ax_c.set_ylim(-0.02, 1.02)
+    ax_c.set_xlabel("seconds")
+    ax_c.set_ylabel("fraction of (run, target) pairs reached")
+    ax_c.set_title(f"ECDF, {len(targets)} targets in [{targets.min():.3g}, {targets.max():.3g}]")
+    fig.tight_layout()
+    return fig

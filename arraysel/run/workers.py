@@ -1,0 +1,123 @@
+"""The worker side of every executor: each worker process builds the objective **once** from a
+picklable factory and keeps it in a cache keyed by the factory's token, so the scene travels to a
+worker once (in a process pool's initializer, a Dask worker plugin or an isolated child), not
+with every task. Also what a task failure looks like (:class:`TaskFailed`) and the process start
+method (:func:`mp_context`).
+
+:func:`objective_factory_for` asks an objective for its recipe through the ``worker_factory()``
+capability of :mod:`arraysel.objective.contract`; it never looks at the objective's class.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import threading
+from typing import Any, Callable
+
+from arraysel.errors import ArrayselError, ParameterError
+
+__all__ = ["TaskFailed", "objective_factory_for", "mp_context"]
+
+
+def objective_factory_for(objective):
+    """A picklable factory that rebuilds ``objective`` on a worker: ``objective.worker_factory()``.
+
+    Raises :class:`ParameterError` for an objective without that capability (or whose
+    ``worker_factory()`` returns ``None``): pass ``objective_factory=`` then.
+    """
+    make = getattr(objective, "worker_factory", None)
+    factory = make() if callable(make) else None
+    if factory is None:
+        raise ParameterError(
+            f"cannot send a {type(objective).__name__} to other processes; give an objective_factory "
+            f"(a picklable callable that builds the objective, e.g. "
+            f"arraysel.objective.psf_objective.SceneObjectiveFactory)")
+    return factory
+
+
+@dataclasses.dataclass
+class TaskFailed:
+    """Yielded by :meth:`Executor.run_tasks` for a task that failed ``attempts`` times."""
+
+    message: str
+    attempts: int = 1
+    exception: BaseException | None = None
+
+    def __str__(self) -> str:
+        return self.message
+
+
+# ---------------------------------------------------------------------------
+# the cache of objectives, one per factory and worker process
+# ---------------------------------------------------------------------------
+
+_FACTORIES: dict[str, Any] = {}
+_OBJECTIVES: dict[str, Any] = {}
+_LOCKS: dict[str, threading.Lock] = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def _install_factory(token: str, factory) -> None:
+    with _CACHE_LOCK:
+        _FACTORIES[token] = factory
+        _LOCKS.setdefault(token, threading.Lock())
+
+
+def _remove_factory(token: str) -> None:
+    with _CACHE_LOCK:
+        _FACTORIES.pop(token, None)
+        _OBJECTIVES.pop(token, None)
+        _LOCKS.pop(token, None)
+
+
+def _worker_objective(token: str):
+    """This process's objective for ``token`` (built on first use) and its lock."""
+    with _CACHE_LOCK:
+        factory = _FACTORIES.get(token)
+        lock = _LOCKS.setdefault(token, threading.Lock())
+    if factory is None:
+        raise ArrayselError(f"worker process {os.getpid()} has no objective factory {token} "
+                            f"(the executor did not install it)")
+    with lock:
+        obj = _OBJECTIVES.get(token)
+        if obj is None:
+            obj = factory()
+            _OBJECTIVES[token] = obj
+    return obj, lock
+
+
+def _run_on_worker(token: str, fn: Callable, item):
+    """Run ``fn(objective, item)`` with this worker's objective; one task per objective at a time
+    (the objective's counters measure each run's budget)."""
+    obj, lock = _worker_objective(token)
+    with lock:
+        return fn(obj, item)
+
+
+def _process_init(token: str, factory, threads: int) -> None:
+    from arraysel.run.allocator import tune_malloc
+
+    tune_malloc()
+    if threads:
+        try:
+            import torch
+            torch.set_num_threads(threads)
+        except Exception:  # torch missing or already initialised: keep its default
+            pass
+    _install_factory(token, factory)
+
+
+# ---------------------------------------------------------------------------
+
+def mp_context():
+    """``forkserver`` with torch and arraysel preloaded (a new worker is a cheap fork of a clean,
+    single-threaded server, so restarting a pool after a worker died is fast); ``spawn`` where
+    there is no forkserver. Never plain ``fork``: forking a process whose torch thread pools are
+    running can deadlock."""
+    import multiprocessing
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["torch", "arraysel.run.workers", "arraysel.run.compare_task"])
+        return ctx
+    return multiprocessing.get_context("spawn")
+
