@@ -205,3 +205,23 @@ def test_paper_scene_needs_no_network_and_no_data(paper_objective):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "IMPORTED []" in out.stdout
+
+
+def test_figure_functions_return_figures_and_leave_the_backend_alone(tmp_path):
+    import matplotlib
+    from matplotlib.figure import Figure
+
+    from arraysel.e2e import figures
+
+    backend = matplotlib.get_backend()
+    masks = {"learned": [0, 2, 5], "uniform": [0, 3, 6], "full": list(range(8))}
+    fig = figures.fig_mask(masks, 8)
+    assert isinstance(fig, Figure)
+    assert fig.axes[0].get_yticklabels()[0].get_text().startswith("learned")
+    assert isinstance(figures.fig_loss([{"total": 1.0, "psf": 0.5, "tau": 6.0},
+                                        {"total": 0.5, "rec": 0.1, "tau": 5.0}]), Figure)
+    figures.save_figure(fig, str(tmp_path / "m.png"))
+    assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert matplotlib.get_backend() == backend
+    with open(figures.__file__) as fh:
+        assert "matplotlib.use(" not in fh.read()

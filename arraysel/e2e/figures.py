@@ -1,4 +1,10 @@
-"""Fig. 3-style figures of an end-to-end run (matplotlib, Agg backend, atomic PNG writes)."""
+"""Fig. 3-style figures of an end-to-end run.
+
+Every ``fig_*`` function returns a :class:`matplotlib.figure.Figure` (built
+without pyplot, so no backend is chosen or changed: ``matplotlib.use`` is
+never called); :func:`save_figure` writes one as a PNG atomically and
+:func:`write_figures` writes all of a run's.
+"""
 from __future__ import annotations
 
 import io
@@ -13,20 +19,16 @@ from arraysel.io.masks import atomic_write_bytes
 DYN_RANGE_DB = 40.0
 
 
-def _plt():
-    import matplotlib
+def _figure(figsize):
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(figsize=figsize)
 
 
-def _save(fig, path: str) -> None:
-    plt = _plt()
+def save_figure(fig, path: str, dpi: int = 100) -> None:
+    """Write ``fig`` as a PNG to ``path`` atomically (temporary file, then rename)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
 
 
@@ -35,28 +37,32 @@ def _db(k: np.ndarray) -> np.ndarray:
     return 20 * np.log10(a / max(a.max(), 1e-30) + 1e-12)
 
 
-def fig_mask(path: str, masks: dict[str, list[int]], n_elements: int) -> None:
-    """Active elements of each selection (one row per selection, the full array left out)."""
-    plt = _plt()
+def fig_mask(masks: dict[str, list[int]], n_elements: int):
+    """Active elements of each selection (one row per selection, the full array left out;
+    the learned one first, the uniform one right below it)."""
+    order = [n for n in ("learned", "uniform") if n in masks] + [n for n in masks
+                                                               if n not in ("learned", "uniform")]
+    masks = {n: masks[n] for n in order}
     names = [n for n in masks if len(masks[n]) < n_elements] or list(masks)
     grid = np.zeros((len(names), n_elements))
     for r, name in enumerate(names):
         grid[r, masks[name]] = 1
-    fig, ax = plt.subplots(figsize=(max(6, n_elements / 8), 0.5 + 0.45 * len(names)))
+    fig = _figure((max(6, n_elements / 8), 0.5 + 0.45 * len(names)))
+    ax = fig.subplots()
     ax.imshow(grid, cmap="Greys", vmin=0, vmax=1, aspect="auto", interpolation="nearest")
     ax.set_yticks(range(len(names)), [f"{n} ({len(masks[n])})" for n in names])
     ax.set_xticks(range(0, n_elements, max(1, n_elements // 16)))
     ax.set_xlabel("element (0-based)")
     ax.set_title("active elements (black)")
-    _save(fig, path)
+    return fig
 
 
-def fig_psf(path: str, kernels: dict[str, np.ndarray], kernel_ref: np.ndarray, pitch: float) -> None:
+def fig_psf(kernels: dict[str, np.ndarray], kernel_ref: np.ndarray, pitch: float):
     """Learned and reference PSF in dB (40 dB range) and lateral / axial profiles through the peak."""
-    plt = _plt()
     n = kernel_ref.shape[0]
     ext = np.array([-n / 2, n / 2, n / 2, -n / 2]) * pitch * 1e3
-    fig, axes = plt.subplots(2, 2, figsize=(11, 9))
+    fig = _figure((11, 9))
+    axes = fig.subplots(2, 2)
     for ax, k, title in ((axes[0, 0], kernels["learned"], "learned selection"),
                          (axes[0, 1], kernel_ref, "reference (full array)")):
         im = ax.imshow(_db(k), vmin=-DYN_RANGE_DB, vmax=0, cmap="gray", extent=ext)
@@ -78,22 +84,29 @@ def fig_psf(path: str, kernels: dict[str, np.ndarray], kernel_ref: np.ndarray, p
         ax.set_title(f"{what} through the peak")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    _save(fig, path)
+    return fig
 
 
 @torch.no_grad()
-def fig_images(path: str, trainer, masks: dict[str, list[int]], recons: dict[str, Any],
-               images: torch.Tensor, n_elements: int, n_show: int = 4) -> None:
-    """Ground truth, scatterer map, blurred |Y| and reconstructions of a few held-out images."""
+def fig_images(trainer, masks: dict[str, list[int]], recons: dict[str, Any], images: torch.Tensor,
+               n_elements: int, n_show: int = 3, names: list[str] | None = None):
+    """For each selection (one row each): ground truth, blurred measurement ``|Y|`` and
+    reconstruction of ``n_show`` held-out images side by side, PSNR (dB) in each title.
+
+    The scenes are the first ones :meth:`~arraysel.e2e.trainer.E2ETrainer.evaluate` used
+    (generator seeded ``config.seed + 1``), without the measurement noise of the
+    evaluation (these are single images, the tables hold the averages).
+    """
     from arraysel.e2e.recon import psnr
     from arraysel.e2e.trainer import blurred_image
 
-    plt = _plt()
     n_show = min(n_show, len(images))
-    gen = torch.Generator().manual_seed(trainer.config.seed + 1)  # the first scenes evaluate() used
-    i_s, i_ref = trainer.scene_fn(images[:n_show].to(trainer.device), gen)
-    rows = [("ground truth", i_ref, None), ("scatterer map |I_s|", i_s.abs(), None)]
-    for name in [m for m in ("learned", "uniform", "full") if m in masks]:
+    names = [m for m in (names or masks) if m in masks]
+    gen = torch.Generator().manual_seed(trainer.config.seed + 1)
+    i_s, i_ref = trainer.scenes(images[:n_show], gen)
+    fig = _figure((2.0 * 3 * n_show, 2.2 * len(names)))
+    axes = np.atleast_2d(fig.subplots(len(names), 3 * n_show, squeeze=False))
+    for r, name in enumerate(names):
         w = torch.zeros(n_elements)
         w[masks[name]] = 1.0
         op = trainer.operator(trainer._kernel(w.to(trainer.device)))
@@ -101,51 +114,56 @@ def fig_images(path: str, trainer, masks: dict[str, list[int]], recons: dict[str
         model = recons.get(name, trainer.reconstructor)
         was = model.training
         model.eval()
-        i_hat = model(y, op).clamp(0, 1)
+        i_hat = trainer.reconstruct(model, y, op).clamp(0, 1)
         model.train(was)
-        if name == "learned":
-            rows.append(("blurred |Y| (learned)", blurred_image(y, i_ref.to(i_hat.dtype)).clamp(0, 1), i_ref))
-        rows.append((f"reconstruction ({name})", i_hat, i_ref))
-    fig, axes = plt.subplots(len(rows), n_show, figsize=(2.2 * n_show, 2.2 * len(rows)), squeeze=False)
-    for r, (label, batch, ref) in enumerate(rows):
+        ref = i_ref.to(i_hat.dtype)
+        blur = blurred_image(y, ref).clamp(0, 1)
         for c in range(n_show):
-            ax = axes[r, c]
-            img = batch[c, 0].detach().float().cpu().numpy()
-            ax.imshow(img, cmap="gray", vmin=0, vmax=float(img.max()) or 1.0 if r == 1 else 1.0)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if ref is not None:
-                p = float(psnr(batch[c:c + 1].float(), ref[c:c + 1].float()))
-                ax.set_title(f"{p:.1f} dB", fontsize=8)
-            if c == 0:
-                ax.set_ylabel(label, fontsize=8)
-    _save(fig, path)
+            for j, (label, img) in enumerate((("truth", ref), ("blurred |Y|", blur), ("recon", i_hat))):
+                ax = axes[r, 3 * c + j]
+                ax.imshow(img[c, 0].float().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if j == 0:
+                    ax.set_title("ground truth", fontsize=8)
+                else:
+                    p = float(psnr(img[c:c + 1].float(), ref[c:c + 1].float()))
+                    ax.set_title(f"{label} {p:.1f} dB", fontsize=8)
+                if c == 0 and j == 0:
+                    ax.set_ylabel(name, fontsize=9)
+    fig.suptitle("held-out scenes: ground truth | blurred measurement | reconstruction (PSNR)",
+                 fontsize=10)
+    return fig
 
 
-def fig_loss(path: str, history: list[dict[str, float]]) -> None:
+def fig_loss(history: list[dict[str, float]]):
     """Loss terms per training step (log scale)."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = _figure((8, 4.5))
+    ax = fig.subplots()
     if history:
         steps = np.arange(1, len(history) + 1)
-        for key in [k for k in history[0] if k != "tau"]:
+        keys = list(dict.fromkeys(k for h in history for k in h if k != "tau"))
+        for key in keys:
             v = np.array([h.get(key, np.nan) for h in history], dtype=float)
-            if np.all(v[np.isfinite(v)] > 0):
+            ok = np.isfinite(v)
+            if ok.any() and np.all(v[ok] > 0):
                 ax.semilogy(steps, v, lw=1.5 if key == "total" else 0.8, label=key)
         ax.legend(fontsize=8, ncol=4)
     ax.set_xlabel("step")
     ax.set_ylabel("loss term")
     ax.grid(alpha=0.3)
-    ax.set_title("training loss terms (unweighted; total is weighted)")
-    _save(fig, path)
+    ax.set_title("training loss terms (unweighted; total is weighted and balanced)")
+    return fig
 
 
 def write_figures(out_dir: str, *, trainer, masks, recons, kernels, kernel_ref, pitch, n_elements,
                   images, table=None, reconstruction=None) -> list[str]:
-    """Write every figure of a run; returns their file names."""
+    """Write every figure of a run as PNG files in ``out_dir``; returns their file names."""
     kern = {name: kernels[i] for i, name in enumerate(masks)}
-    fig_mask(os.path.join(out_dir, "fig_mask.png"), masks, n_elements)
-    fig_psf(os.path.join(out_dir, "fig_psf.png"), kern, kernel_ref, pitch)
-    fig_images(os.path.join(out_dir, "fig_images.png"), trainer, masks, recons, images, n_elements)
-    fig_loss(os.path.join(out_dir, "fig_loss.png"), trainer.history)
-    return ["fig_mask.png", "fig_psf.png", "fig_images.png", "fig_loss.png"]
+    figs = {"fig_mask.png": fig_mask(masks, n_elements),
+            "fig_psf.png": fig_psf(kern, kernel_ref, pitch),
+            "fig_images.png": fig_images(trainer, masks, recons, images, n_elements),
+            "fig_loss.png": fig_loss(trainer.history)}
+    for name, fig in figs.items():
+        save_figure(fig, os.path.join(out_dir, name))
+    return list(figs)

@@ -13,6 +13,9 @@ and writes to ``out_dir``:
   selections, each with a copy of the trained reconstructor whose head is
   fine-tuned for ``finetune_steps`` steps on that selection, and the same
   metrics of the blurred measurement ``|Y|`` (``*_blurred`` columns);
+* ``comparison.csv`` (also printed): per selection Table-1 ``Mean``,
+  ``L_PSF``, PSNR / SSIM of the reconstruction and of ``|Y|``, and whether
+  the learned selection beats it on Mean, PSNR and SSIM;
 * ``history.csv`` (loss terms per step), ``settings.json`` (everything the
   run depends on), ``checkpoint.pt`` (resumable);
 * figures (PNG): ``fig_mask.png``, ``fig_psf.png`` (learned and reference PSF
@@ -51,10 +54,12 @@ from arraysel.io.masks import atomic_write_bytes
 from arraysel.objective.psf_objective import METRIC_NAMES, build_objective, masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
 
-__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "OUTPUT_FILES"]
+__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
+           "format_comparison", "OUTPUT_FILES"]
 
 #: the files a finished run leaves in its output folder
-OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "history.csv",
+OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "comparison.csv",
+                "history.csv",
                 "settings.json", "checkpoint.pt", "fig_mask.png", "fig_psf.png", "fig_images.png",
                 "fig_loss.png")
 
@@ -74,6 +79,19 @@ class E2ESettings:
     ``n_train`` / ``n_test``: keep only that many images (``None``: all).
     ``finetune_steps`` (per selection, before the reconstruction metrics)
     defaults to ``finetune_epochs`` epochs, or 100 steps when that is 0.
+
+    ``convolution``, ``kernel_stride``, ``target``, ``noise_std``,
+    ``balance``, ``reblur``, ``psf_warmup``, ``joint_lr_mask``, ``warm_start_margin``: as :class:`arraysel.e2e.trainer.TrainConfig`;
+    ``sample_selection``: the HARD-STE columns are sampled from ``p_j`` in
+    training (``True``, the documented default) or taken as their arg-max
+    (``False``, like the ``ste`` selector's default ``draw='argmax'``: less
+    noisy, the quick profile's choice). ``random_phase``: each point scatterer gets a uniform random phase
+    (:class:`arraysel.e2e.data.SceneMaker`). ``recon_steps > 0`` changes the
+    evaluation protocol: instead of fine-tuning copies of the jointly trained
+    reconstructor, every selection (the learned one included) gets a fresh
+    reconstructor (same initialisation) trained ``recon_steps`` steps on the
+    same batches, so the selections are compared under the same
+    reconstruction budget.
     """
 
     profile: str = "quick"
@@ -100,6 +118,18 @@ class E2ESettings:
     n_train: int | None = None
     n_test: int | None = None
     seed: int = 0
+    convolution: str = "circular"
+    kernel_stride: int = 1
+    target: str = "scene"
+    random_phase: bool = False
+    noise_std: float = 0.0
+    balance: str = "none"
+    reblur: bool = False
+    psf_warmup: int = 0
+    joint_lr_mask: float | None = None
+    recon_steps: int = 0
+    sample_selection: bool = True
+    warm_start_margin: float = 0.0
 
     def __post_init__(self) -> None:
         check_choice("profile", self.profile, ("quick", "full"))
@@ -127,11 +157,25 @@ class E2ESettings:
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), lo=1, integer=True)
         check_number("seed", self.seed, lo=0, integer=True)
+        check_choice("convolution", self.convolution, ("circular", "linear"))
+        check_number("kernel_stride", self.kernel_stride, lo=1, hi=16, integer=True)
+        check_choice("target", self.target, ("scene", "envelope"))
+        check_number("noise_std", self.noise_std, lo=0)
+        check_choice("balance", self.balance, ("none", "initial"))
+        check_number("recon_steps", self.recon_steps, lo=0, integer=True)
+        check_number("warm_start_margin", self.warm_start_margin, lo=0)
+        check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
+        if self.joint_lr_mask is not None:
+            check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
 
 
 #: the quick (CPU) profile's values; see the module docstring
-QUICK_PROFILE = dict(image_size=64, batch_size=8, steps=300, base_channels=16, source="sample",
-                     lr_mask=1e-2, lr_ista=5e-3, lr_head=1e-3, finetune_steps=25, tau_steps=None)
+QUICK_PROFILE = dict(image_size=64, kernel_stride=2, convolution="linear", target="envelope",
+                     scatterers="points", random_phase=True, noise_std=0.01, balance="initial",
+                     reblur=True, batch_size=8, steps=450, psf_warmup=300, tau_steps=300,
+                     base_channels=8, ista_layers=5, source="sample", lr_mask=3e-3,
+                     joint_lr_mask=1e-4, lr_ista=5e-3, lr_head=1e-3, finetune_steps=25,
+                     recon_steps=120, sample_selection=False, warm_start_margin=2.0)
 
 
 def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E2ESettings:
@@ -160,6 +204,8 @@ def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E
             base[key] = value
             if key == "epochs" and overrides.get("steps") is None:
                 base["steps"] = None  # an explicit --epochs beats the profile's step count
+            if key == "finetune_steps" and overrides.get("recon_steps") is None:
+                base["recon_steps"] = 0  # an explicit --finetune-steps asks for that protocol
     return E2ESettings(**base)
 
 
@@ -193,6 +239,33 @@ def _jsonable(settings: E2ESettings) -> dict[str, Any]:
     return dataclasses.asdict(settings)
 
 
+def comparison_rows(table: list[dict[str, Any]], rec_rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per selection: Table-1 ``Mean`` and ``L_PSF``, held-out PSNR / SSIM of the
+    reconstruction and of the blurred measurement, and whether the learned selection beats
+    it on all three of Mean, PSNR and SSIM (``learned_wins``; empty on the learned row)."""
+    t1 = {r["config"]: r for r in table}
+    rec = {r["config"]: r for r in rec_rows}
+    le = (t1["learned"]["Mean"], rec["learned"]["psnr"], rec["learned"]["ssim"])
+    rows = []
+    for name in rec:
+        mean, ps, ss = t1[name]["Mean"], rec[name]["psnr"], rec[name]["ssim"]
+        wins = "" if name == "learned" else ("yes" if le[0] < mean and le[1] > ps and le[2] > ss else "no")
+        rows.append({"config": name, "Mean": float(mean), "L_PSF": float(t1[name]["L_PSF"]),
+                     "psnr": float(ps), "ssim": float(ss), "psnr_blurred": float(rec[name]["psnr_blurred"]),
+                     "ssim_blurred": float(rec[name]["ssim_blurred"]), "learned_wins": wins})
+    return rows
+
+
+def format_comparison(rows: list[dict[str, Any]]) -> list[str]:
+    """The comparison as printed lines (a fixed-width table)."""
+    out = [f"{'selection':>12s} {'Mean':>8s} {'L_PSF':>8s} {'PSNR dB':>8s} {'SSIM':>6s} "
+           f"{'|Y| PSNR':>9s} {'|Y| SSIM':>9s}  learned better on all three"]
+    for r in rows:
+        out.append(f"{r['config']:>12s} {r['Mean']:8.4f} {r['L_PSF']:8.4f} {r['psnr']:8.2f} "
+                   f"{r['ssim']:6.3f} {r['psnr_blurred']:9.2f} {r['ssim_blurred']:9.3f}  {r['learned_wins']}")
+    return out
+
+
 # ---------------------------------------------------------------------------
 # the run
 # ---------------------------------------------------------------------------
@@ -205,7 +278,7 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
                  full: bool = False, device: str = "cpu", dtype: torch.dtype = torch.float32,
                  resume: bool = False, figures: bool = True, log: Callable[[str], None] | None = _print,
                  log_every: int | None = None, threads: int | None = None,
-                 **overrides: Any) -> dict[str, Any]:
+                 extra_masks: dict[str, list[int]] | None = None, **overrides: Any) -> dict[str, Any]:
     """Train an end-to-end selection on ``scene`` and write the outputs to ``out_dir``.
 
     ``overrides``: any :class:`E2ESettings` field (``dataset``, ``epochs``,
@@ -216,6 +289,8 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
     default 1 for the quick profile on a CPU (its tensors are small, and
     thread synchronisation then costs more than it gains: about 10x on a
     busy 2-core machine), torch's own setting otherwise.
+    ``extra_masks``: more selections (name -> k indices) scored and
+    reconstructed like the baselines (e.g. the ``ste`` selector's result).
     ``log`` receives the progress lines (``None``: silent). Returns a
     summary: ``learned`` (indices), ``table1`` and ``reconstruction`` (lists
     of row dicts), ``steps``, ``seconds``, ``files``.
@@ -227,13 +302,16 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
         torch.set_num_threads(check_number("threads", threads, lo=1, integer=True))
     try:
         return _run(scene, out_dir=out_dir, full=full, device=device, dtype=dtype, resume=resume,
-                    figures=figures, log=log, log_every=log_every, overrides=overrides)
+                    figures=figures, log=log, log_every=log_every, extra_masks=extra_masks,
+                    overrides=overrides)
     finally:
         torch.set_num_threads(old_threads)
 
 
-def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every, overrides):
+def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every, extra_masks,
+         overrides):
     from arraysel.e2e.data import SceneMaker, load_dataset
+    from arraysel.e2e.recon import Reconstructor
     from arraysel.e2e.trainer import E2ETrainer, HardSTESelection, LossWeights, TrainConfig
 
     say = log or (lambda _msg: None)
@@ -282,23 +360,35 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
     x_test, _ = load_dataset(s.dataset, "test", source=s.source, limit=s.n_test)
     n = s.image_size
     scene_fn = SceneMaker(n=n, mode=s.scatterers, depth_range=(s.depth_min, s.depth_max),
-                          n_scatterers=max(1, round(s.scatterers_per_pixel * n * n)))
+                          n_scatterers=max(1, round(s.scatterers_per_pixel * n * n)),
+                          random_phase=s.random_phase)
     steps_per_epoch = max(1, len(x_train) // s.batch_size)
     total = s.steps if s.steps is not None else s.epochs * steps_per_epoch
     tau_steps = s.tau_steps if s.tau_steps is not None else max(1, total // 2)
+    # the PSF-only warm-up takes at most two thirds of the run (a short run still trains jointly)
+    psf_warmup = min(s.psf_warmup, 2 * total // 3)
+    tau_steps = min(tau_steps, psf_warmup) if psf_warmup else tau_steps
     ft_steps = s.finetune_steps
     if ft_steps is None:
         ft_steps = s.finetune_epochs * steps_per_epoch or 100
     config = TrainConfig(batch_size=s.batch_size, epochs=s.epochs, max_steps=total, lr_mask=s.lr_mask,
                          lr_ista=s.lr_ista, lr_head=s.lr_head, tau_start=s.tau_start, tau_end=s.tau_end,
-                         tau_steps=tau_steps, seed=s.seed, checkpoint_every=0, progress=False)
-    selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed))
+                         tau_steps=tau_steps, seed=s.seed, checkpoint_every=0, progress=False,
+                         convolution=s.convolution, kernel_stride=s.kernel_stride, target=s.target,
+                         noise_std=s.noise_std, balance=s.balance, reblur=s.reblur,
+                         psf_warmup=psf_warmup, joint_lr_mask=s.joint_lr_mask,
+                         warm_start_margin=s.warm_start_margin if psf_warmup else 0.0)
+    selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed),
+                                 sample=s.sample_selection)
     trainer = E2ETrainer(selection, kernel_fn, kappa_ref, x_train, psf_terms_fn=psf_terms,
                          weights=weights, config=config, n_layers=s.ista_layers,
                          base_channels=s.base_channels, scene_fn=scene_fn, checkpoint_path=ckpt_path,
                          device=device, image_size=n)
+    pix = objective.setup.pitch * s.kernel_stride
     say(f"arraysel train: scene {sc.name!r} ({s.profile} profile), Ne = {ne}, k = {k}, "
-        f"{s.dataset} ({len(x_train)} train / {len(x_test)} test images, {n}x{n}, {s.scatterers}), "
+        f"{s.dataset} ({len(x_train)} train / {len(x_test)} test images, {n}x{n} px of "
+        f"{pix * 1e6:.1f} um = {n * pix * 1e3:.2f} mm, {s.scatterers}, {s.convolution} convolution, "
+        f"target {s.target}, noise {s.noise_std:g}, balance {s.balance}), "
         f"batch {s.batch_size}, {total} steps, device {device}")
 
     # training -----------------------------------------------------------------
@@ -333,6 +423,14 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
 
     # Table 1 ------------------------------------------------------------------
     masks = {"learned": learned, **baseline_masks(ne, k, s.seed)}
+    for name, idx in (extra_masks or {}).items():
+        if name in masks:
+            raise ParameterError(f"extra mask name {name!r} is taken; taken: {sorted(masks)}")
+        idx = sorted(int(i) for i in idx)
+        if len(idx) != k or len(set(idx)) != k or not all(0 <= i < ne for i in idx):
+            raise SelectionError(f"extra mask {name!r} must hold {k} distinct indices in [0, {ne}), "
+                                 f"got {idx}")
+        masks[name] = idx
     res = objective.evaluate(masks_from_indices(list(masks.values()), ne), return_kernels=True)
     table = [{"config": name, "n_active": len(idx), **{m: float(res[m][i]) for m in METRIC_NAMES},
               "elements": " ".join(map(str, idx))} for i, (name, idx) in enumerate(masks.items())]
@@ -341,12 +439,26 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
     # reconstruction: one fine-tuned copy of the head per selection, same batches for each
     snapshot = (trainer.generator.get_state(), trainer._perm, trainer._pos)
     recons = {}
+    t_recon = time.perf_counter()
+    if s.recon_steps:
+        ft_steps = s.recon_steps
+        say(f"training a fresh reconstructor for each of {len(masks)} selections "
+            f"({s.recon_steps} steps each, same initialisation and batches)")
     for name, idx in masks.items():
         trainer.generator.set_state(snapshot[0])
         trainer._perm, trainer._pos = snapshot[1], snapshot[2]
-        model = copy.deepcopy(trainer.reconstructor)
-        trainer.finetune_head(ft_steps, mask=idx, reconstructor=model)
+        if s.recon_steps:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(s.seed)
+                model = Reconstructor(s.ista_layers, base_channels=s.base_channels)
+            if s.reblur:
+                model.init_magnitude_base()
+            trainer.finetune_head(s.recon_steps, mask=idx, reconstructor=model, include_ista=True)
+        else:
+            model = copy.deepcopy(trainer.reconstructor)
+            trainer.finetune_head(ft_steps, mask=idx, reconstructor=model)
         recons[name] = model
+    recon_seconds = time.perf_counter() - t_recon
     trainer.generator.set_state(snapshot[0])
     trainer._perm, trainer._pos = snapshot[1], snapshot[2]
     ev = trainer.evaluate(x_test, {k_: v for k_, v in masks.items() if k_ != "learned"},
@@ -370,15 +482,16 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
                                kernels=res["kernels"], kernel_ref=kappa_ref.detach().cpu().numpy(),
                                pitch=objective.setup.pitch, n_elements=ne, images=x_test,
                                table=table, reconstruction=rec_rows)
+    comparison = comparison_rows(table, rec_rows)
+    _write_csv(os.path.join(out_dir, "comparison.csv"), comparison)
+    files.insert(4, "comparison.csv")
     seconds = time.perf_counter() - t_start
-    for r in table:
-        say(f"{r['config']:>8s}  Mean={r['Mean']:.4g}  L_PSF={r['L_PSF']:.4g}  "
-            f"L_contrast={r['L_contrast']:.4g}  L_SLR={r['L_SLR']:.4g}")
-    for r in rec_rows:
-        say(f"{r['config']:>8s}  PSNR={r['psnr']:.2f} dB  SSIM={r['ssim']:.3f}   "
-            f"blurred |Y|: PSNR={r['psnr_blurred']:.2f} dB  SSIM={r['ssim_blurred']:.3f}")
+    for line in format_comparison(comparison):
+        say(line)
     say(f"learned elements: {','.join(map(str, learned))}")
-    say(f"done in {seconds:.0f} s (training {train_seconds:.0f} s); wrote {out_dir}/: {', '.join(files)}")
+    say(f"done in {seconds:.0f} s (training {train_seconds:.0f} s, reconstructors "
+        f"{recon_seconds:.0f} s); wrote {out_dir}/: {', '.join(files)}")
     return {"learned": learned, "table1": table, "reconstruction": rec_rows, "steps": trainer.step,
-            "seconds": seconds, "train_seconds": train_seconds, "files": files,
+            "seconds": seconds, "train_seconds": train_seconds, "recon_seconds": recon_seconds,
+            "files": files,
             "settings": settings, "history": trainer.history}

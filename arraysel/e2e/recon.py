@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from arraysel.errors import NumericalError, ParameterError, check_number
 
 __all__ = [
-    "ConvolutionOperator", "convolve", "complex_soft_threshold", "UnrolledISTA", "features",
+    "ConvolutionOperator", "LinearConvolutionOperator", "convolve", "complex_soft_threshold", "UnrolledISTA", "features",
     "ResidualHead", "Reconstructor", "mse", "psnr", "ssim",
 ]
 
@@ -90,6 +90,47 @@ class ConvolutionOperator:
             lhs = torch.vdot(self.A(x).flatten(), y.flatten())
             rhs = torch.vdot(x.flatten(), self.A_adjoint(y).flatten())
             return float((lhs - rhs).abs() / lhs.abs().clamp_min(torch.finfo(real).tiny))
+
+
+class LinearConvolutionOperator(ConvolutionOperator):
+    """Linear ("same") convolution of an ``n x n`` scene with an ``m x m`` kernel.
+
+    ``A(x) = crop_n(kappa * x)``: the scene is zero outside its ``n x n``
+    field, the kernel's centre pixel ``(m//2, m//2)`` is the zero shift, and
+    the output is the ``n x n`` field again. Nothing wraps around: it is
+    computed as a circular convolution on an ``N x N`` grid with
+    ``N = n + m`` (>= n + m - 1), the scene zero-padded, then cropped.
+    ``A_adjoint`` is the exact adjoint (pad, correlate, crop).
+    ``lipschitz = max |FFT_N(kappa)|^2`` is an upper bound of ``||A||^2``
+    (equal to it for circular convolution on the padded grid), which is what
+    the ISTA step size needs. Same interface as :class:`ConvolutionOperator`.
+    """
+
+    def __init__(self, kappa: torch.Tensor, n: int):
+        if not isinstance(kappa, torch.Tensor) or kappa.ndim != 2 or kappa.shape[0] != kappa.shape[1]:
+            shape = tuple(kappa.shape) if isinstance(kappa, torch.Tensor) else type(kappa).__name__
+            raise ParameterError(f"kappa must be a square (m, m) tensor, got {shape}")
+        self.n = check_number("n", n, lo=1, integer=True)
+        self.kappa = kappa.to(_complex_dtype(kappa.dtype))
+        m = kappa.shape[-1]
+        self.grid = self.n + m
+        c = m // 2
+        k0 = F.pad(self.kappa, (0, self.grid - m, 0, self.grid - m))
+        self.K = torch.fft.fft2(torch.roll(k0, (-c, -c), (-2, -1)))
+
+    def _pad(self, x: torch.Tensor) -> torch.Tensor:
+        g = self.grid - self.n
+        return F.pad(self._check(x), (0, g, 0, g))
+
+    def A(self, x: torch.Tensor) -> torch.Tensor:
+        """``crop_n(kappa * x)`` (complex output, same shape as ``x``)."""
+        return torch.fft.ifft2(self.K * torch.fft.fft2(self._pad(x)))[..., :self.n, :self.n]
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """Adjoint: zero-pad, correlate with the kernel, crop."""
+        return torch.fft.ifft2(self.K.conj() * torch.fft.fft2(self._pad(y)))[..., :self.n, :self.n]
+
+    __call__ = A
 
 
 def convolve(kappa: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -260,7 +301,9 @@ class Reconstructor(nn.Module):
     ``forward(y, kappa_or_op)`` takes measurements ``y`` ``(B, 1, n, n)`` and
     the kernel (or a :class:`ConvolutionOperator`) and returns the real
     reconstruction ``(B, 1, n, n)``; ``return_x=True`` also returns the ISTA
-    output. Parameter groups: ``self.ista`` and ``self.head``.
+    output. With ``reblur=op_ref`` the head sees the features of
+    ``op_ref.A(X)`` (the ISTA estimate imaged with another kernel, e.g. the
+    full array's) instead of ``X``. Parameter groups: ``self.ista`` and ``self.head``.
     """
 
     def __init__(self, n_layers: int = 8, *, base_channels: int = 32, step_fraction: float = 0.5,
@@ -270,11 +313,25 @@ class Reconstructor(nn.Module):
         self.head = ResidualHead(5, base_channels, eta=eta)
         self.feature_eps = check_number("feature_eps", feature_eps, lo=0, lo_open=True)
 
+    @torch.no_grad()
+    def init_magnitude_base(self) -> "Reconstructor":
+        """Start the head's base ``b = conv1x1(phi)`` as the magnitude channel ``|X|``
+        (weights 0, 0, 1, 0, 0, bias 0): the head then starts from the envelope of its
+        input (with ``reblur``: the reference kernel's image of the ISTA estimate) and
+        learns the residual. Returns ``self``."""
+        self.head.base.weight.zero_()
+        self.head.base.weight[0, 2] = 1.0
+        self.head.base.bias.zero_()
+        return self
+
     def forward(self, y: torch.Tensor, kappa: torch.Tensor | ConvolutionOperator, *,
-                return_x: bool = False):
+                return_x: bool = False, reblur: ConvolutionOperator | None = None):
         op = kappa if isinstance(kappa, ConvolutionOperator) else ConvolutionOperator(kappa)
         x = self.ista(y, op)
-        phi = features(x, self.feature_eps).to(self.head.base.weight.dtype)
+        # reblur: the ISTA estimate of the scatterers imaged with another (the full array's)
+        # kernel before the head, for targets that are that kernel's envelope image
+        z = x if reblur is None else reblur.A(x)
+        phi = features(z, self.feature_eps).to(self.head.base.weight.dtype)
         out = self.head(phi)
         return (out, x) if return_x else out
 

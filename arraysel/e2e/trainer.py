@@ -63,16 +63,21 @@ from arraysel.e2e.data import SceneMaker
 from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
                              check_number)
 from arraysel.objective.losses import l_ent, l_row, weighted_sum
-from arraysel.e2e.recon import ConvolutionOperator, Reconstructor, mse, psnr, ssim
+from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
+                                psnr, ssim)
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
 
 __all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
-           "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "blurred_image"]
+           "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "decimate_kernel",
+           "balanced_total", "BALANCED_TERMS", "blurred_image"]
 
 log = logging.getLogger(__name__)
 
 KernelFn = Callable[[torch.Tensor], torch.Tensor]
 PSF_TERMS = ("psf", "contrast", "slr")
+#: the terms ``balance='initial'`` divides by their value at the start (``ent`` and ``row``
+#: are regularisers of the selection matrix, ``row`` is ~0 at the start: left as they are)
+BALANCED_TERMS = ("psf", "contrast", "slr", "conv", "rec")
 CHECKPOINT_FORMAT = "arraysel-e2e-1"
 
 
@@ -173,6 +178,46 @@ def fit_kernel(kappa: torch.Tensor, n: int) -> torch.Tensor:
     return torch.nn.functional.pad(kappa, (s, n - h - s, s, n - h - s))
 
 
+def decimate_kernel(kappa: torch.Tensor, stride: int) -> torch.Tensor:
+    """Every ``stride``-th pixel of an ``(h, h)`` kernel, keeping its centre pixel, unit L2 norm.
+
+    Pixel ``(h // 2, h // 2)`` of ``kappa`` becomes pixel ``(h // 2 // stride, ...)``,
+    the centre pixel of the result when ``h`` is a multiple of ``stride``
+    (``h = 128, stride = 2``: 64 x 64 at twice the pitch). Plain sub-sampling,
+    no filter: it is exact when the kernel's spectrum lies inside the coarser
+    grid's Nyquist band (the paper scene's beamformed I/Q PSF: 5e-4 of the
+    energy of the uniform selection's kernel lies outside it for ``stride = 2``,
+    14 % for ``stride = 4``). The result is rescaled to unit L2 norm like the
+    objective's kernels. Differentiable; ``stride = 1`` returns ``kappa``.
+    """
+    stride = check_number("kernel_stride", stride, lo=1, integer=True)
+    if stride == 1:
+        return kappa
+    h = kappa.shape[-1]
+    if h % stride:
+        raise ParameterError(f"kernel_stride ({stride}) must divide the kernel size ({h})")
+    c = h // 2
+    sub = kappa[..., c % stride::stride, c % stride::stride]
+    norm = (sub.real ** 2 + sub.imag ** 2).sum((-2, -1), keepdim=True).sqrt() if sub.is_complex() \
+        else sub.pow(2).sum((-2, -1), keepdim=True).sqrt()
+    return sub / norm.clamp_min(torch.finfo(norm.dtype).tiny)
+
+
+def balanced_total(terms: Mapping[str, torch.Tensor], weights: "LossWeights",
+                   scales: Mapping[str, float] | None = None) -> torch.Tensor:
+    """``sum_t w_t L_t / s_t`` over the terms given (``s_t = 1`` for a term not in ``scales``).
+
+    With ``scales`` the values of the terms at the start of training
+    (``balance='initial'``), every balanced term enters with its weight at
+    step 0, whatever its physical scale: ``L_rec`` of images in [0, 1] and
+    ``L_contrast`` of a PSF differ by three orders of magnitude, and without
+    this the larger one decides the selection alone.
+    """
+    scales = scales or {}
+    scaled = {t: v / scales.get(t, 1.0) for t, v in terms.items() if t != "total"}
+    return weighted_sum(scaled, {t: getattr(weights, t) for t in scaled})
+
+
 def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None
                     ) -> torch.Tensor:
     """Turn a mask into ``(Ne,)`` float weights.
@@ -227,6 +272,42 @@ class TrainConfig:
     given. ``noise_std`` adds complex Gaussian noise of that standard
     deviation to the measurements fed to the reconstructor (not to
     ``L_conv``).
+
+    Forward model and target (defaults: the SPEC's circular model on the
+    kernel's own grid, ``I_ref`` from the scene maker):
+
+    * ``convolution``: ``'circular'`` (:class:`~arraysel.e2e.recon.ConvolutionOperator`
+      on the kernel :func:`fit_kernel` to the scene size) or ``'linear'``
+      (:class:`~arraysel.e2e.recon.LinearConvolutionOperator`: the whole
+      kernel, the scene zero outside its field, nothing wraps around).
+    * ``kernel_stride``: the data terms use :func:`decimate_kernel` of the
+      kernel (one scene pixel = ``kernel_stride`` PSF pixels); the PSF terms
+      always see the full-resolution kernel.
+    * ``target``: ``'scene'`` (the scene maker's ``I_ref``) or ``'envelope'``:
+      ``I_ref = |kappa_ref (*) I_s| / s`` and ``I_s / s`` with ``s`` the
+      per-image maximum of ``|kappa_ref (*) I_s|``, i.e. the full array's
+      envelope image of the same scatterers, in [0, 1].
+    * ``balance``: ``'none'`` (the weights as they are) or ``'initial'``:
+      each of :data:`BALANCED_TERMS` is divided by its mean over
+      ``balance_batches`` batches at the start of training (fixed
+      afterwards, stored in checkpoints), :func:`balanced_total`.
+    * ``reblur``: the reconstructor's head sees its ISTA estimate imaged with
+      the reference kernel (``Reconstructor(..., reblur=op_ref)``), the
+      natural output stage for ``target='envelope'``.
+    * ``psf_warmup``: the first ``psf_warmup`` steps train the selection on
+      the PSF terms alone (``L_conv``, ``L_rec`` off, the reconstructor
+      untouched): the mask starts the joint phase from a PSF-only optimum
+      instead of a random draw. ``joint_lr_mask`` (default ``lr_mask``) is
+      the mask's learning rate after it: a lower one keeps the data terms'
+      noisy gradient from pulling the selection away from it (drift).
+      ``warm_start_margin > 0`` (needs a selection module with ``logits``
+      drawn by arg-max, ``sample=False``): during the warm-up the trainer
+      keeps the selection with the lowest weighted (balanced) PSF terms seen
+      so far (the arg-max draw of a step is the deterministic selection, so
+      this costs nothing), and at the end of the warm-up sets the logits to
+      that selection, ``margin`` on its element in each column and 0
+      elsewhere: the joint phase starts from the PSF-only optimum, and a
+      selection change then needs a logit change of about ``margin``.
     """
 
     batch_size: int = 64
@@ -244,6 +325,15 @@ class TrainConfig:
     conv_reduction: str = "mean"
     grad_clip: float | None = None
     progress: bool = True
+    convolution: str = "circular"
+    kernel_stride: int = 1
+    target: str = "scene"
+    balance: str = "none"
+    balance_batches: int = 4
+    reblur: bool = False
+    psf_warmup: int = 0
+    joint_lr_mask: float | None = None
+    warm_start_margin: float = 0.0
 
     def __post_init__(self) -> None:
         check_number("batch_size", self.batch_size, lo=1, integer=True)
@@ -258,6 +348,15 @@ class TrainConfig:
         check_number("checkpoint_every", self.checkpoint_every, lo=0, integer=True)
         check_number("seed", self.seed, integer=True)
         check_choice("conv_reduction", self.conv_reduction, ("mean", "sum"))
+        check_choice("convolution", self.convolution, ("circular", "linear"))
+        check_number("kernel_stride", self.kernel_stride, lo=1, integer=True)
+        check_choice("target", self.target, ("scene", "envelope"))
+        check_choice("balance", self.balance, ("none", "initial"))
+        check_number("balance_batches", self.balance_batches, lo=1, integer=True)
+        check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
+        check_number("warm_start_margin", self.warm_start_margin, lo=0)
+        if self.joint_lr_mask is not None:
+            check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
         if self.grad_clip is not None:
             check_number("grad_clip", self.grad_clip, lo=0, lo_open=True)
 
@@ -333,6 +432,8 @@ class E2ETrainer:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(self.config.seed)
                 reconstructor = Reconstructor(n_layers, base_channels=base_channels)
+            if self.config.reblur:
+                reconstructor.init_magnitude_base()
         self.reconstructor = reconstructor.to(self.device)
         self.scene_fn = scene_fn if scene_fn is not None else SceneMaker(n=self.image_size, mode="image")
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
@@ -342,6 +443,13 @@ class E2ETrainer:
         self.history: list[dict[str, float]] = []
         self._perm: torch.Tensor | None = None
         self._pos = 0
+        self.term_scales: dict[str, float] = {}
+        self._ref_op: ConvolutionOperator | None = None
+        self.warm_best: tuple[float, list[int]] | None = None
+        if self.config.warm_start_margin > 0 and self.config.psf_warmup > 0 and (
+                not hasattr(self.selection, "logits") or getattr(self.selection, "sample", True)):
+            raise ParameterError("warm_start_margin > 0 needs a selection module with logits drawn "
+                                 "by arg-max (HardSTESelection(..., sample=False))")
 
     # -- set-up helpers -----------------------------------------------------
     def _param_groups(self) -> list[dict]:
@@ -396,8 +504,67 @@ class E2ETrainer:
         return kappa
 
     def operator(self, kappa: torch.Tensor) -> ConvolutionOperator:
-        """The forward model of a kernel on the scene grid (:func:`fit_kernel` to ``image_size``)."""
+        """The forward model of a kernel on the scene grid: :func:`decimate_kernel` by
+        ``kernel_stride``, then circular (:func:`fit_kernel` to ``image_size``) or linear."""
+        kappa = decimate_kernel(kappa, self.config.kernel_stride)
+        if self.config.convolution == "linear":
+            return LinearConvolutionOperator(kappa, self.image_size)
         return ConvolutionOperator(fit_kernel(kappa, self.image_size))
+
+    def reference_operator(self) -> ConvolutionOperator:
+        """:meth:`operator` of the reference kernel (cached)."""
+        if self._ref_op is None:
+            self._ref_op = self.operator(self.kernel_ref)
+        return self._ref_op
+
+    def scenes(self, images: torch.Tensor, generator: torch.Generator
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(I_s, I_ref)`` of a batch: the scene maker's, or with ``target='envelope'``
+        the full array's envelope image as the target (see :class:`TrainConfig`)."""
+        i_s, i_ref = self.scene_fn(images.to(self.device), generator)
+        if self.config.target == "envelope":
+            with torch.no_grad():
+                env = self.reference_operator().A(i_s).abs()
+                s = env.flatten(1).amax(1).clamp_min(torch.finfo(env.dtype).tiny)
+                s = s.view(-1, *([1] * (env.dim() - 1)))
+            i_s, i_ref = i_s / s.to(i_s.dtype), env / s
+        return i_s, i_ref
+
+    def reconstruct(self, model: nn.Module, y: torch.Tensor, op: ConvolutionOperator) -> torch.Tensor:
+        """``model(y, op)``, with ``reblur=`` the reference operator when ``config.reblur``."""
+        if self.config.reblur:
+            return model(y, op, reblur=self.reference_operator())
+        return model(y, op)
+
+    def _total(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The weighted sum of the terms (balanced with ``balance='initial'``)."""
+        return balanced_total(terms, self.weights, self.term_scales)
+
+    @torch.no_grad()
+    def calibrate_balance(self) -> dict[str, float]:
+        """Set :attr:`term_scales` for ``balance='initial'``: the mean of each of
+        :data:`BALANCED_TERMS` over ``balance_batches`` batches drawn with a
+        generator seeded ``config.seed + 2`` (the training stream is untouched),
+        the selection at the starting temperature. Returns the scales."""
+        gen = torch.Generator().manual_seed(self.config.seed + 2)
+        n, bs = len(self.images), self.config.batch_size
+        acc: dict[str, float] = {}
+        was = self.selection.training, self.reconstructor.training
+        self.selection.train()
+        self.reconstructor.eval()
+        try:
+            for _ in range(self.config.balance_batches):
+                idx = torch.randperm(n, generator=gen)[:bs]
+                terms = self.loss_terms(self.images[idx], self.tau(0), gen)
+                for t in BALANCED_TERMS:
+                    if t in terms:
+                        acc[t] = acc.get(t, 0.0) + float(terms[t]) / self.config.balance_batches
+        finally:
+            self.selection.train(was[0])
+            self.reconstructor.train(was[1])
+        tiny = 1e-12
+        self.term_scales = {t: max(v, tiny) for t, v in acc.items()}
+        return dict(self.term_scales)
 
     # -- loss ---------------------------------------------------------------
     def loss_terms(self, images: torch.Tensor, tau: float,
@@ -405,7 +572,7 @@ class E2ETrainer:
         """All non-zero-weight terms and their weighted sum ``'total'`` for one batch."""
         gen = self.generator if generator is None else generator
         w = self.weights
-        i_s, i_ref = self.scene_fn(images.to(self.device), gen)
+        i_s, i_ref = self.scenes(images, gen)
         P, p_soft = self.selection(tau, gen)
         kappa = self._kernel(P.sum(1))
         terms: dict[str, torch.Tensor] = {}
@@ -423,12 +590,12 @@ class E2ETrainer:
             op = self.operator(kappa)
             y_c = op.A(i_s)
             if w.conv > 0:
-                d = y_c - self.operator(self.kernel_ref).A(i_s)
+                d = y_c - self.reference_operator().A(i_s)
                 sq = d.real ** 2 + d.imag ** 2
                 terms["conv"] = (sq.mean() if self.config.conv_reduction == "mean"
                                  else sq.flatten(1).sum(1).mean())
             if w.rec > 0:
-                i_hat = self.reconstructor(self._noise(y_c, gen), op)
+                i_hat = self.reconstruct(self.reconstructor, self._noise(y_c, gen), op)
                 terms["rec"] = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
         if w.ent > 0:
             terms["ent"] = entropy_loss(p_soft)
@@ -436,20 +603,51 @@ class E2ETrainer:
             terms["row"] = row_loss(p_soft)
         if not terms:
             raise ParameterError("every loss weight is 0: nothing to train")
-        terms["total"] = weighted_sum(terms, {t: getattr(w, t) for t in terms})
+        terms["total"] = self._total(terms)
         return terms
 
     # -- training -----------------------------------------------------------
+    @torch.no_grad()
+    def _warm_start(self, indices: list[int]) -> None:
+        """Logits = ``warm_start_margin`` on ``indices[j]`` in column ``j``, 0 elsewhere; the
+        mask's Adam state is reset (its moments belong to the old logits)."""
+        logits = self.selection.logits
+        logits.zero_()
+        for j, e in enumerate(sorted(indices)):
+            logits[e, j] = self.config.warm_start_margin
+        self.optimizer.state.pop(logits, None)
+        log.info("step %d: warm start from the best PSF-only selection (score %.4g): %s",
+                 self.step, self.warm_best[0], sorted(indices))
+
+    def _set_mask_lr(self, lr: float) -> None:
+        for g in self.optimizer.param_groups:
+            if g.get("name") == "mask":
+                g["lr"] = lr
+
     def train_step(self) -> dict[str, float]:
         """One optimisation step on the next batch; returns the loss terms as floats."""
         self.selection.train()
         self.reconstructor.train()
         tau = self.tau()
-        terms = self.loss_terms(self._next_batch(), tau)
+        warm = self.step < self.config.psf_warmup
+        self._set_mask_lr(self.config.lr_mask if warm or self.config.joint_lr_mask is None
+                          else self.config.joint_lr_mask)
+        weights = self.weights
+        if warm:  # PSF-only phase: the data terms are switched off for this step
+            self.weights = dataclasses.replace(weights, conv=0.0, rec=0.0)
+        try:
+            terms = self.loss_terms(self._next_batch(), tau)
+        finally:
+            self.weights = weights
         total = terms["total"]
         if not torch.isfinite(total):
             raise NumericalError(f"step {self.step}: loss is {float(total)} "
                                  f"({ {k: float(v) for k, v in terms.items()} })")
+        if warm and self.config.warm_start_margin > 0:
+            score = float(sum(getattr(self.weights, t) * terms[t].detach() / self.term_scales.get(t, 1.0)
+                              for t in PSF_TERMS if t in terms))
+            if self.warm_best is None or score < self.warm_best[0]:
+                self.warm_best = (score, self.selection.indices(tau).tolist())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         if self.config.grad_clip is not None:
@@ -457,6 +655,8 @@ class E2ETrainer:
             torch.nn.utils.clip_grad_norm_(params, self.config.grad_clip)
         self.optimizer.step()
         self.step += 1
+        if warm and self.step == self.config.psf_warmup and self.warm_best is not None:
+            self._warm_start(self.warm_best[1])
         rec = {k: float(v.detach()) for k, v in terms.items()}
         rec["tau"] = tau
         self.history.append(rec)
@@ -480,6 +680,8 @@ class E2ETrainer:
                 log.info("no checkpoint at %s: starting from step 0", self.checkpoint_path)
         target = self.total_steps if max_steps is None else check_number("max_steps", max_steps,
                                                                          lo=0, integer=True)
+        if self.config.balance == "initial" and not self.term_scales and self.step < target:
+            self.calibrate_balance()
         every = self.config.checkpoint_every
         bar = tqdm(total=target, initial=min(self.step, target), desc="e2e",
                    disable=not self.config.progress, dynamic_ncols=True)
@@ -510,6 +712,8 @@ class E2ETrainer:
             "history": self.history,
             "config": dataclasses.asdict(self.config),
             "weights": dataclasses.asdict(self.weights),
+            "term_scales": dict(self.term_scales),
+            "warm_best": None if self.warm_best is None else [self.warm_best[0], list(self.warm_best[1])],
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -546,6 +750,9 @@ class E2ETrainer:
         self._pos = int(state["pos"])
         self.step = int(state["step"])
         self.history = list(state["history"])
+        self.term_scales = {str(k): float(v) for k, v in state.get("term_scales", {}).items()}
+        wb = state.get("warm_best")
+        self.warm_best = None if wb is None else (float(wb[0]), [int(i) for i in wb[1]])
 
     # -- after training -----------------------------------------------------
     @torch.no_grad()
@@ -576,8 +783,13 @@ class E2ETrainer:
         otherwise ``mask`` (indices or ``(Ne,)`` weights, e.g. a baseline).
         ``reconstructor`` (default: the trainer's own) is the model trained;
         pass ``copy.deepcopy(trainer.reconstructor)`` to keep the original.
-        Uses a fresh Adam (``lr`` default ``config.lr_head``); batches and
-        noise come from the trainer's generator. Returns the loss per step.
+        Uses a fresh Adam (``lr`` default ``config.lr_head``, and
+        ``config.lr_ista`` for the ISTA parameters); batches and noise come
+        from the trainer's generator. With a freshly initialised
+        ``reconstructor`` and ``include_ista=True`` this trains a
+        reconstructor from scratch for a fixed selection (the baselines'
+        reconstructors in :func:`arraysel.e2e.pipeline.run_training`).
+        Returns the loss per step.
         """
         steps = check_number("steps", steps, lo=0, integer=True)
         recon = self.reconstructor if reconstructor is None else reconstructor.to(self.device)
@@ -585,19 +797,22 @@ class E2ETrainer:
             w = self.learned_weights() if mask is None else self._mask_weights(mask)
             op = self.operator(self._kernel(w.to(self.device)).detach())
         params = list(recon.head.parameters()) if hasattr(recon, "head") else list(recon.parameters())
+        groups = [{"params": params, "lr": self.config.lr_head if lr is None else lr}]
         if include_ista and hasattr(recon, "ista"):
-            params += list(recon.ista.parameters())
+            ista = list(recon.ista.parameters())
+            groups.append({"params": ista, "lr": self.config.lr_ista if lr is None else lr})
+            params = params + ista
         trainable = {id(p) for p in params}
         frozen = [p for p in recon.parameters() if id(p) not in trainable and p.requires_grad]
         for p in frozen:
             p.requires_grad_(False)
-        opt = torch.optim.Adam(params, lr=self.config.lr_head if lr is None else lr)
+        opt = torch.optim.Adam(groups)
         losses = []
         recon.train()
         try:
             for _ in tqdm(range(steps), desc="finetune", disable=not self.config.progress):
-                i_s, i_ref = self.scene_fn(self._next_batch().to(self.device), self.generator)
-                i_hat = recon(self._noise(op.A(i_s), self.generator), op)
+                i_s, i_ref = self.scenes(self._next_batch(), self.generator)
+                i_hat = self.reconstruct(recon, self._noise(op.A(i_s), self.generator), op)
                 loss = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -647,9 +862,9 @@ class E2ETrainer:
             op = self.operator(self._kernel(w.to(self.device)))
             vals: dict[str, list] = {}
             for start in range(0, len(imgs), bs):
-                i_s, i_ref = self.scene_fn(imgs[start:start + bs].to(self.device), gen)
+                i_s, i_ref = self.scenes(imgs[start:start + bs], gen)
                 y = self._noise(op.A(i_s), gen)
-                i_hat = recon(y, op)
+                i_hat = self.reconstruct(recon, y, op)
                 i_ref = i_ref.to(i_hat.dtype)
                 pairs = [("", i_hat)]
                 if blurred:
