@@ -65,6 +65,7 @@ from arraysel.errors import (NumericalError, ParameterError, SelectionError, che
 from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
+from arraysel.selection import masks_from_indices
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
 
 __all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
@@ -223,21 +224,17 @@ def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | Non
     """Turn a mask into ``(Ne,)`` float weights.
 
     ``mask``: a sequence/tensor of integer element indices (distinct, in
-    ``[0, Ne)``), or a bool/float tensor of length ``Ne`` (used as is).
+    ``[0, Ne)``; checked and converted by :func:`arraysel.selection.masks_from_indices`),
+    or a bool/float tensor of length ``Ne`` (used as is, so a gradient flows through it).
     """
     t = torch.as_tensor(mask)
     if t.dtype == torch.bool or t.is_floating_point():
         if t.shape != (n_elements,):
             raise SelectionError(f"a weight mask must have shape ({n_elements},), got {tuple(t.shape)}")
         return t.to(device=device, dtype=torch.float32)
-    idx = t.flatten().long()
-    if idx.numel() == 0 or (idx < 0).any() or (idx >= n_elements).any():
-        raise SelectionError(f"element indices must lie in [0, {n_elements}), got {idx.tolist()}")
-    if idx.unique().numel() != idx.numel():
-        raise SelectionError(f"element indices repeat: {idx.tolist()}")
-    w = torch.zeros(n_elements, dtype=torch.float32)
-    w[idx] = 1.0
-    return w.to(device)
+    # element indices: validated and converted by the one home, arraysel.selection
+    w = masks_from_indices([t.flatten().long().tolist()], n_elements)[0]
+    return torch.as_tensor(w, dtype=torch.float32, device=device)
 
 
 # ---------------------------------------------------------------------------
