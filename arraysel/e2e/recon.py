@@ -14,6 +14,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from arraysel.errors import NumericalError, ParameterError, check_number
+from arraysel.objective.metrics import kernel_spectrum
 
 __all__ = [
     "ConvolutionOperator", "LinearConvolutionOperator", "convolve", "complex_soft_threshold", "UnrolledISTA", "features",
@@ -29,6 +30,10 @@ def _complex_dtype(dtype: torch.dtype) -> torch.dtype:
 
 class ConvolutionOperator:
     """Circular convolution with a PSF kernel: ``A(x) = IFFT2(FFT2(kappa_0) . FFT2(x))``.
+
+    The one circular convolution of the package,
+    :func:`arraysel.objective.metrics.circular_convolve`, with its transfer function
+    (:func:`~arraysel.objective.metrics.kernel_spectrum`) computed once per kernel.
 
     ``kappa``: ``(n, n)`` real or complex tensor; ``kappa_0`` is ``kappa``
     rolled so that its pixel ``(n//2, n//2)`` lands on ``(0, 0)``. Gradients
@@ -49,7 +54,7 @@ class ConvolutionOperator:
             raise ParameterError(f"kappa must be a square (n, n) tensor, got {shape}")
         self.kappa = kappa.to(_complex_dtype(kappa.dtype))
         self.n = kappa.shape[-1]
-        self.K = torch.fft.fft2(torch.fft.ifftshift(self.kappa, dim=(-2, -1)))
+        self.K = kernel_spectrum(self.kappa, (self.n, self.n))
 
     @property
     def lipschitz(self) -> torch.Tensor:
@@ -114,9 +119,7 @@ class LinearConvolutionOperator(ConvolutionOperator):
         self.kappa = kappa.to(_complex_dtype(kappa.dtype))
         m = kappa.shape[-1]
         self.grid = self.n + m
-        c = m // 2
-        k0 = F.pad(self.kappa, (0, self.grid - m, 0, self.grid - m))
-        self.K = torch.fft.fft2(torch.roll(k0, (-c, -c), (-2, -1)))
+        self.K = kernel_spectrum(self.kappa, (self.grid, self.grid))
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
         g = self.grid - self.n

@@ -47,6 +47,7 @@ __all__ = [
     "psf_regions",
     "psf_metrics",
     "circular_convolve",
+    "kernel_spectrum",
     "l_conv",
     "l_rec",
     "l_ent",
@@ -566,17 +567,32 @@ def circular_convolve(kappa: Tensor, image: Tensor) -> Tensor:
     ``Y[i, j] = sum_{a,b} kappa[a, b] image[(i - a + h//2) % H, (j - b + w//2) % W]``.
     The result is real when both inputs are real, complex otherwise.
     """
-    kappa = _check_tensor("kappa", kappa)
     image = _check_tensor("image", image)
-    _check_kernel_shape("kappa", kappa)
     _check_kernel_shape("image", image)
-    h, w = kappa.shape[-2:]
     H, W = image.shape[-2:]
-    if h > H or w > W:
-        raise ParameterError(f"kernel window {h}x{w} is larger than the image {H}x{W}")
-    k0 = torch.nn.functional.pad(kappa, (0, W - w, 0, H - h)) if (h, w) != (H, W) else kappa
-    k0 = torch.roll(k0, shifts=(-(h // 2), -(w // 2)), dims=(-2, -1))
+    k0 = _centred_kernel(kappa, (H, W))
     if not kappa.is_complex() and not image.is_complex():
         k0, image = _promote(k0, image)
         return torch.fft.irfft2(torch.fft.rfft2(k0) * torch.fft.rfft2(image), s=(H, W))
     return torch.fft.ifft2(torch.fft.fft2(k0) * torch.fft.fft2(image))
+
+
+def _centred_kernel(kappa: Tensor, grid: tuple[int, int]) -> Tensor:
+    """``kappa0``: ``kappa`` zero-padded to ``grid = (H, W)`` and rolled so that its pixel
+    ``(h // 2, w // 2)`` is at ``(0, 0)`` (the convention of :func:`circular_convolve`)."""
+    kappa = _check_tensor("kappa", kappa)
+    _check_kernel_shape("kappa", kappa)
+    h, w = kappa.shape[-2:]
+    H, W = grid
+    if h > H or w > W:
+        raise ParameterError(f"kernel window {h}x{w} is larger than the image {H}x{W}")
+    k0 = torch.nn.functional.pad(kappa, (0, W - w, 0, H - h)) if (h, w) != (H, W) else kappa
+    return torch.roll(k0, shifts=(-(h // 2), -(w // 2)), dims=(-2, -1))
+
+
+def kernel_spectrum(kappa: Tensor, grid: tuple[int, int]) -> Tensor:
+    """``FFT2(kappa0)`` on a ``grid = (H, W)``: the transfer function of
+    :func:`circular_convolve`, so ``circular_convolve(kappa, x) == IFFT2(kernel_spectrum(kappa,
+    x.shape[-2:]) * FFT2(x))`` (for complex inputs). Operators that apply one kernel many times
+    (``arraysel.e2e.recon.ConvolutionOperator``) keep it."""
+    return torch.fft.fft2(_centred_kernel(kappa, grid))
