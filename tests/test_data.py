@@ -144,6 +144,35 @@ def test_download_writes_files(tmp_path, monkeypatch):
         f + ".gz" for s in ("train", "test") for f in D.IDX_FILES[s])
 
 
+def test_download_is_atomic_and_follows_umask(tmp_path, monkeypatch):
+    """A payload that does not parse leaves nothing behind; kept files get the umask's mode."""
+    import os
+
+    src = tmp_path / "mirror"
+    _write_split(src, "train", gz=True)
+    _write_split(src, "test", gz=True)
+
+    def corrupt(url, timeout):
+        return io.BytesIO(b"not an idx file")
+
+    monkeypatch.setattr(D.urllib.request, "urlopen", corrupt)
+    with pytest.raises(ParameterError, match="download failed"):
+        load_idx("mnist", "train", tmp_path / "bad", download=True)
+    assert list((tmp_path / "bad" / "mnist").iterdir()) == []
+
+    def serve(url, timeout):
+        return io.BytesIO((src / url.rsplit("/", 1)[1]).read_bytes())
+
+    monkeypatch.setattr(D.urllib.request, "urlopen", serve)
+    old = os.umask(0o027)
+    try:
+        load_idx("mnist", "train", tmp_path / "d", download=True)
+    finally:
+        os.umask(old)
+    for p in (tmp_path / "d" / "mnist").iterdir():
+        assert p.stat().st_mode & 0o777 == 0o640, p
+
+
 def test_no_download_without_flag(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("must not download")

@@ -36,7 +36,6 @@ import io
 import logging
 import math
 import os
-import tempfile
 import urllib.request
 from dataclasses import dataclass
 from importlib import resources
@@ -47,7 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from arraysel.io.atomic import file_mode
+from arraysel.io.atomic import AtomicFile, atomic_write_bytes
 from arraysel.errors import ParameterError, check_choice, check_number
 
 __all__ = [
@@ -139,7 +138,7 @@ def read_idx(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_idx(path: str | os.PathLike, array: np.ndarray) -> None:
-    """Write ``array`` as an IDX file (gzip-compressed if ``path`` ends in ``.gz``).
+    """Write ``array`` as an IDX file (gzip-compressed if ``path`` ends in ``.gz``), atomically.
 
     Supported dtypes: uint8, int8, int16, int32, float32, float64. Used by the
     tests and handy for turning another data set into the same format.
@@ -160,7 +159,7 @@ def write_idx(path: str | os.PathLike, array: np.ndarray) -> None:
     path = Path(path)
     if path.suffix == ".gz":
         data = gzip.compress(data)
-    path.write_bytes(data)
+    atomic_write_bytes(path, data)
 
 
 # ---------------------------------------------------------------------------
@@ -249,16 +248,11 @@ def download_idx(name: str, data_dir: str | os.PathLike | None = None, *,
                         continue
                     with urllib.request.urlopen(mirror + stem + ".gz", timeout=timeout) as resp:
                         payload = resp.read()
-                    fd, tmp = tempfile.mkstemp(dir=target, suffix=".part")
-                    os.fchmod(fd, file_mode())  # the umask's mode, not mkstemp's 0600
-                    try:
-                        with os.fdopen(fd, "wb") as fh:
-                            fh.write(payload)
-                        read_idx(tmp)  # refuse to keep a file that does not parse
-                        os.replace(tmp, dest)
-                    finally:
-                        if os.path.exists(tmp):
-                            os.remove(tmp)
+                    with AtomicFile(dest) as fh:  # mode from the umask; removed unless committed
+                        fh.write(payload)
+                        fh.fh.flush()
+                        read_idx(fh.tmp)  # refuse to keep a file that does not parse
+                        fh.commit()
             return target
         except (OSError, ValueError) as exc:  # URLError is an OSError
             errors.append(f"{mirror}: {exc}")

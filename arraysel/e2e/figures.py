@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from arraysel.io.masks import atomic_write_bytes
+from arraysel.io.atomic import atomic_write_bytes
 
 DYN_RANGE_DB = 40.0
 

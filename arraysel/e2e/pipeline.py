@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, SelectionError, check_choice, check_number
-from arraysel.io.masks import atomic_write_bytes
+from arraysel.io.atomic import atomic_write_bytes
 from arraysel.objective.psf_objective import METRIC_NAMES, build_objective, masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
 

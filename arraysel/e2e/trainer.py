@@ -62,6 +62,7 @@ from tqdm import tqdm
 from arraysel.e2e.data import SceneMaker
 from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
                              check_number)
+from arraysel.io.atomic import AtomicFile
 from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
@@ -719,9 +720,7 @@ class E2ETrainer:
         if path is None:
             raise ParameterError("no checkpoint path given")
         path.parent.mkdir(parents=True, exist_ok=True)
-        from arraysel.io.atomic import AtomicFile
-
-        with AtomicFile(path) as fh:
+        with AtomicFile(path) as fh:  # arraysel.io.atomic: the one writer (mode from the umask)
             torch.save(self.state_dict(), fh.fh)
             fh.fh.flush()
             os.fsync(fh.fh.fileno())
