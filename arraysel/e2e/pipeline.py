@@ -51,7 +51,10 @@ import torch
 
 from arraysel.errors import ParameterError, SelectionError, check_choice, check_number
 from arraysel.io.atomic import atomic_write_bytes
-from arraysel.objective.psf_objective import METRIC_NAMES, build_objective, masks_from_indices
+from arraysel.objective.losses import PSF_WEIGHT_KEYS
+from arraysel.objective.metrics import METRIC_NAMES
+from arraysel.objective.psf_objective import build_objective
+from arraysel.selection import masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
 
 __all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
@@ -66,7 +69,6 @@ OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "co
 #: scene weight name -> trainer term name
 _TERM_OF_WEIGHT = {"L_PSF": "psf", "L_conv": "conv", "L_rec": "rec", "L_contrast": "contrast",
                    "L_SLR": "slr", "L_ent": "ent", "L_row": "row"}
-_PSF_WEIGHTS = ("L_PSF", "L_contrast", "L_SLR")
 
 
 @dataclass
@@ -343,7 +345,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
     ne, k = objective.n_elements, objective.k
     kappa_ref = objective.reference_kernel()
     wts = sc.weights
-    psf_needed = [n for n in _PSF_WEIGHTS if wts.get(n, 0.0) > 0]
+    psf_needed = [n for n in PSF_WEIGHT_KEYS if wts.get(n, 0.0) > 0]
 
     def kernel_fn(w: torch.Tensor) -> torch.Tensor:
         return objective.psf.kernels(w[None])[0]
