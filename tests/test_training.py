@@ -143,6 +143,20 @@ def test_entropy_and_row_losses():
     assert float(row_loss(torch.tensor([[1.0, 0.7], [0.0, 0.3]]))) == pytest.approx(0.49)
 
 
+def test_tau_schedule_decay_length_is_tau_steps_and_defaults_come_from_the_schema():
+    from arraysel.e2e.pipeline import E2ESettings
+    from arraysel.scenes.schema import SCHEMA
+
+    assert tau_schedule(750, 6.0, 1.2, tau_steps=1500) == pytest.approx(3.6)
+    with pytest.warns(DeprecationWarning, match="tau_steps"):
+        assert tau_schedule(750, 6.0, 1.2, decay_steps=1500) == pytest.approx(3.6)
+    cfg, settings = TrainConfig(), E2ESettings()
+    for key in ("batch_size", "epochs", "lr_mask", "lr_ista", "lr_head", "tau_start", "tau_end", "tau_steps"):
+        assert getattr(cfg, key) == SCHEMA["training"][key].default, key
+    for key, spec in SCHEMA["training"].items():
+        assert getattr(settings, key) == spec.default, key
+
+
 def test_mask_to_weights():
     torch.testing.assert_close(mask_to_weights([0, 2], 4), torch.tensor([1.0, 0, 1, 0]))
     torch.testing.assert_close(mask_to_weights(torch.tensor([True, False, False, True]), 4),

@@ -56,6 +56,7 @@ from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.objective.psf_objective import build_objective
 from arraysel.selection import masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
+from arraysel.scenes.schema import training_default as _T
 
 __all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
            "format_comparison", "OUTPUT_FILES"]
@@ -104,19 +105,19 @@ class E2ESettings:
     depth_max: float = 0.15
     scatterers: str = "points"
     scatterers_per_pixel: float = 1.25
-    batch_size: int = 64
-    epochs: int = 100
+    batch_size: int = _T("batch_size")
+    epochs: int = _T("epochs")
     steps: int | None = None
-    lr_mask: float = 1e-4
-    lr_ista: float = 5e-4
-    lr_head: float = 1e-4
-    tau_start: float = 6.0
-    tau_end: float = 1.2
-    tau_steps: int | None = 1500
-    ista_layers: int = 8
+    lr_mask: float = _T("lr_mask")
+    lr_ista: float = _T("lr_ista")
+    lr_head: float = _T("lr_head")
+    tau_start: float = _T("tau_start")
+    tau_end: float = _T("tau_end")
+    tau_steps: int | None = _T("tau_steps")
+    ista_layers: int = _T("ista_layers")
     base_channels: int = 32
     finetune_steps: int | None = None
-    finetune_epochs: int = 0
+    finetune_epochs: int = _T("finetune_epochs")
     n_train: int | None = None
     n_test: int | None = None
     seed: int = 0

@@ -51,6 +51,7 @@ import dataclasses
 import logging
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -66,6 +67,7 @@ from arraysel.io.atomic import AtomicFile
 from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
+from arraysel.scenes.schema import training_default as _T
 from arraysel.selection import masks_from_indices
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
 
@@ -87,12 +89,17 @@ CHECKPOINT_FORMAT = "arraysel-e2e-1"
 # Selection
 # ---------------------------------------------------------------------------
 
-def tau_schedule(step: int, tau_start: float = 6.0, tau_end: float = 1.2,
-                 decay_steps: int = 1500) -> float:
+def tau_schedule(step: int, tau_start: float = _T("tau_start"), tau_end: float = _T("tau_end"),
+                 tau_steps: int = _T("tau_steps"), *, decay_steps: int | None = None) -> float:
     """Cosine decay of the softmax temperature from ``tau_start`` (step 0) to
-    ``tau_end`` (step ``decay_steps``), constant afterwards
-    (:func:`arraysel.selectors.relax.cosine_temperature`)."""
-    return cosine_temperature(step, tau_start, tau_end, decay_steps)
+    ``tau_end`` (step ``tau_steps``, the scene key ``training.tau_steps``), constant afterwards
+    (:func:`arraysel.selectors.relax.cosine_temperature`). Defaults: the scene schema's
+    ``[training]``. ``decay_steps=`` is the old keyword of ``tau_steps`` (deprecated)."""
+    if decay_steps is not None:
+        warnings.warn("tau_schedule(decay_steps=...) is now tau_schedule(tau_steps=...), the name of the "
+                      "scene key training.tau_steps", DeprecationWarning, stacklevel=2)
+        tau_steps = decay_steps
+    return cosine_temperature(step, tau_start, tau_end, tau_steps)
 
 
 class HardSTESelection(nn.Module):
@@ -261,7 +268,8 @@ class LossWeights:
 
 @dataclass
 class TrainConfig:
-    """Optimisation settings (SPEC section 3 defaults).
+    """Optimisation settings (SPEC section 3 defaults; the batch size, epochs, learning rates and
+    temperature schedule default to the scene schema's ``[training]`` section, their one home).
 
     ``max_steps`` (when set) overrides ``epochs``; an epoch is
     ``N // batch_size`` steps (the last partial batch is dropped, unless the
@@ -308,15 +316,15 @@ class TrainConfig:
       selection change then needs a logit change of about ``margin``.
     """
 
-    batch_size: int = 64
-    epochs: int = 100
+    batch_size: int = _T("batch_size")
+    epochs: int = _T("epochs")
     max_steps: int | None = None
-    lr_mask: float = 1e-4
-    lr_ista: float = 5e-4
-    lr_head: float = 1e-4
-    tau_start: float = 6.0
-    tau_end: float = 1.2
-    tau_steps: int = 1500
+    lr_mask: float = _T("lr_mask")
+    lr_ista: float = _T("lr_ista")
+    lr_head: float = _T("lr_head")
+    tau_start: float = _T("tau_start")
+    tau_end: float = _T("tau_end")
+    tau_steps: int = _T("tau_steps")
     seed: int = 0
     checkpoint_every: int = 500
     noise_std: float = 0.0

@@ -147,20 +147,26 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "depth_min": Key("float", (0, 2, False), None, "shallowest scatterer depth, m"),
         "depth_max": Key("float", (0, 2, True), None, "deepest scatterer depth, m"),
     },
-    "training": {
-        "epochs": Key("int", (0, 100000)),
-        "steps": Key("int", (0, 10 ** 8)),
-        "batch_size": Key("int", (1, 100000)),
-        "lr_mask": Key("float", (0, 10, True)),
-        "lr_ista": Key("float", (0, 10, True)),
-        "lr_head": Key("float", (0, 10, True)),
-        "tau_start": Key("float", (1e-6, 1e6, False)),
-        "tau_end": Key("float", (1e-6, 1e6, False)),
-        "tau_steps": Key("int", (0, 10 ** 8)),
-        "ista_layers": Key("int", (1, 1000)),
-        "finetune_epochs": Key("int", (0, 100000)),
+    "training": {  # the one home of the training defaults (TrainConfig, E2ESettings read them)
+        "epochs": Key("int", (0, 100000), 100, "training epochs (steps, when set, take precedence)"),
+        "steps": Key("int", (0, 10 ** 8), None, "training steps (none: from epochs)"),
+        "batch_size": Key("int", (1, 100000), 64, "scenes per batch"),
+        "lr_mask": Key("float", (0, 10, True), 1e-4, "learning rate of the selection logits"),
+        "lr_ista": Key("float", (0, 10, True), 5e-4, "learning rate of the ISTA parameters"),
+        "lr_head": Key("float", (0, 10, True), 1e-4, "learning rate of the CNN head"),
+        "tau_start": Key("float", (1e-6, 1e6, False), 6.0, "softmax temperature at step 0"),
+        "tau_end": Key("float", (1e-6, 1e6, False), 1.2, "softmax temperature after the decay"),
+        "tau_steps": Key("int", (0, 10 ** 8), 1500, "length of the cosine temperature decay, steps"),
+        "ista_layers": Key("int", (1, 1000), 8, "unrolled ISTA layers"),
+        "finetune_epochs": Key("int", (0, 100000), 0, "head fine-tuning epochs on the fixed selection"),
     },
 }
+
+
+def training_default(key: str):
+    """The default of the scene key ``training.<key>`` (the one home of the training defaults)."""
+    return SCHEMA["training"][key].default
+
 
 TOP_LEVEL = ("name", "description", "base")
 
