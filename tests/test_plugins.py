@@ -276,3 +276,21 @@ def test_a_plugin_written_against_the_flat_layout_registers_and_runs(isolated_pm
     registry = get_registry(isolated_pm)
     assert "first-k-old-style" in registry.names()
     assert registry["first-k-old-style"]().select(ToyObjective(8, 3), 3, 0) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("name", ["ste", "gumbel"])
+def test_decay_length_option_is_tau_steps_anneal_steps_deprecated(name):
+    from arraysel.errors import ParameterError
+
+    import importlib
+
+    cls = {"ste": importlib.import_module("arraysel_plugins.ste").STESelector,
+           "gumbel": importlib.import_module("arraysel_plugins.gumbel").GumbelSelector}[name]
+    assert "tau_steps" in cls.options and "anneal_steps" not in cls.options
+    assert cls(tau_steps=7).options["tau_steps"] == 7
+    with pytest.warns(DeprecationWarning, match=f"{name}.tau_steps"):
+        assert cls(anneal_steps=6).options["tau_steps"] == 6
+    with pytest.warns(DeprecationWarning, match="tau_steps"):
+        assert cls.parse_options({"anneal_steps": "5"}) == {"tau_steps": 5}
+    with pytest.warns(DeprecationWarning), pytest.raises(ParameterError, match="tau_steps"):
+        cls(anneal_steps=6, tau_steps=7)
