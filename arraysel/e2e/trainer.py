@@ -14,7 +14,9 @@ hard 0/1 selection matrix carrying the straight-through gradient and
 be deterministic (it then gives the learned selection). Element ``i`` is
 active when row ``i`` of ``P`` sums to 1; the trainer passes
 ``weights = P.sum(1)`` to ``kernel_fn``. :class:`HardSTESelection` is the
-HARD-STE module of the SPEC.
+HARD-STE module of the SPEC (:mod:`arraysel.e2e.hardste`). The settings are in
+:mod:`arraysel.e2e.config`, the kernel resampling in :mod:`arraysel.e2e.kernels`;
+this module keeps the trainer and re-exports those names.
 
 Loss (SPEC section 3)
 ---------------------
@@ -51,8 +53,6 @@ import dataclasses
 import logging
 import math
 import os
-import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -60,16 +60,17 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
+from arraysel.e2e.config import LossWeights, TrainConfig
 from arraysel.e2e.data import SceneMaker
-from arraysel.errors import (NumericalError, ParameterError, SelectionError, check_choice,
+from arraysel.e2e.hardste import HardSTESelection, tau_schedule
+from arraysel.e2e.kernels import decimate_kernel, fit_kernel
+from arraysel.errors import (NumericalError, ParameterError, SelectionError,
                              check_number)
 from arraysel.io.atomic import AtomicFile
 from arraysel.objective.losses import l_ent, l_row, weighted_sum
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
-from arraysel.scenes.schema import training_default as _T
 from arraysel.selection import masks_from_indices
-from arraysel.selectors.relax import cosine_temperature, sequential_selection
 
 __all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
            "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "decimate_kernel",
@@ -85,131 +86,10 @@ BALANCED_TERMS = ("psf", "contrast", "slr", "conv", "rec")
 CHECKPOINT_FORMAT = "arraysel-e2e-1"
 
 
-# ---------------------------------------------------------------------------
-# Selection
-# ---------------------------------------------------------------------------
-
-def tau_schedule(step: int, tau_start: float = _T("tau_start"), tau_end: float = _T("tau_end"),
-                 tau_steps: int = _T("tau_steps"), *, decay_steps: int | None = None) -> float:
-    """Cosine decay of the softmax temperature from ``tau_start`` (step 0) to
-    ``tau_end`` (step ``tau_steps``, the scene key ``training.tau_steps``), constant afterwards
-    (:func:`arraysel.selectors.relax.cosine_temperature`). Defaults: the scene schema's
-    ``[training]``. ``decay_steps=`` is the old keyword of ``tau_steps`` (deprecated)."""
-    if decay_steps is not None:
-        warnings.warn("tau_schedule(decay_steps=...) is now tau_schedule(tau_steps=...), the name of the "
-                      "scene key training.tau_steps", DeprecationWarning, stacklevel=2)
-        tau_steps = decay_steps
-    return cosine_temperature(step, tau_start, tau_end, tau_steps)
-
-
-class HardSTESelection(nn.Module):
-    """HARD-STE selection of ``k`` of ``n_elements``: logits ``l`` of shape ``(Ne, k)``.
-
-    Columns are drawn one after another; for column ``j`` the elements already
-    chosen are masked out and ``p_j = softmax(l_j / tau)`` over the others.
-    In training mode (``sample=True``) the element is drawn from ``p_j``
-    with the ``generator`` passed in; in ``eval()`` mode, or with
-    ``sample=False``, it is the most probable one. The draw is
-    :func:`arraysel.selectors.relax.sequential_selection`. The output
-    is ``P = (P_hard - P_soft).detach() + P_soft``: exactly one-hot columns
-    with distinct rows in the forward pass, the softmax gradient backwards.
-
-    ``generator`` (optional) draws the initial logits ``init_std * N(0, 1)``;
-    without it they start at 0.
-    """
-
-    def __init__(self, n_elements: int, k: int, *, generator: torch.Generator | None = None,
-                 init_std: float = 0.01, sample: bool = True):
-        super().__init__()
-        ne = check_number("n_elements", n_elements, lo=1, integer=True)
-        k = check_number("k", k, lo=1, hi=ne, integer=True)
-        init = torch.zeros(ne, k)
-        if generator is not None:
-            init = check_number("init_std", init_std, lo=0) * torch.randn(ne, k, generator=generator)
-        self.logits = nn.Parameter(init)
-        self.sample = bool(sample)
-
-    @property
-    def n_elements(self) -> int:
-        return self.logits.shape[0]
-
-    @property
-    def k(self) -> int:
-        return self.logits.shape[1]
-
-    def forward(self, tau: float = 1.0, generator: torch.Generator | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        tau = check_number("tau", tau, lo=0, lo_open=True)
-        sampling = self.training and self.sample
-        if sampling and generator is None:
-            raise ParameterError("HardSTESelection samples in training mode: pass a "
-                                 "torch.Generator (or call .eval() / set sample=False)")
-        # the draw runs where the generator lives (the trainer's is on the CPU); the
-        # (Ne, k) logits are tiny, and moving them keeps the gradient path
-        where = generator.device if sampling else self.logits.device
-        rel = sequential_selection(self.logits.to(where), tau, hard=True, sample=sampling,
-                                   generator=generator if sampling else None)
-        dev = self.logits.device
-        return rel.P.to(dev), rel.P_soft.to(dev)
-
-    @torch.no_grad()
-    def indices(self, tau: float = 1.0) -> torch.Tensor:
-        """The deterministic (argmax) selection, sorted element indices ``(k,)``."""
-        was = self.training
-        self.eval()
-        try:
-            P, _ = self(tau)
-        finally:
-            self.train(was)
-        return torch.nonzero(P.sum(1) > 0.5).flatten().sort().values
-
-
 #: ``L_ent`` (mean column entropy of ``P_soft``): :func:`arraysel.objective.metrics.l_ent`
 entropy_loss = l_ent
 #: ``L_row`` (``sum_i relu(sum_j p_ij - 1)^2``): :func:`arraysel.objective.metrics.l_row`
 row_loss = l_row
-
-
-def fit_kernel(kappa: torch.Tensor, n: int) -> torch.Tensor:
-    """Crop (or zero-pad) an ``(h, h)`` kernel to ``(n, n)`` keeping its centre pixel.
-
-    Pixel ``(h // 2, h // 2)`` of ``kappa`` becomes pixel ``(n // 2, n // 2)``
-    of the result (the zero shift of :class:`~arraysel.e2e.recon.ConvolutionOperator`);
-    differentiable.
-    """
-    h = kappa.shape[-1]
-    if h == n:
-        return kappa
-    if h > n:
-        s = h // 2 - n // 2
-        return kappa[..., s:s + n, s:s + n]
-    s = n // 2 - h // 2
-    return torch.nn.functional.pad(kappa, (s, n - h - s, s, n - h - s))
-
-
-def decimate_kernel(kappa: torch.Tensor, stride: int) -> torch.Tensor:
-    """Every ``stride``-th pixel of an ``(h, h)`` kernel, keeping its centre pixel, unit L2 norm.
-
-    Pixel ``(h // 2, h // 2)`` of ``kappa`` becomes pixel ``(h // 2 // stride, ...)``,
-    the centre pixel of the result when ``h`` is a multiple of ``stride``
-    (``h = 128, stride = 2``: 64 x 64 at twice the pitch). Plain sub-sampling,
-    no filter: it is exact when the kernel's spectrum lies inside the coarser
-    grid's Nyquist band (the paper scene's beamformed I/Q PSF: 5e-4 of the
-    energy of the uniform selection's kernel lies outside it for ``stride = 2``,
-    14 % for ``stride = 4``). The result is rescaled to unit L2 norm like the
-    objective's kernels. Differentiable; ``stride = 1`` returns ``kappa``.
-    """
-    stride = check_number("kernel_stride", stride, lo=1, integer=True)
-    if stride == 1:
-        return kappa
-    h = kappa.shape[-1]
-    if h % stride:
-        raise ParameterError(f"kernel_stride ({stride}) must divide the kernel size ({h})")
-    c = h // 2
-    sub = kappa[..., c % stride::stride, c % stride::stride]
-    norm = (sub.real ** 2 + sub.imag ** 2).sum((-2, -1), keepdim=True).sqrt() if sub.is_complex() \
-        else sub.pow(2).sum((-2, -1), keepdim=True).sqrt()
-    return sub / norm.clamp_min(torch.finfo(norm.dtype).tiny)
 
 
 def balanced_total(terms: Mapping[str, torch.Tensor], weights: "LossWeights",
@@ -243,128 +123,6 @@ def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | Non
     # element indices: validated and converted by the one home, arraysel.selection
     w = masks_from_indices([t.flatten().long().tolist()], n_elements)[0]
     return torch.as_tensor(w, dtype=torch.float32, device=device)
-
-
-# ---------------------------------------------------------------------------
-# Configuration
-# ---------------------------------------------------------------------------
-
-@dataclass
-class LossWeights:
-    """Weights of the loss terms (SPEC section 3 defaults); 0 switches a term off."""
-
-    psf: float = 10.0
-    conv: float = 1.0
-    rec: float = 10.0
-    contrast: float = 10.0
-    slr: float = 10.0
-    ent: float = 1.0
-    row: float = 10.0
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            check_number(f"weights.{f.name}", getattr(self, f.name), lo=0)
-
-
-@dataclass
-class TrainConfig:
-    """Optimisation settings (SPEC section 3 defaults; the batch size, epochs, learning rates and
-    temperature schedule default to the scene schema's ``[training]`` section, their one home).
-
-    ``max_steps`` (when set) overrides ``epochs``; an epoch is
-    ``N // batch_size`` steps (the last partial batch is dropped, unless the
-    data set is smaller than one batch). Checkpoints are written every
-    ``checkpoint_every`` steps (0: only at the end) when a checkpoint path is
-    given. ``noise_std`` adds complex Gaussian noise of that standard
-    deviation to the measurements fed to the reconstructor (not to
-    ``L_conv``).
-
-    Forward model and target (defaults: the SPEC's circular model on the
-    kernel's own grid, ``I_ref`` from the scene maker):
-
-    * ``convolution``: ``'circular'`` (:class:`~arraysel.e2e.recon.ConvolutionOperator`
-      on the kernel :func:`fit_kernel` to the scene size) or ``'linear'``
-      (:class:`~arraysel.e2e.recon.LinearConvolutionOperator`: the whole
-      kernel, the scene zero outside its field, nothing wraps around).
-    * ``kernel_stride``: the data terms use :func:`decimate_kernel` of the
-      kernel (one scene pixel = ``kernel_stride`` PSF pixels); the PSF terms
-      always see the full-resolution kernel.
-    * ``target``: ``'scene'`` (the scene maker's ``I_ref``) or ``'envelope'``:
-      ``I_ref = |kappa_ref (*) I_s| / s`` and ``I_s / s`` with ``s`` the
-      per-image maximum of ``|kappa_ref (*) I_s|``, i.e. the full array's
-      envelope image of the same scatterers, in [0, 1].
-    * ``balance``: ``'none'`` (the weights as they are) or ``'initial'``:
-      each of :data:`BALANCED_TERMS` is divided by its mean over
-      ``balance_batches`` batches at the start of training (fixed
-      afterwards, stored in checkpoints), :func:`balanced_total`.
-    * ``reblur``: the reconstructor's head sees its ISTA estimate imaged with
-      the reference kernel (``Reconstructor(..., reblur=op_ref)``), the
-      natural output stage for ``target='envelope'``.
-    * ``psf_warmup``: the first ``psf_warmup`` steps train the selection on
-      the PSF terms alone (``L_conv``, ``L_rec`` off, the reconstructor
-      untouched): the mask starts the joint phase from a PSF-only optimum
-      instead of a random draw. ``joint_lr_mask`` (default ``lr_mask``) is
-      the mask's learning rate after it: a lower one keeps the data terms'
-      noisy gradient from pulling the selection away from it (drift).
-      ``warm_start_margin > 0`` (needs a selection module with ``logits``
-      drawn by arg-max, ``sample=False``): during the warm-up the trainer
-      keeps the selection with the lowest weighted (balanced) PSF terms seen
-      so far (the arg-max draw of a step is the deterministic selection, so
-      this costs nothing), and at the end of the warm-up sets the logits to
-      that selection, ``margin`` on its element in each column and 0
-      elsewhere: the joint phase starts from the PSF-only optimum, and a
-      selection change then needs a logit change of about ``margin``.
-    """
-
-    batch_size: int = _T("batch_size")
-    epochs: int = _T("epochs")
-    max_steps: int | None = None
-    lr_mask: float = _T("lr_mask")
-    lr_ista: float = _T("lr_ista")
-    lr_head: float = _T("lr_head")
-    tau_start: float = _T("tau_start")
-    tau_end: float = _T("tau_end")
-    tau_steps: int = _T("tau_steps")
-    seed: int = 0
-    checkpoint_every: int = 500
-    noise_std: float = 0.0
-    conv_reduction: str = "mean"
-    grad_clip: float | None = None
-    progress: bool = True
-    convolution: str = "circular"
-    kernel_stride: int = 1
-    target: str = "scene"
-    balance: str = "none"
-    balance_batches: int = 4
-    reblur: bool = False
-    psf_warmup: int = 0
-    joint_lr_mask: float | None = None
-    warm_start_margin: float = 0.0
-
-    def __post_init__(self) -> None:
-        check_number("batch_size", self.batch_size, lo=1, integer=True)
-        check_number("epochs", self.epochs, lo=0, integer=True)
-        if self.max_steps is not None:
-            check_number("max_steps", self.max_steps, lo=0, integer=True)
-        for name in ("lr_mask", "lr_ista", "lr_head", "noise_std"):
-            check_number(name, getattr(self, name), lo=0)
-        check_number("tau_start", self.tau_start, lo=0, lo_open=True)
-        check_number("tau_end", self.tau_end, lo=0, lo_open=True)
-        check_number("tau_steps", self.tau_steps, lo=0, integer=True)
-        check_number("checkpoint_every", self.checkpoint_every, lo=0, integer=True)
-        check_number("seed", self.seed, integer=True)
-        check_choice("conv_reduction", self.conv_reduction, ("mean", "sum"))
-        check_choice("convolution", self.convolution, ("circular", "linear"))
-        check_number("kernel_stride", self.kernel_stride, lo=1, integer=True)
-        check_choice("target", self.target, ("scene", "envelope"))
-        check_choice("balance", self.balance, ("none", "initial"))
-        check_number("balance_batches", self.balance_batches, lo=1, integer=True)
-        check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
-        check_number("warm_start_margin", self.warm_start_margin, lo=0)
-        if self.joint_lr_mask is not None:
-            check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
-        if self.grad_clip is not None:
-            check_number("grad_clip", self.grad_clip, lo=0, lo_open=True)
 
 
 # ---------------------------------------------------------------------------
