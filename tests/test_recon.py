@@ -113,6 +113,40 @@ def test_reconstructor_reblur_and_magnitude_base():
     torch.testing.assert_close(out2, ref.A(x).abs(), atol=1e-6, rtol=1e-6)
 
 
+def test_identity_head_start_returns_its_base_input_at_step_0():
+    """init_identity_head: at step 0 I_hat = |z| exactly (z = X, or the re-imaged estimate),
+    whatever the random head weights; reblur_mode='correct' feeds z = Y + op_ref.A(X) - op.A(X)."""
+    from arraysel.e2e.recon import LinearConvolutionOperator
+
+    gen = torch.Generator().manual_seed(5)
+    k = _crandn(5, 5, gen=gen).to(torch.complex64)
+    op = LinearConvolutionOperator(k, 8)
+    ref = LinearConvolutionOperator(_crandn(5, 5, gen=gen).to(torch.complex64), 8)
+    y = _crandn(2, 1, 8, 8, gen=gen).to(torch.complex64)
+    for mode in ("image", "correct"):
+        torch.manual_seed(0)
+        model = Reconstructor(3, base_channels=4, reblur_mode=mode).init_identity_head()
+        assert float(model.head.eta.detach()) == 0.0
+        out, x = model(y, op, return_x=True)
+        assert float(x.detach().abs().max()) > 0  # a non-trivial estimate: the test can fail
+        torch.testing.assert_close(out, x.abs(), atol=1e-6, rtol=1e-6)
+        out_r = model(y, op, reblur=ref)
+        z = y + ref.A(x) - op.A(x) if mode == "correct" else ref.A(x)
+        torch.testing.assert_close(out_r, z.abs(), atol=1e-5, rtol=1e-5)
+    # 'correct' with the reference kernel itself passes the measurement through unchanged
+    torch.testing.assert_close(model(y, op, reblur=op), y.abs(), atol=1e-5, rtol=1e-5)
+    # without init_identity_head the random residual branch moves the output (eta = 0.1)
+    torch.manual_seed(0)
+    plain = Reconstructor(3, base_channels=4, reblur_mode="correct").init_magnitude_base()
+    assert float((plain(y, op, reblur=op) - y.abs()).detach().abs().max()) > 1e-4
+    # the residual branch still learns: eta gets a gradient at step 0
+    model.zero_grad()
+    ((model(y, op, reblur=ref) - 1.0) ** 2).mean().backward()
+    assert model.head.eta.grad is not None and float(model.head.eta.grad.abs()) > 0
+    with pytest.raises(ParameterError, match="reblur_mode"):
+        Reconstructor(2, base_channels=4, reblur_mode="reblur")
+
+
 @pytest.mark.parametrize("dtype,tol", [(torch.complex128, 1e-12), (torch.complex64, 1e-5)])
 def test_adjointness(dtype, tol, device):
     gen = torch.Generator().manual_seed(1)

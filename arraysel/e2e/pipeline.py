@@ -94,7 +94,13 @@ class E2ESettings:
     reconstructor, every selection (the learned one included) gets a fresh
     reconstructor (same initialisation) trained ``recon_steps`` steps on the
     same batches, so the selections are compared under the same
-    reconstruction budget.
+    reconstruction budget. ``reblur_mode`` (``'image'`` or ``'correct'``): what
+    the head sees with ``reblur``, :class:`arraysel.e2e.recon.Reconstructor`'s
+    option of that name. ``head_init``: ``'magnitude'`` (the head's base
+    starts as ``|z|``, the residual branch with ``eta = 0.1``; the full
+    profile's) or ``'identity'`` (also ``eta = 0``: ``I_hat = |z|`` exactly at
+    step 0; the quick profile's). Both apply to the jointly trained
+    reconstructor and to every selection's own alike.
     """
 
     profile: str = "quick"
@@ -133,6 +139,8 @@ class E2ESettings:
     recon_steps: int = 0
     sample_selection: bool = True
     warm_start_margin: float = 0.0
+    reblur_mode: str = "image"
+    head_init: str = "magnitude"
 
     def __post_init__(self) -> None:
         check_choice("profile", self.profile, ("quick", "full"))
@@ -165,6 +173,8 @@ class E2ESettings:
         check_choice("target", self.target, ("scene", "envelope"))
         check_number("noise_std", self.noise_std, lo=0)
         check_choice("balance", self.balance, ("none", "initial"))
+        check_choice("reblur_mode", self.reblur_mode, ("image", "correct"))
+        check_choice("head_init", self.head_init, ("magnitude", "identity"))
         check_number("recon_steps", self.recon_steps, lo=0, integer=True)
         check_number("warm_start_margin", self.warm_start_margin, lo=0)
         check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
@@ -178,7 +188,8 @@ QUICK_PROFILE = dict(image_size=64, kernel_stride=2, convolution="linear", targe
                      reblur=True, batch_size=8, steps=450, psf_warmup=300, tau_steps=300,
                      base_channels=8, ista_layers=5, source="sample", lr_mask=3e-3,
                      joint_lr_mask=1e-4, lr_ista=5e-3, lr_head=1e-3, finetune_steps=25,
-                     recon_steps=120, sample_selection=False, warm_start_margin=2.0)
+                     recon_steps=120, sample_selection=False, warm_start_margin=2.0,
+                     reblur_mode="correct", head_init="identity")
 
 
 def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E2ESettings:
@@ -383,8 +394,22 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
                          warm_start_margin=s.warm_start_margin if psf_warmup else 0.0)
     selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed),
                                  sample=s.sample_selection)
+
+    def fresh_reconstructor() -> Reconstructor:
+        # the same initialisation for the jointly trained model and every selection's own
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(s.seed)
+            model = Reconstructor(s.ista_layers, base_channels=s.base_channels,
+                                  reblur_mode=s.reblur_mode)
+        if s.head_init == "identity":
+            model.init_identity_head()
+        elif s.reblur:
+            model.init_magnitude_base()
+        return model
+
     trainer = E2ETrainer(selection, kernel_fn, kappa_ref, x_train, psf_terms_fn=psf_terms,
                          weights=weights, config=config, n_layers=s.ista_layers,
+                         reconstructor=fresh_reconstructor(),
                          base_channels=s.base_channels, scene_fn=scene_fn, checkpoint_path=ckpt_path,
                          device=device, image_size=n)
     pix = objective.setup.pitch * s.kernel_stride
@@ -451,11 +476,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
         trainer.generator.set_state(snapshot[0])
         trainer._perm, trainer._pos = snapshot[1], snapshot[2]
         if s.recon_steps:
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(s.seed)
-                model = Reconstructor(s.ista_layers, base_channels=s.base_channels)
-            if s.reblur:
-                model.init_magnitude_base()
+            model = fresh_reconstructor()
             trainer.finetune_head(s.recon_steps, mask=idx, reconstructor=model, include_ista=True)
         else:
             model = copy.deepcopy(trainer.reconstructor)

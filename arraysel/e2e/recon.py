@@ -13,7 +13,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from arraysel.errors import NumericalError, ParameterError, check_number
+from arraysel.errors import NumericalError, ParameterError, check_choice, check_number
 from arraysel.objective.metrics import kernel_spectrum
 
 __all__ = [
@@ -304,17 +304,29 @@ class Reconstructor(nn.Module):
     ``forward(y, kappa_or_op)`` takes measurements ``y`` ``(B, 1, n, n)`` and
     the kernel (or a :class:`ConvolutionOperator`) and returns the real
     reconstruction ``(B, 1, n, n)``; ``return_x=True`` also returns the ISTA
-    output. With ``reblur=op_ref`` the head sees the features of
-    ``op_ref.A(X)`` (the ISTA estimate imaged with another kernel, e.g. the
-    full array's) instead of ``X``. Parameter groups: ``self.ista`` and ``self.head``.
+    output. With ``reblur=op_ref`` the head sees, instead of ``X``, the
+    features of the ISTA estimate re-imaged with another kernel (e.g. the
+    full array's), by ``reblur_mode``:
+
+    * ``'image'``: ``op_ref.A(X)``;
+    * ``'correct'``: ``Y + op_ref.A(X) - op.A(X)``, the measurement corrected
+      from the selection's kernel to the reference one by the ISTA estimate.
+      It equals ``Y`` at ``X = 0`` and for ``op = op_ref`` whatever ``X``,
+      and ``op_ref.A(X) + noise`` when ``op.A(X) = Y - noise``: a short
+      (unconverged, shrunk) ISTA then does not degrade a good measurement,
+      it only adds what the selection's kernel misses.
+
+    Parameter groups: ``self.ista`` and ``self.head``.
     """
 
     def __init__(self, n_layers: int = 8, *, base_channels: int = 32, step_fraction: float = 0.5,
-                 lam: float = 1e-3, eta: float = 0.1, feature_eps: float = 1e-4):
+                 lam: float = 1e-3, eta: float = 0.1, feature_eps: float = 1e-4,
+                 reblur_mode: str = "image"):
         super().__init__()
         self.ista = UnrolledISTA(n_layers, step_fraction=step_fraction, lam=lam)
         self.head = ResidualHead(5, base_channels, eta=eta)
         self.feature_eps = check_number("feature_eps", feature_eps, lo=0, lo_open=True)
+        self.reblur_mode = check_choice("reblur_mode", reblur_mode, ("image", "correct"))
 
     @torch.no_grad()
     def init_magnitude_base(self) -> "Reconstructor":
@@ -327,13 +339,28 @@ class Reconstructor(nn.Module):
         self.head.base.bias.zero_()
         return self
 
+    @torch.no_grad()
+    def init_identity_head(self) -> "Reconstructor":
+        """:meth:`init_magnitude_base` and ``eta = 0``: the head starts as the exact
+        identity on the magnitude of its input (``I_hat = |z|`` at step 0, ``z`` the ISTA
+        estimate or, with ``reblur``, its re-imaged version); the residual branch gets
+        its gradient through ``eta``. Returns ``self``."""
+        self.init_magnitude_base()
+        self.head.eta.zero_()
+        return self
+
     def forward(self, y: torch.Tensor, kappa: torch.Tensor | ConvolutionOperator, *,
                 return_x: bool = False, reblur: ConvolutionOperator | None = None):
         op = kappa if isinstance(kappa, ConvolutionOperator) else ConvolutionOperator(kappa)
         x = self.ista(y, op)
         # reblur: the ISTA estimate of the scatterers imaged with another (the full array's)
         # kernel before the head, for targets that are that kernel's envelope image
-        z = x if reblur is None else reblur.A(x)
+        if reblur is None:
+            z = x
+        elif self.reblur_mode == "correct":
+            z = op._check(y) + reblur.A(x) - op.A(x)
+        else:
+            z = reblur.A(x)
         phi = features(z, self.feature_eps).to(self.head.base.weight.dtype)
         out = self.head(phi)
         return (out, x) if return_x else out
