@@ -1,4 +1,7 @@
-"""PSF metrics (SPEC section 2) and training loss terms (SPEC section 3).
+"""PSF metrics (SPEC section 2) and the circular convolution of the image model.
+
+The training loss terms (SPEC section 3) live in :mod:`arraysel.objective.losses`; their names
+are re-exported here for 0.1 callers.
 
 Everything here is written with torch, works on any device, accepts
 float32/float64 and complex64/complex128 tensors, is batched over leading
