@@ -145,8 +145,12 @@ def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pit
     fig = _figure(figsize=(3 * cols, 3 * rows))
     axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     im = None
-    for ax, (lab, kk) in zip(axes, [("full (reference)", ref)] + list(zip(labels, kernels))):
-        im = psf_image(ax, kk, pitch, ref_peak=peak, title=lab, ticks=False)
+    for i, (ax, (lab, kk)) in enumerate(zip(axes, [("full (reference)", ref)] + list(zip(labels, kernels)))):
+        im = psf_image(ax, kk, pitch, ref_peak=peak, title=lab)
+        if i % cols:  # axis labels on the first column and the bottom row only
+            ax.set_ylabel("")
+        if i + cols <= len(labels):
+            ax.set_xlabel("")
     for ax in axes[len(labels) + 1:]:
         ax.axis("off")
     fig.colorbar(im, ax=list(axes), label="dB", shrink=0.8)
