@@ -74,7 +74,7 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
     s = model.setup
-    from arraysel.physics.beamform import das_plan
+    from arraysel.physics.beamform import das_plan, iq_matrix
     from arraysel.physics.simus import spectra_to_rf
 
     Z, X = torch.meshgrid(model.z_grid, model.x_grid, indexing="ij")
@@ -84,7 +84,7 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
         local = p.i0 - fast.window_offset[n][None, :]
         assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.window_samples - 1).all())
         spec = t.rx_factor[:, None, :] * t.tx_field[None, :, :]
-        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ t.iq_matrix.T  # (e, j, T)
+        iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ iq_matrix(t.grid.n_time, *t.iq_band).T  # (e, j, T)
         ne = model.n_elements
         Ac = fast.pair_iq()
         for e in range(ne):

@@ -39,7 +39,6 @@ image is a quadratic form of the weights::
 """
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -71,19 +70,12 @@ class Transmit:
     rx_factor: torch.Tensor     #: (Ne, F) receive factor C(f) R_e(f) of each receiving element
     iq_band: tuple              #: (fs, fc, bandwidth %) of the I/Q demodulation
 
-    @functools.cached_property
-    def iq_matrix(self) -> torch.Tensor:
-        """(T, T) complex128 I/Q demodulation matrix (:func:`~arraysel.physics.beamform.iq_matrix`),
-        formed on first use: only the exact path needs it, and a cold start on the fast path
-        saves its filtering (and SciPy's import)."""
-        return iq_matrix(self.grid.n_time, *self.iq_band)
-
     def iq_map(self) -> torch.Tensor:
         """Real (2F, 2T) float64 matrix ``M`` with ``[Re S, Im S] @ M = [Re IQ, Im IQ]``, where
         ``IQ = spectra_to_rf(S, grid) @ iq_matrix.T``: the exact path's spectra -> RF -> I/Q,
         composed in float64 (see :meth:`PSFModel.iq`)."""
         a, b = spectra_to_rf_maps(self.grid)
-        qt = iq_matrix(self.grid.n_time, *self.iq_band).T  # not kept: only the composed map is
+        qt = iq_matrix(self.grid.n_time, *self.iq_band).T  # formed here only: the exact path keeps the map
         m = torch.cat([a.to(torch.complex128) @ qt, b.to(torch.complex128) @ qt], dim=0)  # (2F, T)
         return torch.cat([m.real, m.imag], dim=1)
 
