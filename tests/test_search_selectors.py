@@ -223,6 +223,16 @@ def test_default_seeds_run_deterministic_selectors_once(reg, tmp_path):
     assert t1.loc["random", "seeds"] == 5 and t1.loc["uniform", "seeds"] == 1
 
 
+def test_explicit_seeds_run_deterministic_selectors_once(reg, tmp_path):
+    # identical rows per seed would only inflate the 'seeds' column and waste the budget
+    compare(ToyObjective(12, 6), ["uniform", "greedy", "random"], out_dir=tmp_path, seeds=[3, 1],
+            budget=Budget(evaluations=30), registry=reg, progress=False, figures=False)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    for det in ("uniform", "greedy"):
+        assert list(runs[runs["config"] == det]["seed"]) == [3]
+    assert sorted(runs[runs["config"] == "random"]["seed"]) == [1, 3]
+
+
 def test_ioh_files_load_in_iohinspector_and_match_runs(reg, tmp_path):
     iohinspector = pytest.importorskip("iohinspector")
     compare(ToyObjective(16, 8), ["uniform", "ste", "swap", "greedy"], out_dir=tmp_path, seeds=[0, 1],

@@ -29,8 +29,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--budget-evals", type=int, default=None, metavar="N",
                    help="objective evaluations per selector run (default: no limit)")
     p.add_argument("--seeds", default=None, metavar="0,1,2",
-                   help="comma-separated seeds, each selector runs once per seed (default: 0,1,2,3,4 for "
-                        "stochastic selectors and 0 alone for deterministic ones)")
+                   help="comma-separated seeds, each stochastic selector runs once per seed (default: "
+                        "0,1,2,3,4); a deterministic one (uniform, greedy) runs once, with the first")
     p.add_argument("--out", default="results/compare", metavar="DIR",
                    help="output folder (default results/compare)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
@@ -152,8 +152,7 @@ def run(args) -> int:
     try:
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
         from arraysel.run.compare import DEFAULT_SEEDS
-        n_runs = sum(len(seeds) if seeds is not None else 1 if registry[n].deterministic else len(DEFAULT_SEEDS)
-                     for n in names)
+        n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
         notice = _exact_run_notice(objective, budget, n_runs)
         if notice:
             print(f"arraysel compare: {notice}", file=sys.stderr)

@@ -118,9 +118,9 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     objective : object following the Objective contract (built by the caller)
     selectors : names, or ``(name, options)`` pairs
     out_dir : output folder (created)
-    seeds : seeds; each selector runs once per seed. ``None`` (default): the
-        :data:`DEFAULT_SEEDS` for stochastic selectors, and only the first of
-        them for selectors whose ``deterministic`` flag says the seed does not matter
+    seeds : seeds; each stochastic selector runs once per seed (``None``, the default:
+        :data:`DEFAULT_SEEDS`); a selector whose ``deterministic`` flag says the seed does
+        not matter runs once, with the first seed, whether the seeds are given or not
     budget : per-run limits (default: 120 s)
     registry : selector registry (default: the process-wide one)
     resume : keep the finished, error-free runs found in ``out_dir/runs.csv`` and run the rest
@@ -168,7 +168,6 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     registry = get_registry() if registry is None else registry
     budget = Budget(seconds=120.0) if budget is None else budget
     sels = _normalise_selectors(selectors)
-    default_seeds = seeds is None
     seeds = [int(check_number("seed", s, lo=0, integer=True)) for s in (DEFAULT_SEEDS if seeds is None else seeds)]
     if not sels:
         raise ParameterError("compare needs at least one selector")
@@ -256,7 +255,7 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         reporting.write_runs(out, [full] + rows, traces, budget, problem=scene_name or "arraysel")
 
     def seeds_of(name):
-        return seeds[:1] if default_seeds and classes[name].deterministic else seeds
+        return seeds[:1] if classes[name].deterministic else seeds
 
     todo = [(lab, name, opts, seed) for lab, (name, opts) in zip(labels, sels) for seed in seeds_of(name)
             if (lab, seed) not in done]

@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from arraysel.physics.beamform import das_plan
-from arraysel.physics.simus import spectra_to_rf
 
 
 def pixel_norms(H: torch.Tensor) -> torch.Tensor:
@@ -147,33 +146,38 @@ class BasisBuild:
         """I/Q of every (rx e, tx j) pair on each channel's window: ``X[n, e, t, j]`` (ntx, Ne, T, Ne)
         complex64, sample ``off[n, e] + t`` of the record (zero past its end).
 
-        The RF of a pair is the inverse FFT of ``RC_e(f) G_nj(f)``; the I/Q demodulation
-        (mixing, zero-phase Butterworth low-pass, factor 2) is applied with SciPy's
-        ``filtfilt`` along time, which is the same linear map as :func:`iq_matrix`."""
-        import scipy.signal
-
+        The RF spectrum of a pair is the product ``RC_e(f) G_nj(f)``, and its I/Q signal (inverse
+        FFT, mixing, zero-phase Butterworth low-pass, factor 2) is one linear map of it, the exact
+        path's own composed spectra -> I/Q map (:meth:`Transmit.iq_map`, float64). Applying it
+        to the window's samples only, receive elements in groups (one batched product each),
+        costs ``Ne^2 F T_window`` per transmit instead of a filter over the whole record for
+        each of the ``Ne^2`` pairs."""
         model = self.model
-        s = model.setup
         ne = model.n_elements
         ntx = len(model.transmits)
-        out = np.zeros((ntx, ne, self.window_samples, ne), dtype=np.complex64)
-        from arraysel.physics.beamform import iq_lowpass
-
-        b_, a_ = iq_lowpass(s.acq.fs, s.probe.fc, s.probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
-        off = self.window_offset.numpy()
+        Tw = self.window_samples
+        out = np.zeros((ntx, ne, Tw, ne), dtype=np.complex64)
+        ar = torch.arange(Tw)
         for n, t in enumerate(model.transmits):
+            M = t.iq_map()                                   # (2F, 2T) float64
             T = t.grid.n_time
-            mix = np.exp(-2j * np.pi * s.probe.fc * np.arange(T) / s.acq.fs)
-            step = max(1, 2 ** 24 // (ne * T))
+            F = M.shape[0] // 2
+            # zero column at index 2T: samples past the end of the record
+            M = torch.cat([M, M.new_zeros(2 * F, 1)], dim=1)
+            tx = t.tx_field.to(torch.complex128)             # (Ne, F), transmit j
+            rx = t.rx_factor.to(torch.complex128)            # (Ne, F), receive e
+            step = max(1, 2 ** 22 // (ne * F))
             for e0 in range(0, ne, step):
                 e1 = min(ne, e0 + step)
-                spec = t.rx_factor[e0:e1, None, :] * t.tx_field[None, :, :]
-                rf = spectra_to_rf(spec, t.grid).numpy()  # (ce, Ne, T)
-                iq = 2 * scipy.signal.filtfilt(b_, a_, rf * mix, axis=-1)
-                for e in range(e0, e1):
-                    o = int(off[n, e])
-                    k = max(0, min(self.window_samples, T - o))
-                    out[n, e, :k, :] = iq[e - e0, :, o:o + k].T
+                s_ = rx[e0:e1, None, :] * tx[None, :, :]     # (ce, Ne, F)
+                lhs = torch.cat([s_.real, s_.imag], dim=2)   # (ce, Ne, 2F)
+                idx = self.window_offset[n, e0:e1, None] + ar[None, :]  # (ce, Tw)
+                idx = torch.where(idx < T, idx, torch.full_like(idx, 2 * T))
+                cols = torch.cat([idx, torch.where(idx < T, idx + T, idx)], dim=1)  # (ce, 2 Tw)
+                rhs = M[:, cols].permute(1, 0, 2)            # (ce, 2F, 2 Tw)
+                y = torch.bmm(lhs, rhs)                      # (ce, Ne, 2 Tw)
+                iq = torch.complex(y[:, :, :Tw], y[:, :, Tw:]).transpose(1, 2)  # (ce, Tw, Ne)
+                out[n, e0:e1] = iq.to(torch.complex64).numpy()
         return out
 
     def _local_plan(self, rows: slice, cols: torch.Tensor):
