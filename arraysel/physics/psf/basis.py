@@ -299,8 +299,13 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         if self.U is None or r >= self.rank:
             return out
         n = self.npix
-        tail = self.V[r:].double()
-        pix = (tail[:, :n] ** 2 + tail[:, n:] ** 2).sum(0)
+        # sum of the dropped rows' squares per pixel, a few rows at a time (the rows of V beyond
+        # the run-time rank are most of V: held at once in float64 they doubled the resident
+        # memory of a 128-element probe's cold start)
+        pix = torch.zeros(n, dtype=torch.float64, device=self.V.device)
+        for i0 in range(r, self.V.shape[0], 64):
+            tail = self.V[i0:i0 + 64].double()
+            pix += tail[:, :n].square().sum(0) + tail[:, n:].square().sum(0)
         sig = self.row_energy[r:]
         err = self.error._replace(
             pixel_residual=math.sqrt(self.error.pixel_residual ** 2 + float(pix.max())) * (1 + 1e-6),
