@@ -138,3 +138,37 @@ def test_cached_basis_carries_the_window_estimate(monkeypatch, tmp_path):
     assert second.basis_bytes() == first.basis_bytes()
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
     assert stored_window_estimate(first) is None
+
+
+def test_exact_windows_settle_kernels_whose_error_bound_fails(no_cache, monkeypatch):
+    """A selection whose peak and window are certified but whose image error bound exceeds
+    ``kernel_tol`` gets its window delay-and-summed exactly from its channels (no whole-grid
+    exact path): with ``kernel_tol = 0`` every kernel comes from there and equals the exact
+    path's; beyond ``exact_windows_max`` selections the exact path still takes over."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    w = _weights(8, 5, seed=11)
+    ke = model.kernels_exact(w)
+    for basis in (fast, fast.finer):
+        if basis is not None:
+            monkeypatch.setattr(basis, "kernel_tol", 0.0)
+    called = []
+    real = type(fast)._exact_windows
+
+    def spy(self, *a):
+        called.append(a[0].shape[0])
+        return real(self, *a)
+
+    monkeypatch.setattr(type(fast), "_exact_windows", spy)
+    k, fallback = model.kernels(w, return_info=True)
+    assert sum(called) == 5 and not bool(fallback.any())
+    for i in range(5):
+        assert float(si_mse(k[i], ke[i])) < 1e-12
+    # differentiable like the rest of the fast path
+    w1 = w[:1].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v: torch.view_as_real(model.kernels(v)), (w1,), eps=1e-6, atol=1e-6,
+                                    rtol=1e-4)
+    monkeypatch.setattr(type(fast), "exact_windows_max", 2)
+    called.clear()
+    k, fallback = model.kernels(w, return_info=True)
+    assert not called and bool(fallback.all())

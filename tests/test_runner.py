@@ -156,7 +156,8 @@ def test_compare_writes_all_files(reg, tmp_path):
     assert t1.set_index("config").loc["full", "elements"] == " ".join(map(str, range(16)))
     assert list(table["config"]) == list(t1["config"])
     runs = pd.read_csv(tmp_path / "runs.csv")
-    assert tuple(runs.columns) == ROW_COLUMNS and len(runs) == 7
+    # full, ste and random per seed, uniform once (deterministic)
+    assert tuple(runs.columns) == ROW_COLUMNS and len(runs) == 6
     trace = pd.read_csv(tmp_path / "trace.csv")
     assert tuple(trace.columns) == TRACE_COLUMNS and set(trace["config"]) == {"ste", "random", "uniform"}
     for _, g in trace.groupby(["config", "seed"]):
@@ -210,14 +211,19 @@ def test_interrupt_keeps_finished_rows_and_resume_finishes(tmp_path, capsys):
 
 def test_resume_skips_finished_runs(reg, tmp_path):
     obj = ToyObjective(12, 6)
-    compare(obj, ["uniform"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=5), registry=reg,
+    compare(obj, ["random"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=5), registry=reg,
             progress=False, figures=False)
     before = obj.evaluations
-    compare(obj, ["uniform"], out_dir=tmp_path, seeds=[0, 1], budget=Budget(evaluations=5), registry=reg,
+    compare(obj, ["random"], out_dir=tmp_path, seeds=[0, 1], budget=Budget(evaluations=5), registry=reg,
             progress=False, figures=False, resume=True)
     runs = pd.read_csv(tmp_path / "runs.csv")
     assert sorted(runs["seed"].dropna()) == [0, 1]
-    assert obj.evaluations - before == 1 + 1 + 1  # full row + one new run + its final evaluation
+    resumed = obj.evaluations - before
+    # what a compare of seed 1 alone costs (full row, the run, its final evaluation): seed 0 is not rerun
+    before = obj.evaluations
+    compare(obj, ["random"], out_dir=tmp_path / "one", seeds=[1], budget=Budget(evaluations=5), registry=reg,
+            progress=False, figures=False)
+    assert resumed == obj.evaluations - before
 
 
 def test_compare_rejects_unknown_selectors(reg, tmp_path):

@@ -136,6 +136,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         self.blocks2 = torch.nonzero(outside2)  # (nQ2, 2): the tier-2 blocks (rows of block_envelopes_band)
         self._strip_layout()
         self._block_plans: dict = {}
+        self._e_plan_holder: dict = {}  # E's DAS plan (Refinement._e_plans), shared with truncated views
         self._row_energy = None
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path

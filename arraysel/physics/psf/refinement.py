@@ -28,7 +28,7 @@ class Refinement:
     kernel_tol = 5e-3
 
     #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
-    refine_max_blocks = 256
+    refine_max_blocks = 1024
 
     #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of
     #: index, weight and rotation)
@@ -77,13 +77,23 @@ class Refinement:
         """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
         ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
         plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
-        img = 0
+        per_tx = []
         for n in range(len(self.model.transmits)):
             parts = [tuple(a[r] for a in pl[n]) if rows is not None else pl[n] for pl, r in
                      zip(plans, rows if rows is not None else [None] * len(plans))]
-            i0, wt, rot = (torch.cat([pt[j] for pt in parts]) for j in range(3))
-            img = img + das_apply(X[n], i0, wt, rot)
-        return img
+            per_tx.append(tuple(torch.cat([pt[j] for pt in parts]) for j in range(3)))
+        if X.requires_grad or X.device.type != "cpu":
+            img = 0
+            for n, (i0, wt, rot) in enumerate(per_tx):
+                img = img + das_apply(X[n], i0, wt, rot)
+            return img
+        # no gradient wanted: the compiled sum, which skips the entries outside the aperture
+        from arraysel.physics.pairkernels import das_pixels
+
+        out = das_pixels(torch.view_as_real(X.contiguous()).numpy(),
+                         [(i0.numpy(), wt.numpy(), torch.view_as_real(rot.contiguous()).numpy())
+                          for i0, wt, rot in per_tx])
+        return torch.complex(*torch.from_numpy(out).to(X.real.dtype).unbind(1))
 
     def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
         """(n, B) float64 upper bounds of ``max |I|`` on the whole strip blocks ``slots`` (their
@@ -268,6 +278,8 @@ class Refinement:
             if retry.numel():
                 passed[retry] = self.refine(wd[retry], thr[retry], env=env[:, retry], tier=1).to(passed.device)
             ok = passed
+            # the window of every selection whose peak is certified (tier 1 here, tier 2 below)
+            located, win_z, win_x = ok.clone(), torch.where(ok, z0, -1), torch.where(ok, x0, -1)
         z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
@@ -285,6 +297,10 @@ class Refinement:
                 retry = torch.nonzero(ok2 & ~passed).flatten()
                 if retry.numel():
                     passed[retry] = self.refine(wd[todo][retry], thr2[retry], env=env2[:, retry]).to(passed.device)
+            with torch.no_grad():
+                sel = torch.nonzero(passed).flatten()
+                located[todo[sel]] = True
+                win_z[todo[sel]], win_x[todo[sel]] = z02[sel], x02[sel]
             z0b = torch.where(passed, z02 - self.rows.start, torch.zeros_like(z02))
             k2, norm2 = cut_windows(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
             passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
@@ -302,4 +318,64 @@ class Refinement:
                 out = out.index_put((todo[sel],), k3[sel])
                 ok = ok.clone()
                 ok[todo[sel]] = True
+        todo = torch.nonzero(~ok & located).flatten()
+        if todo.numel() and todo.numel() <= self.exact_windows_max:
+            # the peak and its window are certified and only the image's error bound is too
+            # loose: the window itself is delay-and-summed exactly from the selection's channels
+            out = out.index_put((todo,), self._exact_windows(w[todo], win_z[todo], win_x[todo]).to(out.dtype))
+            ok = ok.clone()
+            ok[todo] = True
         return out, ok.cpu()
+
+    #: most selections of one batch whose windows are beamformed exactly (:meth:`_exact_windows`);
+    #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
+    exact_windows_max = 4096
+
+    def _e_plans(self) -> list:
+        """DAS plan of the pixels of E (row-major), per transmit ``(i0, wt, rot)`` numpy arrays
+        ((Npix_E, Ne) sample index local to the channel windows, interpolation weight, and
+        (Npix_E, Ne, 2) phase rotation), made on first use and kept."""
+        plans = self._e_plan_holder.get("plans")
+        if plans is None:
+            model = self.model
+            s = model.setup
+            Z, X = torch.meshgrid(model.z_grid[self.rows], model.x_grid[self.cols], indexing="ij")
+            plans = []
+            for n, t in enumerate(model.transmits):
+                p = das_plan(X.reshape(-1), Z.reshape(-1), t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
+                             fnumber=s.fnumber, fc=s.probe.fc)
+                i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
+                rot = p.rot.to(model.cdtype)
+                plans.append((i0.to(torch.int32).contiguous().numpy(), p.w.to(model.dtype).contiguous().numpy(),
+                              torch.view_as_real(rot).contiguous().numpy()))
+            self._e_plan_holder["plans"] = plans
+        return plans
+
+    def _exact_windows(self, w: torch.Tensor, z0: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """Kernels (B, window, window) of selections ``w`` from the exact image on their windows at
+        grid offsets (z0, x0) (delay-and-sum of their I/Q channels, as the exact path;
+        differentiable), normalised as :func:`cut_windows` does. Windows inside E read the DAS
+        plan of E (:meth:`_e_plans`, made once) with the compiled sum; others, and gradients, go
+        through the block plans."""
+        n = self.model.setup.window
+        ar = torch.arange(n)
+        X = self.channels(w)
+        wins = []
+        grad = X.requires_grad or X.device.type != "cpu"
+        for i in range(w.shape[0]):
+            zi = (int(z0[i]) + ar)[:, None].expand(n, n).reshape(-1)
+            xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
+            inside = (self.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.rows.stop
+                      and self.cols.start <= int(x0[i]) and int(x0[i]) + n <= self.cols.stop)
+            if inside and not grad:
+                from arraysel.physics.pairkernels import das_plan_rows
+
+                pix = ((zi - self.rows.start) * self.shape[1] + (xi - self.cols.start)).numpy()
+                v = torch.from_numpy(das_plan_rows(torch.view_as_real(X[i].contiguous()).numpy(),
+                                                   self._e_plans(), pix))
+                wins.append(torch.complex(v[:, 0], v[:, 1]).to(X.dtype).reshape(n, n))
+            else:
+                wins.append(self._exact_pixels(X[i], zi, xi).reshape(n, n))
+        win = torch.stack(wins)
+        zero = torch.zeros(w.shape[0], dtype=torch.long)
+        return cut_windows(win, zero, zero, n)[0]
