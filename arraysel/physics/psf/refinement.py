@@ -309,7 +309,22 @@ class Refinement:
                 out = out.index_put((todo[sel],), k2[sel])
                 ok = ok.clone()
                 ok[todo[sel]] = True
-        todo = torch.nonzero(~ok).flatten()
+        if self.finer is not None:
+            # located, only the error bound too loose: the full stored rank's tighter bound, on the
+            # certified window (when it lies in E)
+            n = s.window
+            inside = ~ok & located & (win_z >= self.rows.start) & (win_z + n <= self.rows.stop) & \
+                (win_x >= self.cols.start) & (win_x + n <= self.cols.stop)
+            todo = torch.nonzero(inside).flatten()
+            if todo.numel():
+                img_f, _, werr_f = self.finer.images(w[todo], with_error=True)
+                k_f, norm_f = cut_windows(img_f, win_z[todo] - self.rows.start, win_x[todo] - self.cols.start, n)
+                sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
+                if sel.numel():
+                    out = out.index_put((todo[sel],), k_f[sel].to(out.dtype))
+                    ok = ok.clone()
+                    ok[todo[sel]] = True
+        todo = torch.nonzero(~ok & ~located).flatten()
         if todo.numel() and self.finer is not None:
             # a tighter error bound (the full stored rank) settles most of the rest
             k3, ok3 = self.finer.kernels(w[todo])
@@ -367,12 +382,20 @@ class Refinement:
             xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
             inside = (self.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.rows.stop
                       and self.cols.start <= int(x0[i]) and int(x0[i]) + n <= self.cols.stop)
-            if inside and not grad:
+            if inside:
+                pix = (zi - self.rows.start) * self.shape[1] + (xi - self.cols.start)
+                if grad:
+                    img = 0
+                    for t, (i0, wt, rot) in enumerate(self._e_plans()):
+                        img = img + das_apply(X[i, t], torch.from_numpy(i0)[pix].long().to(X.device),
+                                              torch.from_numpy(wt)[pix].to(X.device),
+                                              torch.view_as_complex(torch.from_numpy(rot)[pix]).to(X.device))
+                    wins.append(img.reshape(n, n))
+                    continue
                 from arraysel.physics.pairkernels import das_plan_rows
 
-                pix = ((zi - self.rows.start) * self.shape[1] + (xi - self.cols.start)).numpy()
                 v = torch.from_numpy(das_plan_rows(torch.view_as_real(X[i].contiguous()).numpy(),
-                                                   self._e_plans(), pix))
+                                                   self._e_plans(), pix.numpy()))
                 wins.append(torch.complex(v[:, 0], v[:, 1]).to(X.dtype).reshape(n, n))
             else:
                 wins.append(self._exact_pixels(X[i], zi, xi).reshape(n, n))
