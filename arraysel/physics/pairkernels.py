@@ -98,36 +98,14 @@ def pair_images(X: np.ndarray, plan: tuple, e0: int, e1: int) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=False, nogil=True)
-def _das_kernel(x, i0, wt, rot, out):
-    """``out[p] += sum_e rot[p, e] lerp(x[e], i0[p, e], wt[p, e])`` over the entries with a
-    non-zero rotation (the others are outside the aperture or the record).
-
-    x: (Ne, T, 2) float [re, im] I/Q of one transmit; i0: (Npix, Ne) int; wt: (Npix, Ne) float;
-    rot: (Npix, Ne, 2) float; out: (Npix, 2) float64.
-    """
-    npix, ne = i0.shape
-    for p in numba.prange(npix):
-        sr = 0.0
-        si = 0.0
-        for e in range(ne):
-            cr = rot[p, e, 0]
-            ci = rot[p, e, 1]
-            if cr != 0.0 or ci != 0.0:
-                i = i0[p, e]
-                w = wt[p, e]
-                ar = x[e, i, 0]
-                ai = x[e, i, 1]
-                vr = ar + (x[e, i + 1, 0] - ar) * w
-                vi = ai + (x[e, i + 1, 1] - ai) * w
-                sr += cr * vr - ci * vi
-                si += cr * vi + ci * vr
-        out[p, 0] += sr
-        out[p, 1] += si
-
-
-@numba.njit(parallel=True, cache=False, nogil=True)
 def _das_rows_kernel(x, pix, i0, wt, rot, out):
-    """:func:`_das_kernel` on the plan rows ``pix`` (out[k] for plan row pix[k])."""
+    """``out[k] += sum_e rot[p, e] lerp(x[e], i0[p, e], wt[p, e])`` for plan row ``p = pix[k]``,
+    over the entries with a non-zero rotation (the others are outside the aperture or the
+    record).
+
+    x: (Ne, T, 2) float [re, im] I/Q of one transmit; pix: (K,) int64; i0: (Npix, Ne) int;
+    wt: (Npix, Ne) float; rot: (Npix, Ne, 2) float; out: (K, 2) float64.
+    """
     ne = i0.shape[1]
     for k in numba.prange(pix.shape[0]):
         p = pix[k]
@@ -158,13 +136,10 @@ def das_plan_rows(x: np.ndarray, plans, pix: np.ndarray) -> np.ndarray:
 
 
 def das_pixels(x: np.ndarray, plans) -> np.ndarray:
-    """Delay-and-sum of one selection's I/Q channels on a set of pixels, compiled (the same sum as
-    :func:`arraysel.physics.beamform.das_apply`, skipping the entries outside the aperture).
+    """Delay-and-sum of one selection's I/Q channels on every pixel of the plans, compiled (the same
+    sum as :func:`arraysel.physics.beamform.das_apply`, skipping the entries outside the aperture).
 
     x: (ntx, Ne, T, 2) float [re, im]; plans: per transmit ``(i0, wt, rot)`` numpy arrays of
     shapes (Npix, Ne), (Npix, Ne), (Npix, Ne, 2). Returns (Npix, 2) float64 [re, im].
     """
-    out = np.zeros((plans[0][0].shape[0], 2), dtype=np.float64)
-    for n, (i0, wt, rot) in enumerate(plans):
-        _das_kernel(x[n], i0, wt, rot, out)
-    return out
+    return das_plan_rows(x, plans, np.arange(plans[0][0].shape[0], dtype=np.int64))
