@@ -370,8 +370,9 @@ class Refinement:
         """Kernels (B, window, window) of selections ``w`` from the exact image on their windows at
         grid offsets (z0, x0) (delay-and-sum of their I/Q channels, as the exact path;
         differentiable), normalised as :func:`cut_windows` does. Windows inside E read the DAS
-        plan of E (:meth:`_e_plans`, made once) with the compiled sum; others, and gradients, go
-        through the block plans."""
+        plan of E (:meth:`_e_plans`, made once): the compiled sum without gradient, torch's
+        ``das_apply`` on the same plan rows with one; windows outside E go through the block
+        plans."""
         n = self.model.setup.window
         ar = torch.arange(n)
         X = self.channels(w)
