@@ -197,3 +197,26 @@ def test_compiled_das_equals_das_apply():
     rows = np.array([16, 0, 5, 5])
     got = torch.from_numpy(das_plan_rows(torch.view_as_real(x).numpy(), plans, rows))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want[rows], rtol=1e-12, atol=1e-12)
+
+
+def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, monkeypatch):
+    """Without strips, a selection whose peak is certified but whose window does not fit in E
+    (a peak near E's edge) has its window beamformed exactly, not the whole grid: forced here by
+    reporting every window as not fitting."""
+    monkeypatch.setattr(PairBasis, "strip_max_bytes", 0)
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    assert not fast.strips
+    real = type(fast)._windows
+
+    def never_fits(self, *a):
+        z0, x0, fits = real(self, *a)
+        return z0, x0, torch.zeros_like(fits)
+
+    monkeypatch.setattr(type(fast), "_windows", never_fits)
+    w = _weights(8, 4, seed=5)
+    k, fallback = model.kernels(w, return_info=True)
+    assert not bool(fallback.any())
+    ke = model.kernels_exact(w)
+    for i in range(4):
+        assert float(si_mse(k[i], ke[i])) < 1e-12

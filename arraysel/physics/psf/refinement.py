@@ -272,14 +272,14 @@ class Refinement:
         pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
         z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
         with torch.no_grad():
-            ok = ok & fits
             passed = ok & (self.bound(wd, 1, env=env) < thr)
             retry = torch.nonzero(ok & ~passed).flatten()
             if retry.numel():
                 passed[retry] = self.refine(wd[retry], thr[retry], env=env[:, retry], tier=1).to(passed.device)
-            ok = passed
-            # the window of every selection whose peak is certified (tier 1 here, tier 2 below)
-            located, win_z, win_x = ok.clone(), torch.where(ok, z0, -1), torch.where(ok, x0, -1)
+            # the window of every selection whose peak is certified (tier 1 here, tier 2 below),
+            # whether or not the window fits in E
+            located, win_z, win_x = passed.clone(), torch.where(passed, z0, -1), torch.where(passed, x0, -1)
+            ok = passed & fits
         z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
