@@ -161,7 +161,7 @@ class Refinement:
                     at = (col0[run] - first) // (2 * bb)
                     clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
         clear = clear.cpu()
-        X = None
+        X, g0, group = None, 0, self.exact_window_group
         for i in range(B):
             left = torch.nonzero(~clear[:, i]).flatten()
             if not left.numel():
@@ -169,9 +169,9 @@ class Refinement:
                 continue
             if bool(strip[left].any()) or left.numel() > self.refine_max_blocks:
                 continue  # a strip block reaches the peak, or too many blocks to beamform
-            if X is None:
-                X = self.channels(w)
-            img = self._das(X[i], [tuple(int(v) for v in blocks[q]) for q in left.tolist()])
+            if X is None or i >= g0 + group:  # channels of a few selections at a time
+                X, g0 = self.channels(w[i:i + group]), i
+            img = self._das(X[i - g0], [tuple(int(v) for v in blocks[q]) for q in left.tolist()])
             out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
         return out
 
@@ -216,12 +216,13 @@ class Refinement:
                 arg = arg.clone()
                 if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
                     amb = self._settle_in_core(cand, amb, arg, w)
-            if amb.numel():
-                X = self.channels(w[amb].detach())
-                for i, b in enumerate(amb.tolist()):
-                    idx = torch.nonzero(cand[b]).flatten()
-                    v = self._exact_pixels(X[i], idx // wd + row0, idx % wd + col0).abs()
-                    arg[b] = idx[int(torch.argmax(v))]
+            group = self.exact_window_group
+            for i, b in enumerate(amb.tolist()):
+                if i % group == 0:  # channels of a few selections at a time
+                    X = self.channels(w[amb[i:i + group]].detach())
+                idx = torch.nonzero(cand[b]).flatten()
+                v = self._exact_pixels(X[i % group], idx // wd + row0, idx % wd + col0).abs()
+                arg[b] = idx[int(torch.argmax(v))]
         return arg // wd + row0, arg % wd + col0, val - eps, ok
 
     def _settle_in_core(self, cand: torch.Tensor, amb: torch.Tensor, arg: torch.Tensor, w: torch.Tensor):
@@ -345,6 +346,9 @@ class Refinement:
     #: most selections of one batch whose windows are beamformed exactly (:meth:`_exact_windows`);
     #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
     exact_windows_max = 4096
+    #: selections whose channels are formed at once (:meth:`_exact_windows`, :meth:`refine`,
+    #: :meth:`_locate`): (16, ntx, Ne, T) complex is 60 MB for a 256-element probe
+    exact_window_group = 16
 
     def _e_plans(self) -> list:
         """DAS plan of the pixels of E (row-major), per transmit ``(i0, wt, rot)`` numpy arrays
@@ -375,10 +379,15 @@ class Refinement:
         plans."""
         n = self.model.setup.window
         ar = torch.arange(n)
-        X = self.channels(w)
         wins = []
-        grad = X.requires_grad or X.device.type != "cpu"
+        grad = w.requires_grad or w.device.type != "cpu"
+        group = self.exact_window_group
         for i in range(w.shape[0]):
+            if i % group == 0:
+                # channels of a few selections at a time: (B, ntx, Ne, T) for a whole batch of
+                # a 256-element probe is about 1 GB
+                X = self.channels(w[i:i + group])
+                X = X if X.dim() == 4 else X[None]
             zi = (int(z0[i]) + ar)[:, None].expand(n, n).reshape(-1)
             xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
             inside = (self.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.rows.stop
@@ -388,18 +397,18 @@ class Refinement:
                 if grad:
                     img = 0
                     for t, (i0, wt, rot) in enumerate(self._e_plans()):
-                        img = img + das_apply(X[i, t], torch.from_numpy(i0)[pix].long().to(X.device),
+                        img = img + das_apply(X[i % group, t], torch.from_numpy(i0)[pix].long().to(X.device),
                                               torch.from_numpy(wt)[pix].to(X.device),
                                               torch.view_as_complex(torch.from_numpy(rot)[pix]).to(X.device))
                     wins.append(img.reshape(n, n))
                     continue
                 from arraysel.physics.pairkernels import das_plan_rows
 
-                v = torch.from_numpy(das_plan_rows(torch.view_as_real(X[i].contiguous()).numpy(),
+                v = torch.from_numpy(das_plan_rows(torch.view_as_real(X[i % group].contiguous()).numpy(),
                                                    self._e_plans(), pix.numpy()))
                 wins.append(torch.complex(v[:, 0], v[:, 1]).to(X.dtype).reshape(n, n))
             else:
-                wins.append(self._exact_pixels(X[i], zi, xi).reshape(n, n))
+                wins.append(self._exact_pixels(X[i % group], zi, xi).reshape(n, n))
         win = torch.stack(wins)
         zero = torch.zeros(w.shape[0], dtype=torch.long)
         return cut_windows(win, zero, zero, n)[0]
