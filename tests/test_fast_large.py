@@ -147,7 +147,7 @@ def test_exact_windows_settle_kernels_whose_error_bound_fails(no_cache, monkeypa
     path's; beyond ``exact_windows_max`` selections the exact path still takes over."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "exact_window_group", 2)  # channels formed 2 selections at a time
+    monkeypatch.setattr(type(fast), "channel_group", 2)  # channels formed 2 selections at a time
     w = _weights(8, 5, seed=11)
     ke = model.kernels_exact(w)
     for basis in (fast, fast.finer):

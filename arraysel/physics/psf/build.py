@@ -180,21 +180,31 @@ class BasisBuild:
                 out[n, e0:e1] = iq.to(torch.complex64).numpy()
         return out
 
-    def _local_plan(self, rows: slice, cols: torch.Tensor):
-        """DAS plan of the pixels (rows x cols) for the pair-image kernel: (i0 local to the
-        channel windows, weight, rotation re, im), each (ntx, Ne, Npix) numpy."""
+    def _window_plans(self, X: torch.Tensor, Z: torch.Tensor) -> list:
+        """Per transmit, the DAS plan ``(i0, w, rot)`` ((Npix, Ne) each, float64) of the pixels at
+        (X, Z) with sample indices local to the channel windows (:meth:`_sample_ranges`; 0 where
+        the rotation is 0: outside the aperture or the record)."""
         model = self.model
         s = model.setup
-        Z, X = torch.meshgrid(model.z_grid[rows], model.x_grid[cols], indexing="ij")
-        out = [[], [], [], []]
+        out = []
         for n, t in enumerate(model.transmits):
             p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
                          fc=s.probe.fc)
             i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
+            out.append((i0, p.w, p.rot))
+        return out
+
+    def _local_plan(self, rows: slice, cols: torch.Tensor):
+        """DAS plan of the pixels (rows x cols) for the pair-image kernel: (i0 local to the
+        channel windows, weight, rotation re, im), each (ntx, Ne, Npix) numpy."""
+        model = self.model
+        Z, X = torch.meshgrid(model.z_grid[rows], model.x_grid[cols], indexing="ij")
+        out = [[], [], [], []]
+        for i0, w, rot in self._window_plans(X, Z):
             out[0].append(i0.T.to(torch.int32))
-            out[1].append(p.w.T.to(torch.float32))
-            out[2].append(p.rot.real.T.to(torch.float32))
-            out[3].append(p.rot.imag.T.to(torch.float32))
+            out[1].append(w.T.to(torch.float32))
+            out[2].append(rot.real.T.to(torch.float32))
+            out[3].append(rot.imag.T.to(torch.float32))
         return tuple(np.ascontiguousarray(torch.stack(a).numpy()) for a in out)
 
     #: most pair rows the kernel fills at once (bounds the build's working memory)

@@ -11,7 +11,7 @@ import math
 
 import torch
 
-from arraysel.physics.beamform import das_apply, das_plan
+from arraysel.physics.beamform import das_apply
 from arraysel.physics.psf.window import cut_windows, window_start
 
 
@@ -44,12 +44,11 @@ class Refinement:
     def _plans_for_blocks(self, blocks: list) -> list:
         """DAS plans (per block: one (i0, w, rot) per transmit) of the pixels of the grid blocks
         ``blocks`` ((qz, qx) pairs), row-major, clipped to the grid. Cached; the missing blocks are
-        planned together (one :func:`das_plan` call per transmit)."""
+        planned together (:meth:`_window_plans`)."""
         missing = list(dict.fromkeys(q for q in blocks if q not in self._block_plans))
         made = {}
         if missing:
             model = self.model
-            s = model.setup
             b = model.block
             zs, xs, sizes = [], [], []
             for qz, qx in missing:
@@ -58,15 +57,9 @@ class Refinement:
                 zs.append(Z.reshape(-1))
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
-            Z, X = torch.cat(zs), torch.cat(xs)
-            per_tx = []
-            for n, t in enumerate(model.transmits):
-                p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
-                             fc=s.probe.fc)
-                # sample indices local to the channel windows (see _sample_ranges)
-                i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
-                per_tx.append((i0.to(model.device).split(sizes), p.w.to(model.device, model.dtype).split(sizes),
-                               p.rot.to(model.device, model.cdtype).split(sizes)))
+            per_tx = [(i0.to(model.device).split(sizes), w.to(model.device, model.dtype).split(sizes),
+                       rot.to(model.device, model.cdtype).split(sizes))
+                      for i0, w, rot in self._window_plans(torch.cat(xs), torch.cat(zs))]
             for i, q in enumerate(missing):
                 made[q] = [(i0[i], wt[i], rot[i]) for i0, wt, rot in per_tx]
                 if len(self._block_plans) < self.plan_cache_blocks:
@@ -161,7 +154,7 @@ class Refinement:
                     at = (col0[run] - first) // (2 * bb)
                     clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
         clear = clear.cpu()
-        X, g0, group = None, 0, self.exact_window_group
+        X, g0, group = None, 0, self.channel_group
         for i in range(B):
             left = torch.nonzero(~clear[:, i]).flatten()
             if not left.numel():
@@ -216,7 +209,7 @@ class Refinement:
                 arg = arg.clone()
                 if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
                     amb = self._settle_in_core(cand, amb, arg, w)
-            group = self.exact_window_group
+            group = self.channel_group
             for i, b in enumerate(amb.tolist()):
                 if i % group == 0:  # channels of a few selections at a time
                     X = self.channels(w[amb[i:i + group]].detach())
@@ -348,7 +341,7 @@ class Refinement:
     exact_windows_max = 4096
     #: selections whose channels are formed at once (:meth:`_exact_windows`, :meth:`refine`,
     #: :meth:`_locate`): (16, ntx, Ne, T) complex is 60 MB for a 256-element probe
-    exact_window_group = 16
+    channel_group = 16
 
     def _e_plans(self) -> list:
         """DAS plan of the pixels of E (row-major), per transmit ``(i0, wt, rot)`` numpy arrays
@@ -357,16 +350,10 @@ class Refinement:
         plans = self._e_plan_holder.get("plans")
         if plans is None:
             model = self.model
-            s = model.setup
             Z, X = torch.meshgrid(model.z_grid[self.rows], model.x_grid[self.cols], indexing="ij")
-            plans = []
-            for n, t in enumerate(model.transmits):
-                p = das_plan(X.reshape(-1), Z.reshape(-1), t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
-                             fnumber=s.fnumber, fc=s.probe.fc)
-                i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
-                rot = p.rot.to(model.cdtype)
-                plans.append((i0.to(torch.int32).contiguous().numpy(), p.w.to(model.dtype).contiguous().numpy(),
-                              torch.view_as_real(rot).contiguous().numpy()))
+            plans = [(i0.to(torch.int32).contiguous().numpy(), w.to(model.dtype).contiguous().numpy(),
+                      torch.view_as_real(rot.to(model.cdtype)).contiguous().numpy())
+                     for i0, w, rot in self._window_plans(X.reshape(-1), Z.reshape(-1))]
             self._e_plan_holder["plans"] = plans
         return plans
 
@@ -381,7 +368,7 @@ class Refinement:
         ar = torch.arange(n)
         wins = []
         grad = w.requires_grad or w.device.type != "cpu"
-        group = self.exact_window_group
+        group = self.channel_group
         for i in range(w.shape[0]):
             if i % group == 0:
                 # channels of a few selections at a time: (B, ntx, Ne, T) for a whole batch of
