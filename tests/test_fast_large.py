@@ -127,7 +127,8 @@ def test_basis_memory_estimate_covers_the_build(no_cache):
 
 def test_cached_basis_carries_the_window_estimate(monkeypatch, tmp_path):
     """A cold start reads the memory guard's window estimate from the cached basis instead of
-    planning the grid again; it is the number the model computes."""
+    planning the grid again; it is the number the model computes. The loaded basis keeps its
+    ``strips`` flag."""
     from arraysel.physics.psf.store import stored_window_estimate
 
     monkeypatch.setenv("ARRAYSEL_CACHE", str(tmp_path))
@@ -136,6 +137,8 @@ def test_cached_basis_carries_the_window_estimate(monkeypatch, tmp_path):
     second = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     assert second.window_estimate() == first._estimate_window()
     assert second.basis_bytes() == first.basis_bytes()
+    # the loaded basis states whether it has strips, as the built one does
+    assert second.basis.strips is first.basis.strips is True
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
     assert stored_window_estimate(first) is None
 
@@ -221,3 +224,50 @@ def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, mon
     ke = model.kernels_exact(w)
     for i in range(4):
         assert float(si_mse(k[i], ke[i])) < 1e-12
+
+
+def test_band_images_only_for_peaks_tier_one_cannot_certify(no_cache, monkeypatch):
+    """Tier 2 (the band's image, a product with every strip pair image) serves only selections
+    whose peak tier 1 could not certify. A certified peak whose error bound is too loose gets an
+    exact window instead, so the strips' pair images are not read (they are most of the
+    paper scene's basis). Forcing tier 1 to fail still routes selections through the band."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    assert fast.strips and fast.npix2 > 0
+    cls = type(fast)
+    w = _weights(8, 5, seed=11)
+    ke = model.kernels_exact(w)
+    band_calls = []
+    real_band = cls.band_images
+
+    def band_spy(self, *a, **kw):
+        band_calls.append(a[0].shape[0])
+        return real_band(self, *a, **kw)
+
+    monkeypatch.setattr(cls, "band_images", band_spy)
+    monkeypatch.setattr(fast, "kernel_tol", 0.0)  # every error bound fails, every peak is certified
+    k, fallback = model.kernels(w, return_info=True)
+    assert not band_calls and not bool(fallback.any())
+    for i in range(5):
+        assert float(si_mse(k[i], ke[i])) < 1e-12
+    # tier 1 cannot certify any peak: the band is consulted for every selection
+    monkeypatch.setattr(fast, "kernel_tol", cls.kernel_tol)
+    real_bound = cls.bound
+
+    def tier1_fails(self, w_, tier=1, per_block=False, env=None):
+        b = real_bound(self, w_, tier, per_block=per_block, env=env)
+        return b + float("inf") if tier == 1 else b
+
+    real_refine = cls.refine
+
+    def refine_tier1_fails(self, w_, threshold, env=None, tier=2):
+        if tier == 1:
+            return torch.zeros(w_.shape[0], dtype=torch.bool)
+        return real_refine(self, w_, threshold, env=env, tier=tier)
+
+    monkeypatch.setattr(cls, "bound", tier1_fails)
+    monkeypatch.setattr(cls, "refine", refine_tier1_fails)
+    k, fallback = model.kernels(w, return_info=True)
+    assert sum(band_calls) == 5
+    for i in torch.nonzero(~fallback).flatten().tolist():
+        assert float(si_mse(k[i], ke[i])) < 1e-6

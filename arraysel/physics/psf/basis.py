@@ -272,6 +272,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         self.window_samples, self.max_run, self.rank, self.segment, strips = (int(v) for v in st["meta"])
         self.window_offset = st["off"].long()
         self._row_energy = st["row_energy"].double()
+        self.strips = bool(strips)
         if not strips:
             self._disable_strips()
         self.rank_tail = float(st["rank_tail"])

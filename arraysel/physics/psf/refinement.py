@@ -278,7 +278,10 @@ class Refinement:
         x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
         ok = ok & (win_err <= self.kernel_tol * norm)
-        todo = torch.nonzero(~ok).flatten()
+        # tier 2 (the band) for the selections whose peak tier 1 could not certify; a certified
+        # peak whose window leaves E or whose error bound is too loose gets an exact window below
+        # (cheaper than the band's product, which reads every strip pair image, and exact)
+        todo = torch.nonzero(~ok & ~located).flatten()
         if todo.numel() and self.npix2:
             w2 = w[todo]
             band = self.band_images(w2, img[todo])
