@@ -29,14 +29,19 @@ def no_cache(monkeypatch):
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
 
 
+@pytest.mark.parametrize("keep", [True, False])
 @pytest.mark.parametrize("columns", [12, 24])
-def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, columns):
+def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, columns, keep):
     """With fewer sketch columns than pairs (36 here) the basis is compressed from the sketch;
-    its per-pixel and window error bounds still cover the exact image on E."""
+    its per-pixel and window error bounds still cover the exact image on E, whether the second
+    pass reads the pair images kept from the first or computes them again."""
     monkeypatch.setattr(PairBasis, "sketch_columns", columns)
+    if not keep:
+        monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4, rank_tol=1e-12)
     fast = model.basis.finer or model.basis
     assert fast.missed >= 0 and fast.rank <= columns
+    assert fast._keeps_images() is keep
     w = _weights(8, 6)
     with torch.no_grad():
         img, eps, win_err = fast.images(w, with_error=True)

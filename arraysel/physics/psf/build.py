@@ -232,13 +232,25 @@ class BasisBuild:
     #: pair count exceeds it are compressed from the sketch; smaller ones exactly)
     sketch_columns = 2400
 
+    #: largest memory (bytes) of the pair images on E kept, in the model's dtype, between the
+    #: sketch's two passes; below it the second pass reads them instead of delay-and-summing
+    #: them again (a 128-element probe in float32: 1.4 GB, a fifth of the build's time), above
+    #: it they are recomputed
+    keep_images_max_bytes = 2 << 30
+
+    def _keeps_images(self) -> bool:
+        """Whether the sketched build keeps the pair images on E for its second pass."""
+        size = torch.finfo(self.model.dtype).bits // 8
+        return self.pairs_e.numel() * 2 * self.npix * size <= self.keep_images_max_bytes
+
     def _compress(self, X: np.ndarray, plan: tuple, rank_tol: float, progress=None) -> Compression:
         """Truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E, with ``U``
         orthonormal (P, r) and ``V = U^T H``.
 
         Small probes (P <= :attr:`sketch_columns`): ``H`` is formed and the P x P Gram matrix
-        diagonalised (exact). Larger ones: two passes over row blocks of ``H`` that are never
-        all held at once: a subsampled randomised Fourier sketch ``Y = H S`` (random signs,
+        diagonalised (exact). Larger ones: two passes over row blocks of ``H``, which is held
+        whole only in the model's dtype and only up to :attr:`keep_images_max_bytes` (else the second
+        pass computes the blocks again): a subsampled randomised Fourier sketch ``Y = H S`` (random signs,
         2-D FFT of each pair image, random frequencies) gives an orthonormal ``Q`` spanning
         the pairs' dominant subspace; the second pass forms ``B = Q^T H``, the pixels' column
         norms and the core columns; the SVD of ``B`` gives ``U = Q W``, ``V = W^T B``.
@@ -281,7 +293,14 @@ class BasisBuild:
         signs = torch.where(torch.rand(npix, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
         freqs = torch.randperm(npix, generator=gen)[:L]
         Y = torch.empty(P, 2 * L, dtype=torch.float64)
+        # the second pass reads the pair images kept in the model's dtype when they fit (both
+        # passes, the column norms and the basis then describe those rounded images, which
+        # differ from the float64 ones by less than the rounding allowance of an evaluation)
+        kept = torch.empty(P, 2 * npix, dtype=model.dtype) if self._keeps_images() else None
         for r0, H in self._pair_image_blocks(X, plan):
+            if kept is not None:
+                kept[r0:r0 + H.shape[0]] = H
+                H = kept[r0:r0 + H.shape[0]].double()
             z = torch.complex(H[:, :npix], H[:, npix:]) * signs
             f = torch.fft.fft2(z.reshape(-1, h, w), norm="ortho").reshape(z.shape[0], npix)[:, freqs]
             Y[r0:r0 + H.shape[0], :L] = f.real
@@ -293,11 +312,17 @@ class BasisBuild:
         B = torch.zeros(Q.shape[1], 2 * npix, dtype=torch.float64)
         col2 = torch.zeros(npix, dtype=torch.float64)
         Hc = torch.empty(P, core.numel(), dtype=torch.float64)
-        for r0, H in self._pair_image_blocks(X, plan):
+        if kept is not None:
+            rows = max(1, self.build_rows * max(1, 20736 // max(1, npix)))
+            second = ((r0, kept[r0:r0 + rows].double()) for r0 in range(0, P, rows))
+        else:
+            second = self._pair_image_blocks(X, plan)
+        for r0, H in second:
             r1 = r0 + H.shape[0]
             B.addmm_(Q[r0:r1].T, H)
             col2 += H[:, :npix].square().sum(0) + H[:, npix:].square().sum(0)
             Hc[r0:r1] = H[:, core]
+        del kept
         if progress is not None:
             progress.step("projection of the pair images on E")
         evals, W = torch.linalg.eigh(B @ B.T)

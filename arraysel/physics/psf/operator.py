@@ -175,6 +175,9 @@ class PSFModel:
         else:
             blk = max(ne, PairBasis.build_rows * max(1, 20736 // max(1, npix)))
             work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8
+            kept = pairs * 2 * npix * size
+            if kept <= PairBasis.keep_images_max_bytes:  # the pair images kept between the passes
+                work += kept
             rank = sketch
         strips = size * pairs * 2 * npix2
         if strips > PairBasis.strip_max_bytes:
