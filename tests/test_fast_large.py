@@ -276,3 +276,22 @@ def test_band_images_only_for_peaks_tier_one_cannot_certify(no_cache, monkeypatc
     assert sum(band_calls) == 5
     for i in torch.nonzero(~fallback).flatten().tolist():
         assert float(si_mse(k[i], ke[i])) < 1e-6
+
+
+def test_pair_images_by_pixel_tiles_equal_row_blocks(no_cache, monkeypatch):
+    """The build's two ways of delay-and-summing the pair images give the same images: every
+    pair row for a tile of pixels at a time (several tiles here), and row blocks over all pixels."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    X = fast._windowed_pair_iq()
+    plan = fast._local_plan(fast.rows, torch.arange(fast.cols.start, fast.cols.stop))
+    monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * 50)  # 50 pixels a tile
+    monkeypatch.setattr(type(fast), "build_rows", 7)  # row blocks of one or two elements
+    tiled = fast._dense_pair_images(X, plan)
+    rows = torch.cat([H for _, H in fast._pair_image_blocks(X, plan)])
+    assert tiled.shape == rows.shape == (36, 2 * fast.npix)
+    assert fast.npix > 100
+    torch.testing.assert_close(tiled, rows, rtol=1e-12, atol=1e-12 * float(rows.abs().max()))
+    assert float(tiled.abs().max()) > 0
+    single = fast._dense_pair_images(X, plan, torch.float32)
+    torch.testing.assert_close(single.double(), rows, rtol=1e-6, atol=1e-6 * float(rows.abs().max()))

@@ -159,13 +159,14 @@ class BasisBuild:
         out = np.zeros((ntx, ne, Tw, ne), dtype=np.complex64)
         ar = torch.arange(Tw)
         for n, t in enumerate(model.transmits):
-            M = t.iq_map()                                   # (2F, 2T) float64
+            # the products run in the model's dtype (float64 for a float64 model)
+            M = t.iq_map().to(model.dtype)                   # (2F, 2T)
             T = t.grid.n_time
             F = M.shape[0] // 2
             # zero column at index 2T: samples past the end of the record
             M = torch.cat([M, M.new_zeros(2 * F, 1)], dim=1)
-            tx = t.tx_field.to(torch.complex128)             # (Ne, F), transmit j
-            rx = t.rx_factor.to(torch.complex128)            # (Ne, F), receive e
+            tx = t.tx_field.to(model.cdtype)                 # (Ne, F), transmit j
+            rx = t.rx_factor.to(model.cdtype)                # (Ne, F), receive e
             step = max(1, 2 ** 22 // (ne * F))
             for e0 in range(0, ne, step):
                 e1 = min(ne, e0 + step)
@@ -224,9 +225,30 @@ class BasisBuild:
             yield r0, torch.cat([out[:, :, 0].T, out[:, :, 1].T], dim=1)
             r0 += nr
 
-    def _dense_pair_images(self, X: np.ndarray, plan: tuple) -> torch.Tensor:
-        """All symmetric pair images on the plan's pixels: (P, 2 Npix) float64 [re | im]."""
-        return torch.cat([H for _, H in self._pair_image_blocks(X, plan)], dim=0)
+    #: memory (bytes) of the kernel's output for one tile of pixels in :meth:`_dense_pair_images`
+    build_tile_bytes = 256 << 20
+
+    def _dense_pair_images(self, X: np.ndarray, plan: tuple, dtype=torch.float64) -> torch.Tensor:
+        """All symmetric pair images on the plan's pixels: (P, 2 Npix) [re | im] in ``dtype``.
+
+        Filled a tile of pixels at a time with every pair row per kernel call: the kernel's
+        inner loops then run over every element, about twice as fast as row blocks over all
+        pixels (:meth:`_pair_image_blocks`, used when the images do not fit in memory)."""
+        from arraysel.physics.pairkernels import pair_images
+
+        ne = self.model.n_elements
+        P = ne * (ne + 1) // 2
+        npix = plan[0].shape[2]
+        out = torch.empty(P, 2 * npix, dtype=dtype)
+        tile = max(1, self.build_tile_bytes // (P * 16))
+        for p0 in range(0, npix, tile):
+            p1 = min(npix, p0 + tile)
+            part = tuple(np.ascontiguousarray(a[:, :, p0:p1]) for a in plan)
+            v = torch.from_numpy(pair_images(X, part, 0, ne))  # (tile, P, 2) float64
+            out[:, p0:p1] = v[:, :, 0].T
+            out[:, npix + p0:npix + p1] = v[:, :, 1].T
+            del v
+        return out
 
     #: real columns of the randomised range sketch of the pair images on E (probes whose
     #: pair count exceeds it are compressed from the sketch; smaller ones exactly)
@@ -293,15 +315,23 @@ class BasisBuild:
         signs = torch.where(torch.rand(npix, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
         freqs = torch.randperm(npix, generator=gen)[:L]
         Y = torch.empty(P, 2 * L, dtype=torch.float64)
-        # the second pass reads the pair images kept in the model's dtype when they fit (both
-        # passes, the column norms and the basis then describe those rounded images, which
-        # differ from the float64 ones by less than the rounding allowance of an evaluation)
-        kept = torch.empty(P, 2 * npix, dtype=model.dtype) if self._keeps_images() else None
-        for r0, H in self._pair_image_blocks(X, plan):
-            if kept is not None:
-                kept[r0:r0 + H.shape[0]] = H
-                H = kept[r0:r0 + H.shape[0]].double()
-            z = torch.complex(H[:, :npix], H[:, npix:]) * signs
+        # both passes read the pair images kept in the model's dtype when they fit (the column
+        # norms and the basis then describe those rounded images, which differ from the float64
+        # ones by less than the rounding allowance of an evaluation); else row blocks are
+        # delay-and-summed in each pass
+        kept = self._dense_pair_images(X, plan, model.dtype) if self._keeps_images() else None
+
+        def blocks(wide: bool):
+            # row blocks (r0, H); kept ones in float64 if ``wide``, else in the kept dtype
+            if kept is None:
+                return self._pair_image_blocks(X, plan)
+            rows = max(1, self.build_rows * max(1, 20736 // max(1, npix)))
+            return ((r0, kept[r0:r0 + rows].double() if wide else kept[r0:r0 + rows]) for r0 in range(0, P, rows))
+
+        # the sketch only has to span the dominant subspace (what it misses is measured exactly
+        # below), so it takes the kept images' precision
+        for r0, H in blocks(False):
+            z = torch.complex(H[:, :npix], H[:, npix:]) * signs.to(H.dtype)
             f = torch.fft.fft2(z.reshape(-1, h, w), norm="ortho").reshape(z.shape[0], npix)[:, freqs]
             Y[r0:r0 + H.shape[0], :L] = f.real
             Y[r0:r0 + H.shape[0], L:] = f.imag
@@ -312,12 +342,7 @@ class BasisBuild:
         B = torch.zeros(Q.shape[1], 2 * npix, dtype=torch.float64)
         col2 = torch.zeros(npix, dtype=torch.float64)
         Hc = torch.empty(P, core.numel(), dtype=torch.float64)
-        if kept is not None:
-            rows = max(1, self.build_rows * max(1, 20736 // max(1, npix)))
-            second = ((r0, kept[r0:r0 + rows].double()) for r0 in range(0, P, rows))
-        else:
-            second = self._pair_image_blocks(X, plan)
-        for r0, H in second:
+        for r0, H in blocks(True):
             r1 = r0 + H.shape[0]
             B.addmm_(Q[r0:r1].T, H)
             col2 += H[:, :npix].square().sum(0) + H[:, npix:].square().sum(0)
