@@ -295,3 +295,20 @@ def test_pair_images_by_pixel_tiles_equal_row_blocks(no_cache, monkeypatch):
     assert float(tiled.abs().max()) > 0
     single = fast._dense_pair_images(X, plan, torch.float32)
     torch.testing.assert_close(single.double(), rows, rtol=1e-6, atol=1e-6 * float(rows.abs().max()))
+
+
+def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):
+    """The first-run message's time estimate follows the pair images' delay-and-sum work: a
+    sketched build that cannot keep its pair images computes those on E twice."""
+    monkeypatch.setattr(PairBasis, "sketch_columns", 12)  # 36 pairs: sketched
+    model = PSFModel(_setup(), dtype=torch.float32, fast=False, margin=2, block=4)
+    kept = model.basis_build_seconds()
+    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
+    twice = model.basis_build_seconds()
+    assert 0 < kept < twice < 2 * kept
+    assert model.basis_stored_bytes() > 0
+    # the memory estimate holds the kept images only when they are kept
+    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 2 << 30)
+    with_kept = model.basis_bytes()
+    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
+    assert model.basis_bytes() < with_kept

@@ -155,8 +155,25 @@ class PSFModel:
     def basis_bytes(self) -> int:
         """Estimated peak memory (bytes) of building the fast path's basis (see
         :class:`PairBasis`): the windowed pair I/Q signals, the pair images of E (all of them
-        for small probes, row blocks and a sketch for larger ones), the strips' pair images
-        when they are kept, and the stored tensors."""
+        for small probes, row blocks and a sketch for larger ones, kept whole between the
+        sketch's passes when they fit), the strips' pair images when they are kept, and the
+        stored tensors."""
+        return self._basis_estimate()[0]
+
+    def basis_stored_bytes(self) -> int:
+        """Upper estimate (bytes) of the stored basis (the cache entry): the sketch's rank
+        bound, the pair channels, the core and strips' pair images."""
+        return self._basis_estimate()[2]
+
+    def basis_build_seconds(self) -> float:
+        """Estimated wall time (s) of building the fast path's basis: the delay-and-sum of the
+        pair images (``ntx Ne^2`` complex multiply-adds per pixel of E, once or twice: see
+        :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), at the rate
+        measured on two cores (2026-11-24: 30 s for the P4-2v scene, 55 s for L11-5v and
+        C5-2v, 460 s for a 256-element probe), scaled by the torch threads."""
+        return self._basis_estimate()[1]
+
+    def _basis_estimate(self) -> tuple[int, float, int]:
         s = self.setup
         ne = self.n_elements
         ntx = len(s.tilts)
@@ -169,6 +186,7 @@ class PSFModel:
         X = ntx * ne * T * ne * 8
         A = 2 * ntx * ne * T * ne * size
         sketch = PairBasis.sketch_columns
+        passes = 1  # delay-and-sums of the pair images on E
         if pairs <= sketch:
             work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
             rank = pairs
@@ -178,12 +196,16 @@ class PSFModel:
             kept = pairs * 2 * npix * size
             if kept <= PairBasis.keep_images_max_bytes:  # the pair images kept between the passes
                 work += kept
+            else:
+                passes = 2
             rank = sketch
         strips = size * pairs * 2 * npix2
         if strips > PairBasis.strip_max_bytes:
             strips = 0
         stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
-        return int(X + work + stored + (strips // size) * 8)
+        macs = ntx * ne * ne * (npix * passes + (npix2 if strips else 0))
+        seconds = 2.2e-8 * macs * 2 / max(1, torch.get_num_threads())
+        return int(X + work + stored + (strips // size) * 8), seconds, int(stored)
 
     def window_estimate(self) -> int:
         """Samples per channel window (:meth:`PairBasis._sample_ranges`), estimated from the

@@ -42,11 +42,8 @@ def load_or_build_basis(model) -> PairBasis:
         built.append(PairBasis(model, rank_tol=BUILD_RANK_TOL))
         return {**built[0].state(), WINDOW_KEY: torch.tensor(model.window_estimate())}
 
-    need = model.basis_bytes()
-    item = torch.finfo(model.dtype).bits // 8
     state = cache.load_or_build(
         "psf-basis", _key(model),
         build, what="the PSF fast-path basis",
-        size_hint=int(0.55 * need * item / 4),  # stored tensors: about 0.55 of the float64 build peak per float32
-        seconds_hint=need / 2e7 * 2 / max(1, torch.get_num_threads()))  # ~100 s for the paper scene on 2 cores
+        size_hint=model.basis_stored_bytes(), seconds_hint=model.basis_build_seconds())
     return built[0] if built else PairBasis.from_state(model, state)
