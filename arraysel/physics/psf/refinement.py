@@ -154,19 +154,28 @@ class Refinement:
                     at = (col0[run] - first) // (2 * bb)
                     clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
         clear = clear.cpu()
-        X, g0, group = None, 0, self.channel_group
+        loose = {}  # selection -> its blocks to beamform
         for i in range(B):
             left = torch.nonzero(~clear[:, i]).flatten()
             if not left.numel():
                 out[i] = True
-                continue
-            if bool(strip[left].any()) or left.numel() > self.refine_max_blocks:
-                continue  # a strip block reaches the peak, or too many blocks to beamform
-            if X is None or i >= g0 + group:  # channels of a few selections at a time
-                X, g0 = self.channels(w[i:i + group]), i
-            img = self._das(X[i - g0], [tuple(int(v) for v in blocks[q]) for q in left.tolist()])
+            elif not bool(strip[left].any()) and left.numel() <= self.refine_max_blocks:
+                loose[i] = left
+            # else: a strip block reaches the peak, or too many blocks to beamform
+        for i, x in self._grouped_channels(w, list(loose)):
+            img = self._das(x, [tuple(int(v) for v in blocks[q]) for q in loose[i].tolist()])
             out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
         return out
+
+    def _grouped_channels(self, w: torch.Tensor, index: list):
+        """Yield ``(i, X)`` for each selection ``w[i]``, ``i`` in ``index`` (in order), with its
+        I/Q channels X (ntx, Ne, T), formed :attr:`channel_group` selections at a time: one
+        product with every pair channel per group (a whole batch's channels of a 256-element
+        probe are about 1 GB)."""
+        group = self.channel_group
+        for g in range(0, len(index), group):
+            part = index[g:g + group]
+            yield from zip(part, self.channels(w[torch.tensor(part, dtype=torch.long, device=w.device)]))
 
     def _exact_pixels(self, X: torch.Tensor, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
@@ -209,12 +218,9 @@ class Refinement:
                 arg = arg.clone()
                 if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
                     amb = self._settle_in_core(cand, amb, arg, w)
-            group = self.channel_group
-            for i, b in enumerate(amb.tolist()):
-                if i % group == 0:  # channels of a few selections at a time
-                    X = self.channels(w[amb[i:i + group]].detach())
+            for b, x in self._grouped_channels(w.detach(), amb.tolist()):
                 idx = torch.nonzero(cand[b]).flatten()
-                v = self._exact_pixels(X[i % group], idx // wd + row0, idx % wd + col0).abs()
+                v = self._exact_pixels(x, idx // wd + row0, idx % wd + col0).abs()
                 arg[b] = idx[int(torch.argmax(v))]
         return arg // wd + row0, arg % wd + col0, val - eps, ok
 
@@ -342,8 +348,9 @@ class Refinement:
     #: most selections of one batch whose windows are beamformed exactly (:meth:`_exact_windows`);
     #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
     exact_windows_max = 4096
-    #: selections whose channels are formed at once (:meth:`_exact_windows`, :meth:`refine`,
-    #: :meth:`_locate`): (16, ntx, Ne, T) complex is 60 MB for a 256-element probe
+    #: selections whose channels are formed at once (:meth:`_grouped_channels`, for
+    #: :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): (16, ntx, Ne, T) complex is
+    #: 60 MB for a 256-element probe
     channel_group = 16
 
     def _e_plans(self) -> list:
@@ -371,13 +378,7 @@ class Refinement:
         ar = torch.arange(n)
         wins = []
         grad = w.requires_grad or w.device.type != "cpu"
-        group = self.channel_group
-        for i in range(w.shape[0]):
-            if i % group == 0:
-                # channels of a few selections at a time: (B, ntx, Ne, T) for a whole batch of
-                # a 256-element probe is about 1 GB
-                X = self.channels(w[i:i + group])
-                X = X if X.dim() == 4 else X[None]
+        for i, x in self._grouped_channels(w, list(range(w.shape[0]))):
             zi = (int(z0[i]) + ar)[:, None].expand(n, n).reshape(-1)
             xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
             inside = (self.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.rows.stop
@@ -387,18 +388,18 @@ class Refinement:
                 if grad:
                     img = 0
                     for t, (i0, wt, rot) in enumerate(self._e_plans()):
-                        img = img + das_apply(X[i % group, t], torch.from_numpy(i0)[pix].long().to(X.device),
-                                              torch.from_numpy(wt)[pix].to(X.device),
-                                              torch.view_as_complex(torch.from_numpy(rot)[pix]).to(X.device))
+                        img = img + das_apply(x[t], torch.from_numpy(i0)[pix].long().to(x.device),
+                                              torch.from_numpy(wt)[pix].to(x.device),
+                                              torch.view_as_complex(torch.from_numpy(rot)[pix]).to(x.device))
                     wins.append(img.reshape(n, n))
                     continue
                 from arraysel.physics.pairkernels import das_plan_rows
 
-                v = torch.from_numpy(das_plan_rows(torch.view_as_real(X[i % group].contiguous()).numpy(),
+                v = torch.from_numpy(das_plan_rows(torch.view_as_real(x.contiguous()).numpy(),
                                                    self._e_plans(), pix.numpy()))
-                wins.append(torch.complex(v[:, 0], v[:, 1]).to(X.dtype).reshape(n, n))
+                wins.append(torch.complex(v[:, 0], v[:, 1]).to(x.dtype).reshape(n, n))
             else:
-                wins.append(self._exact_pixels(X[i % group], zi, xi).reshape(n, n))
+                wins.append(self._exact_pixels(x, zi, xi).reshape(n, n))
         win = torch.stack(wins)
         zero = torch.zeros(w.shape[0], dtype=torch.long)
         return cut_windows(win, zero, zero, n)[0]
