@@ -41,7 +41,7 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4, rank_tol=1e-12)
     fast = model.basis.finer or model.basis
     assert fast.missed >= 0 and fast.rank <= columns
-    assert fast._keeps_images() is keep
+    assert fast.keeps_images(fast.pairs_e.numel(), fast.npix, model.dtype) is keep
     w = _weights(8, 6)
     with torch.no_grad():
         img, eps, win_err = fast.images(w, with_error=True)

@@ -211,6 +211,12 @@ class BasisBuild:
     #: most pair rows the kernel fills at once (bounds the build's working memory)
     build_rows = 512
 
+    @classmethod
+    def block_rows(cls, n_elements: int, npix: int) -> int:
+        """Pair rows per row block over ``npix`` pixels: :attr:`build_rows` for E's usual
+        144 x 144 pixels, more for fewer pixels (about constant memory), at least one element's."""
+        return max(n_elements, cls.build_rows * max(1, 20736 // max(1, npix)))
+
     def _pair_image_blocks(self, X: np.ndarray, plan: tuple):
         """Yield ``(r0, H)``: the symmetric pair images of rows ``r0 .. r0 + len(H)`` as a
         (rows, 2 Npix) float64 tensor [re | im]."""
@@ -218,7 +224,7 @@ class BasisBuild:
 
         ne = self.model.n_elements
         npix = plan[0].shape[2]
-        rows = max(ne, self.build_rows * max(1, 20736 // max(1, npix)))
+        rows = self.block_rows(ne, npix)
         r0 = 0
         for e0, e1, nr in pair_row_blocks(ne, rows):
             out = torch.from_numpy(pair_images(X, plan, e0, e1))  # (Npix, nr, 2)
@@ -237,7 +243,7 @@ class BasisBuild:
         from arraysel.physics.pairkernels import pair_images
 
         ne = self.model.n_elements
-        P = ne * (ne + 1) // 2
+        P = self.pairs_e.numel()
         npix = plan[0].shape[2]
         out = torch.empty(P, 2 * npix, dtype=dtype)
         tile = max(1, self.build_tile_bytes // (P * 16))
@@ -260,10 +266,11 @@ class BasisBuild:
     #: it they are recomputed
     keep_images_max_bytes = 2 << 30
 
-    def _keeps_images(self) -> bool:
-        """Whether the sketched build keeps the pair images on E for its second pass."""
-        size = torch.finfo(self.model.dtype).bits // 8
-        return self.pairs_e.numel() * 2 * self.npix * size <= self.keep_images_max_bytes
+    @classmethod
+    def keeps_images(cls, pairs: int, npix: int, dtype: torch.dtype) -> bool:
+        """Whether a sketched build keeps the pair images of ``pairs`` pairs on ``npix`` pixels
+        of E, in ``dtype``, for its second pass (:attr:`keep_images_max_bytes`)."""
+        return pairs * 2 * npix * (torch.finfo(dtype).bits // 8) <= cls.keep_images_max_bytes
 
     def _compress(self, X: np.ndarray, plan: tuple, rank_tol: float, progress=None) -> Compression:
         """Truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E, with ``U``
@@ -319,13 +326,13 @@ class BasisBuild:
         # norms and the basis then describe those rounded images, which differ from the float64
         # ones by less than the rounding allowance of an evaluation); else row blocks are
         # delay-and-summed in each pass
-        kept = self._dense_pair_images(X, plan, model.dtype) if self._keeps_images() else None
+        kept = self._dense_pair_images(X, plan, model.dtype) if self.keeps_images(P, npix, model.dtype) else None
 
         def blocks(wide: bool):
             # row blocks (r0, H); kept ones in float64 if ``wide``, else in the kept dtype
             if kept is None:
                 return self._pair_image_blocks(X, plan)
-            rows = max(1, self.build_rows * max(1, 20736 // max(1, npix)))
+            rows = self.block_rows(model.n_elements, npix)
             return ((r0, kept[r0:r0 + rows].double() if wide else kept[r0:r0 + rows]) for r0 in range(0, P, rows))
 
         # the sketch only has to span the dominant subspace (what it misses is measured exactly

@@ -191,11 +191,10 @@ class PSFModel:
             work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
             rank = pairs
         else:
-            blk = max(ne, PairBasis.build_rows * max(1, 20736 // max(1, npix)))
+            blk = PairBasis.block_rows(ne, npix)
             work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8
-            kept = pairs * 2 * npix * size
-            if kept <= PairBasis.keep_images_max_bytes:  # the pair images kept between the passes
-                work += kept
+            if PairBasis.keeps_images(pairs, npix, self.dtype):  # kept between the passes
+                work += pairs * 2 * npix * size
             else:
                 passes = 2
             rank = sketch
