@@ -11,7 +11,11 @@ work is ``ntx * Ne^2 * Npix`` complex multiply-adds and no pair image is ever he
 for all pixels at once unless the caller asks for it.
 
 The loops are compiled with numba (parallel over pixels). Everything here works on
-numpy arrays; the callers convert.
+numpy arrays; the callers convert. The compiled code is cached on disk (``cache=True``: next to
+this file, or in numba's user-wide cache folder when the package folder is read-only, or in
+``NUMBA_CACHE_DIR``), so only the first process on a machine pays the compilation, about a
+second per argument signature; later processes load it (a cold ``arraysel evaluate`` that
+settles a loose block or an exact window needs the delay-and-sum kernel).
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(inline="always", cache=False)
+@numba.njit(inline="always", cache=True)
 def _lerp_rotate_add(out, p, row, a, b, w, cr, ci):
     """``out[p, row] += (cr + i ci) * (a + (b - a) w)`` on the [re, im] pair of ``out``."""
     vr = a.real + (b.real - a.real) * w
@@ -28,7 +32,7 @@ def _lerp_rotate_add(out, p, row, a, b, w, cr, ci):
     out[p, row, 1] += cr * vi + ci * vr
 
 
-@numba.njit(parallel=True, cache=False, nogil=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
     """Accumulate the symmetric pair images of rows (e in [e0, e1), j >= e) into ``out``.
 
@@ -97,7 +101,7 @@ def pair_images(X: np.ndarray, plan: tuple, e0: int, e1: int) -> np.ndarray:
     return out
 
 
-@numba.njit(parallel=True, cache=False, nogil=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _das_rows_kernel(x, pix, i0, wt, rot, out):
     """``out[k] += sum_e rot[p, e] lerp(x[e], i0[p, e], wt[p, e])`` for plan row ``p = pix[k]``,
     over the entries with a non-zero rotation (the others are outside the aperture or the
@@ -143,3 +147,30 @@ def das_pixels(x: np.ndarray, plans) -> np.ndarray:
     shapes (Npix, Ne), (Npix, Ne), (Npix, Ne, 2). Returns (Npix, 2) float64 [re, im].
     """
     return das_plan_rows(x, plans, np.arange(plans[0][0].shape[0], dtype=np.int64))
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _slab_sums_kernel(P, rows, wts, starts, width, out):
+    """``out[b, s, t] = sum_r wts[b, r] P[rows[r], starts[s] + t]`` for ``t < width``."""
+    for s in numba.prange(starts.shape[0]):
+        c0 = starts[s]
+        for b in range(wts.shape[0]):
+            for r in range(rows.shape[0]):
+                wv = wts[b, r]
+                if wv != 0.0:
+                    j = rows[r]
+                    for t in range(width):
+                        out[b, s, t] += wv * P[j, c0 + t]
+
+
+def slab_sums(P: np.ndarray, rows: np.ndarray, wts: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """Weighted sums of a few rows of ``P`` (R, C) on a few column slabs: (B, S, width) with
+    ``out[b, s] = sum_r wts[b, r] P[rows[r], starts[s]:starts[s] + width]``.
+
+    Reads only the named rows on the named slabs, where the dense product ``wts @ P[rows]``
+    would read (and the row gather copy) every column: the certificate's channels of one
+    selection (:meth:`arraysel.physics.psf.certificate.Certificates.envelopes`) need a quarter
+    of ``pair_channels`` for k = Ne / 2."""
+    out = np.zeros((wts.shape[0], starts.shape[0], width), dtype=P.dtype)
+    _slab_sums_kernel(P, rows, wts.astype(P.dtype), starts, int(width), out)
+    return out
