@@ -63,3 +63,41 @@ def test_malloc_tuning_is_optional_and_idempotent(monkeypatch):
     first = allocator.tune_malloc()
     assert first is (allocator._glibc() is not None)  # in effect exactly where glibc is present
     assert allocator.tune_malloc() is first
+
+
+def test_default_time_budget_is_a_share_of_the_total():
+    """Without --budget-s the runs share DEFAULT_TOTAL_S (7 min): 38 s each for the main job's 11
+    runs (ste and random x 5 seeds, uniform once), 120 s at most, 10 s at least."""
+    from arraysel.cli.compare import DEFAULT_TOTAL_S, default_budget_s
+
+    assert DEFAULT_TOTAL_S == 420
+    assert default_budget_s(11) == 38
+    assert default_budget_s(1) == default_budget_s(3) == 120
+    assert default_budget_s(10 * 5) == 10
+    assert default_budget_s(0) == 120
+
+
+def test_compare_default_budget_recorded_and_kept_on_resume(tmp_path, monkeypatch, capsys):
+    """The default budget is announced, written to run.json, and a --resume without --budget-s
+    takes the resumed runs' budget (adding a seed would otherwise change the share and be refused)."""
+    import json
+
+    import arraysel.cli.compare as cc
+
+    monkeypatch.setattr(cc, "DEFAULT_TOTAL_S", 6.0)
+    monkeypatch.setattr(cc, "DEFAULT_MIN_S", 0.5)
+    out = tmp_path / "cmp"
+    args = ["compare", "--selectors", "random,uniform", "--scene", "toy", "--out", str(out),
+            "--budget-evals", "50", "--no-figures", "--no-progress", "--in-process"]
+    assert main(args + ["--seeds", "0,1"]) == 0
+    assert "3 run(s) of 2 s each" in capsys.readouterr().err
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["budget"]["seconds"] == cc.default_budget_s(3) == 2
+    assert cc.default_budget_s(5) == 1                               # a new share would differ
+    first = meta["budget"]["seconds"]
+    assert main(args + ["--seeds", "0,1,2,3", "--resume"]) == 0
+    assert "run(s) of" not in capsys.readouterr().err                # the resumed budget, not a new share
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["budget"]["seconds"] == first
+    runs = pd.read_csv(out / "runs.csv")
+    assert sorted(runs.loc[runs.config == "random", "seed"]) == [0, 1, 2, 3]

@@ -9,7 +9,21 @@ from arraysel.selectors.registry import get_registry, load_plugin
 from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it
 from arraysel.selectors.contract import Budget
 
+#: the default time budget: the runs of one comparison share DEFAULT_TOTAL_S seconds, each getting
+#: at least DEFAULT_MIN_S and at most DEFAULT_BUDGET_S (so that the main job, 5 seeds of two
+#: stochastic selectors, and a comparison on a 128-element scene, basis build included, finish in
+#: about 10 minutes on two cores)
+DEFAULT_TOTAL_S = 420.0
 DEFAULT_BUDGET_S = 120.0
+DEFAULT_MIN_S = 10.0
+
+
+def default_budget_s(runs: int) -> float:
+    """Seconds per run of the default time budget for ``runs`` (selector, seed) runs: an equal
+    share of :data:`DEFAULT_TOTAL_S`, between :data:`DEFAULT_MIN_S` and :data:`DEFAULT_BUDGET_S`,
+    rounded down to a whole second."""
+    share = DEFAULT_TOTAL_S / max(1, runs)
+    return float(max(DEFAULT_MIN_S, min(DEFAULT_BUDGET_S, math.floor(share))))
 
 
 def add_parser(subparsers) -> None:
@@ -24,8 +38,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scene", default="paper",
                    help="scene name or file (default: paper); 'toy' is the cheap synthetic objective "
                         "arraysel.objective.toy (Ne=64, k=32), for trying selectors out")
-    p.add_argument("--budget-s", type=float, default=DEFAULT_BUDGET_S, metavar="S",
-                   help=f"wall-clock seconds per selector run (default {DEFAULT_BUDGET_S:g}; 0: no limit)")
+    p.add_argument("--budget-s", type=float, default=None, metavar="S",
+                   help=f"wall-clock seconds per selector run (0: no limit; default: the runs share "
+                        f"{DEFAULT_TOTAL_S / 60:g} minutes, {DEFAULT_MIN_S:g} to {DEFAULT_BUDGET_S:g} s each, "
+                        f"e.g. 38 s for 'ste,random,uniform' with 5 seeds; with --resume the budget of "
+                        f"the runs being resumed)")
     p.add_argument("--budget-evals", type=int, default=None, metavar="N",
                    help="objective evaluations per selector run (default: no limit)")
     p.add_argument("--seeds", default=None, metavar="0,1,2",
@@ -131,13 +148,21 @@ def run(args) -> int:
     names = parse_selectors(args.selectors, registry)
     options = parse_options(args.option, names, registry)
     seeds = None if args.seeds is None else parse_seeds(args.seeds)
-    if not math.isfinite(args.budget_s):
+    if args.budget_s is not None and not math.isfinite(args.budget_s):
         raise ParameterError(f"--budget-s must be a finite number of seconds >= 0 (0: no time limit), "
                              f"got {args.budget_s}")
-    budget_s = check_number("--budget-s", args.budget_s, lo=0)
+    budget_s = None if args.budget_s is None else check_number("--budget-s", args.budget_s, lo=0)
     grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
+    from arraysel.run.compare import DEFAULT_SEEDS
     from arraysel.run.outdir import check_out_dir
-    check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
+    previous = check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
+    n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
+    if budget_s is None and args.resume and isinstance((previous or {}).get("budget"), dict):
+        budget_s = float(previous["budget"].get("seconds") or 0)     # the runs being resumed
+    elif budget_s is None:
+        budget_s = default_budget_s(n_runs)
+        print(f"arraysel compare: {n_runs} run(s) of {budget_s:g} s each (the default time budget shares "
+              f"{DEFAULT_TOTAL_S / 60:g} minutes; --budget-s sets it)", file=sys.stderr)
     evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
                                                                 lo=1, integer=True)
     budget = Budget(seconds=budget_s or None, evaluations=evals)
@@ -151,8 +176,6 @@ def run(args) -> int:
                                  retries=retries)
     try:
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
-        from arraysel.run.compare import DEFAULT_SEEDS
-        n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
         notice = _exact_run_notice(objective, budget, n_runs)
         if notice:
             print(f"arraysel compare: {notice}", file=sys.stderr)
