@@ -187,7 +187,7 @@ def test_compiled_das_equals_das_apply():
     """The compiled delay-and-sum (refinement and exact windows, no gradient) is ``das_apply``'s
     sum, entries outside the aperture (zero rotation) included as zeros, on any rows."""
     from arraysel.physics.beamform import das_apply
-    from arraysel.physics.pairkernels import das_pixels, das_plan_rows
+    from arraysel.physics.pairkernels import das_pixels, das_plan_rows, das_stacked
 
     gen = torch.Generator().manual_seed(3)
     ntx, ne, T, npix = 3, 5, 40, 17
@@ -206,6 +206,9 @@ def test_compiled_das_equals_das_apply():
     rows = np.array([16, 0, 5, 5])
     got = torch.from_numpy(das_plan_rows(torch.view_as_real(x).numpy(), plans, rows))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want[rows], rtol=1e-12, atol=1e-12)
+    # the plans stacked over the transmits, one call (the refinement's block sums)
+    got = torch.from_numpy(das_stacked(torch.view_as_real(x).numpy(), *(np.stack(a) for a in zip(*plans))))
+    assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want, rtol=1e-12, atol=1e-12)
 
 
 def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, monkeypatch):

@@ -42,9 +42,10 @@ class Refinement:
         return max(16, self.plan_cache_bytes // per)
 
     def _plans_for_blocks(self, blocks: list) -> list:
-        """DAS plans (per block: one (i0, w, rot) per transmit) of the pixels of the grid blocks
-        ``blocks`` ((qz, qx) pairs), row-major, clipped to the grid. Cached; the missing blocks are
-        planned together (:meth:`_window_plans`)."""
+        """DAS plans of the pixels of the grid blocks ``blocks`` ((qz, qx) pairs), row-major,
+        clipped to the grid: per block ``(i0, w, rot)`` stacked over the transmits, shapes
+        (ntx, npix, Ne) (sample index, interpolation weight, complex rotation). Cached; the
+        missing blocks are planned together (:meth:`_window_plans`)."""
         missing = list(dict.fromkeys(q for q in blocks if q not in self._block_plans))
         made = {}
         if missing:
@@ -57,11 +58,12 @@ class Refinement:
                 zs.append(Z.reshape(-1))
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
-            per_tx = [(i0.to(model.device).split(sizes), w.to(model.device, model.dtype).split(sizes),
-                       rot.to(model.device, model.cdtype).split(sizes))
-                      for i0, w, rot in self._window_plans(torch.cat(xs), torch.cat(zs))]
+            per_tx = list(zip(*self._window_plans(torch.cat(xs), torch.cat(zs))))
+            stacked = (torch.stack(per_tx[0]).to(model.device), torch.stack(per_tx[1]).to(model.device, model.dtype),
+                       torch.stack(per_tx[2]).to(model.device, model.cdtype))
+            parts = [a.split(sizes, dim=1) for a in stacked]
             for i, q in enumerate(missing):
-                made[q] = [(i0[i], wt[i], rot[i]) for i0, wt, rot in per_tx]
+                made[q] = tuple(a[i].contiguous() for a in parts)
                 if len(self._block_plans) < self.plan_cache_blocks:
                     self._block_plans[q] = made[q]
         return [self._block_plans.get(q) or made[q] for q in blocks]
@@ -70,22 +72,21 @@ class Refinement:
         """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
         ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
         plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
-        per_tx = []
-        for n in range(len(self.model.transmits)):
-            parts = [tuple(a[r] for a in pl[n]) if rows is not None else pl[n] for pl, r in
-                     zip(plans, rows if rows is not None else [None] * len(plans))]
-            per_tx.append(tuple(torch.cat([pt[j] for pt in parts]) for j in range(3)))
+        if rows is not None:
+            plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
+        i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
+                       for j in range(3))
         if X.requires_grad or X.device.type != "cpu":
             img = 0
-            for n, (i0, wt, rot) in enumerate(per_tx):
-                img = img + das_apply(X[n], i0, wt, rot)
+            for n in range(len(self.model.transmits)):
+                img = img + das_apply(X[n], i0[n], wt[n], rot[n])
             return img
-        # no gradient wanted: the compiled sum, which skips the entries outside the aperture
-        from arraysel.physics.pairkernels import das_pixels
+        # no gradient wanted: the compiled sum over every transmit at once, which skips the entries
+        # outside the aperture
+        from arraysel.physics.pairkernels import das_stacked
 
-        out = das_pixels(torch.view_as_real(X.contiguous()).numpy(),
-                         [(i0.numpy(), wt.numpy(), torch.view_as_real(rot.contiguous()).numpy())
-                          for i0, wt, rot in per_tx])
+        out = das_stacked(torch.view_as_real(X.contiguous()).numpy(), i0.contiguous().numpy(),
+                          wt.contiguous().numpy(), torch.view_as_real(rot.contiguous()).numpy())
         return torch.complex(*torch.from_numpy(out).to(X.real.dtype).unbind(1))
 
     def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
