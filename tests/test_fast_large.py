@@ -187,7 +187,7 @@ def test_compiled_das_equals_das_apply():
     """The compiled delay-and-sum (refinement and exact windows, no gradient) is ``das_apply``'s
     sum, entries outside the aperture (zero rotation) included as zeros, on any rows."""
     from arraysel.physics.beamform import das_apply
-    from arraysel.physics.pairkernels import das_pixels, das_plan_rows, das_stacked
+    from arraysel.physics.pairkernels import das_pixels, das_plan_rows, das_stacked, das_stacked_raw
 
     gen = torch.Generator().manual_seed(3)
     ntx, ne, T, npix = 3, 5, 40, 17
@@ -207,8 +207,19 @@ def test_compiled_das_equals_das_apply():
     got = torch.from_numpy(das_plan_rows(torch.view_as_real(x).numpy(), plans, rows))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want[rows], rtol=1e-12, atol=1e-12)
     # the plans stacked over the transmits, one call (the refinement's block sums)
-    got = torch.from_numpy(das_stacked(torch.view_as_real(x).numpy(), *(np.stack(a) for a in zip(*plans))))
+    stacked = [np.stack(a) for a in zip(*plans)]
+    got = torch.from_numpy(das_stacked(torch.view_as_real(x).numpy(), *stacked))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want, rtol=1e-12, atol=1e-12)
+    # and on raw channels: samples in segment-offset-major order, receive weights applied inside
+    seg = 4
+    we = torch.rand(ne, generator=gen, dtype=torch.float64)
+    we[1] = 0
+    raw = torch.view_as_real(x).permute(3, 0, 1, 2).reshape(2, ntx, ne, T // seg, seg).transpose(-1, -2)
+    got = torch.from_numpy(das_stacked_raw(raw.reshape(2, ntx, ne, T).contiguous().numpy(), we.numpy(), *stacked,
+                                           seg))
+    want_w = sum(das_apply(x[n] * we[:, None], torch.from_numpy(plans[n][0]), torch.from_numpy(plans[n][1]),
+                           torch.view_as_complex(torch.from_numpy(plans[n][2]))) for n in range(ntx))
+    assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want_w, rtol=1e-12, atol=1e-12)
 
 
 def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, monkeypatch):
@@ -356,3 +367,29 @@ def test_compact_envelopes_of_a_sparse_selection_equal_the_dense_ones(no_cache, 
     got = slab_sums(P, rows, wts, starts, 10)
     want = np.stack([[wts[b] @ P[rows, s:s + 10] for s in starts] for b in range(2)])
     assert np.allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dtype):
+    """The refinement's block delay-and-sum reads the certificate product's raw channels
+    (``RawChannels``: stored sample order, receive weights not applied) to the same values as
+    from :meth:`channels`, on whole blocks and on chosen pixel rows."""
+    from arraysel.physics.psf.refinement import RawChannels
+
+    model = PSFModel(_setup(n_elements=12), dtype=dtype)
+    basis = model.basis
+    w = _weights(12, 3, seed=4).to(dtype)
+    w[0, [1, 5, 6]] = 0
+    nb = -(-24 // model.block)
+    blocks = [(0, 0), (nb - 1, 0), (nb // 2, nb - 1)]
+    raws = list(basis._grouped_channels(w, [0, 1, 2], raw=True))
+    assert all(isinstance(x, RawChannels) for _, x in raws)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for (i, raw), x in zip(raws, basis.channels(w)):
+        for rows in (None, [torch.tensor([0, 5]), torch.tensor([3]), torch.tensor([1, 2])]):
+            a = basis._das(raw, blocks, rows)
+            b = basis._das(x, blocks, rows)
+            assert a.dtype == b.dtype
+            assert torch.allclose(a, b, rtol=tol, atol=tol * float(b.abs().max()))
+    # with a gradient the channels stay complex tensors
+    assert not any(isinstance(x, RawChannels) for _, x in basis._grouped_channels(w.requires_grad_(), [0], raw=True))

@@ -212,3 +212,44 @@ def das_stacked(x: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.ndarray) 
     out = np.empty((i0.shape[1], 2), dtype=np.float64)
     _das_stacked_kernel(x, i0, wt, rot, out)
     return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _das_stacked_raw_kernel(y, we, i0, wt, rot, sg, out):
+    """:func:`_das_stacked_kernel` on channels in the stored order: y (2, ntx, Ne, T) [re, im],
+    sample t of channel (n, e) at ``(t % sg) (T // sg) + t // sg``, weighted by ``we[e]``."""
+    ntx = i0.shape[0]
+    ne = i0.shape[2]
+    ns = y.shape[3] // sg
+    for p in numba.prange(i0.shape[1]):
+        sr = 0.0
+        si = 0.0
+        for n in range(ntx):
+            for e in range(ne):
+                f = we[e]
+                cr = rot[n, p, e, 0]
+                ci = rot[n, p, e, 1]
+                if f != 0.0 and (cr != 0.0 or ci != 0.0):
+                    i = i0[n, p, e]
+                    w = wt[n, p, e]
+                    ia = (i % sg) * ns + i // sg
+                    ib = ((i + 1) % sg) * ns + (i + 1) // sg
+                    ar = y[0, n, e, ia]
+                    ai = y[1, n, e, ia]
+                    vr = (ar + (y[0, n, e, ib] - ar) * w) * f
+                    vi = (ai + (y[1, n, e, ib] - ai) * w) * f
+                    sr += cr * vr - ci * vi
+                    si += cr * vi + ci * vr
+        out[p, 0] = sr
+        out[p, 1] = si
+
+
+def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.ndarray,
+                    segment: int) -> np.ndarray:
+    """:func:`das_stacked` on one selection's channels as the certificate's product leaves them
+    (:class:`arraysel.physics.psf.refinement.RawChannels`): y (2, ntx, Ne, T) [re, im] with the
+    samples of each channel in segment-offset-major order (``segment`` samples a segment), not
+    weighted by the receive weights ``we`` (Ne,). Returns (Npix, 2) float64 [re, im]."""
+    out = np.empty((i0.shape[1], 2), dtype=np.float64)
+    _das_stacked_raw_kernel(y, we, i0, wt, rot, int(segment), out)
+    return out

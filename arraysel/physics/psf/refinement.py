@@ -8,11 +8,25 @@ their exact pair images, or block-wise delay-and-sum.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.psf.window import cut_windows, window_start
+
+
+class RawChannels(NamedTuple):
+    """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
+    gradient): ``y`` (2, ntx, Ne, T) [re, im] with each channel's samples in the stored
+    segment-offset-major order (sample ``a segment + r`` at ``r nS + a``), not yet weighted by
+    the receive element's weight ``we`` (Ne,). The compiled delay-and-sum reads them as they are
+    (``pairkernels.das_stacked_raw``): forming the complex, time-ordered, weighted channels of
+    :meth:`~arraysel.physics.psf.basis.PairBasis.channels` costs as much as the product."""
+
+    y: np.ndarray
+    we: np.ndarray
 
 
 class Refinement:
@@ -76,6 +90,12 @@ class Refinement:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
         i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
                        for j in range(3))
+        if isinstance(X, RawChannels):
+            from arraysel.physics.pairkernels import das_stacked_raw
+
+            out = das_stacked_raw(X.y, X.we, i0.contiguous().numpy(), wt.contiguous().numpy(),
+                                  torch.view_as_real(rot.contiguous()).numpy(), self.segment)
+            return torch.complex(*torch.from_numpy(out).to(self.model.dtype).unbind(1))
         if X.requires_grad or X.device.type != "cpu":
             img = 0
             for n in range(len(self.model.transmits)):
@@ -163,20 +183,29 @@ class Refinement:
             elif not bool(strip[left].any()) and left.numel() <= self.refine_max_blocks:
                 loose[i] = left
             # else: a strip block reaches the peak, or too many blocks to beamform
-        for i, x in self._grouped_channels(w, list(loose)):
+        for i, x in self._grouped_channels(w, list(loose), raw=True):
             img = self._das(x, [tuple(int(v) for v in blocks[q]) for q in loose[i].tolist()])
             out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
         return out
 
-    def _grouped_channels(self, w: torch.Tensor, index: list):
+    def _grouped_channels(self, w: torch.Tensor, index: list, raw: bool = False):
         """Yield ``(i, X)`` for each selection ``w[i]``, ``i`` in ``index`` (in order), with its
         I/Q channels X (ntx, Ne, T), formed :attr:`channel_group` selections at a time: one
         product with every pair channel per group (a whole batch's channels of a 256-element
-        probe are about 1 GB)."""
+        probe are about 1 GB). With ``raw`` (for :meth:`_das` only), on the CPU and without
+        gradient, X is the product's :class:`RawChannels`."""
         group = self.channel_group
+        raw = raw and w.device.type == "cpu" and not w.requires_grad
+        ne, ntx = self.model.n_elements, len(self.model.transmits)
         for g in range(0, len(index), group):
             part = index[g:g + group]
-            yield from zip(part, self.channels(w[torch.tensor(part, dtype=torch.long, device=w.device)]))
+            wg = w[torch.tensor(part, dtype=torch.long, device=w.device)]
+            if not raw:
+                yield from zip(part, self.channels(wg))
+                continue
+            y = (wg @ self.pair_channels).numpy().reshape(len(part), 2, ntx, ne, self.window_samples)
+            we = wg.numpy().astype(y.dtype)
+            yield from ((i, RawChannels(y[k], we[k])) for k, i in enumerate(part))
 
     def _exact_pixels(self, X: torch.Tensor, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
@@ -219,7 +248,7 @@ class Refinement:
                 arg = arg.clone()
                 if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
                     amb = self._settle_in_core(cand, amb, arg, w)
-            for b, x in self._grouped_channels(w.detach(), amb.tolist()):
+            for b, x in self._grouped_channels(w.detach(), amb.tolist(), raw=True):
                 idx = torch.nonzero(cand[b]).flatten()
                 v = self._exact_pixels(x, idx // wd + row0, idx % wd + col0).abs()
                 arg[b] = idx[int(torch.argmax(v))]
