@@ -195,7 +195,7 @@ class Refinement:
         probe are about 1 GB). With ``raw`` (for :meth:`_das` only), on the CPU and without
         gradient, X is the product's :class:`RawChannels`."""
         group = self.channel_group
-        raw = raw and w.device.type == "cpu" and not w.requires_grad
+        raw = raw and self.raw_channels and w.device.type == "cpu" and not w.requires_grad
         ne, ntx = self.model.n_elements, len(self.model.transmits)
         for g in range(0, len(index), group):
             part = index[g:g + group]
@@ -378,6 +378,9 @@ class Refinement:
     #: most selections of one batch whose windows are beamformed exactly (:meth:`_exact_windows`);
     #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
     exact_windows_max = 4096
+    #: block delay-and-sums without gradient read :class:`RawChannels` (False: the complex channels
+    #: of :meth:`channels`, the same values; ``benchmarks/bench_certificate.py`` compares the two)
+    raw_channels = True
     #: selections whose channels are formed at once (:meth:`_grouped_channels`, for
     #: :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): (16, ntx, Ne, T) complex is
     #: 60 MB for a 256-element probe
