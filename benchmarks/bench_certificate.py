@@ -1,19 +1,16 @@
-"""The certificate's cheaper paths against the plain ones, side by side in one process.
+"""The refinement's block delay-and-sum on raw channels against complex ones, side by side.
 
-* Gradient steps (one selection, as ``ste`` takes them): the envelopes of a single hard
-  selection from its active channels and elements only (``Certificates.compact_batch`` = 4,
-  the default) against the product with every pair channel (``compact_batch`` = 0).
-* Batched ``Objective.evaluate`` of random masks: the refinement's block delay-and-sum on the
-  certificate product's raw channels (``Refinement.raw_channels`` = True, the default) against
-  the complex, time-ordered channels of ``PairBasis.channels`` (False); the time spent in
-  ``Refinement.refine`` is reported too. The Means must agree exactly.
+Batched ``Objective.evaluate`` of random masks: the certificates' loose blocks summed from the
+certificate product's raw channels (``Refinement.raw_channels`` = True, the default) against
+the complex, time-ordered channels of ``PairBasis.channels`` (False); the time spent in
+``Refinement.refine`` is reported too. The Means must agree exactly.
 
 The two settings alternate ``--rounds`` times (this machine's speed drifts between runs, so
 only alternated figures are compared); the basis must be cached or is built first.
 
 Usage::
 
-    python benchmarks/bench_certificate.py [--scene c5-2v] [--masks 1024] [--steps 60] [--rounds 3]
+    python benchmarks/bench_certificate.py [--scene c5-2v] [--masks 1024] [--rounds 3]
 
 The last output line is a JSON record.
 """
@@ -34,17 +31,14 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scene", default="c5-2v", help="built-in scene name or file (default c5-2v)")
     p.add_argument("--masks", type=int, default=1024, help="random masks per evaluate round (default 1024)")
-    p.add_argument("--steps", type=int, default=60, help="gradient steps per round (default 60)")
     p.add_argument("--rounds", type=int, default=3, help="alternations of the two settings (default 3)")
     p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     a = p.parse_args(argv)
     C.set_threads(a.threads)
     import numpy as np
-    import torch
 
     from arraysel.objective.psf_objective import Objective
     from arraysel.physics.psf.refinement import Refinement
-    from arraysel.selectors.relax import sequential_selection
 
     obj = Objective(a.scene)
     basis = obj.psf.basis
@@ -52,18 +46,6 @@ def main(argv=None):
         raise SystemExit(f"scene {a.scene!r} has no fast path")
     ne, k = obj.n_elements, obj.k
     masks = C.random_masks(a.masks, ne, k, seed=1).astype(np.float32)
-    logits = torch.zeros(ne, k, requires_grad=True)
-    with torch.no_grad():
-        logits.normal_(0, 0.01, generator=torch.Generator().manual_seed(0))
-    opt = torch.optim.Adam([logits], lr=1e-3)
-
-    def step():
-        r = sequential_selection(logits, 2.0)
-        loss, _ = obj.selection_loss(r.P, r.P_soft)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-
     refine_s = [0.0]
     plain_refine = Refinement.refine
 
@@ -76,18 +58,9 @@ def main(argv=None):
 
     Refinement.refine = timed_refine
     obj.evaluate(masks[:256])
-    for _ in range(3):
-        step()
-    res = {"steps_per_min": {"compact": [], "dense": []}, "ms_per_mask": {"raw": [], "complex": []},
-           "refine_ms_per_mask": {"raw": [], "complex": []}}
+    res = {"ms_per_mask": {"raw": [], "complex": []}, "refine_ms_per_mask": {"raw": [], "complex": []}}
     means = {}
     for _ in range(a.rounds):
-        for name, cb in (("dense", 0), ("compact", 4)):
-            basis.compact_batch = cb
-            t = time.perf_counter()
-            for _ in range(a.steps):
-                step()
-            res["steps_per_min"][name].append(60 * a.steps / (time.perf_counter() - t))
         for name, raw in (("complex", False), ("raw", True)):
             Refinement.raw_channels = raw
             refine_s[0] = 0.0
@@ -97,9 +70,8 @@ def main(argv=None):
             res["refine_ms_per_mask"][name].append(1e3 * refine_s[0] / a.masks)
     Refinement.refine = plain_refine
     same = bool(np.array_equal(means["raw"], means["complex"]))
-    print(f"{a.scene}: {a.rounds} alternated rounds, {a.steps} gradient steps and {a.masks} masks each")
-    for key, (x, y) in (("steps_per_min", ("compact", "dense")), ("ms_per_mask", ("raw", "complex")),
-                        ("refine_ms_per_mask", ("raw", "complex"))):
+    print(f"{a.scene}: {a.rounds} alternated rounds of {a.masks} masks")
+    for key, (x, y) in (("ms_per_mask", ("raw", "complex")), ("refine_ms_per_mask", ("raw", "complex"))):
         vx, vy = res[key][x], res[key][y]
         print(f"  {key:20s} {x:8s} {' '.join(f'{v:8.2f}' for v in vx)}   {y:8s} {' '.join(f'{v:8.2f}' for v in vy)}"
               f"   median ratio {statistics.median(vx) / statistics.median(vy):.3f}")

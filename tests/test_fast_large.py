@@ -329,47 +329,6 @@ def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_compact_envelopes_of_a_sparse_selection_equal_the_dense_ones(no_cache, dtype):
-    """A gradient step's single selection reads only the (active x active) part of the pair
-    channels (``Certificates._compact_segments``): the same envelopes, hence the same block
-    bounds, as the product with every channel; batches or dense weights keep the product."""
-    from arraysel.physics.pairkernels import slab_sums
-
-    model = PSFModel(_setup(n_elements=12), dtype=dtype)
-    basis = model.basis
-    ne = 12
-    hard = torch.zeros(3, ne, dtype=dtype)
-    hard[0, [0, 3, 4, 9, 11]] = 1
-    hard[1, [1, 2, 5]] = 1
-    hard[2, [6]] = 0.7            # k = 1, a non-unit weight
-    calls = []
-    inner = basis._compact_segments
-    basis._compact_segments = lambda w, act: calls.append(act.numel()) or inner(w, act)
-    for w in (hard[:1], hard[1:2], hard[2:3], hard[:2]):
-        basis.compact_batch = 0
-        dense = basis.envelopes(w)
-        basis.compact_batch = 4
-        compact = basis.envelopes(w)
-        tol = 1e-6 if dtype == torch.float32 else 1e-13
-        assert compact.shape == dense.shape
-        assert torch.allclose(compact, dense, rtol=tol, atol=tol * float(dense.abs().max()))
-        assert bool((compact[dense == 0] == 0).all())
-    assert calls == [5, 3, 1, 8]
-    calls.clear()
-    basis.envelopes(torch.ones(1, ne, dtype=dtype))   # every element active: the product
-    basis.envelopes(torch.cat([hard, hard[:2]]))      # five selections: the product
-    assert calls == []
-    # slab sums: any rows, weights and column slabs
-    gen = np.random.default_rng(1)
-    P = gen.standard_normal((6, 50)).astype(np.float32)
-    rows, starts = np.array([4, 1, 2]), np.array([0, 7, 40])
-    wts = gen.standard_normal((2, 3)).astype(np.float32)
-    got = slab_sums(P, rows, wts, starts, 10)
-    want = np.stack([[wts[b] @ P[rows, s:s + 10] for s in starts] for b in range(2)])
-    assert np.allclose(got, want, rtol=1e-5, atol=1e-5)
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dtype):
     """The refinement's block delay-and-sum reads the certificate product's raw channels
     (``RawChannels``: stored sample order, receive weights not applied) to the same values as

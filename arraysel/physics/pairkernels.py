@@ -150,33 +150,6 @@ def das_pixels(x: np.ndarray, plans) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _slab_sums_kernel(P, rows, wts, starts, width, out):
-    """``out[b, s, t] = sum_r wts[b, r] P[rows[r], starts[s] + t]`` for ``t < width``."""
-    for s in numba.prange(starts.shape[0]):
-        c0 = starts[s]
-        for b in range(wts.shape[0]):
-            for r in range(rows.shape[0]):
-                wv = wts[b, r]
-                if wv != 0.0:
-                    j = rows[r]
-                    for t in range(width):
-                        out[b, s, t] += wv * P[j, c0 + t]
-
-
-def slab_sums(P: np.ndarray, rows: np.ndarray, wts: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
-    """Weighted sums of a few rows of ``P`` (R, C) on a few column slabs: (B, S, width) with
-    ``out[b, s] = sum_r wts[b, r] P[rows[r], starts[s]:starts[s] + width]``.
-
-    Reads only the named rows on the named slabs, where the dense product ``wts @ P[rows]``
-    would read (and the row gather copy) every column: the certificate's channels of one
-    selection (:meth:`arraysel.physics.psf.certificate.Certificates.envelopes`) need a quarter
-    of ``pair_channels`` for k = Ne / 2."""
-    out = np.zeros((wts.shape[0], starts.shape[0], width), dtype=P.dtype)
-    _slab_sums_kernel(P, rows, wts.astype(P.dtype), starts, int(width), out)
-    return out
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
 def _das_stacked_kernel(x, i0, wt, rot, out):
     """``out[p] = sum_{n, e} rot[n, p, e] lerp(x[n, e], i0[n, p, e], wt[n, p, e])`` over the entries
     with a non-zero rotation. x: (ntx, Ne, T, 2); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2);

@@ -114,10 +114,6 @@ class Certificates:
         T = self.window_samples
         nS = T // self.segment
         nch = ntx * ne
-        if B <= self.compact_batch and w.device.type == "cpu" and not w.requires_grad:
-            act = torch.nonzero((w != 0).any(0)).flatten()
-            if act.numel() <= self.compact_fraction * ne:
-                return self._running_maxima(self._compact_segments(w, act))
         half = self.pair_channels.shape[1] // 2
         a_re, a_im = self.pair_channels[:, :half].T, self.pair_channels[:, half:].T
         wt = w.T.contiguous()
@@ -131,37 +127,6 @@ class Certificates:
         seg.sqrt_()
         seg.view(ntx, ne, nS, B).mul_(w.abs().T[None, :, None, :])
         return self._running_maxima(seg)
-
-    #: batches of at most this many selections (a gradient step's single selection) whose active
-    #: elements are at most :attr:`compact_fraction` of the probe form only the channels of their
-    #: active receive elements, from their active transmit elements (:meth:`_compact_segments`)
-    compact_batch = 4
-    compact_fraction = 0.75
-
-    def _compact_segments(self, w: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        """The segment maxima (ntx * Ne, nS, B) of :meth:`envelopes` for selections whose weights
-        vanish outside the elements ``act``: an inactive receive element's channel is zero and an
-        inactive transmit element adds nothing, so only the (act x act) part of
-        ``pair_channels`` is read (a quarter of it for k = Ne / 2), gathered in runs of whole
-        channel windows."""
-        ne = self.model.n_elements
-        ntx = len(self.model.transmits)
-        B, na = w.shape[0], act.numel()
-        T = self.window_samples
-        nS = T // self.segment
-        a = act.cpu()
-        # slab (c, n, e) of pair_channels' columns: re/im c, transmit n, active receive e
-        starts = ((torch.arange(2)[:, None, None] * ntx + torch.arange(ntx)[None, :, None]) * ne
-                  + a[None, None, :]) * T
-        from arraysel.physics.pairkernels import slab_sums
-
-        y = slab_sums(self.pair_channels.numpy(), a.numpy(), w[:, a].numpy(), starts.reshape(-1).numpy(), T)
-        y = torch.from_numpy(y).view(B, 2, ntx, na, self.segment, nS)
-        sq = torch.addcmul(y[:, 1].square(), y[:, 0], y[:, 0])
-        part = sq.amax(dim=3).sqrt_().mul_(w[:, a].abs()[:, None, :, None])     # (B, ntx, na, nS)
-        seg = w.new_zeros(ntx, ne, nS, B)
-        seg[:, a] = part.permute(1, 2, 3, 0)
-        return seg.view(ntx * ne, nS, B)
 
     def _running_maxima(self, seg: torch.Tensor) -> torch.Tensor:
         """(ntx * Ne * M * nS, B) envelopes of every run of 1 .. M segments from the segment
