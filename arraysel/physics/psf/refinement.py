@@ -83,8 +83,9 @@ class Refinement:
         return [self._block_plans.get(q) or made[q] for q in blocks]
 
     def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
-        """Exact image values of one selection (I/Q channels X: (ntx, Ne, T)) on the pixels of
-        ``blocks`` ((qz, qx) pairs), or on the given pixel rows of each block's plan."""
+        """Exact image values of one selection (I/Q channels X: (ntx, Ne, T) complex, or its
+        :class:`RawChannels`) on the pixels of ``blocks`` ((qz, qx) pairs), or on the given pixel
+        rows of each block's plan."""
         plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
         if rows is not None:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
@@ -207,9 +208,10 @@ class Refinement:
             we = wg.numpy().astype(y.dtype)
             yield from ((i, RawChannels(y[k], we[k])) for k, i in enumerate(part))
 
-    def _exact_pixels(self, X: torch.Tensor, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+    def _exact_pixels(self, X, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
-        channels ``X`` (ntx, Ne, T) (delay-and-sum with the cached block plans, as the exact path)."""
+        channels ``X`` (ntx, Ne, T) (or its :class:`RawChannels`): delay-and-sum with the cached
+        block plans, as the exact path."""
         s = self.model.setup
         b = self.model.block
         zi, xi = zi.cpu(), xi.cpu()
