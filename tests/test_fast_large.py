@@ -187,7 +187,7 @@ def test_compiled_das_equals_das_apply():
     """The compiled delay-and-sum (refinement and exact windows, no gradient) is ``das_apply``'s
     sum, entries outside the aperture (zero rotation) included as zeros, on any rows."""
     from arraysel.physics.beamform import das_apply
-    from arraysel.physics.pairkernels import das_pixels, das_plan_rows, das_stacked, das_stacked_raw
+    from arraysel.physics.pairkernels import das_plan_rows, das_stacked_raw
 
     gen = torch.Generator().manual_seed(3)
     ntx, ne, T, npix = 3, 5, 40, 17
@@ -201,14 +201,16 @@ def test_compiled_das_equals_das_apply():
         rot[torch.rand(npix, ne, generator=gen) < 0.3] = 0  # outside the aperture
         plans.append((i0.numpy(), wt.numpy(), torch.view_as_real(rot).numpy()))
         want = want + das_apply(x[n], i0, wt, rot)
-    got = torch.from_numpy(das_pixels(torch.view_as_real(x).numpy(), plans))
+    got = torch.from_numpy(das_plan_rows(torch.view_as_real(x).numpy(), plans, np.arange(npix)))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want, rtol=1e-12, atol=1e-12)
     rows = np.array([16, 0, 5, 5])
     got = torch.from_numpy(das_plan_rows(torch.view_as_real(x).numpy(), plans, rows))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want[rows], rtol=1e-12, atol=1e-12)
-    # the plans stacked over the transmits, one call (the refinement's block sums)
+    # the plans stacked over the transmits, one call (the refinement's block sums), channels in
+    # time order (one-sample segments) with unit receive weights
     stacked = [np.stack(a) for a in zip(*plans)]
-    got = torch.from_numpy(das_stacked(torch.view_as_real(x).numpy(), *stacked))
+    got = torch.from_numpy(das_stacked_raw(torch.view_as_real(x).permute(3, 0, 1, 2).contiguous().numpy(),
+                                           np.ones(ne), *stacked, 1))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want, rtol=1e-12, atol=1e-12)
     # and on raw channels: samples in segment-offset-major order, receive weights applied inside
     seg = 4

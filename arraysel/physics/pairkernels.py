@@ -132,65 +132,22 @@ def _das_rows_kernel(x, pix, i0, wt, rot, out):
 
 
 def das_plan_rows(x: np.ndarray, plans, pix: np.ndarray) -> np.ndarray:
-    """:func:`das_pixels` on the rows ``pix`` (int64) of the plans: (len(pix), 2) float64."""
+    """Delay-and-sum of one selection's I/Q channels on the rows ``pix`` (int64) of the plans
+    (the same sum as :func:`arraysel.physics.beamform.das_apply`, skipping the entries outside
+    the aperture). x: (ntx, Ne, T, 2) float [re, im]; plans: per transmit ``(i0, wt, rot)`` numpy
+    arrays of shapes (Npix, Ne), (Npix, Ne), (Npix, Ne, 2). Returns (len(pix), 2) float64."""
     out = np.zeros((pix.shape[0], 2), dtype=np.float64)
     for n, (i0, wt, rot) in enumerate(plans):
         _das_rows_kernel(x[n], pix, i0, wt, rot, out)
     return out
 
 
-def das_pixels(x: np.ndarray, plans) -> np.ndarray:
-    """Delay-and-sum of one selection's I/Q channels on every pixel of the plans, compiled (the same
-    sum as :func:`arraysel.physics.beamform.das_apply`, skipping the entries outside the aperture).
-
-    x: (ntx, Ne, T, 2) float [re, im]; plans: per transmit ``(i0, wt, rot)`` numpy arrays of
-    shapes (Npix, Ne), (Npix, Ne), (Npix, Ne, 2). Returns (Npix, 2) float64 [re, im].
-    """
-    return das_plan_rows(x, plans, np.arange(plans[0][0].shape[0], dtype=np.int64))
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _das_stacked_kernel(x, i0, wt, rot, out):
-    """``out[p] = sum_{n, e} rot[n, p, e] lerp(x[n, e], i0[n, p, e], wt[n, p, e])`` over the entries
-    with a non-zero rotation. x: (ntx, Ne, T, 2); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2);
-    out: (Npix, 2) float64."""
-    ntx = i0.shape[0]
-    ne = i0.shape[2]
-    for p in numba.prange(i0.shape[1]):
-        sr = 0.0
-        si = 0.0
-        for n in range(ntx):
-            for e in range(ne):
-                cr = rot[n, p, e, 0]
-                ci = rot[n, p, e, 1]
-                if cr != 0.0 or ci != 0.0:
-                    i = i0[n, p, e]
-                    w = wt[n, p, e]
-                    ar = x[n, e, i, 0]
-                    ai = x[n, e, i, 1]
-                    vr = ar + (x[n, e, i + 1, 0] - ar) * w
-                    vi = ai + (x[n, e, i + 1, 1] - ai) * w
-                    sr += cr * vr - ci * vi
-                    si += cr * vi + ci * vr
-        out[p, 0] = sr
-        out[p, 1] = si
-
-
-def das_stacked(x: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """:func:`das_pixels` with the plans stacked over the transmits, in one compiled call:
-    x (ntx, Ne, T, 2) [re, im]; i0, wt (ntx, Npix, Ne); rot (ntx, Npix, Ne, 2). Returns
-    (Npix, 2) float64 [re, im]: the block delay-and-sum of the certificates' refinement, where
-    a call covers a few blocks and the per-transmit calls and plan concatenations of
-    :func:`das_pixels` cost as much as the sums."""
-    out = np.empty((i0.shape[1], 2), dtype=np.float64)
-    _das_stacked_kernel(x, i0, wt, rot, out)
-    return out
-
-
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _das_stacked_raw_kernel(y, we, i0, wt, rot, sg, out):
-    """:func:`_das_stacked_kernel` on channels in the stored order: y (2, ntx, Ne, T) [re, im],
-    sample t of channel (n, e) at ``(t % sg) (T // sg) + t // sg``, weighted by ``we[e]``."""
+    """``out[p] = sum_{n, e} rot[n, p, e] we[e] lerp(y[:, n, e], i0[n, p, e], wt[n, p, e])`` over the
+    entries with a non-zero rotation and weight. y: (2, ntx, Ne, T) [re, im], sample t of channel
+    (n, e) at ``(t % sg) (T // sg) + t // sg``; i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2);
+    out: (Npix, 2) float64."""
     ntx = i0.shape[0]
     ne = i0.shape[2]
     ns = y.shape[3] // sg
@@ -219,10 +176,13 @@ def _das_stacked_raw_kernel(y, we, i0, wt, rot, sg, out):
 
 def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.ndarray,
                     segment: int) -> np.ndarray:
-    """:func:`das_stacked` on one selection's channels as the certificate's product leaves them
-    (:class:`arraysel.physics.psf.refinement.RawChannels`): y (2, ntx, Ne, T) [re, im] with the
-    samples of each channel in segment-offset-major order (``segment`` samples a segment), not
-    weighted by the receive weights ``we`` (Ne,). Returns (Npix, 2) float64 [re, im]."""
+    """Delay-and-sum of one selection's I/Q channels with block plans stacked over the transmits,
+    in one compiled call (the certificates' refinement: a call covers a few blocks, where one call
+    and plan concatenation per transmit cost as much as the sums). y (2, ntx, Ne, T) [re, im]
+    with each channel's samples in segment-offset-major order (``segment`` samples a segment;
+    1: time order), weighted by ``we`` (Ne,) inside the sum (the certificate product's raw
+    channels, :class:`arraysel.physics.psf.refinement.RawChannels`); i0, wt (ntx, Npix, Ne); rot
+    (ntx, Npix, Ne, 2). Returns (Npix, 2) float64 [re, im]."""
     out = np.empty((i0.shape[1], 2), dtype=np.float64)
     _das_stacked_raw_kernel(y, we, i0, wt, rot, int(segment), out)
     return out

@@ -126,12 +126,6 @@ class Certificates:
             torch.amax(sq.view(g1 - g0, self.segment, nS, B), dim=1, out=seg[g0:g1])
         seg.sqrt_()
         seg.view(ntx, ne, nS, B).mul_(w.abs().T[None, :, None, :])
-        return self._running_maxima(seg)
-
-    def _running_maxima(self, seg: torch.Tensor) -> torch.Tensor:
-        """(ntx * Ne * M * nS, B) envelopes of every run of 1 .. M segments from the segment
-        maxima ``seg`` (ntx * Ne, nS, B) (zeros past the end: the run is cut there)."""
-        nch, nS, B = seg.shape
         env = seg.new_empty(nch, self.max_run, nS, B)
         env[:, 0] = seg
         for m in range(1, self.max_run):

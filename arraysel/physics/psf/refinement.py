@@ -19,14 +19,16 @@ from arraysel.physics.psf.window import cut_windows, window_start
 
 class RawChannels(NamedTuple):
     """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
-    gradient): ``y`` (2, ntx, Ne, T) [re, im] with each channel's samples in the stored
-    segment-offset-major order (sample ``a segment + r`` at ``r nS + a``), not yet weighted by
-    the receive element's weight ``we`` (Ne,). The compiled delay-and-sum reads them as they are
-    (``pairkernels.das_stacked_raw``): forming the complex, time-ordered, weighted channels of
-    :meth:`~arraysel.physics.psf.basis.PairBasis.channels` costs as much as the product."""
+    gradient): ``y`` (2, ntx, Ne, T) [re, im] with each channel's samples in segment-offset-major
+    order (``segment`` samples a segment: sample ``a segment + r`` at ``r nS + a``; 1: time
+    order), not yet weighted by the receive element's weight ``we`` (Ne,). The compiled
+    delay-and-sum reads them as they are (``pairkernels.das_stacked_raw``): forming the complex,
+    time-ordered, weighted channels of :meth:`~arraysel.physics.psf.basis.PairBasis.channels`
+    costs as much as the product."""
 
     y: np.ndarray
     we: np.ndarray
+    segment: int
 
 
 class Refinement:
@@ -91,24 +93,21 @@ class Refinement:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
         i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
                        for j in range(3))
-        if isinstance(X, RawChannels):
-            from arraysel.physics.pairkernels import das_stacked_raw
+        if not isinstance(X, RawChannels):
+            if X.requires_grad or X.device.type != "cpu":
+                img = 0
+                for n in range(len(self.model.transmits)):
+                    img = img + das_apply(X[n], i0[n], wt[n], rot[n])
+                return img
+            # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
+            y = torch.view_as_real(X).permute(3, 0, 1, 2).contiguous().numpy()
+            X = RawChannels(y, np.ones(y.shape[2], dtype=y.dtype), 1)
+        # the compiled sum over every transmit at once, which skips the entries outside the aperture
+        from arraysel.physics.pairkernels import das_stacked_raw
 
-            out = das_stacked_raw(X.y, X.we, i0.contiguous().numpy(), wt.contiguous().numpy(),
-                                  torch.view_as_real(rot.contiguous()).numpy(), self.segment)
-            return torch.complex(*torch.from_numpy(out).to(self.model.dtype).unbind(1))
-        if X.requires_grad or X.device.type != "cpu":
-            img = 0
-            for n in range(len(self.model.transmits)):
-                img = img + das_apply(X[n], i0[n], wt[n], rot[n])
-            return img
-        # no gradient wanted: the compiled sum over every transmit at once, which skips the entries
-        # outside the aperture
-        from arraysel.physics.pairkernels import das_stacked
-
-        out = das_stacked(torch.view_as_real(X.contiguous()).numpy(), i0.contiguous().numpy(),
-                          wt.contiguous().numpy(), torch.view_as_real(rot.contiguous()).numpy())
-        return torch.complex(*torch.from_numpy(out).to(X.real.dtype).unbind(1))
+        out = das_stacked_raw(X.y, X.we, i0.contiguous().numpy(), wt.contiguous().numpy(),
+                              torch.view_as_real(rot.contiguous()).numpy(), X.segment)
+        return torch.complex(*torch.from_numpy(out).to(self.model.dtype).unbind(1))
 
     def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
         """(n, B) float64 upper bounds of ``max |I|`` on the whole strip blocks ``slots`` (their
@@ -206,7 +205,7 @@ class Refinement:
                 continue
             y = (wg @ self.pair_channels).numpy().reshape(len(part), 2, ntx, ne, self.window_samples)
             we = wg.numpy().astype(y.dtype)
-            yield from ((i, RawChannels(y[k], we[k])) for k, i in enumerate(part))
+            yield from ((i, RawChannels(y[k], we[k], self.segment)) for k, i in enumerate(part))
 
     def _exact_pixels(self, X, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
