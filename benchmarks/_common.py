@@ -56,6 +56,23 @@ def random_masks(n: int, n_elements: int = 64, k: int = 32, seed: int = 0):
     return out
 
 
+def named_masks(n_elements: int, k: int, random_seed: int = 99) -> dict:
+    """The fidelity masks of issue 17: 'uniform' (k spread evenly), 'random' (one random mask of
+    ``random_seed``), 'edges' (the k/2 outermost elements on each side, whose peak can leave the
+    scatterer) and 'centre' (the k middle ones); float64 0/1 arrays."""
+    import numpy as np
+
+    uniform = np.zeros(n_elements)
+    uniform[[(i * n_elements) // k for i in range(k)]] = 1
+    edges = np.zeros(n_elements)
+    edges[: k // 2] = 1
+    edges[n_elements - (k - k // 2):] = 1
+    centre = np.zeros(n_elements)
+    centre[(n_elements - k) // 2:(n_elements - k) // 2 + k] = 1
+    return {"uniform": uniform, "random": random_masks(1, n_elements, k, seed=random_seed)[0], "edges": edges,
+            "centre": centre}
+
+
 def uniform_mask(n_elements: int = 64, k: int = 32):
     """Every (n_elements // k)-th element on (the regular sparse array)."""
     import numpy as np

@@ -51,17 +51,7 @@ def parse_args(argv=None):
 
 
 def _masks(n, ne, k):
-    import numpy as np
-
-    uniform = np.zeros(ne)
-    uniform[[(i * ne) // k for i in range(k)]] = 1
-    edges = np.zeros(ne)
-    edges[: k // 2] = 1
-    edges[ne - (k - k // 2):] = 1
-    centre = np.zeros(ne)
-    centre[(ne - k) // 2:(ne - k) // 2 + k] = 1
-    return {"uniform": uniform, "random": C.random_masks(1, ne, k, seed=99)[0], "edges": edges,
-            "centre": centre}, C.random_masks(n, ne, k, seed=0)
+    return C.named_masks(ne, k, random_seed=99), C.random_masks(n, ne, k, seed=0)
 
 
 def build_one(name: str) -> dict:

@@ -26,20 +26,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common as C  # noqa: E402
 
 
-def masks_for(ne: int, k: int, extra: int, seed: int):
-    import numpy as np
-
-    out = {"uniform": np.zeros(ne), "random": np.zeros(ne), "edges": np.zeros(ne), "centre": np.zeros(ne)}
-    out["uniform"][[(i * ne) // k for i in range(k)]] = 1
-    rng = np.random.default_rng(seed)
-    out["random"][rng.choice(ne, k, replace=False)] = 1
-    out["edges"][: k // 2] = 1
-    out["edges"][ne - (k - k // 2):] = 1
-    out["centre"][(ne - k) // 2:(ne - k) // 2 + k] = 1
-    for i in range(extra):
-        m = np.zeros(ne)
-        m[rng.choice(ne, k, replace=False)] = 1
-        out[f"rnd{i}"] = m
+def masks_for(ne: int, k: int, extra: int, seed: int) -> dict:
+    """The four fidelity masks (random one of ``seed``) and ``extra`` more random ones."""
+    out = C.named_masks(ne, k, random_seed=seed)
+    out.update({f"rnd{i}": m for i, m in enumerate(C.random_masks(extra, ne, k, seed=seed + 1))})
     return out
 
 
