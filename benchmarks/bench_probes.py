@@ -41,6 +41,9 @@ def parse_args(argv=None):
     p.add_argument("--probes", default=",".join(PROBES), help=f"comma-separated, from {list(PROBES)}")
     p.add_argument("--masks", type=int, default=1024, help="random masks timed per probe (default 1024)")
     p.add_argument("--steps", type=int, default=30, help="timed gradient steps per probe (default 30)")
+    p.add_argument("--cache", help="basis cache folder to use and keep (default: a fresh temporary one, so the "
+                                   "precompute column is the first run's; with a folder holding the basis it "
+                                   "is the load time)")
     p.add_argument("--one", help=argparse.SUPPRESS)
     p.add_argument("--build", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -94,10 +97,13 @@ def run_one(name: str, masks: int, steps: int) -> dict:
     warm = min(256, masks)
     obj.evaluate(rand[:warm])
     obj.fallbacks = 0
+    basis = obj.psf.basis
+    before = dict(basis.settled) if basis is not None else {}
     t0 = time.perf_counter()
     obj.evaluate(rand)
     per_mask = (time.perf_counter() - t0) / masks
     fallbacks = obj.fallbacks / masks
+    settled = {key: (basis.settled[key] - before[key]) / masks for key in before}
     # gradient steps (as the ste selector takes them)
     logits = torch.zeros(ne, k, requires_grad=True)
     opt = torch.optim.Adam([logits], lr=1e-3)
@@ -125,7 +131,8 @@ def run_one(name: str, masks: int, steps: int) -> dict:
             "load_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
             "si_mse_vs_exact": fid, "exact_path_for": [n for i, n in enumerate(special) if bool(fb[i])],
             "fast_path": fast is not None, "rank": getattr(fast, "rank", None),
-            "strips": getattr(fast, "strips", None), "kernel_tol": getattr(fast, "kernel_tol", None)}
+            "strips": getattr(fast, "strips", None), "kernel_tol": getattr(fast, "kernel_tol", None),
+            "settled_fraction": settled}
 
 
 def main(argv=None):
@@ -138,8 +145,8 @@ def main(argv=None):
         return
     rows = []
     for name in args.probes.split(","):
-        with tempfile.TemporaryDirectory() as cache:
-            env = dict(os.environ, ARRAYSEL_CACHE=cache)
+        with tempfile.TemporaryDirectory() as tmp:
+            env = dict(os.environ, ARRAYSEL_CACHE=args.cache or tmp)
             outs = [subprocess.run([sys.executable, __file__, *flags], env=env, capture_output=True, text=True)
                     for flags in (["--build", name],
                                   ["--one", name, "--masks", str(args.masks), "--steps", str(args.steps)])]
@@ -155,7 +162,9 @@ def main(argv=None):
               f"resident {r['rss_gib']:.2f} GiB (build peak {r['build_peak_rss_gib']:.2f}), "
               f"precompute {r['precompute_s']:6.1f} s, "
               f"{r['grad_steps_per_min']:7.0f} grad steps/min, fallbacks {100 * r['fallback_fraction']:.2f} %, "
-              f"max SI-MSE vs exact {max(r['si_mse_vs_exact'].values()):.1e} "
+              f"max SI-MSE vs exact {max(r['si_mse_vs_exact'].values()):.1e}, "
+              f"rank {r['rank']}, kernel tol {r['kernel_tol']}, settled by "
+              + ", ".join(f"{key} {100 * v:.1f} %" for key, v in r["settled_fraction"].items()) + " "
               f"(exact path for {r['exact_path_for'] or 'none'})", flush=True)
     print(json.dumps({"machine": C.machine(), "rows": rows}))
 

@@ -191,3 +191,18 @@ def test_plane_wave_tilts_bad_inputs():
         plane_wave_tilts(7, 90)
     with pytest.raises(ParameterError, match="max_deg"):
         plane_wave_tilts(7, -1)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5, 8, 64, 256])
+def test_aperture_resampling_equals_scipy_interp1d(n):
+    """The transmit aperture's resampling (four points an element, for the earliest transmit
+    arrival of the DAS) equals SciPy's cubic ``interp1d`` (not-a-knot; linear up to 3 points)."""
+    import scipy.interpolate
+
+    from arraysel.physics.beamform import resample_uniform
+
+    rng = np.random.default_rng(n)
+    y = rng.normal(size=n) * 1e-3 + np.linspace(-1e-2, 2e-2, n) ** 2
+    t = np.linspace(0, n - 1, 4 * n)
+    ref = scipy.interpolate.interp1d(np.arange(n, dtype=float), y, kind="cubic" if n > 3 else "linear")(t)
+    assert np.abs(resample_uniform(y, t) - ref).max() <= 1e-13 * np.abs(ref).max()

@@ -58,6 +58,45 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
             assert float(si_mse(k[i], ke[i])) <= fast.kernel_tol ** 2
 
 
+def test_missed_spectral_bound_lies_between_the_exact_norm_and_frobenius():
+    """The pixel-tile bound of what a sketch missed: never below the exact spectral norm of
+    ``(I - Q Q^T) H`` (from an SVD) nor above its Frobenius norm, tighter as tiles merge,
+    equal to the exact norm (to the rounding slack) with one tile covering the image (padded
+    past its edge), and well below the Frobenius norm when the missed part spreads over many
+    directions (noise)."""
+    from arraysel.physics.psf.build import _missed_spectral, _tile_grams
+
+    gen = torch.Generator().manual_seed(3)
+    P, shape = 400, (8, 12)
+    N = 2 * shape[0] * shape[1]
+
+    def randn(*size):
+        return torch.randn(*size, generator=gen, dtype=torch.float64)
+
+    # the tiles' Gram matrices are those of the tiles' real and imaginary columns
+    H = randn(5, N)
+    g = _tile_grams(H, shape, 4)
+    assert g.shape == (6, 32, 32)
+    re = H[:, :N // 2].reshape(5, 8, 12)[:, 4:8, 8:12].reshape(5, 16)
+    im = H[:, N // 2:].reshape(5, 8, 12)[:, 4:8, 8:12].reshape(5, 16)
+    Hg = torch.cat([re, im], dim=1)
+    torch.testing.assert_close(g[5], Hg.T @ Hg)
+    for noise, sketch in ((1e-2, 14), (1e-3, 24)):
+        H = randn(P, 12) @ randn(12, N) * 10 + noise * randn(P, N)
+        Q = torch.linalg.qr(H @ randn(N, sketch))[0]
+        B = Q.T @ H
+        R = H - Q @ B
+        exact = float(torch.linalg.matrix_norm(R, ord=2))
+        frob = float(R.norm())
+        bounds = [_missed_spectral(_tile_grams(H, shape, t), _tile_grams(B, shape, t), P, sketch)
+                  for t in (1, 2, 4, 12)]  # nested tilings; 12: one tile, padded
+        for b in bounds:
+            assert exact <= b <= frob * (1 + 1e-3)  # the rounding slack may exceed it a little
+        assert all(b1 <= b0 * (1 + 1e-6) for b0, b1 in zip(bounds, bounds[1:]))
+        assert bounds[-1] <= exact * (1 + 1e-2)  # one tile: the exact norm and its rounding slack
+    assert bounds[-1] < 0.6 * frob  # the noise-like residual of the second case
+
+
 def test_without_strips_fast_equals_exact(no_cache, monkeypatch):
     """Above the strip budget the strips are not built: loose blocks are beamformed exactly
     from the windowed channels, and the kernels still equal the exact path's."""
@@ -222,6 +261,34 @@ def test_compiled_das_equals_das_apply():
     want_w = sum(das_apply(x[n] * we[:, None], torch.from_numpy(plans[n][0]), torch.from_numpy(plans[n][1]),
                            torch.view_as_complex(torch.from_numpy(plans[n][2]))) for n in range(ntx))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want_w, rtol=1e-12, atol=1e-12)
+
+
+def test_block_sums_in_chunks_with_kept_transmit_distances_equal_the_exact_image(no_cache, monkeypatch):
+    """The refinement's block delay-and-sums equal the exact image on those blocks whether the
+    blocks are planned and summed a few at a time (``das_blocks``), their plans made afresh
+    from the kept transmit distances (plans evicted) or read from the plan cache, for raw
+    channels, complex channels without gradient and complex channels with one."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    monkeypatch.setattr(type(fast), "das_blocks", 2)
+    b = model.block
+    w = _weights(8, 1, seed=5)
+    ref = model.image(w)[0]
+    blocks = [(0, 0), (5, 1), (2, 4), (1, 5), (3, 3)]
+    want = torch.cat([ref[qz * b:(qz + 1) * b, qx * b:(qx + 1) * b].reshape(-1) for qz, qx in blocks])
+    X = fast.channels(w)[0]
+    raw = next(iter(fast._grouped_channels(w, [0], raw=True)))[1]
+    first = None
+    for attempt in range(3):
+        if attempt == 1:
+            fast._block_plans.clear()  # evicted: made again from the kept transmit distances
+            assert set(blocks) <= set(fast._dtx_holder["blocks"])
+        for chan in (raw, X, X.clone().requires_grad_(True)):
+            got = fast._das(chan, blocks).detach()
+            first = got if first is None else first
+            torch.testing.assert_close(got, first, rtol=1e-12, atol=1e-12 * float(ref.abs().max()))
+    # the windowed pair I/Q signals are stored in single precision
+    torch.testing.assert_close(first, want, rtol=0, atol=1e-6 * float(ref.abs().max()))
 
 
 def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, monkeypatch):

@@ -69,6 +69,45 @@ def iq_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None, t0: float
     return torch.as_tensor(Q, dtype=dtype, device=device)
 
 
+def resample_uniform(y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Values at positions ``t`` (in ``[0, n - 1]``) of the interpolant of ``y`` (n,) given at
+    0, 1, ..., n - 1: the cubic spline with not-a-knot end conditions for n > 3 (as MATLAB's
+    and SciPy's cubic ``interp1``), linear for n <= 3.
+
+    Written out (NumPy only) because SciPy's interpolation module alone costs about 0.9 s of a
+    cold start; ``tests/test_delays.py`` checks it against SciPy's ``interp1d``."""
+    y = np.asarray(y, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    n = y.size
+    i = np.clip(np.floor(t).astype(np.int64), 0, n - 2)
+    b = t - i
+    a = 1.0 - b
+    if n <= 3:
+        return a * y[i] + b * y[i + 1]
+    rhs = np.zeros(n)
+    j = np.arange(1, n - 1)
+    rhs[j] = 6.0 * (y[j + 1] - 2.0 * y[j] + y[j - 1])
+    M = _spline_system(n) @ rhs
+    return a * y[i] + b * y[i + 1] + ((a ** 3 - a) * M[i] + (b ** 3 - b) * M[i + 1]) / 6.0
+
+
+@lru_cache(maxsize=8)
+def _spline_system(n: int) -> np.ndarray:
+    """Inverse of the (n, n) system of a not-a-knot cubic spline's second derivatives M at unit
+    spacing: ``M[j-1] + 4 M[j] + M[j+1] = 6 (y[j+1] - 2 y[j] + y[j-1])`` inside, and a
+    continuous third derivative at the first and last interior knots (``M[0] - 2 M[1] + M[2] =
+    0``, likewise at the end). It depends on n only, and the DAS plans resample the same
+    aperture for every block."""
+    A = np.zeros((n, n))
+    j = np.arange(1, n - 1)
+    A[j, j - 1], A[j, j], A[j, j + 1] = 1.0, 4.0, 1.0
+    A[0, :3] = (1.0, -2.0, 1.0)
+    A[n - 1, n - 3:] = (1.0, -2.0, 1.0)
+    inv = np.linalg.inv(A)
+    inv.setflags(write=False)
+    return inv
+
+
 def transmit_distance(x: torch.Tensor, z: torch.Tensor, delays, probe, c: float) -> torch.Tensor:
     """Earliest transmit arrival, as a distance (m), at the points (x, z): shape of x.
 
@@ -83,14 +122,10 @@ def transmit_distance(x: torch.Tensor, z: torch.Tensor, delays, probe, c: float)
     if n_tx == 0:
         raise ParameterError("delays: at least one element must transmit (finite delay)")
     if n_tx > 1:
-        import scipy.interpolate  # imported on first use: it costs a noticeable part of a cold start
-
-        idx = np.arange(n_tx, dtype=np.float64)
         fine = np.linspace(0, n_tx - 1, 4 * n_tx)
-        kind = "cubic" if n_tx > 3 else "linear"
-        xs = scipy.interpolate.interp1d(idx, xe[active], kind=kind)(fine)
-        zs = np.zeros_like(xs) if probe.is_linear else scipy.interpolate.interp1d(idx, ze[active], kind=kind)(fine)
-        ds = scipy.interpolate.interp1d(idx, delays[active], kind=kind)(fine)
+        xs = resample_uniform(xe[active], fine)
+        zs = np.zeros_like(xs) if probe.is_linear else resample_uniform(ze[active], fine)
+        ds = resample_uniform(delays[active], fine)
     else:
         xs, zs, ds = xe[active], ze[active], delays[active]
     xs = torch.as_tensor(xs, dtype=x.dtype, device=x.device)
@@ -122,14 +157,15 @@ class DASPlan:
 
 
 def das_positions(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
-                  fnumber: float = 0.0, t0: float = 0.0):
+                  fnumber: float = 0.0, t0: float = 0.0, dtx: torch.Tensor | None = None):
     """Sample positions of a DAS plan: ``(tau, pos, valid)``, each (Npix, Ne): the two-way delay
     (s), its position in samples, and whether the sample lies in the record and the element in
-    the f-number aperture (what :func:`das_plan` builds its plan from)."""
+    the f-number aperture (what :func:`das_plan` builds its plan from). ``dtx``: the pixels'
+    :func:`transmit_distance` when the caller has it already."""
     check_number("fnumber", fnumber, lo=0.0)
     x = x.reshape(-1)
     z = z.reshape(-1)
-    dtx = transmit_distance(x, z, delays, probe, c)
+    dtx = transmit_distance(x, z, delays, probe, c) if dtx is None else dtx.reshape(-1).to(x.dtype)
     xe, ze, the, _ = probe.element_positions()
     xe = torch.as_tensor(xe, dtype=x.dtype, device=x.device)
     ze = torch.as_tensor(ze, dtype=x.dtype, device=x.device)
@@ -148,9 +184,11 @@ def das_positions(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c:
 
 
 def das_plan(x: torch.Tensor, z: torch.Tensor, delays, probe, fs: float, c: float, n_t: int,
-             fnumber: float = 0.0, t0: float = 0.0, iq: bool = True, fc: float | None = None) -> DASPlan:
-    """Build the DAS interpolation plan for pixels (x, z) (flattened) and one transmit."""
-    tau, pos, valid = das_positions(x, z, delays, probe, fs, c, n_t, fnumber=fnumber, t0=t0)
+             fnumber: float = 0.0, t0: float = 0.0, iq: bool = True, fc: float | None = None,
+             dtx: torch.Tensor | None = None) -> DASPlan:
+    """Build the DAS interpolation plan for pixels (x, z) (flattened) and one transmit
+    (``dtx``: the pixels' transmit distances, if known)."""
+    tau, pos, valid = das_positions(x, z, delays, probe, fs, c, n_t, fnumber=fnumber, t0=t0, dtx=dtx)
     posc = torch.where(valid, pos, torch.zeros_like(pos))
     i0 = torch.floor(posc)
     w = posc - i0

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import torch
 
 from arraysel.errors import check_number
-from arraysel.physics.psf.build import BasisBuild, pixel_norms
+from arraysel.physics.psf.build import BasisBuild, combined_tail, pixel_norms
 from arraysel.physics.psf.certificate import Certificates, sparse_csr
 from arraysel.physics.psf.refinement import Refinement
 
@@ -108,10 +108,11 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     #: loose blocks beside E are beamformed exactly
     strip_max_bytes = 1 << 30
     #: bound of the relative L2 error of a kernel from a sketched basis (probes with more than
-    #: about 68 elements), above which it is recomputed exactly: its bound carries the Frobenius
-    #: norm of what the sketch missed, so it is far looser than the actual error (measured on
-    #: L11-5v: bounds 1e-2 to 3e-2, actual errors about 5e-4 at the run-time rank); 5e-2
-    #: certifies SI-MSE <= 2.5e-3 (the exact Gram build of small probes certifies 5e-3)
+    #: about 68 elements), above which it is recomputed exactly: its bound carries a bound of
+    #: what the sketch missed, so it is looser than the actual error (random masks at the
+    #: run-time rank: L11-5v bounds 4e-3 to 1e-2, a 256-element probe 1e-2 to 3.4e-2; actual
+    #: errors about 5e-4); 5e-2 certifies SI-MSE <= 2.5e-3 (the exact Gram build of small
+    #: probes certifies 5e-3)
     sketch_kernel_tol = 5e-2
 
     def __init__(self, model, rank_tol: float = BUILD_RANK_TOL, _state: dict | None = None):
@@ -137,6 +138,11 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         self._strip_layout()
         self._block_plans: dict = {}
         self._e_plan_holder: dict = {}  # E's DAS plan (Refinement._e_plans), shared with truncated views
+        self._dtx_holder: dict = {}  # blocks' transmit distances (Refinement._block_transmit_distances), shared
+        #: kernels that reached each costly step since the basis was made (shared with truncated
+        #: views): ``"finer"`` (the stored rank's tighter bound), ``"exact_windows"`` (their
+        #: window delay-and-summed exactly)
+        self.settled = {"finer": 0, "exact_windows": 0}
         self._row_energy = None
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path
@@ -311,7 +317,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         sig = self.row_energy[r:]
         err = self.error._replace(
             pixel_residual=math.sqrt(self.error.pixel_residual ** 2 + float(pix.max())) * (1 + 1e-6),
-            spectral_tail=max(float(sig[0].sqrt()) * (1 + 1e-6), self.error.spectral_tail - self.missed) + self.missed)
+            spectral_tail=max(combined_tail(float(sig[0].sqrt()), self.missed), self.error.spectral_tail))
         total = float(self.row_energy.sum()) / max(1e-300, 1 - self.rank_tail)
         out.row_energy = self.row_energy[:r]
         out.U, out.V, out.rank, out.error = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
@@ -343,9 +349,11 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         ok = torch.nonzero(tail <= rank_tol * total).flatten()
         rank = int(ok[0]) + 1 if ok.numel() else self.rank
         if self.missed > 0:
-            # a sketched basis: once the next singular value is below a quarter of the sketch's
-            # own term (:attr:`missed`) more rank costs time without tightening any bound
-            small = torch.nonzero(sig2.sqrt() <= self.missed / 4).flatten()
+            # a sketched basis: once the next singular value is below the sketch's own term
+            # (:attr:`missed`) the window bound is within sqrt(2) of its floor
+            # (:func:`~arraysel.physics.psf.build.combined_tail`) and more rank costs time
+            # for little tightening
+            small = torch.nonzero(sig2.sqrt() <= self.missed).flatten()
             if small.numel():
                 rank = min(rank, max(1, int(small[0])))
         return rank

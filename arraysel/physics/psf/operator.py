@@ -170,7 +170,8 @@ class PSFModel:
         pair images (``ntx Ne^2`` complex multiply-adds per pixel of E, once or twice: see
         :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), at the rate
         measured on two cores (2026-11-24: 30 s for the P4-2v scene, 55 s for L11-5v and
-        C5-2v, 460 s for a 256-element probe), scaled by the torch threads."""
+        C5-2v, 460 s for a 256-element probe), and of a sketched build's tile Gram matrices
+        (:attr:`PairBasis.missed_tile`), scaled by the torch threads."""
         return self._basis_estimate()[1]
 
     def _basis_estimate(self) -> tuple[int, float, int]:
@@ -192,7 +193,10 @@ class PSFModel:
             rank = pairs
         else:
             blk = PairBasis.block_rows(ne, npix)
-            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8
+            tile = PairBasis.missed_tile
+            groups = -(-rows // tile) * -(-cols // tile)
+            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8 + \
+                groups * (2 * tile * tile) ** 2 * 8
             if PairBasis.keeps_images(pairs, npix, self.dtype):  # kept between the passes
                 work += pairs * 2 * npix * size
             else:
@@ -204,6 +208,9 @@ class PSFModel:
         stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
         macs = ntx * ne * ne * (npix * passes + (npix2 if strips else 0))
         seconds = 2.2e-8 * macs * 2 / max(1, torch.get_num_threads())
+        if pairs > sketch:
+            # the pixel tiles' Gram matrices of the bound of what the sketch missed (float64)
+            seconds += 1e-10 * pairs * groups * (2 * tile * tile) ** 2 / max(1, torch.get_num_threads())
         return int(X + work + stored + (strips // size) * 8), seconds, int(stored)
 
     def window_estimate(self) -> int:

@@ -74,7 +74,8 @@ class Refinement:
                 zs.append(Z.reshape(-1))
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
-            per_tx = list(zip(*self._window_plans(torch.cat(xs), torch.cat(zs))))
+            X, Z = torch.cat(xs), torch.cat(zs)
+            per_tx = list(zip(*self._window_plans(X, Z, self._block_transmit_distances(missing, X, Z, sizes))))
             stacked = (torch.stack(per_tx[0]).to(model.device), torch.stack(per_tx[1]).to(model.device, model.dtype),
                        torch.stack(per_tx[2]).to(model.device, model.cdtype))
             parts = [a.split(sizes, dim=1) for a in stacked]
@@ -84,25 +85,63 @@ class Refinement:
                     self._block_plans[q] = made[q]
         return [self._block_plans.get(q) or made[q] for q in blocks]
 
+    #: grid blocks planned and delay-and-summed at once by :meth:`_das`
+    das_blocks = 32
+
+    def _block_transmit_distances(self, blocks: list, X: torch.Tensor, Z: torch.Tensor, sizes: list) -> torch.Tensor:
+        """(ntx, Npix) transmit distances of the pixels (X, Z) of ``blocks`` (``sizes`` pixels
+        each), kept per block for good (7 transmits x 64 pixels a block: 8 MB for a 400 x 400
+        grid): an evicted block plan is made again without them, which are most of its cost
+        for a large aperture (each pixel's minimum over 4 points an element)."""
+        from arraysel.physics.beamform import transmit_distance
+
+        model = self.model
+        s = model.setup
+        known = self._dtx_holder.setdefault("blocks", {})
+        parts = list(zip(blocks, X.split(sizes), Z.split(sizes)))
+        todo = [(q, x, z) for q, x, z in parts if q not in known]
+        if todo:
+            x = torch.cat([x for _, x, _ in todo])
+            z = torch.cat([z for _, _, z in todo])
+            d = torch.stack([transmit_distance(x, z, t.delays, s.probe, s.acq.c) for t in model.transmits])
+            for (q, _, _), part in zip(todo, d.split([x.numel() for _, x, _ in todo], dim=1)):
+                known[q] = part.clone()
+        return torch.cat([known[q] for q in blocks], dim=1)
+
     def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
         """Exact image values of one selection (I/Q channels X: (ntx, Ne, T) complex, or its
         :class:`RawChannels`) on the pixels of ``blocks`` ((qz, qx) pairs), or on the given pixel
-        rows of each block's plan."""
-        plans = self._plans_for_blocks([(int(qz), int(qx)) for qz, qx in blocks])
+        rows of each block's plan. Blocks are planned and summed :attr:`das_blocks` at a time,
+        so a window's 256 blocks do not hold all their plans at once (2.3 MB a block for a
+        256-element probe)."""
+        blocks = [(int(qz), int(qx)) for qz, qx in blocks]
+        if len(blocks) > self.das_blocks:
+            step = self.das_blocks
+            return torch.cat([self._das(X, blocks[i:i + step], None if rows is None else rows[i:i + step])
+                              for i in range(0, len(blocks), step)])
+        plans = self._plans_for_blocks(blocks)
         if rows is not None:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
-        i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
-                       for j in range(3))
-        if not isinstance(X, RawChannels):
-            if X.requires_grad or X.device.type != "cpu":
-                img = 0
-                for n in range(len(self.model.transmits)):
-                    img = img + das_apply(X[n], i0[n], wt[n], rot[n])
-                return img
+        if not isinstance(X, RawChannels) and not X.requires_grad and X.device.type == "cpu":
             # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
             y = torch.view_as_real(X).permute(3, 0, 1, 2).contiguous().numpy()
             X = RawChannels(y, np.ones(y.shape[2], dtype=y.dtype), 1)
-        # the compiled sum over every transmit at once, which skips the entries outside the aperture
+        if isinstance(X, RawChannels):
+            # the compiled sum, a block at a time (concatenating the blocks' plans copied more
+            # than the sums read: 2.3 MB a block for a 256-element probe)
+            return torch.cat([self._das_compiled(X, pl) for pl in plans])
+        i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
+                       for j in range(3))
+        img = 0
+        for n in range(len(self.model.transmits)):
+            img = img + das_apply(X[n], i0[n], wt[n], rot[n])
+        return img
+
+    def _das_compiled(self, X: RawChannels, plan: tuple) -> torch.Tensor:
+        """Exact image values of one selection (its raw channels) on the pixels of one block plan
+        (stacked over the transmits) by the compiled sum over every transmit, which skips the
+        entries outside the aperture."""
+        i0, wt, rot = plan
         from arraysel.physics.pairkernels import das_stacked_raw
 
         out = das_stacked_raw(X.y, X.we, i0.contiguous().numpy(), wt.contiguous().numpy(),
@@ -354,6 +393,7 @@ class Refinement:
                 img_f, _, werr_f = self.finer.images(w[todo], with_error=True)
                 k_f, norm_f = cut_windows(img_f, win_z[todo] - self.rows.start, win_x[todo] - self.cols.start, n)
                 sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
+                self.settled["finer"] += todo.numel()
                 if sel.numel():
                     out = out.index_put((todo[sel],), k_f[sel].to(out.dtype))
                     ok = ok.clone()
@@ -363,6 +403,7 @@ class Refinement:
             # a tighter error bound (the full stored rank) settles most of the rest
             k3, ok3 = self.finer.kernels(w[todo])
             sel = torch.nonzero(ok3.to(todo.device)).flatten()
+            self.settled["finer"] += todo.numel()
             if sel.numel():
                 out = out.index_put((todo[sel],), k3[sel])
                 ok = ok.clone()
@@ -372,6 +413,7 @@ class Refinement:
             # the peak and its window are certified and only the image's error bound is too
             # loose: the window itself is delay-and-summed exactly from the selection's channels
             out = out.index_put((todo,), self._exact_windows(w[todo], win_z[todo], win_x[todo]).to(out.dtype))
+            self.settled["exact_windows"] += todo.numel()
             ok = ok.clone()
             ok[todo] = True
         return out, ok.cpu()
@@ -382,10 +424,19 @@ class Refinement:
     #: block delay-and-sums without gradient read :class:`RawChannels` (False: the complex channels
     #: of :meth:`channels`, the same values; ``benchmarks/bench_certificate.py`` compares the two)
     raw_channels = True
-    #: selections whose channels are formed at once (:meth:`_grouped_channels`, for
-    #: :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): (16, ntx, Ne, T) complex is
-    #: 60 MB for a 256-element probe
-    channel_group = 16
+    #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`,
+    #: for :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of
+    #: ``pair_channels`` (954 MB for a 256-element probe), so larger groups cost less per
+    #: selection (256 elements: 16 selections a group 23.0 / 24.2 ms a mask, 48 a group 20.8 /
+    #: 19.5, alternated in one process)
+    channel_group_bytes = 192 << 20
+
+    @property
+    def channel_group(self) -> int:
+        """Selections whose channels are formed at once (from :attr:`channel_group_bytes`)."""
+        per = 2 * len(self.model.transmits) * self.model.n_elements * self.window_samples * \
+            (torch.finfo(self.model.dtype).bits // 8)
+        return max(1, self.channel_group_bytes // per)
 
     def _e_plans(self) -> list:
         """DAS plan of the pixels of E (row-major), per transmit ``(i0, wt, rot)`` numpy arrays
