@@ -421,3 +421,24 @@ def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dt
             assert torch.allclose(a, b, rtol=tol, atol=tol * float(b.abs().max()))
     # with a gradient the channels stay complex tensors
     assert not any(isinstance(x, RawChannels) for _, x in basis._grouped_channels(w.requires_grad_(), [0], raw=True))
+
+
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30])
+def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch, step_bytes):
+    """The certificate's segment envelopes equal the maxima of ``|X_ne(t)|`` over every run of
+    1 .. max_run segments (clipped at the window's end), computed from the selection's channels,
+    whether the channel products are formed 8 channels a step or all at once (one mask)."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    monkeypatch.setattr(type(fast), "env_step_bytes", step_bytes)
+    ntx, ne, sg = len(model.transmits), model.n_elements, fast.segment
+    nS, M = fast.window_samples // sg, fast.max_run
+    for B in (1, 4):
+        w = _weights(ne, B, seed=B)
+        w[0, 2] = 0
+        env = fast.envelopes(w).view(ntx, ne, M, nS, B)
+        seg = fast.channels(w).abs().view(B, ntx, ne, nS, sg).amax(-1)  # (B, ntx, ne, nS)
+        for m in range(M):
+            for a in range(nS):
+                want = seg[:, :, :, a:min(nS, a + m + 1)].amax(-1).permute(1, 2, 0)
+                torch.testing.assert_close(env[:, :, m, a], want, rtol=1e-12, atol=1e-15)

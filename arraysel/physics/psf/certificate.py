@@ -97,8 +97,12 @@ class Certificates:
         vals = torch.full((rows_i.numel(),), 1.0 + 1e-4, dtype=model.dtype)  # rounding safety margin
         return sparse_csr(crow, cols_i, vals, (nq, width)).to(model.device)
 
-    #: (transmit, element) channels per step of :meth:`envelopes` (keeps the products in cache)
+    #: fewest (transmit, element) channels per step of :meth:`envelopes`
     env_group = 8
+    #: bytes of one step's channel products in :meth:`envelopes` (kept in cache): 8 channels a
+    #: step for a batch of 128 masks, every channel at once for one mask (a gradient step),
+    #: where a step's fixed cost would otherwise dominate
+    env_step_bytes = 1 << 20
 
     def envelopes(self, w: torch.Tensor) -> torch.Tensor:
         """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w.
@@ -118,8 +122,9 @@ class Certificates:
         a_re, a_im = self.pair_channels[:, :half].T, self.pair_channels[:, half:].T
         wt = w.T.contiguous()
         seg = w.new_empty(nch, nS, B)
-        for g0 in range(0, nch, self.env_group):
-            g1 = min(nch, g0 + self.env_group)
+        group = max(self.env_group, self.env_step_bytes // (2 * T * B * w.element_size()))
+        for g0 in range(0, nch, group):
+            g1 = min(nch, g0 + group)
             yr = a_re[g0 * T: g1 * T] @ wt
             yi = a_im[g0 * T: g1 * T] @ wt
             sq = torch.addcmul(yi.square_(), yr, yr)
