@@ -282,7 +282,7 @@ def test_block_sums_in_chunks_with_kept_transmit_distances_equal_the_exact_image
     for attempt in range(3):
         if attempt == 1:
             fast._block_plans.clear()  # evicted: made again from the kept transmit distances
-            assert set(blocks) <= set(fast._dtx_holder["blocks"])
+            assert set(blocks) <= set(fast._block_dtx)
         for chan in (raw, X, X.clone().requires_grad_(True)):
             got = fast._das(chan, blocks).detach()
             first = got if first is None else first

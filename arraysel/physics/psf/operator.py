@@ -188,6 +188,7 @@ class PSFModel:
         A = 2 * ntx * ne * T * ne * size
         sketch = PairBasis.sketch_columns
         passes = 1  # delay-and-sums of the pair images on E
+        gram_macs = 0  # a sketched build's tile Gram matrices (float64)
         if pairs <= sketch:
             work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
             rank = pairs
@@ -197,6 +198,7 @@ class PSFModel:
             groups = -(-rows // tile) * -(-cols // tile)
             work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8 + \
                 groups * (2 * tile * tile) ** 2 * 8
+            gram_macs = pairs * groups * (2 * tile * tile) ** 2
             if PairBasis.keeps_images(pairs, npix, self.dtype):  # kept between the passes
                 work += pairs * 2 * npix * size
             else:
@@ -207,10 +209,7 @@ class PSFModel:
             strips = 0
         stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
         macs = ntx * ne * ne * (npix * passes + (npix2 if strips else 0))
-        seconds = 2.2e-8 * macs * 2 / max(1, torch.get_num_threads())
-        if pairs > sketch:
-            # the pixel tiles' Gram matrices of the bound of what the sketch missed (float64)
-            seconds += 1e-10 * pairs * groups * (2 * tile * tile) ** 2 / max(1, torch.get_num_threads())
+        seconds = (2.2e-8 * macs * 2 + 1e-10 * gram_macs) / max(1, torch.get_num_threads())
         return int(X + work + stored + (strips // size) * 8), seconds, int(stored)
 
     def window_estimate(self) -> int:

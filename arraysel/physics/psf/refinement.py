@@ -74,8 +74,8 @@ class Refinement:
                 zs.append(Z.reshape(-1))
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
-            X, Z = torch.cat(xs), torch.cat(zs)
-            per_tx = list(zip(*self._window_plans(X, Z, self._block_transmit_distances(missing, X, Z, sizes))))
+            dtx = self._block_transmit_distances(missing, xs, zs)
+            per_tx = list(zip(*self._window_plans(torch.cat(xs), torch.cat(zs), dtx)))
             stacked = (torch.stack(per_tx[0]).to(model.device), torch.stack(per_tx[1]).to(model.device, model.dtype),
                        torch.stack(per_tx[2]).to(model.device, model.cdtype))
             parts = [a.split(sizes, dim=1) for a in stacked]
@@ -88,24 +88,23 @@ class Refinement:
     #: grid blocks planned and delay-and-summed at once by :meth:`_das`
     das_blocks = 32
 
-    def _block_transmit_distances(self, blocks: list, X: torch.Tensor, Z: torch.Tensor, sizes: list) -> torch.Tensor:
-        """(ntx, Npix) transmit distances of the pixels (X, Z) of ``blocks`` (``sizes`` pixels
-        each), kept per block for good (7 transmits x 64 pixels a block: 8 MB for a 400 x 400
-        grid): an evicted block plan is made again without them, which are most of its cost
-        for a large aperture (each pixel's minimum over 4 points an element)."""
+    def _block_transmit_distances(self, blocks: list, xs: list, zs: list) -> torch.Tensor:
+        """(ntx, Npix) transmit distances of the pixels (``xs``, ``zs``: one tensor per block) of
+        ``blocks``, kept per block for good (7 transmits x 64 pixels a block: 8 MB for a 400 x
+        400 grid): an evicted block plan is made again without them, which are most of its
+        cost for a large aperture (each pixel's minimum over 4 points an element)."""
         from arraysel.physics.beamform import transmit_distance
 
         model = self.model
         s = model.setup
-        known = self._dtx_holder.setdefault("blocks", {})
-        parts = list(zip(blocks, X.split(sizes), Z.split(sizes)))
-        todo = [(q, x, z) for q, x, z in parts if q not in known]
+        known = self._block_dtx
+        todo = [i for i, q in enumerate(blocks) if q not in known]
         if todo:
-            x = torch.cat([x for _, x, _ in todo])
-            z = torch.cat([z for _, _, z in todo])
+            x = torch.cat([xs[i] for i in todo])
+            z = torch.cat([zs[i] for i in todo])
             d = torch.stack([transmit_distance(x, z, t.delays, s.probe, s.acq.c) for t in model.transmits])
-            for (q, _, _), part in zip(todo, d.split([x.numel() for _, x, _ in todo], dim=1)):
-                known[q] = part.clone()
+            for i, part in zip(todo, d.split([xs[i].numel() for i in todo], dim=1)):
+                known[blocks[i]] = part.clone()
         return torch.cat([known[q] for q in blocks], dim=1)
 
     def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
@@ -114,6 +113,10 @@ class Refinement:
         rows of each block's plan. Blocks are planned and summed :attr:`das_blocks` at a time,
         so a window's 256 blocks do not hold all their plans at once (2.3 MB a block for a
         256-element probe)."""
+        if not isinstance(X, RawChannels) and not X.requires_grad and X.device.type == "cpu":
+            # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
+            y = torch.view_as_real(X).permute(3, 0, 1, 2).contiguous().numpy()
+            X = RawChannels(y, np.ones(y.shape[2], dtype=y.dtype), 1)
         blocks = [(int(qz), int(qx)) for qz, qx in blocks]
         if len(blocks) > self.das_blocks:
             step = self.das_blocks
@@ -122,10 +125,6 @@ class Refinement:
         plans = self._plans_for_blocks(blocks)
         if rows is not None:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
-        if not isinstance(X, RawChannels) and not X.requires_grad and X.device.type == "cpu":
-            # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
-            y = torch.view_as_real(X).permute(3, 0, 1, 2).contiguous().numpy()
-            X = RawChannels(y, np.ones(y.shape[2], dtype=y.dtype), 1)
         if isinstance(X, RawChannels):
             # the compiled sum, a block at a time (concatenating the blocks' plans copied more
             # than the sums read: 2.3 MB a block for a 256-element probe)
