@@ -361,23 +361,83 @@ def test_band_images_only_for_peaks_tier_one_cannot_certify(no_cache, monkeypatc
         assert float(si_mse(k[i], ke[i])) < 1e-6
 
 
-def test_pair_images_by_pixel_tiles_equal_row_blocks(no_cache, monkeypatch):
-    """The build's two ways of delay-and-summing the pair images give the same images: every
-    pair row for a tile of pixels at a time (several tiles here), and row blocks over all pixels."""
+def test_pair_image_kernel_equals_the_definition():
+    """The compiled pair-image kernel against a direct evaluation of its definition on random
+    signals and plans: ``D_ej(p) = sum_n rot (x[i] + (x[i+1] - x[i]) w)`` with ``x`` the I/Q of
+    (rx e, tx j), ``H_ej = D_ej + D_je`` for ``e < j`` and ``H_ee = D_ee``; entries with a zero
+    rotation (outside the aperture) are skipped, whatever their sample index."""
+    from arraysel.physics.pairkernels import pair_images
+
+    rng = np.random.default_rng(5)
+    ntx, ne, T, npix = 3, 19, 12, 37  # 19 elements: two symmetrisation blocks; 37 pixels: three groups
+    X = rng.standard_normal((ntx, ne, T, 2, ne)).astype(np.float32)
+    i0 = rng.integers(0, T - 1, (ntx, ne, npix)).astype(np.int32)
+    wt = rng.random((ntx, ne, npix)).astype(np.float32)
+    ang = rng.random((ntx, ne, npix)) * 2 * np.pi
+    rr, ri = np.cos(ang).astype(np.float32), np.sin(ang).astype(np.float32)
+    off = rng.random((ntx, ne, npix)) < 0.2
+    rr[off], ri[off] = 0, 0
+    i0[off] = T + 5  # never read
+    got = pair_images(X, (i0, wt, rr, ri))
+    x = X[:, :, :, 0, :].astype(np.float64) + 1j * X[:, :, :, 1, :]
+    D = np.zeros((npix, ne, ne), dtype=complex)
+    for n in range(ntx):
+        for e in range(ne):
+            for p in range(npix):
+                if not off[n, e, p]:
+                    i, w = i0[n, e, p], float(wt[n, e, p])
+                    D[p, e] += complex(rr[n, e, p], ri[n, e, p]) * (x[n, e, i] + (x[n, e, i + 1] - x[n, e, i]) * w)
+    e, j = np.triu_indices(ne)
+    H = D[:, e, j] + np.where(e < j, D[:, j, e], 0)
+    assert got.shape == (2, npix, ne * (ne + 1) // 2)
+    np.testing.assert_allclose(got[0] + 1j * got[1], H, rtol=0, atol=1e-12 * np.abs(H).max())
+
+
+def test_sparse_sketch_and_row_gram_equal_their_definitions():
+    """The sparse sign sketch's compiled accumulation against ``np.add.at`` (repeated hits add
+    up), in float32 and float64, over more columns than one parallel chunk; and the build's
+    symmetric Gram matrices ``A A^T`` against a product, for both memory orders of ``A``."""
+    from arraysel.physics.pairkernels import sparse_sketch_add
+    from arraysel.physics.psf.build import _row_gram
+
+    rng = np.random.default_rng(2)
+    Ht = rng.standard_normal((40, 2500))
+    hit = rng.integers(0, 30, (40, 8))
+    hit[0, :2] = 5  # a repeated hit
+    sign = np.where(rng.random((40, 8)) < 0.5, -1.0, 1.0) / np.sqrt(8)
+    ref = np.zeros((30, 2500))
+    for k in range(8):
+        np.add.at(ref, hit[:, k], Ht * sign[:, k, None])
+    for dtype, tol in ((np.float64, 1e-12), (np.float32, 1e-5)):
+        Y = np.ones((30, 2500), dtype=dtype)
+        sparse_sketch_add(Y, Ht, hit, sign)
+        np.testing.assert_allclose(Y, ref + 1, rtol=0, atol=tol * np.abs(ref).max())
+    A = torch.from_numpy(rng.standard_normal((7, 300)))
+    torch.testing.assert_close(_row_gram(A), A @ A.T, rtol=1e-12, atol=1e-12)
+    At = A.T.contiguous().T  # column-major
+    torch.testing.assert_close(_row_gram(At), A @ A.T, rtol=1e-12, atol=1e-12)
+    assert torch.equal(_row_gram(A), _row_gram(A).T)
+
+
+def test_dense_pair_images_equal_the_tiles_in_both_layouts(no_cache, monkeypatch):
+    """The pair images on E filled a few pixels per kernel call equal one call over every
+    pixel, in both layouts ((P, 2 Npix) and its transpose) and in float32."""
+    from arraysel.physics.pairkernels import pair_images
+
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
     X = fast._windowed_pair_iq()
     plan = fast._local_plan(fast.rows, torch.arange(fast.cols.start, fast.cols.stop))
-    monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * 50)  # 50 pixels a tile
-    monkeypatch.setattr(type(fast), "build_rows", 7)  # row blocks of one or two elements
+    ref = torch.from_numpy(pair_images(X, plan))  # (2, Npix, P)
+    ref = torch.cat([ref[0].T, ref[1].T], dim=1)
+    monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * 50)  # 50 pixels a call
     tiled = fast._dense_pair_images(X, plan)
-    rows = torch.cat([H for _, H in fast._pair_image_blocks(X, plan)])
-    assert tiled.shape == rows.shape == (36, 2 * fast.npix)
-    assert fast.npix > 100
-    torch.testing.assert_close(tiled, rows, rtol=1e-12, atol=1e-12 * float(rows.abs().max()))
-    assert float(tiled.abs().max()) > 0
+    assert tiled.shape == ref.shape == (36, 2 * fast.npix) and fast.npix > 100
+    assert float(ref.abs().max()) > 0
+    torch.testing.assert_close(tiled, ref, rtol=0, atol=0)
+    torch.testing.assert_close(fast._dense_pair_images(X, plan, transposed=True), ref.T.contiguous(), rtol=0, atol=0)
     single = fast._dense_pair_images(X, plan, torch.float32)
-    torch.testing.assert_close(single.double(), rows, rtol=1e-6, atol=1e-6 * float(rows.abs().max()))
+    torch.testing.assert_close(single.double(), ref, rtol=1e-6, atol=1e-6 * float(ref.abs().max()))
 
 
 def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):

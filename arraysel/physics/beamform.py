@@ -57,15 +57,16 @@ def _filtfilt_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None) ->
 
 
 def iq_matrix(n_t: int, fs: float, fc: float, bandwidth: float | None, t0: float = 0.0,
-              dtype=torch.complex128, device=None) -> torch.Tensor:
-    """Matrix ``Q`` (n_t, n_t) such that ``IQ = Q @ RF`` along the time axis.
+              dtype=torch.complex128, device=None, rows: slice = slice(None)) -> torch.Tensor:
+    """Matrix ``Q`` (n_t, n_t) such that ``IQ = Q @ RF`` along the time axis (only its ``rows``,
+    the I/Q samples wanted, if given).
 
     bandwidth in percent of fc (None: cut-off at ``min(2 fc / fs, 0.5)``).
     """
     F = _filtfilt_matrix(int(n_t), float(fs), float(fc), None if bandwidth is None else float(bandwidth))
     t = np.arange(n_t) / fs + t0
     mix = np.exp(-2j * np.pi * fc * t)
-    Q = 2 * F * mix[None, :]
+    Q = 2 * F[rows] * mix[None, :]
     return torch.as_tensor(Q, dtype=dtype, device=device)
 
 

@@ -1,14 +1,16 @@
-"""Compiled kernel of the fast path's precomputation: symmetric pair images.
+"""Compiled kernels of the fast path: symmetric pair images (the precomputation) and the
+delay-and-sum of one selection's channels on chosen pixels (the certificates' refinement).
 
 For one scatterer the image of a selection ``m`` is ``I(p) = sum_{e<=j} m_e m_j H_ej(p)``
 with the symmetric pair image ``H_ej = D_ej + D_je`` (``e < j``), ``H_ee = D_ee``, where
 ``D_ej(p) = sum_n rot_nep * lerp(X_nej, t_nep)`` is the delay-and-sum, over the
 transmits ``n``, of the I/Q signal ``X_nej`` received by element ``e`` when element ``j``
-transmits. :func:`pair_images` evaluates ``H`` for the pairs whose first element lies in
-``[e0, e1)``, on any set of pixels, directly from the I/Q signals and the DAS plans: a
-pixel reads two adjacent samples of a row of ``X`` per (transmit, element), so the
-work is ``ntx * Ne^2 * Npix`` complex multiply-adds and no pair image is ever held
-for all pixels at once unless the caller asks for it.
+transmits. :func:`pair_images` evaluates every ``H`` on a set of pixels directly from the I/Q
+signals and the DAS plans: a pixel reads two adjacent samples of a row of ``X`` per
+(transmit, receive element), and each such row holds the samples of every transmitting element,
+so the pixel's ``Ne x Ne`` matrix ``D`` is accumulated a receive row at a time over contiguous
+memory (``ntx * Ne^2`` complex multiply-adds a pixel), for a group of adjacent pixels at once,
+and symmetrised once.
 
 The loops are compiled with numba (parallel over pixels). Everything here works on
 numpy arrays; the callers convert. The compiled code is cached on disk (``cache=True``: next to
@@ -22,83 +24,113 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+#: side of the square blocks of a pixel's matrix ``D`` read together when it is symmetrised
+#: (``D_ej + D_je`` reads ``D`` by columns; blocks keep those reads in the first-level cache)
+_SYM_BLOCK = 16
 
-@numba.njit(inline="always", cache=True)
-def _lerp_rotate_add(out, p, row, a, b, w, cr, ci):
-    """``out[p, row] += (cr + i ci) * (a + (b - a) w)`` on the [re, im] pair of ``out``."""
-    vr = a.real + (b.real - a.real) * w
-    vi = a.imag + (b.imag - a.imag) * w
-    out[p, row, 0] += cr * vr - ci * vi
-    out[p, row, 1] += cr * vi + ci * vr
+#: pixels whose matrices ``D`` are accumulated together, receive row by receive row: adjacent
+#: pixels read nearly the same samples, so each row of ``X`` is read from memory once for them
+#: all (the kernel is bound by those reads: 1.3 to 1.7 times faster than pixel by pixel)
+_PIXEL_GROUP = 16
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _pair_images_kernel(X, i0, wt, rr, ri, e0, e1, out):
-    """Accumulate the symmetric pair images of rows (e in [e0, e1), j >= e) into ``out``.
+def _pair_images_kernel(X, i0, wt, rr, ri, nchunk, group, out):
+    """Symmetric pair images of every pair on the plan's pixels.
 
-    X: (ntx, Ne, T, Ne) complex64, ``X[n, e, t, j]`` the I/Q sample ``t`` of (rx e, tx j);
-    i0: (ntx, Ne, Npix) int32 first sample read by pixel p for rx e (local to ``X``);
-    wt: (ntx, Ne, Npix) float32 linear-interpolation weight of the second sample;
-    rr, ri: (ntx, Ne, Npix) float32 real and imaginary part of the phase rotation
-    (0 where the sample is outside the record or the element outside the aperture);
-    out: (Npix, nrows, 2) float64, rows in upper-triangle order of (e, j).
+    X: (ntx, Ne, T, 2, Ne) float32, ``X[n, e, t, 0 | 1, j]`` the real | imaginary part of I/Q
+    sample ``t`` of (rx e, tx j); i0: (ntx, Ne, Npix) int32 first sample read by pixel p for
+    rx e (local to ``X``); wt: (ntx, Ne, Npix) float32 linear-interpolation weight of the
+    second sample; rr, ri: (ntx, Ne, Npix) float32 real and imaginary part of the phase
+    rotation (0 where the sample is outside the record or the element outside the aperture);
+    nchunk: pixel chunks run in parallel; group: pixels accumulated together
+    (:data:`_PIXEL_GROUP`); out: (2, Npix, P) float64 [re, im], pairs in upper-triangle order
+    of (e, j), e <= j.
     """
     ntx = X.shape[0]
     ne = X.shape[1]
     npix = i0.shape[2]
-    for p in numba.prange(npix):
-        for n in range(ntx):
-            # D_ej, e in the block (receive), every j >= e (transmit)
-            row = 0
-            for e in range(e0, e1):
-                cr = rr[n, e, p]
-                ci = ri[n, e, p]
-                if cr != 0.0 or ci != 0.0:
-                    i = i0[n, e, p]
-                    w = wt[n, e, p]
-                    for j in range(e, ne):
-                        _lerp_rotate_add(out, p, row + j - e, X[n, e, i, j], X[n, e, i + 1, j], w, cr, ci)
-                row += ne - e
-            # D_je, j > e (receive), e in the block (transmit)
-            for j in range(e0 + 1, ne):
-                cr = rr[n, j, p]
-                ci = ri[n, j, p]
-                if cr == 0.0 and ci == 0.0:
-                    continue
-                i = i0[n, j, p]
-                w = wt[n, j, p]
-                row = 0
-                for e in range(e0, min(e1, j)):
-                    _lerp_rotate_add(out, p, row + j - e, X[n, j, i, e], X[n, j, i + 1, e], w, cr, ci)
-                    row += ne - e
+    for c in numba.prange(nchunk):
+        D = np.empty((group, ne, 2, ne))  # the group's D[q, e, re | im, j]
+        pa = c * npix // nchunk
+        pb = (c + 1) * npix // nchunk
+        for g0 in range(pa, pb, group):
+            ng = min(group, pb - g0)
+            for e in range(ne):
+                for q in range(ng):
+                    D[q, e, 0, :] = 0.0
+                    D[q, e, 1, :] = 0.0
+                for n in range(ntx):
+                    for q in range(ng):
+                        p = g0 + q
+                        cr = np.float64(rr[n, e, p])
+                        ci = np.float64(ri[n, e, p])
+                        if cr == 0.0 and ci == 0.0:
+                            continue
+                        w = np.float64(wt[n, e, p])
+                        # lerp then rotate = rot (1 - w) x[i] + rot w x[i + 1]
+                        ar, ai = cr * (1.0 - w), ci * (1.0 - w)
+                        br, bi = cr * w, ci * w
+                        i = i0[n, e, p]
+                        xr, xi = X[n, e, i, 0], X[n, e, i, 1]
+                        yr, yi = X[n, e, i + 1, 0], X[n, e, i + 1, 1]
+                        dr = D[q, e, 0]
+                        di = D[q, e, 1]
+                        for j in range(ne):
+                            dr[j] += ar * xr[j] - ai * xi[j] + br * yr[j] - bi * yi[j]
+                            di[j] += ar * xi[j] + ai * xr[j] + br * yi[j] + bi * yr[j]
+            for q in range(ng):
+                p = g0 + q
+                for eb in range(0, ne, _SYM_BLOCK):
+                    for jb in range(eb, ne, _SYM_BLOCK):
+                        for e in range(eb, min(eb + _SYM_BLOCK, ne)):
+                            row = e * ne - (e * (e - 1)) // 2 - e  # pair (e, j) is row + j
+                            for j in range(max(jb, e + 1), min(jb + _SYM_BLOCK, ne)):
+                                out[0, p, row + j] = D[q, e, 0, j] + D[q, j, 0, e]
+                                out[1, p, row + j] = D[q, e, 1, j] + D[q, j, 1, e]
+                            if jb <= e:
+                                out[0, p, row + e] = D[q, e, 0, e]
+                                out[1, p, row + e] = D[q, e, 1, e]
 
 
-def pair_row_blocks(n_elements: int, max_rows: int) -> list[tuple[int, int, int]]:
-    """Split the upper-triangle pair rows into blocks of whole first elements:
-    ``(e0, e1, rows)`` with at most ``max_rows`` rows each (at least one element)."""
-    blocks = []
-    e0 = 0
-    while e0 < n_elements:
-        e1, rows = e0, 0
-        while e1 < n_elements and (rows + (n_elements - e1) <= max_rows or e1 == e0):
-            rows += n_elements - e1
-            e1 += 1
-        blocks.append((e0, e1, rows))
-        e0 = e1
-    return blocks
-
-
-def pair_images(X: np.ndarray, plan: tuple, e0: int, e1: int) -> np.ndarray:
-    """Symmetric pair images (Npix, nrows, 2) float64 of the rows (e in [e0, e1), j >= e).
-
-    ``plan`` = (i0, wt, rr, ri) as documented in :func:`_pair_images_kernel`.
-    """
+def pair_images(X: np.ndarray, plan: tuple) -> np.ndarray:
+    """Symmetric pair images (2, Npix, P) float64 [re, im] of every pair (upper-triangle order)
+    on the plan's pixels. ``X`` and ``plan`` = (i0, wt, rr, ri) as documented in
+    :func:`_pair_images_kernel`."""
     i0, wt, rr, ri = plan
     ne = X.shape[1]
-    rows = sum(ne - e for e in range(e0, e1))
-    out = np.zeros((i0.shape[2], rows, 2), dtype=np.float64)
-    _pair_images_kernel(X, i0, wt, rr, ri, int(e0), int(e1), out)
+    out = np.empty((2, i0.shape[2], ne * (ne + 1) // 2), dtype=np.float64)
+    npix = i0.shape[2]
+    nchunk = max(1, min(-(-npix // _PIXEL_GROUP), 4 * numba.get_num_threads()))
+    _pair_images_kernel(X, i0, wt, rr, ri, nchunk, _PIXEL_GROUP, out)
     return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _sparse_sketch_kernel(Yt, Ht, hit, sign, width):
+    """``Yt[hit[r, k], q] += sign[r, k] Ht[r, q]`` for every row r and k, parallel over chunks
+    of ``width`` columns q (the inner loop runs over a slice from 0, which the compiler
+    vectorises)."""
+    ncol = Ht.shape[1]
+    nchunk = -(-ncol // width)
+    for c in numba.prange(nchunk):
+        q0 = c * width
+        n = min(ncol, q0 + width) - q0
+        for r in range(Ht.shape[0]):
+            h = Ht[r, q0:q0 + n]
+            for k in range(hit.shape[1]):
+                y = Yt[hit[r, k], q0:q0 + n]
+                s = sign[r, k]
+                for q in range(n):
+                    y[q] += s * h[q]
+
+
+def sparse_sketch_add(Yt: np.ndarray, Ht: np.ndarray, hit: np.ndarray, sign: np.ndarray) -> None:
+    """Add ``S^T Ht`` to ``Yt`` (L, n) in place, for the sparse sketching matrix ``S`` (rows of
+    ``Ht``, L) whose row r holds ``sign[r, k]`` in column ``hit[r, k]`` (duplicates add up).
+    Yt: (L, n) float32 or float64; Ht: (rows, n) float64; hit: (rows, zeta) int64; sign: (rows,
+    zeta) float64."""
+    _sparse_sketch_kernel(Yt, Ht, hit, sign, 1024)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

@@ -37,18 +37,46 @@ def combined_tail(sigma_next: float, missed: float) -> float:
     return math.hypot(sigma_next, missed) * (1 + 1e-6)
 
 
+def _tile_pixels(shape: tuple[int, int], tile: int) -> list[torch.Tensor]:
+    """Pixel indices (row-major in an image of ``shape`` (h, w)) of each ``tile`` x ``tile``
+    tile, tiles in row-major order (those cut by the edge hold fewer pixels)."""
+    h, w = shape
+    idx = torch.arange(h * w).reshape(h, w)
+    return [idx[z:z + tile, x:x + tile].flatten() for z in range(0, h, tile) for x in range(0, w, tile)]
+
+
+def _tile_rows(G: torch.Tensor, npix: int) -> torch.Tensor:
+    """The [re | im] columns of the pixels ``G`` in a (., 2 npix) [re | im] matrix."""
+    return torch.cat([G, npix + G])
+
+
+def _row_gram(A: torch.Tensor) -> torch.Tensor:
+    """``A A^T`` of a float64 (m, n) tensor, by a symmetric rank-k update (half the work of a
+    product: BLAS ``dsyrk``, on ``A`` read in whichever memory order it is stored)."""
+    from scipy.linalg.blas import dsyrk
+
+    if A.T.is_contiguous():  # column-major already (a transposed view): no copy
+        upper = dsyrk(1.0, A.T.numpy().T, trans=0)
+    else:
+        upper = dsyrk(1.0, A.contiguous().numpy().T, trans=1)
+    upper = torch.from_numpy(upper)  # only the upper triangle is formed
+    return upper + upper.triu(1).T
+
+
+def _padded_gram(Ht: torch.Tensor, size: int) -> torch.Tensor:
+    """``Ht Ht^T`` (a group's Gram matrix from its columns given as rows) in the top-left corner
+    of a (size, size) zero matrix: zero rows and columns change neither eigenvalues nor trace."""
+    g = _row_gram(Ht)
+    return torch.nn.functional.pad(g, (0, size - g.shape[0], 0, size - g.shape[0]))
+
+
 def _tile_grams(H: torch.Tensor, shape: tuple[int, int], tile: int) -> torch.Tensor:
     """(ntiles, 2 tile^2, 2 tile^2) Gram matrices ``H_G^T H_G`` of the float64 rows ``H``
     (rows, 2 h w) [re | im] of images of ``shape`` (h, w), one per ``tile`` x ``tile`` tile of
-    pixels G (its real and imaginary columns; tiles cut by the edge padded with zeros)."""
-    h, w = shape
-    rows = H.shape[0]
-    nz, nx = -(-h // tile), -(-w // tile)
-    Hv = H.reshape(rows, 2, h, w)
-    if (nz * tile, nx * tile) != (h, w):
-        Hv = torch.nn.functional.pad(Hv, (0, nx * tile - w, 0, nz * tile - h))
-    Hg = Hv.reshape(rows, 2, nz, tile, nx, tile).permute(2, 4, 0, 1, 3, 5).reshape(nz * nx, rows, 2 * tile * tile)
-    return torch.bmm(Hg.transpose(1, 2), Hg)
+    pixels G (:func:`_tile_pixels`): its real then imaginary columns, zero-padded."""
+    npix = shape[0] * shape[1]
+    Ht = H.T
+    return torch.stack([_padded_gram(Ht[_tile_rows(G, npix)], 2 * tile * tile) for G in _tile_pixels(shape, tile)])
 
 
 def _missed_spectral(grams: torch.Tensor, grams_b: torch.Tensor, pairs: int, sketch: int) -> float:
@@ -189,8 +217,9 @@ class BasisBuild:
         return lo, hi
 
     def _windowed_pair_iq(self) -> np.ndarray:
-        """I/Q of every (rx e, tx j) pair on each channel's window: ``X[n, e, t, j]`` (ntx, Ne, T, Ne)
-        complex64, sample ``off[n, e] + t`` of the record (zero past its end).
+        """I/Q of every (rx e, tx j) pair on each channel's window: ``X[n, e, t, 0 | 1, j]``
+        (ntx, Ne, T, 2, Ne) float32, the real | imaginary part of sample ``off[n, e] + t`` of the
+        record (zero past its end).
 
         The RF spectrum of a pair is the product ``RC_e(f) G_nj(f)``, and its I/Q signal (inverse
         FFT, mixing, zero-phase Butterworth low-pass, factor 2) is one linear map of it, the exact
@@ -202,15 +231,18 @@ class BasisBuild:
         ne = model.n_elements
         ntx = len(model.transmits)
         Tw = self.window_samples
-        out = np.zeros((ntx, ne, Tw, ne), dtype=np.complex64)
+        out = np.zeros((ntx, ne, Tw, 2, ne), dtype=np.float32)
         ar = torch.arange(Tw)
         for n, t in enumerate(model.transmits):
+            # the record's samples some channel's window reads: [lo, lo + T)
+            lo = int(self.window_offset[n].min())
+            T = max(1, min(t.grid.n_time, int(self.window_offset[n].max()) + Tw) - lo)
             # the products run in the model's dtype (float64 for a float64 model)
-            M = t.iq_map().to(model.dtype)                   # (2F, 2T)
-            T = t.grid.n_time
+            M = t.iq_map(slice(lo, lo + T)).to(model.dtype)  # (2F, 2T)
             F = M.shape[0] // 2
             # zero column at index 2T: samples past the end of the record
             M = torch.cat([M, M.new_zeros(2 * F, 1)], dim=1)
+            Mt = M.T.contiguous()                            # (2T + 1, 2F)
             tx = t.tx_field.to(model.cdtype)                 # (Ne, F), transmit j
             rx = t.rx_factor.to(model.cdtype)                # (Ne, F), receive e
             step = max(1, 2 ** 22 // (ne * F))
@@ -218,13 +250,14 @@ class BasisBuild:
                 e1 = min(ne, e0 + step)
                 s_ = rx[e0:e1, None, :] * tx[None, :, :]     # (ce, Ne, F)
                 lhs = torch.cat([s_.real, s_.imag], dim=2)   # (ce, Ne, 2F)
-                idx = self.window_offset[n, e0:e1, None] + ar[None, :]  # (ce, Tw)
+                idx = self.window_offset[n, e0:e1, None] - lo + ar[None, :]  # (ce, Tw)
                 idx = torch.where(idx < T, idx, torch.full_like(idx, 2 * T))
                 cols = torch.cat([idx, torch.where(idx < T, idx + T, idx)], dim=1)  # (ce, 2 Tw)
-                rhs = M[:, cols].permute(1, 0, 2)            # (ce, 2F, 2 Tw)
-                y = torch.bmm(lhs, rhs)                      # (ce, Ne, 2 Tw)
-                iq = torch.complex(y[:, :, :Tw], y[:, :, Tw:]).transpose(1, 2)  # (ce, Tw, Ne)
-                out[n, e0:e1] = iq.to(torch.complex64).numpy()
+                rhs = Mt[cols]                               # (ce, 2 Tw, 2F)
+                # transposed product, so that each (sample, re | im) row holds every j
+                y = torch.bmm(rhs, lhs.transpose(1, 2))      # (ce, 2 Tw, Ne)
+                y = y.reshape(e1 - e0, 2, Tw, ne).transpose(1, 2)  # (ce, Tw, 2, Ne)
+                out[n, e0:e1] = y.to(torch.float32).numpy()
         return out
 
     def _window_plans(self, X: torch.Tensor, Z: torch.Tensor, dtx: torch.Tensor | None = None):
@@ -254,52 +287,54 @@ class BasisBuild:
             out[3].append(rot.imag.T.to(torch.float32))
         return tuple(np.ascontiguousarray(torch.stack(a).numpy()) for a in out)
 
-    #: most pair rows the kernel fills at once (bounds the build's working memory)
-    build_rows = 512
-
-    @classmethod
-    def block_rows(cls, n_elements: int, npix: int) -> int:
-        """Pair rows per row block over ``npix`` pixels: :attr:`build_rows` for E's usual
-        144 x 144 pixels, more for fewer pixels (about constant memory), at least one element's."""
-        return max(n_elements, cls.build_rows * max(1, 20736 // max(1, npix)))
-
-    def _pair_image_blocks(self, X: np.ndarray, plan: tuple):
-        """Yield ``(r0, H)``: the symmetric pair images of rows ``r0 .. r0 + len(H)`` as a
-        (rows, 2 Npix) float64 tensor [re | im]."""
-        from arraysel.physics.pairkernels import pair_images, pair_row_blocks
-
-        ne = self.model.n_elements
-        npix = plan[0].shape[2]
-        rows = self.block_rows(ne, npix)
-        r0 = 0
-        for e0, e1, nr in pair_row_blocks(ne, rows):
-            out = torch.from_numpy(pair_images(X, plan, e0, e1))  # (Npix, nr, 2)
-            yield r0, torch.cat([out[:, :, 0].T, out[:, :, 1].T], dim=1)
-            r0 += nr
-
-    #: memory (bytes) of the kernel's output for one tile of pixels in :meth:`_dense_pair_images`
+    #: memory (bytes) of the kernel's output for one call (a group of pixels with every pair)
     build_tile_bytes = 256 << 20
 
-    def _dense_pair_images(self, X: np.ndarray, plan: tuple, dtype=torch.float64) -> torch.Tensor:
-        """All symmetric pair images on the plan's pixels: (P, 2 Npix) [re | im] in ``dtype``.
-
-        Filled a tile of pixels at a time with every pair row per kernel call: the kernel's
-        inner loops then run over every element, about twice as fast as row blocks over all
-        pixels (:meth:`_pair_image_blocks`, used when the images do not fit in memory)."""
+    def _pair_image_tiles(self, X: np.ndarray, plan: tuple, tiles):
+        """Yield ``(G, Ht)`` for each pixel-index tensor ``G`` of ``tiles`` (indices into the
+        plan's pixels): ``Ht`` (2 |G|, P) float64, the symmetric pair images of every pair on
+        those pixels, real rows then imaginary rows (the pixels' [re | im] columns of the pair
+        images, transposed). Consecutive tiles share a kernel call up to
+        :attr:`build_tile_bytes` of output."""
         from arraysel.physics.pairkernels import pair_images
 
-        ne = self.model.n_elements
+        P = self.pairs_e.numel()
+        per_call = max(1, self.build_tile_bytes // (P * 16))
+
+        def run(group):
+            pix = torch.cat(group).numpy()
+            v = torch.from_numpy(pair_images(X, tuple(np.ascontiguousarray(a[:, :, pix]) for a in plan)))
+            at = 0
+            for G in group:
+                yield G, v[:, at:at + G.numel()].reshape(2 * G.numel(), P)
+                at += G.numel()
+
+        group, n = [], 0
+        for G in tiles:
+            if group and n + G.numel() > per_call:
+                yield from run(group)
+                group, n = [], 0
+            group.append(G)
+            n += G.numel()
+        if group:
+            yield from run(group)
+
+    def _dense_pair_images(self, X: np.ndarray, plan: tuple, dtype=torch.float64,
+                           transposed: bool = False) -> torch.Tensor:
+        """All symmetric pair images on the plan's pixels: (P, 2 Npix) [re | im] in ``dtype``,
+        or its transpose (2 Npix, P), stored row-major, if ``transposed``."""
         P = self.pairs_e.numel()
         npix = plan[0].shape[2]
-        out = torch.empty(P, 2 * npix, dtype=dtype)
-        tile = max(1, self.build_tile_bytes // (P * 16))
-        for p0 in range(0, npix, tile):
-            p1 = min(npix, p0 + tile)
-            part = tuple(np.ascontiguousarray(a[:, :, p0:p1]) for a in plan)
-            v = torch.from_numpy(pair_images(X, part, 0, ne))  # (tile, P, 2) float64
-            out[:, p0:p1] = v[:, :, 0].T
-            out[:, npix + p0:npix + p1] = v[:, :, 1].T
-            del v
+        out = torch.empty(2 * npix, P, dtype=dtype) if transposed else torch.empty(P, 2 * npix, dtype=dtype)
+        per_call = max(1, self.build_tile_bytes // (P * 16))
+        for G, Ht in self._pair_image_tiles(X, plan, torch.arange(npix).split(per_call)):
+            p0, p1 = int(G[0]), int(G[-1]) + 1
+            if transposed:
+                out[p0:p1] = Ht[:p1 - p0]
+                out[npix + p0:npix + p1] = Ht[p1 - p0:]
+            else:
+                out[:, p0:p1] = Ht[:p1 - p0].T
+                out[:, npix + p0:npix + p1] = Ht[p1 - p0:].T
         return out
 
     #: side (pixels) of the tiles of E whose residual Gram matrices bound what a sketch missed
@@ -367,55 +402,68 @@ class BasisBuild:
                                column_norm=float(col.max()),
                                spectral_tail=float(evals[rank].sqrt()) if rank < P else 0.0,
                                missed=0.0, core_images=Hc)
-        h, w = self.shape
-        L = min(self.sketch_columns, 2 * npix) // 2
-        gen = torch.Generator().manual_seed(20261123)
-        signs = torch.where(torch.rand(npix, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
-        freqs = torch.randperm(npix, generator=gen)[:L]
-        Y = torch.empty(P, 2 * L, dtype=torch.float64)
+        from arraysel.physics.pairkernels import sparse_sketch_add
+
+        tile = self.missed_tile
+        tiles = _tile_pixels(self.shape, tile)
+        # sparse sign sketch: each real column of H adds, with a random sign, to ``zeta``
+        # random columns of the sketch (a subspace embedding as good as a Gaussian one for
+        # the range finder, applied a tile of pixels at a time in ``zeta P`` adds a column)
+        L = min(self.sketch_columns, 2 * npix)
+        zeta = min(8, L)
+        gen = torch.Generator().manual_seed(20261124)
+        hit = torch.randint(L, (2 * npix, zeta), generator=gen)
+        sign = torch.where(torch.rand(2 * npix, zeta, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
+        sign /= math.sqrt(zeta)
         # both passes read the pair images kept in the model's dtype when they fit (the column
         # norms and the basis then describe those rounded images, which differ from the float64
-        # ones by less than the rounding allowance of an evaluation); else row blocks are
-        # delay-and-summed in each pass
-        kept = self._dense_pair_images(X, plan, model.dtype) if self.keeps_images(P, npix, model.dtype) else None
+        # ones by less than the rounding allowance of an evaluation); else each pass
+        # delay-and-sums them again, a tile at a time
+        kept = self._dense_pair_images(X, plan, model.dtype, transposed=True) \
+            if self.keeps_images(P, npix, model.dtype) else None
 
-        def blocks(wide: bool):
-            # row blocks (r0, H); kept ones in float64 if ``wide``, else in the kept dtype
+        def tile_images():
+            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`_pair_image_tiles`)
             if kept is None:
-                return self._pair_image_blocks(X, plan)
-            rows = self.block_rows(model.n_elements, npix)
-            return ((r0, kept[r0:r0 + rows].double() if wide else kept[r0:r0 + rows]) for r0 in range(0, P, rows))
+                return self._pair_image_tiles(X, plan, tiles)
+            return ((G, kept[_tile_rows(G, npix)].double()) for G in tiles)
 
         # the sketch only has to span the dominant subspace (what it misses is measured exactly
-        # below), so it takes the kept images' precision
-        for r0, H in blocks(False):
-            z = torch.complex(H[:, :npix], H[:, npix:]) * signs.to(H.dtype)
-            f = torch.fft.fft2(z.reshape(-1, h, w), norm="ortho").reshape(z.shape[0], npix)[:, freqs]
-            Y[r0:r0 + H.shape[0], :L] = f.real
-            Y[r0:r0 + H.shape[0], L:] = f.imag
+        # below), so it is accumulated in float32
+        Yt = torch.zeros(L, P, dtype=torch.float32)
+        for G, Ht in tile_images():
+            rows = _tile_rows(G, npix)
+            sparse_sketch_add(Yt.numpy(), Ht.contiguous().numpy(), hit[rows].numpy(), sign[rows].numpy())
+        Yt = Yt.double()
         if progress is not None:
             progress.step("sketch of the pair images on E")
-        Q = torch.linalg.qr(Y)[0]
-        del Y
-        B = torch.zeros(Q.shape[1], 2 * npix, dtype=torch.float64)
+        Q = torch.linalg.qr(Yt.T)[0]
+        del Yt
+        Bt = torch.zeros(2 * npix, Q.shape[1], dtype=torch.float64)  # B^T = H^T Q
         col2 = torch.zeros(npix, dtype=torch.float64)
         Hc = torch.empty(P, core.numel(), dtype=torch.float64)
-        tile = self.missed_tile
+        in_core = torch.full((2 * npix,), -1, dtype=torch.long)
+        in_core[core] = torch.arange(core.numel())
         m = 2 * tile * tile
-        grams = torch.zeros(-(-h // tile) * -(-w // tile), m, m, dtype=torch.float64)
+        grams = torch.zeros(len(tiles), m, m, dtype=torch.float64)
         gram_s = 0.0
-        for r0, H in blocks(True):
-            r1 = r0 + H.shape[0]
-            B.addmm_(Q[r0:r1].T, H)
-            col2 += H[:, :npix].square().sum(0) + H[:, npix:].square().sum(0)
-            Hc[r0:r1] = H[:, core]
+        for t, (G, Ht) in enumerate(tile_images()):
+            rows = _tile_rows(G, npix)
+            Bt[rows] = Ht @ Q
+            at = in_core[rows]
+            Hc[:, at[at >= 0]] = Ht[at >= 0].T
             t0 = time.perf_counter()
-            grams += _tile_grams(H, self.shape, tile)
+            grams[t] = _padded_gram(Ht, m)
             gram_s += time.perf_counter() - t0
+            # the pixels' squared column norms: the Gram matrix's diagonal
+            g = G.numel()
+            d = grams[t].diagonal()
+            col2[G] = d[:g] + d[g:2 * g]
         del kept
         if progress is not None:
             progress.step(f"projection of the pair images on E (of which the tiles' Gram matrices {gram_s:.1f} s)")
-        evals, W = torch.linalg.eigh(B @ B.T)
+        B = Bt.T
+        evals, W = torch.linalg.eigh(_row_gram(B))
         evals = evals.flip(0).clamp(min=0)
         W = W.flip(1)
         total = float(col2.sum())

@@ -41,9 +41,13 @@ class Certificates:
         # A[j, (n, e, r, a)] = I/Q sample t = a segment + r of (rx e, tx j): the channel of receive e on
         # transmit n is m_e sum_j m_j A[j, (n, e, :, :)]; samples are stored segment-offset major
         # so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
-        A = torch.from_numpy(X).permute(3, 0, 1, 2)  # (j, n, e, T)
-        A = A.reshape(ne, A.shape[1], ne, T // self.segment, self.segment).transpose(-1, -2).reshape(ne, -1)
-        self.pair_channels = torch.cat([A.real, A.imag], dim=1).to(model.device, model.dtype)
+        ntx = X.shape[0]
+
+        def part(k):  # X's real (0) or imaginary (1) part as (j, (n, e, r, a))
+            A = torch.from_numpy(X[:, :, :, k, :]).permute(3, 0, 1, 2)  # (j, n, e, T)
+            return A.reshape(ne, ntx, ne, T // self.segment, self.segment).transpose(-1, -2).reshape(ne, -1)
+
+        self.pair_channels = torch.cat([part(0), part(1)], dim=1).to(model.device, model.dtype)
         off = self.window_offset[:, None, None, :]
         read = hi >= lo
         lo = torch.where(read, lo - off, torch.full_like(lo, T))

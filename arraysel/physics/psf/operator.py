@@ -70,12 +70,14 @@ class Transmit:
     rx_factor: torch.Tensor     #: (Ne, F) receive factor C(f) R_e(f) of each receiving element
     iq_band: tuple              #: (fs, fc, bandwidth %) of the I/Q demodulation
 
-    def iq_map(self) -> torch.Tensor:
+    def iq_map(self, samples: slice = slice(None)) -> torch.Tensor:
         """Real (2F, 2T) float64 matrix ``M`` with ``[Re S, Im S] @ M = [Re IQ, Im IQ]``, where
         ``IQ = spectra_to_rf(S, grid) @ iq_matrix.T``: the exact path's spectra -> RF -> I/Q,
-        composed in float64 (see :meth:`PSFModel.iq`)."""
+        composed in float64 (see :meth:`PSFModel.iq`). Only the I/Q ``samples`` wanted, if given
+        (T their number)."""
         a, b = spectra_to_rf_maps(self.grid)
-        qt = iq_matrix(self.grid.n_time, *self.iq_band).T  # formed here only: the exact path keeps the map
+        # formed here only: the exact path keeps the map
+        qt = iq_matrix(self.grid.n_time, *self.iq_band, rows=samples).T
         m = torch.cat([a.to(torch.complex128) @ qt, b.to(torch.complex128) @ qt], dim=0)  # (2F, T)
         return torch.cat([m.real, m.imag], dim=1)
 
@@ -168,10 +170,11 @@ class PSFModel:
     def basis_build_seconds(self) -> float:
         """Estimated wall time (s) of building the fast path's basis: the delay-and-sum of the
         pair images (``ntx Ne^2`` complex multiply-adds per pixel of E, once or twice: see
-        :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), at the rate
-        measured on two cores (2026-11-24: 30 s for the P4-2v scene, 55 s for L11-5v and
-        C5-2v, 460 s for a 256-element probe), and of a sketched build's tile Gram matrices
-        (:attr:`PairBasis.missed_tile`), scaled by the torch threads."""
+        :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), the float64
+        products (the exact Gram matrix, or a sketched build's projection, QR and tile Gram
+        matrices), the pair I/Q signals and the write of the stored basis, at the rates measured
+        on two cores (2026-11-24, basis version 13: 24 s for the P4-2v scene, 46 s for L11-5v,
+        178 s for a 256-element probe), scaled by the torch threads."""
         return self._basis_estimate()[1]
 
     def _basis_estimate(self) -> tuple[int, float, int]:
@@ -188,17 +191,19 @@ class PSFModel:
         A = 2 * ntx * ne * T * ne * size
         sketch = PairBasis.sketch_columns
         passes = 1  # delay-and-sums of the pair images on E
-        gram_macs = 0  # a sketched build's tile Gram matrices (float64)
         if pairs <= sketch:
             work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
+            flops = 2 * pairs * pairs * 2 * npix  # the Gram matrix (float64)
             rank = pairs
         else:
-            blk = PairBasis.block_rows(ne, npix)
             tile = PairBasis.missed_tile
             groups = -(-rows // tile) * -(-cols // tile)
-            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * blk * 2 * npix * 8 + \
+            call = max(PairBasis.build_tile_bytes // (pairs * 16), tile * tile)  # pixels a kernel call
+            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * call * 16 * pairs + \
                 groups * (2 * tile * tile) ** 2 * 8
-            gram_macs = pairs * groups * (2 * tile * tile) ** 2
+            # float64: the projection B = Q^T H, the sketch's QR (counted twice: slower than a
+            # product) and the tiles' Gram matrices (symmetric updates)
+            flops = 2 * pairs * sketch * 2 * npix + 8 * pairs * sketch ** 2 + 2 * pairs * groups * (2 * tile * tile) ** 2
             if PairBasis.keeps_images(pairs, npix, self.dtype):  # kept between the passes
                 work += pairs * 2 * npix * size
             else:
@@ -209,7 +214,8 @@ class PSFModel:
             strips = 0
         stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
         macs = ntx * ne * ne * (npix * passes + (npix2 if strips else 0))
-        seconds = (2.2e-8 * macs * 2 + 1e-10 * gram_macs) / max(1, torch.get_num_threads())
+        iq = ntx * ne * ne * T  # the pair I/Q's products (their frequencies are not known here)
+        seconds = (4.2e-9 * macs + 2.2e-11 * flops + 3.6e-7 * iq) / max(1, torch.get_num_threads()) + 6e-9 * stored
         return int(X + work + stored + (strips // size) * 8), seconds, int(stored)
 
     def window_estimate(self) -> int:
