@@ -173,8 +173,9 @@ class PSFModel:
         :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), the float64
         products (the exact Gram matrix, or a sketched build's projection, QR and tile Gram
         matrices), the pair I/Q signals and the write of the stored basis, at the rates measured
-        on two cores (2026-11-24, basis version 13: 24 s for the P4-2v scene, 46 s for L11-5v,
-        178 s for a 256-element probe), scaled by the torch threads."""
+        on two cores (2026-11-24, basis version 13, the host taking half the CPU: 24 s for the
+        P4-2v scene, 59 s for L11-5v, 61 s for C5-2v, 178 s for a 256-element probe), scaled by
+        the torch threads."""
         return self._basis_estimate()[1]
 
     def _basis_estimate(self) -> tuple[int, float, int]:
