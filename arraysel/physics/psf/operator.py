@@ -157,7 +157,7 @@ class PSFModel:
     def basis_bytes(self) -> int:
         """Estimated peak memory (bytes) of building the fast path's basis (see
         :class:`PairBasis`): the windowed pair I/Q signals, the pair images of E (all of them
-        for small probes, row blocks and a sketch for larger ones, kept whole between the
+        for small probes, tiles of pixels and a sketch for larger ones, kept whole between the
         sketch's passes when they fit), the strips' pair images when they are kept, and the
         stored tensors."""
         return self._basis_estimate()[0]
