@@ -248,16 +248,17 @@ def test_compiled_das_equals_das_apply():
     # the plans stacked over the transmits, one call (the refinement's block sums), channels in
     # time order (one-sample segments) with unit receive weights
     stacked = [np.stack(a) for a in zip(*plans)]
-    got = torch.from_numpy(das_stacked_raw(torch.view_as_real(x).permute(3, 0, 1, 2).contiguous().numpy(),
+    got = torch.from_numpy(das_stacked_raw(torch.view_as_real(x).permute(1, 3, 0, 2).contiguous().numpy(),
                                            np.ones(ne), *stacked, 1))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want, rtol=1e-12, atol=1e-12)
     # and on raw channels: samples in segment-offset-major order, receive weights applied inside
     seg = 4
     we = torch.rand(ne, generator=gen, dtype=torch.float64)
     we[1] = 0
-    raw = torch.view_as_real(x).permute(3, 0, 1, 2).reshape(2, ntx, ne, T // seg, seg).transpose(-1, -2)
-    got = torch.from_numpy(das_stacked_raw(raw.reshape(2, ntx, ne, T).contiguous().numpy(), we.numpy(), *stacked,
-                                           seg))
+    raw = torch.view_as_real(x).permute(1, 3, 0, 2).reshape(ne, 2, ntx, T // seg, seg).transpose(-1, -2)
+    raw = raw.reshape(ne, 2, ntx, T).contiguous()
+    raw[1] = float("nan")  # a receive element of zero weight: its channel is not read
+    got = torch.from_numpy(das_stacked_raw(raw.numpy(), we.numpy(), *stacked, seg))
     want_w = sum(das_apply(x[n] * we[:, None], torch.from_numpy(plans[n][0]), torch.from_numpy(plans[n][1]),
                            torch.view_as_complex(torch.from_numpy(plans[n][2]))) for n in range(ntx))
     assert torch.allclose(torch.complex(got[:, 0], got[:, 1]), want_w, rtol=1e-12, atol=1e-12)
@@ -457,17 +458,21 @@ def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):
     assert model.basis_bytes() < with_kept
 
 
+@pytest.mark.parametrize("unused", [[], [0, 7, 8, 11]])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dtype):
+def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dtype, unused):
     """The refinement's block delay-and-sum reads the certificate product's raw channels
     (``RawChannels``: stored sample order, receive weights not applied) to the same values as
-    from :meth:`channels`, on whole blocks and on chosen pixel rows."""
+    from :meth:`channels`, on whole blocks and on chosen pixel rows, whether every receive
+    element is used (the whole product) or some are used by none of the selections (their
+    channels are not formed)."""
     from arraysel.physics.psf.refinement import RawChannels
 
     model = PSFModel(_setup(n_elements=12), dtype=dtype)
     basis = model.basis
     w = _weights(12, 3, seed=4).to(dtype)
     w[0, [1, 5, 6]] = 0
+    w[:, unused] = 0
     nb = -(-24 // model.block)
     blocks = [(0, 0), (nb - 1, 0), (nb // 2, nb - 1)]
     raws = list(basis._grouped_channels(w, [0, 1, 2], raw=True))
@@ -483,22 +488,63 @@ def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dt
     assert not any(isinstance(x, RawChannels) for _, x in basis._grouped_channels(w.requires_grad_(), [0], raw=True))
 
 
+def _mixed_weights(ne, seed):
+    """Selections with every pattern the receive products group by: soft weights (all elements
+    at once), one zero, a 0/1 mask, a mask of one element, and all elements off."""
+    w = _weights(ne, 5, seed=seed)
+    w[1, 2] = 0
+    w[2] = (torch.arange(ne) % 3 == 0).double()
+    w[3] = 0
+    w[3, ne - 1] = 0.7
+    w[4] = 0
+    return w
+
+
 @pytest.mark.parametrize("step_bytes", [0, 1 << 30])
 def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch, step_bytes):
     """The certificate's segment envelopes equal the maxima of ``|X_ne(t)|`` over every run of
     1 .. max_run segments (clipped at the window's end), computed from the selection's channels,
-    whether the channel products are formed 8 channels a step or all at once (one mask)."""
+    whether the receive products are formed one receive element a step or whole runs at once,
+    for one selection and for batches mixing soft weights, masks and empty selections."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "env_step_bytes", step_bytes)
+    monkeypatch.setattr(type(fast), "receive_step_bytes", step_bytes)
+    monkeypatch.setattr(type(fast), "receive_subset_min", 2)
     ntx, ne, sg = len(model.transmits), model.n_elements, fast.segment
     nS, M = fast.window_samples // sg, fast.max_run
-    for B in (1, 4):
-        w = _weights(ne, B, seed=B)
-        w[0, 2] = 0
+    mixed = _mixed_weights(ne, seed=2)
+    for w in (mixed[:1], mixed[2:3], mixed):
+        B = w.shape[0]
         env = fast.envelopes(w).view(ntx, ne, M, nS, B)
         seg = fast.channels(w).abs().view(B, ntx, ne, nS, sg).amax(-1)  # (B, ntx, ne, nS)
         for m in range(M):
             for a in range(nS):
                 want = seg[:, :, :, a:min(nS, a + m + 1)].amax(-1).permute(1, 2, 0)
                 torch.testing.assert_close(env[:, :, m, a], want, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("subset_min", [1, 1000])
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30])
+def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeypatch, step_bytes, subset_min):
+    """The receive products cover, for every selection, each receive element of non-zero weight
+    exactly once, with the values of the whole product ``w @ pair_channels``: per receive
+    element's own selections (and no other element), or for a small batch every selection on
+    the elements any of them uses (and no element none uses)."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    monkeypatch.setattr(type(fast), "receive_step_bytes", step_bytes)
+    monkeypatch.setattr(type(fast), "receive_subset_min", subset_min)
+    ne = model.n_elements
+    w = _mixed_weights(ne, seed=3)
+    w[:, 4] = 0  # an element no selection uses
+    whole = (w @ fast.pair_channels).view(w.shape[0], ne, -1)
+    seen = torch.zeros(w.shape[0], ne, dtype=torch.long)
+    for e0, e1, s, y in fast._receive_products(w):
+        rows = torch.arange(w.shape[0]) if s is None else s
+        seen[rows, e0:e1] += 1
+        torch.testing.assert_close(y.reshape(rows.numel(), e1 - e0, -1), whole[rows, e0:e1], rtol=1e-12, atol=1e-14)
+    used = (w != 0).long()
+    if subset_min == 1:
+        assert torch.equal(seen, used)
+    else:
+        assert torch.equal(seen, used.amax(0, keepdim=True).expand_as(seen))

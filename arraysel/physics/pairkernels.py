@@ -175,14 +175,17 @@ def das_plan_rows(x: np.ndarray, plans, pix: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _das_stacked_raw_kernel(y, we, i0, wt, rot, sg, out):
-    """``out[p] = sum_{n, e} rot[n, p, e] we[e] lerp(y[:, n, e], i0[n, p, e], wt[n, p, e])`` over the
-    entries with a non-zero rotation and weight. y: (2, ntx, Ne, T) [re, im], sample t of channel
-    (n, e) at ``(t % sg) (T // sg) + t // sg``; i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2);
-    out: (Npix, 2) float64."""
+def _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out):
+    """``out[p] = sum_{n, e} rot[n, p, e] we[e] lerp(y[e, :, n], i0[n, p, e], wt[n, p, e])`` over
+    the entries with a non-zero rotation and weight (the channels of a zero weight are not read).
+    y: (Ne, 2, ntx, T) [re, im], sample t of channel (n, e) at ``(t % sg) (T // sg) + t // sg``
+    with ``sg = 2 ** shift`` samples a segment (shifts and masks: an integer division per entry
+    cost as much as the rest of the sum); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2); out:
+    (Npix, 2) float64."""
     ntx = i0.shape[0]
     ne = i0.shape[2]
-    ns = y.shape[3] // sg
+    ns = y.shape[3] >> shift
+    last = (1 << shift) - 1
     for p in numba.prange(i0.shape[1]):
         sr = 0.0
         si = 0.0
@@ -192,14 +195,15 @@ def _das_stacked_raw_kernel(y, we, i0, wt, rot, sg, out):
                 cr = rot[n, p, e, 0]
                 ci = rot[n, p, e, 1]
                 if f != 0.0 and (cr != 0.0 or ci != 0.0):
-                    i = i0[n, p, e]
+                    i = np.int64(i0[n, p, e])
                     w = wt[n, p, e]
-                    ia = (i % sg) * ns + i // sg
-                    ib = ((i + 1) % sg) * ns + (i + 1) // sg
-                    ar = y[0, n, e, ia]
-                    ai = y[1, n, e, ia]
-                    vr = (ar + (y[0, n, e, ib] - ar) * w) * f
-                    vi = (ai + (y[1, n, e, ib] - ai) * w) * f
+                    r = i & last
+                    ia = r * ns + (i >> shift)
+                    ib = ia + ns if r != last else (i >> shift) + 1
+                    ar = y[e, 0, n, ia]
+                    ai = y[e, 1, n, ia]
+                    vr = (ar + (y[e, 0, n, ib] - ar) * w) * f
+                    vi = (ai + (y[e, 1, n, ib] - ai) * w) * f
                     sr += cr * vr - ci * vi
                     si += cr * vi + ci * vr
         out[p, 0] = sr
@@ -210,11 +214,14 @@ def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarra
                     segment: int) -> np.ndarray:
     """Delay-and-sum of one selection's I/Q channels with block plans stacked over the transmits,
     in one compiled call (the certificates' refinement: a call covers a few blocks, where one call
-    and plan concatenation per transmit cost as much as the sums). y (2, ntx, Ne, T) [re, im]
+    and plan concatenation per transmit cost as much as the sums). y (Ne, 2, ntx, T) [re, im]
     with each channel's samples in segment-offset-major order (``segment`` samples a segment;
     1: time order), weighted by ``we`` (Ne,) inside the sum (the certificate product's raw
     channels, :class:`arraysel.physics.psf.refinement.RawChannels`); i0, wt (ntx, Npix, Ne); rot
     (ntx, Npix, Ne, 2). Returns (Npix, 2) float64 [re, im]."""
+    shift = int(segment).bit_length() - 1
+    if segment < 1 or 1 << shift != segment or y.shape[3] % segment:
+        raise ValueError(f"segment: a power of two dividing the {y.shape[3]} samples, got {segment}")
     out = np.empty((i0.shape[1], 2), dtype=np.float64)
-    _das_stacked_raw_kernel(y, we, i0, wt, rot, int(segment), out)
+    _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out)
     return out

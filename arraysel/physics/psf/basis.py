@@ -94,7 +94,8 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     ``strip_images`` (P, 2 Npix2) the strips' pair images in block-major column order;
     ``strip_left``, ``strip_right``, ``strip_sigma``, ``strip_sigma_next`` their per-block
     rank-``strip_rank`` factors; ``core_images`` the core's exact pair images;
-    ``pair_channels`` (Ne, 2 ntx Ne T) the windowed pair I/Q signals (segment-offset major);
+    ``pair_channels`` (Ne, Ne 2 ntx T) the windowed pair I/Q signals (receive element, real and
+    imaginary part, transmit, then samples segment-offset major);
     ``window_offset`` (ntx, Ne) the first record sample of each channel's window of
     ``window_samples`` samples; ``max_run`` the longest run of segments a block reads;
     ``error`` the :class:`ErrorConstants`.
@@ -413,19 +414,18 @@ class PairBasis(BasisBuild, Certificates, Refinement):
 
     def channels(self, w: torch.Tensor) -> torch.Tensor:
         """I/Q channel signals (B, ntx, Ne, T) complex of selections w: ``m_e sum_j m_j A_nej``."""
-        ne = self.model.n_elements
-        ntx = len(self.model.transmits)
-        y = w @ self.pair_channels
-        half = y.shape[1] // 2
-        x = torch.complex(y[:, :half], y[:, half:]).reshape(w.shape[0], ntx, ne, self.segment, self.window_samples // self.segment)
-        x = x.transpose(-1, -2).reshape(w.shape[0], ntx, ne, self.window_samples)
+        x = self._complex_channels(w @ self.pair_channels, w.shape[0]).transpose(1, 2)
         return x * w.to(x.dtype)[:, None, :, None]
+
+    def _complex_channels(self, y: torch.Tensor, n: int) -> torch.Tensor:
+        """(n, Ne, ntx, T) complex, samples in time order, from rows of ``pair_channels``' layout
+        (n, Ne * 2 * ntx * T)."""
+        ne, sg = self.model.n_elements, self.segment
+        y = y.view(n, ne, 2, len(self.model.transmits), sg, self.window_samples // sg)
+        x = torch.complex(y[:, :, 0], y[:, :, 1])
+        return x.transpose(-1, -2).reshape(n, ne, len(self.model.transmits), self.window_samples)
 
     def pair_iq(self) -> torch.Tensor:
         """The windowed pair I/Q signals (Ne tx j, ntx, Ne rx e, T) complex (sample t of the window
         of (n, e) is sample ``off[n, e] + t`` of the record)."""
-        ne = self.model.n_elements
-        half = self.pair_channels.shape[1] // 2
-        a = torch.complex(self.pair_channels[:, :half], self.pair_channels[:, half:])
-        a = a.reshape(ne, len(self.model.transmits), ne, self.segment, self.window_samples // self.segment)
-        return a.transpose(-1, -2).reshape(ne, len(self.model.transmits), ne, self.window_samples)
+        return self._complex_channels(self.pair_channels, self.model.n_elements).transpose(1, 2)

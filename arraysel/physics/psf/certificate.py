@@ -2,7 +2,8 @@
 of ``|I|`` on the grid blocks outside E (tier 1) or outside the band (tier 2).
 
 For transmit n and receive element e the I/Q channel of a selection is
-``X_ne(t) = m_e sum_j m_j A_nej(t)`` (A: the pair I/Q signals, ``pair_channels``). Linear
+``X_ne(t) = m_e sum_j m_j A_nej(t)`` (A: the pair I/Q signals, ``pair_channels``, stored
+receive-element major: an element whose weight is zero has no channel to form). Linear
 interpolation and unit phase rotations cannot exceed the larger neighbouring sample, so on a
 block Q of pixels ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_neQ} |X_ne(t)|``, where ``[lo, hi]``
 spans the samples the block's pixels read. The maxima come from aligned segments of
@@ -42,12 +43,12 @@ class Certificates:
         # transmit n is m_e sum_j m_j A[j, (n, e, :, :)]; samples are stored segment-offset major
         # so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
         ntx = X.shape[0]
-
-        def part(k):  # X's real (0) or imaginary (1) part as (j, (n, e, r, a))
-            A = torch.from_numpy(X[:, :, :, k, :]).permute(3, 0, 1, 2)  # (j, n, e, T)
-            return A.reshape(ne, ntx, ne, T // self.segment, self.segment).transpose(-1, -2).reshape(ne, -1)
-
-        self.pair_channels = torch.cat([part(0), part(1)], dim=1).to(model.device, model.dtype)
+        # A[j, (e, c, n, r, a)] = part c (0: re, 1: im) of sample t = a segment + r of (rx e, tx j)
+        # on transmit n: the channels of receive e on every transmit are m_e sum_j m_j A[j, (e, ...)],
+        # one contiguous block of columns (:meth:`_receive_products`); samples are stored
+        # segment-offset major so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
+        A = torch.from_numpy(X).unflatten(2, (T // self.segment, self.segment))  # (n, e, a, r, c, j)
+        self.pair_channels = A.permute(5, 1, 4, 0, 3, 2).reshape(ne, -1).to(model.device, model.dtype)
         off = self.window_offset[:, None, None, :]
         read = hi >= lo
         lo = torch.where(read, lo - off, torch.full_like(lo, T))
@@ -101,42 +102,80 @@ class Certificates:
         vals = torch.full((rows_i.numel(),), 1.0 + 1e-4, dtype=model.dtype)  # rounding safety margin
         return sparse_csr(crow, cols_i, vals, (nq, width)).to(model.device)
 
-    #: fewest (transmit, element) channels per step of :meth:`envelopes`
-    env_group = 8
-    #: bytes of one step's channel products in :meth:`envelopes` (kept in cache): 8 channels a
-    #: step for a batch of 128 masks, every channel at once for one mask (a gradient step),
-    #: where a step's fixed cost would otherwise dominate
-    env_step_bytes = 1 << 20
+    #: bytes of one product in :meth:`_receive_products` (kept in cache)
+    receive_step_bytes = 2 << 20
+    #: fewest selections whose products :meth:`_receive_products` forms for each receive element's
+    #: own selections: fewer selections are bound by reading ``pair_channels``, not by the
+    #: arithmetic, so one product serves them all and only the elements none of them uses are
+    #: skipped (256 elements, channels of 4 selections: 16.4-18.5 ms a selection with the whole
+    #: product, 18.9-23.8 per element's selections; 128 selections: envelopes 4.7-5.0 ms a
+    #: selection with the whole product, 2.9-3.3 per element's)
+    receive_subset_min = 32
+
+    def _receive_products(self, w: torch.Tensor, subsets: bool | None = None):
+        """Yield ``(e0, e1, s, y)`` covering every receive element that some selection of ``w``
+        (B, Ne) uses: ``s`` the selections (a LongTensor of rows of ``w``; None: all of them)
+        whose products were formed for the receive elements ``e0 .. e1 - 1``, and ``y``
+        (len(s), e1 - e0, 2, ntx, T) the products ``sum_j w[s, j] A[j, e, c, n, :]`` (samples in
+        stored order, not yet weighted by the receive weight).
+
+        A receive element with zero weight has a zero channel, so with ``subsets`` (default: a
+        batch of at least :attr:`receive_subset_min` selections) the products of the selections
+        that use each receive element are formed: for selections of k of Ne elements, k / Ne of
+        the whole product ``w @ pair_channels``. Otherwise every selection's products are formed
+        on the receive elements any of them uses.
+        Consecutive receive elements with the same selections share one product (a single mask:
+        its runs of active elements; soft weights: all elements), cut to
+        :attr:`receive_step_bytes` of output so that it stays in cache."""
+        ne = self.model.n_elements
+        ntx = len(self.model.transmits)
+        T = self.window_samples
+        cols = 2 * ntx * T
+        B = w.shape[0]
+        on = (w != 0).T  # (Ne, B)
+        if not (B >= self.receive_subset_min if subsets is None else subsets):
+            on = on.any(1, keepdim=True)
+        cut = (torch.nonzero((on[1:] != on[:-1]).any(1)).flatten() + 1).tolist()
+        for e0, e1 in zip([0] + cut, cut + [ne]):
+            s = torch.nonzero(on[e0]).flatten()
+            if not s.numel():
+                continue
+            whole = s.numel() == on.shape[1]
+            ws = w if whole else w[s]
+            n = ws.shape[0]
+            step = max(1, self.receive_step_bytes // (cols * n * w.element_size()))
+            for a in range(e0, e1, step):
+                b = min(e1, a + step)
+                y = ws @ self.pair_channels[:, a * cols:b * cols]
+                yield a, b, (None if whole else s), y.view(n, b - a, 2, ntx, T)
 
     def envelopes(self, w: torch.Tensor) -> torch.Tensor:
-        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w.
+        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w (no gradient).
 
         Entry (n, e, m, a): ``max |X_ne(t)|`` over segments ``a .. a + m`` (``segment`` samples
-        each; zeros past the end). The channel sums are formed :attr:`env_group` channels at a
-        time and reduced to segment maxima at once, so they never reach main memory; then
-        M - 1 running maxima on the segment array (``segment`` times smaller than the channels).
+        each; zeros past the end). The channel sums of the receive elements a selection uses are
+        formed a few receive elements at a time (:meth:`_receive_products`) and reduced to
+        segment maxima at once, so they never reach main memory; then M - 1 running maxima on
+        the segment array (``segment`` times smaller than the channels).
         """
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
         B = w.shape[0]
-        T = self.window_samples
-        nS = T // self.segment
+        sg = self.segment
+        nS = self.window_samples // sg
         nch = ntx * ne
-        half = self.pair_channels.shape[1] // 2
-        a_re, a_im = self.pair_channels[:, :half].T, self.pair_channels[:, half:].T
-        wt = w.T.contiguous()
-        seg = w.new_empty(nch, nS, B)
-        group = max(self.env_group, self.env_step_bytes // (2 * T * B * w.element_size()))
-        for g0 in range(0, nch, group):
-            g1 = min(nch, g0 + group)
-            yr = a_re[g0 * T: g1 * T] @ wt
-            yi = a_im[g0 * T: g1 * T] @ wt
-            sq = torch.addcmul(yi.square_(), yr, yr)
-            torch.amax(sq.view(g1 - g0, self.segment, nS, B), dim=1, out=seg[g0:g1])
-        seg.sqrt_()
-        seg.view(ntx, ne, nS, B).mul_(w.abs().T[None, :, None, :])
-        env = seg.new_empty(nch, self.max_run, nS, B)
-        env[:, 0] = seg
+        peaks = w.new_zeros(B, ne, ntx, nS)
+        for e0, e1, s, y in self._receive_products(w):
+            sq = y[:, :, 1].square_().addcmul_(y[:, :, 0], y[:, :, 0])  # |X|^2 (n, g, ntx, T), in y
+            peak = sq.unflatten(-1, (sg, nS)).amax(3)  # (n, g, ntx, nS)
+            if s is None:
+                peaks[:, e0:e1] = peak
+            else:
+                peaks[s, e0:e1] = peak
+        peaks.sqrt_().mul_(w.abs()[:, :, None, None])
+        env = w.new_empty(nch, self.max_run, nS, B)
+        seg = env[:, 0]
+        seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
         for m in range(1, self.max_run):
             env[:, m, nS - m:] = env[:, m - 1, nS - m:]
             torch.maximum(env[:, m - 1, : nS - m], seg[:, m:], out=env[:, m, : nS - m])

@@ -19,12 +19,13 @@ from arraysel.physics.psf.window import cut_windows, window_start
 
 class RawChannels(NamedTuple):
     """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
-    gradient): ``y`` (2, ntx, Ne, T) [re, im] with each channel's samples in segment-offset-major
+    gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
     order (``segment`` samples a segment: sample ``a segment + r`` at ``r nS + a``; 1: time
-    order), not yet weighted by the receive element's weight ``we`` (Ne,). The compiled
-    delay-and-sum reads them as they are (``pairkernels.das_stacked_raw``): forming the complex,
-    time-ordered, weighted channels of :meth:`~arraysel.physics.psf.basis.PairBasis.channels`
-    costs as much as the product."""
+    order), not yet weighted by the receive element's weight ``we`` (Ne,). The channels of the
+    receive elements whose weight is zero are not formed (their values are undefined; nothing
+    reads them). The compiled delay-and-sum reads them as they are
+    (``pairkernels.das_stacked_raw``): forming the complex, time-ordered, weighted channels of
+    :meth:`~arraysel.physics.psf.basis.PairBasis.channels` costs as much as the product."""
 
     y: np.ndarray
     we: np.ndarray
@@ -51,10 +52,18 @@ class Refinement:
     plan_cache_bytes = 256 * 2 ** 20
 
     @property
+    def plan_index_dtype(self) -> torch.dtype:
+        """Integer type of the block plans' sample indices (local to the channel windows): 16
+        bits where the windows allow, so that the plan cache holds more blocks (256 elements:
+        167 blocks in :attr:`plan_cache_bytes` instead of 117 with 64-bit indices)."""
+        return torch.int16 if self.window_samples < 2 ** 15 else torch.int32
+
+    @property
     def plan_cache_blocks(self) -> int:
         """Block DAS plans kept in memory (from :attr:`plan_cache_bytes`)."""
         model = self.model
-        per = len(model.transmits) * model.block ** 2 * model.n_elements * (8 + 4 + 8)
+        entry = self.plan_index_dtype.itemsize + model.dtype.itemsize + model.cdtype.itemsize
+        per = len(model.transmits) * model.block ** 2 * model.n_elements * entry
         return max(16, self.plan_cache_bytes // per)
 
     def _plans_for_blocks(self, blocks: list) -> list:
@@ -76,7 +85,8 @@ class Refinement:
                 sizes.append(Z.numel())
             dtx = self._block_transmit_distances(missing, xs, zs)
             per_tx = list(zip(*self._window_plans(torch.cat(xs), torch.cat(zs), dtx)))
-            stacked = (torch.stack(per_tx[0]).to(model.device), torch.stack(per_tx[1]).to(model.device, model.dtype),
+            stacked = (torch.stack(per_tx[0]).to(model.device, self.plan_index_dtype),
+                       torch.stack(per_tx[1]).to(model.device, model.dtype),
                        torch.stack(per_tx[2]).to(model.device, model.cdtype))
             parts = [a.split(sizes, dim=1) for a in stacked]
             for i, q in enumerate(missing):
@@ -115,8 +125,8 @@ class Refinement:
         256-element probe)."""
         if not isinstance(X, RawChannels) and not X.requires_grad and X.device.type == "cpu":
             # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
-            y = torch.view_as_real(X).permute(3, 0, 1, 2).contiguous().numpy()
-            X = RawChannels(y, np.ones(y.shape[2], dtype=y.dtype), 1)
+            y = torch.view_as_real(X).permute(1, 3, 0, 2).contiguous().numpy()
+            X = RawChannels(y, np.ones(y.shape[0], dtype=y.dtype), 1)
         blocks = [(int(qz), int(qx)) for qz, qx in blocks]
         if len(blocks) > self.das_blocks:
             step = self.das_blocks
@@ -231,7 +241,10 @@ class Refinement:
         I/Q channels X (ntx, Ne, T), formed :attr:`channel_group` selections at a time: one
         product with every pair channel per group (a whole batch's channels of a 256-element
         probe are about 1 GB). With ``raw`` (for :meth:`_das` only), on the CPU and without
-        gradient, X is the product's :class:`RawChannels`."""
+        gradient, X is the product's :class:`RawChannels`, formed for the receive elements the
+        group uses only (:meth:`_receive_products`; a group of one selection: its own). Per
+        receive element's selections would cost more: a group's product is bound by reading
+        ``pair_channels``, which the whole product reads once."""
         group = self.channel_group
         raw = raw and self.raw_channels and w.device.type == "cpu" and not w.requires_grad
         ne, ntx = self.model.n_elements, len(self.model.transmits)
@@ -241,7 +254,14 @@ class Refinement:
             if not raw:
                 yield from zip(part, self.channels(wg))
                 continue
-            y = (wg @ self.pair_channels).numpy().reshape(len(part), 2, ntx, ne, self.window_samples)
+            shape = (len(part), ne, 2, ntx, self.window_samples)
+            if bool((wg != 0).any(0).all()):
+                y = (wg @ self.pair_channels).view(shape)  # every receive element is used
+            else:
+                y = torch.empty(shape, dtype=wg.dtype)
+                for e0, e1, _, ys in self._receive_products(wg, subsets=False):
+                    y[:, e0:e1] = ys
+            y = y.numpy()
             we = wg.numpy().astype(y.dtype)
             yield from ((i, RawChannels(y[k], we[k], self.segment)) for k, i in enumerate(part))
 
