@@ -548,3 +548,25 @@ def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeyp
         assert torch.equal(seen, used)
     else:
         assert torch.equal(seen, used.amax(0, keepdim=True).expand_as(seen))
+
+
+def test_compiled_block_bounds_equal_the_sparse_product(no_cache):
+    """The certificates' block bounds summed compiled (channel by channel, the channels of
+    unused receive elements skipped) equal the sparse product of the block matrix with the
+    envelopes, on both tiers, per block and as the maximum, for one selection and for a mixed
+    batch."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    ne = model.n_elements
+    mixed = _mixed_weights(ne, seed=6)
+    mixed[:, 3] = 0
+    tiers = [1, 2] if fast.block_envelopes_band.shape[0] else [1]
+    for w in (mixed[2:3], mixed):
+        env = fast.envelopes(w)
+        for tier in tiers:
+            S = fast.block_envelopes_e if tier == 1 else fast.block_envelopes_band
+            want = torch.sparse.mm(S, env)
+            got = fast.bound(w, tier, per_block=True, env=env)
+            torch.testing.assert_close(got, want, rtol=1e-12, atol=0)
+            torch.testing.assert_close(fast.bound(w, tier, env=env), want.amax(0), rtol=1e-12, atol=0)
+    assert fast.bound(mixed[4:5], 1).abs().max() == 0  # no element used: nothing to bound

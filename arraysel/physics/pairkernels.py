@@ -225,3 +225,53 @@ def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarra
     out = np.empty((i0.shape[1], 2), dtype=np.float64)
     _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out)
     return out
+
+
+#: channels whose envelope entries are summed in the envelopes' precision before the sum moves
+#: to float64 in :func:`block_bound_sums` (float32: relative error at most 31 u < 2e-6, well
+#: inside the bounds' 1e-4 margin; twice the speed of float64 throughout)
+_BOUND_PARTIAL = 32
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _block_bound_sums_kernel(env, index, chans, group, partial, out):
+    """``out[q, b] = sum_{c in chans} env[c, index[c, q], b]`` over ``index[c, q] >= 0``: partial
+    sums over ``partial`` channels in env's precision, their total in float64. env: (nch, L, B)
+    float; index: (nch, nQ) int32; out: (nQ, B) float64. Parallel over groups of ``group``
+    consecutive blocks, channel by channel inside a group: neighbouring blocks read
+    neighbouring rows of a channel's envelopes, which stay in cache for the group (a block at a
+    time, or every block channel by channel, reads them from memory again)."""
+    nq = index.shape[1]
+    B = env.shape[2]
+    nc = chans.shape[0]
+    for g in numba.prange((nq + group - 1) // group):
+        q0 = g * group
+        q1 = min(nq, q0 + group)
+        acc = np.zeros((q1 - q0, B), np.float64)
+        part = np.zeros((q1 - q0, B), env.dtype)
+        for c0 in range(0, nc, partial):
+            for ci in range(c0, min(nc, c0 + partial)):
+                ch = chans[ci]
+                for q in range(q0, q1):
+                    k = index[ch, q]
+                    if k >= 0:
+                        for b in range(B):
+                            part[q - q0, b] += env[ch, k, b]
+            for q in range(q1 - q0):
+                for b in range(B):
+                    acc[q, b] += part[q, b]
+                    part[q, b] = 0.0
+        for q in range(q0, q1):
+            for b in range(B):
+                out[q, b] = acc[q - q0, b]
+
+
+def block_bound_sums(env: np.ndarray, index: np.ndarray, chans: np.ndarray, group: int = 64) -> np.ndarray:
+    """Sums, per grid block ``q`` and selection ``b``, of the envelope entries the blocks read:
+    ``sum_c env[c, index[c, q], b]`` over the channels ``chans`` (int64; the others are zero)
+    and the entries with ``index[c, q] >= 0`` (the certificates' block bounds, what the sparse
+    product with ``block_envelopes_*`` gives; float64 totals of float32 partial sums). env:
+    (nch, L, B) float; index: (nch, nQ) int32. Returns (nQ, B) float64."""
+    out = np.empty((index.shape[1], env.shape[2]), dtype=np.float64)
+    _block_bound_sums_kernel(env, index, chans, max(1, int(group)), _BOUND_PARTIAL, out)
+    return out

@@ -140,6 +140,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         self._block_plans: dict = {}
         self._e_plan_holder: dict = {}  # E's DAS plan (Refinement._e_plans), shared with truncated views
         self._block_dtx: dict = {}  # blocks' transmit distances (Refinement._block_transmit_distances)
+        self._block_index: dict = {}  # per tier, the blocks' envelope entries (Certificates._bound_index)
         #: kernels that reached each costly step since the basis was made (shared with truncated
         #: views): ``"finer"`` (the stored rank's tighter bound), ``"exact_windows"`` (their
         #: window delay-and-summed exactly)
