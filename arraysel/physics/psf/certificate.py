@@ -9,8 +9,8 @@ block Q of pixels ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_neQ} |X_ne(t)|``, whe
 spans the samples the block's pixels read. The maxima come from aligned segments of
 ``segment`` samples: ``[lo, hi]`` lies inside segments ``lo // segment .. hi // segment``, and
 the envelope of every run of 1 .. ``max_run`` consecutive segments is formed once per batch
-(:meth:`Certificates.envelopes`), so one sparse product sums the right run for every (block,
-transmit, element).
+(:meth:`Certificates.envelopes`), so a block's bound sums one entry per (transmit, element):
+the right run (:meth:`Certificates.bound`: compiled on the CPU, a sparse product elsewhere).
 
 :class:`Certificates` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`.
 """
