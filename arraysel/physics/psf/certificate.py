@@ -39,10 +39,6 @@ class Certificates:
         model = self.model
         ne = model.n_elements
         T = self.window_samples
-        # A[j, (n, e, r, a)] = I/Q sample t = a segment + r of (rx e, tx j): the channel of receive e on
-        # transmit n is m_e sum_j m_j A[j, (n, e, :, :)]; samples are stored segment-offset major
-        # so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
-        ntx = X.shape[0]
         # A[j, (e, c, n, r, a)] = part c (0: re, 1: im) of sample t = a segment + r of (rx e, tx j)
         # on transmit n: the channels of receive e on every transmit are m_e sum_j m_j A[j, (e, ...)],
         # one contiguous block of columns (:meth:`_receive_products`); samples are stored
@@ -99,8 +95,12 @@ class Certificates:
         rows_i, cols_i = rows_i[order], cols_i[order]
         crow = torch.zeros(nq + 1, dtype=torch.long)
         crow[1:] = torch.cumsum(torch.bincount(rows_i, minlength=nq), 0)
-        vals = torch.full((rows_i.numel(),), 1.0 + 1e-4, dtype=model.dtype)  # rounding safety margin
+        vals = torch.full((rows_i.numel(),), self.bound_margin, dtype=model.dtype)
         return sparse_csr(crow, cols_i, vals, (nq, width)).to(model.device)
+
+    #: rounding safety margin of the block bounds: the block matrices' entries, and the factor
+    #: of the compiled sums (:meth:`bound`)
+    bound_margin = 1.0 + 1e-4
 
     #: bytes of one product in :meth:`_receive_products` (kept in cache)
     receive_step_bytes = 2 << 20
@@ -196,15 +196,13 @@ class Certificates:
             index = self._block_index[tier] = index.numpy()
         return index
 
-    #: the margin of the block matrices' entries (``1 + 1e-4``), applied to the compiled sums
-    bound_margin = 1.0 + 1e-4
-
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
         """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2);
         with ``per_block`` the (nQ, B) bounds of every block. ``env``: :meth:`envelopes` of w.
 
         On the CPU the sums run compiled, channel by channel over the channels of the receive
-        elements the selections use, in float64 (:func:`~arraysel.physics.pairkernels.block_bound_sums`:
+        elements the selections use, float32 partial sums totalled in float64
+        (:func:`~arraysel.physics.pairkernels.block_bound_sums`:
         the sparse product read the envelopes block by block, out of cache); elsewhere they are
         the sparse product with the block matrix."""
         S = self.block_envelopes_e if tier == 1 else self.block_envelopes_band

@@ -8,7 +8,7 @@ from arraysel.physics.psf.basis import BUILD_RANK_TOL, PairBasis
 
 #: version of the stored state (:meth:`PairBasis.state` plus ``window_estimate``); bump it when
 #: its keys or meaning change (11: ``window_estimate`` added; 13: sketched bases from a sparse
-#: sign sketch over tiles of pixels)
+#: sign sketch over tiles of pixels; 14: ``pair_channels`` stored receive-element major)
 BASIS_VERSION = 14
 #: the stored model's :meth:`~arraysel.physics.psf.operator.PSFModel.window_estimate`, read
 #: before the basis so that a cold start need not recompute it for the memory guard
