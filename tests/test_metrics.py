@@ -26,6 +26,18 @@ from arraysel.objective.metrics import (
     si_mse,
 )
 
+from arraysel.objective import metric_kernels
+from arraysel.objective import metrics as metrics_module
+
+
+@pytest.fixture(params=["compiled", "torch"], autouse=True)
+def metrics_path(request, monkeypatch):
+    """Every test here runs twice: with the compiled pass of psf_metrics taken wherever it applies
+    (no gradient, CPU) and with torch's operations only."""
+    monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", request.param == "compiled")
+    return request.param
+
+
 # SPEC paper scene: lambda0 = c / fc, pitch = (c / fs) / 4 with fs = 4 fc -> lambda0 / 16
 C, FC = 1540.0, 3.5e6
 LAM = C / FC
@@ -570,3 +582,115 @@ def test_shared_peak_batch_matches_one_by_one():
         one = psf_metrics(kappa[i], **kw)
         for name, v in one.items():
             assert torch.allclose(batch[name][i], v, rtol=1e-5, atol=1e-7), name
+
+
+# ---------------------------------------------------------------- the compiled pass
+
+def _psf_like(b, h, w, dtype, seed):
+    """Kernels with a main lobe, side lobes and noise; peaks moved to edges and corners."""
+    g = torch.Generator().manual_seed(seed)
+    i = torch.arange(h, dtype=torch.float64)[:, None]
+    j = torch.arange(w, dtype=torch.float64)[None, :]
+    ks = []
+    for n in range(b):
+        i0 = float(torch.randint(0, h, (1,), generator=g))
+        j0 = float(torch.randint(0, w, (1,), generator=g))
+        lobe = torch.exp(-((i - i0) ** 2 + (j - j0) ** 2) / 40.0) * torch.exp(1j * 0.4 * (i - i0))
+        side = 0.05 * torch.cos((j - j0) / 2.0) * torch.exp(-((i - i0) / 30.0) ** 2)
+        noise = 0.01 * torch.randn(h, w, dtype=torch.complex128, generator=g)
+        ks.append(lobe + side + noise)
+    return (torch.stack(ks) * 1e-3).to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.complex64, torch.complex128, torch.float32, torch.float64])
+def test_compiled_pass_equals_torch_operations(dtype):
+    """The compiled pass against torch's operations in float64 (the same definitions): float64
+    kernels to rounding; float32 ones closer than torch's own float32 operations; the quantile's
+    order statistics are the same pixels (k2 is formed as torch forms it)."""
+    h, w = 48, 40
+    ks = _psf_like(10, h, w, torch.complex128, 3)
+    if not dtype.is_complex:
+        ks = ks.real
+    ks[3] = 0                                             # a zero kernel
+    ks[4] = ks[4] * 1e30 if dtype in (torch.complex128, torch.float64) else ks[4] * 1e20
+    ks[5, 7, 9] = ks[5].abs().max() * 2                  # a single-pixel peak
+    ks[6, 2, 3] = ks[6, 20, 30] = ks[6].abs().max() * 2   # a tie: the first in row-major order
+    ref = _psf_like(1, h, w, torch.complex128, 11)[0]
+    k = ks.to(dtype)
+    r = ref.to(torch.complex64 if dtype in (torch.complex64, torch.float32) else torch.complex128)
+    for q, rm, rg in [(0.99, 1.5, 2.5), (0.5, 1.0, 1.0), (0.0, 2.0, 3.0), (1.0, 0.3, 0.7), (0.99, 1.0, 80.0)]:
+        kw = dict(pitch=0.1, wavelength=1.0, r_main=rm, r_guard=rg, quantile=q)
+        fast = psf_metrics(k, kappa_ref=r, compiled=True, **kw)
+        slow = psf_metrics(k, kappa_ref=r, compiled=False, **kw)
+        exact = psf_metrics(k.to(torch.complex128 if dtype.is_complex else torch.float64),
+                            kappa_ref=r.to(torch.complex128), compiled=False, **kw)
+        for name in PSF_TERMS:
+            assert fast[name].dtype == slow[name].dtype
+            assert bool(torch.isfinite(fast[name]).all())
+            f, s_, e = fast[name].double(), slow[name].double(), exact[name]
+            if dtype in (torch.complex128, torch.float64):
+                torch.testing.assert_close(f, e, rtol=1e-12, atol=1e-14)
+            else:
+                assert float((f - e).abs().max()) <= max(float((s_ - e).abs().max()), 1e-7) + 1e-7, name
+        torch.testing.assert_close(fast["L_SLR_q"], slow["L_SLR_q"], rtol=2e-7, atol=0)
+        # the zero kernel: L_PSF 1, ratios 0, as the torch path
+        assert fast["L_PSF"][3].item() == pytest.approx(1.0) and fast["L_SLR_i"][3].item() == 0.0
+    # r_guard beyond the window: an empty side region gives 0 side terms on both paths
+    kw = dict(pitch=0.1, wavelength=1.0, r_main=1.0, r_guard=80.0)
+    fast = psf_metrics(k, kappa_ref=r, compiled=True, **kw)
+    assert float(fast["L_SLR_i"].abs().max()) == 0.0 and float(fast["L_SLR_q"].abs().max()) == 0.0
+
+
+def test_compiled_pass_known_answers_and_non_finite_kernels():
+    # the piecewise-constant kernel of test_contrast_slr_piecewise_constant_by_hand, batched with
+    # copies shifted so that the regions are cut by the window's edges differently
+    k = torch.full((9, 9), 0.1, dtype=torch.float64)
+    k[2:7, 2:7] = 0.3
+    for di, dj in [(1, 0), (-1, 0), (0, 1), (0, -1)]:
+        k[4 + di, 4 + dj] = 0.5
+    k[4, 4] = 1
+    out = psf_metrics(k[None].to(torch.complex128), pitch=1.0, wavelength=1.0, r_main=1.0, r_guard=3.0,
+                      kappa_ref=k, compiled=True)
+    assert out["L_PSF"].item() == pytest.approx(0.0, abs=1e-15)
+    assert out["L_contrast"].item() == pytest.approx(0.01 / 0.4, rel=1e-12)
+    assert out["L_SLR_i"].item() == pytest.approx(56 * 0.01 / 2.0, rel=1e-12)
+    assert out["L_SLR_q"].item() == pytest.approx(0.1, rel=1e-12)
+    # SI-MSE: a scaled, phase-rotated copy scores 0, an orthogonal kernel 1
+    a = torch.zeros(2, 4, 4, dtype=torch.complex128)
+    a[0, 1, 1] = 2j
+    a[1, 2, 2] = 1
+    ref = torch.zeros(4, 4, dtype=torch.complex128)
+    ref[1, 1] = 1
+    out = psf_metrics(a, pitch=1.0, wavelength=1.0, r_main=1.0, r_guard=1.0, kappa_ref=ref, compiled=True)
+    assert out["L_PSF"].tolist() == pytest.approx([0.0, 1.0], abs=1e-15)
+    # a NaN or Inf entry gives NaN metrics for that kernel only, never a finite number
+    ks = _psf_like(4, 16, 16, torch.complex64, 5)
+    ks[1, 3, 3] = float("nan")
+    ks[2, 4, 4] = float("inf")
+    out = psf_metrics(ks, pitch=0.1, wavelength=1.0, kappa_ref=ks[0], compiled=True)
+    for name in PSF_TERMS:
+        assert bool(torch.isnan(out[name][1:3]).all()), name
+        assert bool(torch.isfinite(out[name][[0, 3]]).all()), name
+
+
+def test_compiled_pass_is_taken_only_where_it_applies(monkeypatch):
+    calls = []
+    real = metric_kernels.psf_metrics_compiled
+    monkeypatch.setattr(metric_kernels, "psf_metrics_compiled", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", True)
+    k = _psf_like(3, 16, 16, torch.complex64, 2)
+    kw = dict(pitch=0.1, wavelength=1.0, kappa_ref=k[0])
+    psf_metrics(k, **kw)
+    assert len(calls) == 1
+    # a gradient wanted, a reference of higher precision, compiled=False, half precision: torch
+    x = k.clone().requires_grad_(True)
+    out = psf_metrics(x, **kw)
+    out["Mean"].sum().backward()
+    assert x.grad is not None and bool(torch.isfinite(torch.view_as_real(x.grad)).all())
+    psf_metrics(k, pitch=0.1, wavelength=1.0, kappa_ref=k[0].to(torch.complex128))
+    psf_metrics(k, compiled=False, **kw)
+    psf_metrics(k.real.half(), pitch=0.1, wavelength=1.0)
+    assert len(calls) == 1
+    with torch.no_grad():
+        psf_metrics(x, **kw)
+    assert len(calls) == 2

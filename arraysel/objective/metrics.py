@@ -326,18 +326,24 @@ def _peak_index(k2: Tensor) -> Tensor:
     return torch.argmax(k2.detach(), dim=-1)
 
 
-def _regions_flat(kappa: Tensor, pitch, wavelength, r_main, r_guard, distance: bool,
-                  flat_peak: Tensor | None = None, mask_dtype: torch.dtype = torch.bool) -> PSFRegions:
-    """Regions for kappa of shape (B, H, W); masks as ``mask_dtype`` (bool or 0/1 float)."""
+def _region_radii(pitch, wavelength, r_main, r_guard) -> tuple[float, float, float, float]:
+    """Validated (pitch_rows, pitch_cols, r_main, r_guard), the radii in metres."""
     pr, pc = _parse_pitch(pitch)
     lam = check_number("wavelength", wavelength, lo=0, lo_open=True)
     rm = check_number("r_main", r_main, lo=0)
     rg = check_number("r_guard", r_guard, lo=0)
     if rg < rm:
         raise ParameterError(f"r_guard = {r_guard!r} must be >= r_main = {r_main!r} (both in wavelengths)")
+    return pr, pc, rm * lam, rg * lam
+
+
+def _regions_flat(kappa: Tensor, pitch, wavelength, r_main, r_guard, distance: bool,
+                  flat_peak: Tensor | None = None, mask_dtype: torch.dtype = torch.bool) -> PSFRegions:
+    """Regions for kappa of shape (B, H, W); masks as ``mask_dtype`` (bool or 0/1 float)."""
+    pr, pc, rm, rg = _region_radii(pitch, wavelength, r_main, r_guard)
     b, h, w = kappa.shape
     dev = kappa.device
-    tmain, tside = _device_masks(h, w, pr, pc, rm * lam, rg * lam, dev, mask_dtype)
+    tmain, tside = _device_masks(h, w, pr, pc, rm, rg, dev, mask_dtype)
     if flat_peak is None:
         flat_peak = _peak_index(_scaled_abs2(kappa.detach()))
     i0 = torch.div(flat_peak, w, rounding_mode="floor")
@@ -350,7 +356,7 @@ def _regions_flat(kappa: Tensor, pitch, wavelength, r_main, r_guard, distance: b
     r = None
     if distance:
         rdt = kappa.real.dtype if kappa.is_complex() else kappa.dtype
-        d2 = _offset_tables(h, w, pr, pc, rm * lam, rg * lam)[0]
+        d2 = _offset_tables(h, w, pr, pc, rm, rg)[0]
         r = d2.sqrt().to(device=dev, dtype=rdt)[ri, ci]
     return PSFRegions(peak=torch.stack([i0, j0], dim=-1), main=main, side=side, r=r)
 
@@ -452,9 +458,58 @@ def _parse_terms(terms: Iterable[str] | None, have_ref: bool) -> tuple[str, ...]
     return tuple(out)
 
 
+#: whether :func:`psf_metrics` takes the compiled pass where it applies when not told
+#: (``compiled=None``); the tests run every metric both ways
+_COMPILED_BY_DEFAULT = True
+
+
+def _compiled_applies(flat: Tensor, ref: Tensor | None, compiled: bool | None) -> bool:
+    """Whether :func:`psf_metrics` takes the compiled pass
+    (:mod:`arraysel.objective.metric_kernels`): kernels on the CPU, no gradient wanted, and
+    (with ``L_PSF``) one reference kernel of no higher precision. ``compiled=False``: never;
+    ``None``: whenever it applies (:data:`_COMPILED_BY_DEFAULT`)."""
+    if compiled is False or (compiled is None and not _COMPILED_BY_DEFAULT):
+        return False
+    if flat.device.type != "cpu" or flat.shape[0] == 0 or flat.dtype.to_real() not in (torch.float32, torch.float64):
+        return False
+    if torch.is_grad_enabled() and (flat.requires_grad or (ref is not None and ref.requires_grad)):
+        return False
+    if ref is None:
+        return True
+    if ref.device.type != "cpu" or ref.numel() != flat.shape[-2] * flat.shape[-1]:
+        return False
+    return torch.promote_types(flat.dtype, ref.dtype).to_real() == flat.dtype.to_real()
+
+
+def _compiled_terms(flat: Tensor, ref: Tensor | None, pitch, wavelength, r_main, r_guard,
+                    q: float) -> dict[str, Tensor]:
+    """L_PSF (with a reference) and the lobe terms of the kernels ``flat`` (B, H, W), real or
+    complex, by the compiled pass, as (B,) tensors in the kernels' real dtype. A real kernel
+    is read as complex with a zero imaginary part: the same ``|kappa|^2`` to the bit."""
+    from arraysel.objective.metric_kernels import psf_metrics_compiled
+
+    b, h, w = flat.shape
+    pr, pc, rm, rg = _region_radii(pitch, wavelength, r_main, r_guard)
+    _, main, side = _offset_tables(h, w, pr, pc, rm, rg)
+    cdt = flat.dtype if flat.is_complex() else flat.dtype.to_complex()
+    if ref is None:
+        rv, rr = torch.zeros(h * w, 2, dtype=flat.dtype.to_real()), 0.0
+    else:
+        r = ref.detach().reshape(h, w).to(cdt)
+        r = _divide_by_scale(r, _detached_scale(r))
+        rv = torch.view_as_real(r.resolve_conj()).reshape(h * w, 2)
+        rr = float((rv.double() ** 2).sum())
+    kv = torch.view_as_real(flat.detach().to(cdt).resolve_conj()).reshape(b, h * w, 2)
+    vals = psf_metrics_compiled(kv.numpy(), rv.contiguous().numpy(), rr, (h, w), main.numpy(), side.numpy(), q)
+    vals = torch.from_numpy(vals).to(flat.dtype.to_real())
+    names = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i")
+    return {n: vals[:, i] for i, n in enumerate(names) if ref is not None or n != "L_PSF"}
+
+
 def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: float,
                 kappa_ref: Tensor | None = None, r_main: float = 1.5, r_guard: float = 2.5,
-                quantile: float = 0.99, terms: Iterable[str] | None = None) -> dict[str, Tensor]:
+                quantile: float = 0.99, terms: Iterable[str] | None = None,
+                compiled: bool | None = None) -> dict[str, Tensor]:
     """PSF quality metrics of SPEC section 2 (Table 1 of the paper); lower is better.
 
     Parameters
@@ -476,6 +531,11 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
     terms : iterable of str, optional
         subset of :data:`PSF_TERMS` to compute (default: all that the inputs
         allow, i.e. without ``L_PSF``/``Mean`` when no ``kappa_ref``).
+    compiled : bool, optional
+        kernels on the CPU that need no gradient are scored by one compiled pass per kernel
+        (:mod:`arraysel.objective.metric_kernels`: the same values to float rounding, several
+        times faster); ``False`` keeps the torch operations, ``None`` (default) takes the
+        compiled pass wherever it applies.
 
     Returns
     -------
@@ -503,6 +563,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         need |= {"L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i"}
 
     out: dict[str, Tensor] = {}
+    ref = None
     if "L_PSF" in need:
         ref = _check_tensor("kappa_ref", kappa_ref)
         _check_kernel_shape("kappa_ref", ref)
@@ -513,9 +574,13 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         if shape != kappa.shape:
             raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
                                  f"shape {tuple(kappa.shape)}")
+    if _compiled_applies(flat, ref, compiled):
+        vals = _compiled_terms(flat, ref, pitch, wavelength, r_main, r_guard, q)
+        out.update({name: v.reshape(lead) for name, v in vals.items() if name in need})
+    elif ref is not None:
         out["L_PSF"] = si_mse(kappa, ref).reshape(lead)
 
-    lobe_terms = need & {"L_contrast", "L_SLR_q", "L_SLR_i"}
+    lobe_terms = (need - set(out)) & {"L_contrast", "L_SLR_q", "L_SLR_i"}
     if lobe_terms:
         b, h, w = flat.shape
         # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
