@@ -35,6 +35,7 @@ def metrics_path(request, monkeypatch):
     """Every test here runs twice: with the compiled pass of psf_metrics taken wherever it applies
     (no gradient, CPU) and with torch's operations only."""
     monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", request.param == "compiled")
+    monkeypatch.setattr(metrics_module, "_COMPILED_MIN_BATCH", 1)
     return request.param
 
 
@@ -678,8 +679,17 @@ def test_compiled_pass_is_taken_only_where_it_applies(monkeypatch):
     real = metric_kernels.psf_metrics_compiled
     monkeypatch.setattr(metric_kernels, "psf_metrics_compiled", lambda *a, **k: calls.append(1) or real(*a, **k))
     monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", True)
+    monkeypatch.setattr(metrics_module, "_COMPILED_MIN_BATCH", 3)
     k = _psf_like(3, 16, 16, torch.complex64, 2)
     kw = dict(pitch=0.1, wavelength=1.0, kappa_ref=k[0])
+    psf_metrics(k, **kw)
+    assert len(calls) == 1
+    # fewer kernels than the smallest batch: torch, unless told
+    psf_metrics(k[:2], **kw)
+    assert len(calls) == 1
+    psf_metrics(k[:2], compiled=True, **kw)
+    assert len(calls) == 2
+    calls.clear()
     psf_metrics(k, **kw)
     assert len(calls) == 1
     # a gradient wanted, a reference of higher precision, compiled=False, half precision: torch

@@ -461,14 +461,19 @@ def _parse_terms(terms: Iterable[str] | None, have_ref: bool) -> tuple[str, ...]
 #: whether :func:`psf_metrics` takes the compiled pass where it applies when not told
 #: (``compiled=None``); the tests run every metric both ways
 _COMPILED_BY_DEFAULT = True
+#: fewest kernels the compiled pass is taken for when not told: loading it in a fresh process
+#: (numba's cached machine code and its threads) costs about 0.3 s, torch's operations about a
+#: millisecond a kernel, so a cold single-mask run stays on torch
+_COMPILED_MIN_BATCH = 8
 
 
 def _compiled_applies(flat: Tensor, ref: Tensor | None, compiled: bool | None) -> bool:
     """Whether :func:`psf_metrics` takes the compiled pass
     (:mod:`arraysel.objective.metric_kernels`): kernels on the CPU, no gradient wanted, and
     (with ``L_PSF``) one reference kernel of no higher precision. ``compiled=False``: never;
-    ``None``: whenever it applies (:data:`_COMPILED_BY_DEFAULT`)."""
-    if compiled is False or (compiled is None and not _COMPILED_BY_DEFAULT):
+    ``None``: whenever it applies to at least :data:`_COMPILED_MIN_BATCH` kernels
+    (:data:`_COMPILED_BY_DEFAULT`)."""
+    if compiled is False or (compiled is None and not (_COMPILED_BY_DEFAULT and flat.shape[0] >= _COMPILED_MIN_BATCH)):
         return False
     if flat.device.type != "cpu" or flat.shape[0] == 0 or flat.dtype.to_real() not in (torch.float32, torch.float64):
         return False

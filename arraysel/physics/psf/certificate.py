@@ -196,12 +196,18 @@ class Certificates:
             index = self._block_index[tier] = index.numpy()
         return index
 
+    #: fewest selections whose block bounds are summed compiled (:meth:`bound`): loading the
+    #: compiled sums in a fresh process costs about 0.3 s, so a cold single-mask run takes the
+    #: sparse product
+    compiled_bound_min = 8
+
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
         """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2);
         with ``per_block`` the (nQ, B) bounds of every block. ``env``: :meth:`envelopes` of w.
 
-        On the CPU the sums run compiled, channel by channel over the channels of the receive
-        elements the selections use, float32 partial sums totalled in float64
+        On the CPU, for at least :attr:`compiled_bound_min` selections, the sums run compiled,
+        channel by channel over the channels of the receive elements the selections use,
+        float32 partial sums totalled in float64
         (:func:`~arraysel.physics.pairkernels.block_bound_sums`:
         the sparse product read the envelopes block by block, out of cache); elsewhere they are
         the sparse product with the block matrix."""
@@ -211,7 +217,7 @@ class Certificates:
             return torch.zeros((0, B) if per_block else B, dtype=w.dtype, device=w.device)
         if env is None:
             env = self.envelopes(w)
-        if env.device.type == "cpu" and not env.requires_grad:
+        if env.device.type == "cpu" and not env.requires_grad and B >= self.compiled_bound_min:
             from arraysel.physics.pairkernels import block_bound_sums
 
             ntx, ne = len(self.model.transmits), self.model.n_elements
