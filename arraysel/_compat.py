@@ -19,7 +19,7 @@ MOVED = {
     "metrics": "objective.metrics",
     "selector": "selectors.contract", "hookspecs": "selectors.hookspecs", "registry": "selectors.registry",
     "relax": "selectors.relax", "localsearch": "selectors.localsearch",
-    "runner": "run._legacy_runner", "executors": "run._legacy_executors", "allocator": "run.allocator",
+    "runner": "run._legacy_runner", "executors": "run._legacy_executors", "allocator": "io.allocator",
     "reporting": "report.tables",
     "data": "e2e.data", "recon": "e2e.recon", "training": "e2e.trainer", "e2e_figures": "e2e.figures",
     "commands": "cli",

@@ -20,9 +20,9 @@ THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 def set_threads(n: int | None) -> None:
     """Limit BLAS/OpenMP threads and tune the allocator as the ``arraysel`` command does
-    (:func:`arraysel.run.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
+    (:func:`arraysel.io.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
     before numpy and torch do any work."""
-    from arraysel.run.allocator import tune_malloc
+    from arraysel.io.allocator import tune_malloc
 
     tune_malloc()
     if n is None:

@@ -49,7 +49,7 @@ def parse_args(argv=None):
                         "(by default a cached basis is loaded and the precompute figure is the load time)")
     p.add_argument("--skip-pymust", action="store_true", help="arraysel figures only (no PyMUST, no accuracy)")
     p.add_argument("--no-malloc-tune", action="store_true",
-                   help="leave glibc malloc at its defaults (arraysel.run.allocator; both pipelines run in "
+                   help="leave glibc malloc at its defaults (arraysel.io.allocator; both pipelines run in "
                         "this process, so the setting applies to both)")
     a = p.parse_args(argv)
     if a.warmup_masks < 0:
@@ -83,7 +83,7 @@ def main(argv=None):
     import numpy as np
     import torch
 
-    from arraysel.run.allocator import tune_malloc
+    from arraysel.io.allocator import tune_malloc
     from arraysel.objective.psf_objective import build_objective
 
     dtype = torch.float32 if args.dtype == "float32" else torch.float64

@@ -35,7 +35,7 @@ def main(argv=None):
     import numpy as np
     import torch
 
-    from arraysel.run.allocator import tune_malloc
+    from arraysel.io.allocator import tune_malloc
     from arraysel.objective.psf_objective import Objective
 
     tune_malloc()

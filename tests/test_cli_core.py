@@ -52,7 +52,7 @@ def test_evaluate_rejects_bad_masks_with_line_number(tmp_path, capsys, line, msg
 
 
 def test_malloc_tuning_is_optional_and_idempotent(monkeypatch):
-    from arraysel.run import allocator
+    from arraysel.io import allocator
 
     monkeypatch.setattr(allocator, "_state", {})
     monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "off")
@@ -63,6 +63,46 @@ def test_malloc_tuning_is_optional_and_idempotent(monkeypatch):
     first = allocator.tune_malloc()
     assert first is (allocator._glibc() is not None)  # in effect exactly where glibc is present
     assert allocator.tune_malloc() is first
+
+
+def test_malloc_tuned_applies_the_settings_for_a_block_only(monkeypatch):
+    """The basis build's scoped tuning: the settings inside the block, glibc's defaults and a
+    trim after it (also after an error); nothing where tune_malloc is in effect or tuning is
+    disabled."""
+    from arraysel.io import allocator
+
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, key, value):
+            calls.append(("mallopt", key, value))
+            return 1
+
+        def malloc_trim(self, pad):
+            calls.append(("trim", pad))
+            return 1
+
+    fake = FakeLibc()
+    monkeypatch.setattr(allocator, "_glibc", lambda: fake)
+    monkeypatch.setattr(allocator, "_state", {})
+    monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "1")
+    with pytest.raises(RuntimeError):
+        with allocator.malloc_tuned():
+            assert calls == [("mallopt", allocator._M_MMAP_MAX, 0),
+                             ("mallopt", allocator._M_TRIM_THRESHOLD, allocator._TRIM_BYTES)]
+            raise RuntimeError("the build failed")
+    assert calls[2:] == [("mallopt", allocator._M_MMAP_MAX, allocator._DEFAULT_MMAP_MAX),
+                         ("mallopt", allocator._M_TRIM_THRESHOLD, allocator._DEFAULT_TRIM_BYTES),
+                         ("trim", 0)]
+    calls.clear()
+    monkeypatch.setattr(allocator, "_state", {"done": True})  # tune_malloc in effect: kept
+    with allocator.malloc_tuned():
+        pass
+    monkeypatch.setattr(allocator, "_state", {})
+    monkeypatch.setenv("ARRAYSEL_MALLOC_TUNE", "0")
+    with allocator.malloc_tuned():
+        pass
+    assert calls == []
 
 
 def test_default_time_budget_is_a_share_of_the_total():

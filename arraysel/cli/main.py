@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from arraysel.run.allocator import tune_malloc
+    from arraysel.io.allocator import tune_malloc
 
     tune_malloc()
     try:

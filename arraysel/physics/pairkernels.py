@@ -95,14 +95,20 @@ def _pair_images_kernel(X, i0, wt, rr, ri, nchunk, group, out):
                                 out[1, p, row + e] = D[q, e, 1, e]
 
 
-def pair_images(X: np.ndarray, plan: tuple) -> np.ndarray:
+def pair_images(X: np.ndarray, plan: tuple, buffer: np.ndarray | None = None) -> np.ndarray:
     """Symmetric pair images (2, Npix, P) float64 [re, im] of every pair (upper-triangle order)
     on the plan's pixels. ``X`` and ``plan`` = (i0, wt, rr, ri) as documented in
-    :func:`_pair_images_kernel`."""
+    :func:`_pair_images_kernel`. ``buffer``: a float64 array of at least ``2 Npix P`` entries to
+    write them into (a caller calling many times reuses its memory instead of having fresh
+    pages mapped for each call)."""
     i0, wt, rr, ri = plan
     ne = X.shape[1]
-    out = np.empty((2, i0.shape[2], ne * (ne + 1) // 2), dtype=np.float64)
     npix = i0.shape[2]
+    shape = (2, npix, ne * (ne + 1) // 2)
+    if buffer is None:
+        out = np.empty(shape, dtype=np.float64)
+    else:
+        out = buffer.reshape(-1)[:shape[0] * shape[1] * shape[2]].reshape(shape)
     nchunk = max(1, min(-(-npix // _PIXEL_GROUP), 4 * numba.get_num_threads()))
     _pair_images_kernel(X, i0, wt, rr, ri, nchunk, _PIXEL_GROUP, out)
     return out

@@ -95,7 +95,7 @@ def _run_on_worker(token: str, fn: Callable, item):
 
 
 def _process_init(token: str, factory, threads: int) -> None:
-    from arraysel.run.allocator import tune_malloc
+    from arraysel.io.allocator import tune_malloc
 
     tune_malloc()
     if threads:

@@ -295,19 +295,32 @@ class BasisBuild:
         plan's pixels): ``Ht`` (2 |G|, P) float64, the symmetric pair images of every pair on
         those pixels, real rows then imaginary rows (the pixels' [re | im] columns of the pair
         images, transposed). Consecutive tiles share a kernel call up to
-        :attr:`build_tile_bytes` of output."""
+        :attr:`build_tile_bytes` of output. The kernel's output and the tiles are written into
+        buffers reused from tile to tile (each ``Ht`` is overwritten by the next): fresh
+        hundred-megabyte arrays for every tile had the kernel map and zero 33 GB of pages in a
+        256-element build."""
         from arraysel.physics.pairkernels import pair_images
 
         P = self.pairs_e.numel()
         per_call = max(1, self.build_tile_bytes // (P * 16))
+        tiles = list(tiles)
+        buffer = np.empty(2 * min(per_call, sum(G.numel() for G in tiles)) * P, dtype=np.float64)
+        tile_buf = torch.empty(2 * max(G.numel() for G in tiles) * P, dtype=torch.float64)
 
         def run(group):
             pix = torch.cat(group).numpy()
-            v = torch.from_numpy(pair_images(X, tuple(np.ascontiguousarray(a[:, :, pix]) for a in plan)))
+            v = torch.from_numpy(pair_images(X, tuple(np.ascontiguousarray(a[:, :, pix]) for a in plan),
+                                             buffer))
             at = 0
             for G in group:
-                yield G, v[:, at:at + G.numel()].reshape(2 * G.numel(), P)
-                at += G.numel()
+                g = G.numel()
+                if len(group) == 1:
+                    yield G, v.view(2 * g, P)
+                else:
+                    Ht = tile_buf[:2 * g * P].view(2 * g, P)
+                    Ht.view(2, g, P).copy_(v[:, at:at + g])
+                    yield G, Ht
+                at += g
 
         group, n = [], 0
         for G in tiles:
@@ -425,10 +438,18 @@ class BasisBuild:
             if self.keeps_images(P, npix, model.dtype) else None
 
         def tile_images():
-            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`_pair_image_tiles`)
+            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`_pair_image_tiles`),
+            # each written over the previous one (reused buffers: no fresh pages for each tile)
             if kept is None:
-                return self._pair_image_tiles(X, plan, tiles)
-            return ((G, kept[_tile_rows(G, npix)].double()) for G in tiles)
+                yield from self._pair_image_tiles(X, plan, tiles)
+                return
+            rows_max = 2 * max(G.numel() for G in tiles)
+            b32 = torch.empty(rows_max, P, dtype=kept.dtype)
+            b64 = torch.empty(rows_max, P, dtype=torch.float64)
+            for G in tiles:
+                n = 2 * G.numel()
+                torch.index_select(kept, 0, _tile_rows(G, npix), out=b32[:n])
+                yield G, b64[:n].copy_(b32[:n])
 
         # the sketch only has to span the dominant subspace (what it misses is measured exactly
         # below), so it is accumulated in float32
@@ -449,9 +470,10 @@ class BasisBuild:
         m = 2 * tile * tile
         grams = torch.zeros(len(tiles), m, m, dtype=torch.float64)
         gram_s = 0.0
+        prod = torch.empty(2 * max(G.numel() for G in tiles), Q.shape[1], dtype=torch.float64)
         for t, (G, Ht) in enumerate(tile_images()):
             rows = _tile_rows(G, npix)
-            Bt[rows] = Ht @ Q
+            Bt[rows] = torch.matmul(Ht, Q, out=prod[:Ht.shape[0]])
             at = in_core[rows]
             Hc[:, at[at >= 0]] = Ht[at >= 0].T
             t0 = time.perf_counter()

@@ -14,9 +14,14 @@ freed memory for reuse (``mallopt(M_MMAP_MAX, 0)`` and a 1 GiB
 it exits. The ``arraysel`` command line and the benchmarks call it at start;
 a library user may call it too. ``ARRAYSEL_MALLOC_TUNE=0`` disables it. On a
 C library other than glibc it does nothing.
+
+:func:`malloc_tuned` applies the same settings for the duration of a ``with`` block only (the
+PSF basis build, whose temporaries of hundreds of MiB otherwise map and zero tens of GB of
+fresh pages), then restores glibc's defaults and returns the freed memory to the system.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import logging
@@ -28,6 +33,9 @@ _log = logging.getLogger(__name__)
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_MAX = -4
 _TRIM_BYTES = 1 << 30
+# glibc's defaults, restored by malloc_tuned
+_DEFAULT_MMAP_MAX = 65536
+_DEFAULT_TRIM_BYTES = 128 * 1024
 
 _state: dict = {}
 
@@ -47,6 +55,8 @@ def _glibc():
         libc.gnu_get_libc_version()  # only glibc has it
         libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
         libc.mallopt.restype = ctypes.c_int
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        libc.malloc_trim.restype = ctypes.c_int
         return libc
     except (OSError, AttributeError):
         return None
@@ -69,3 +79,23 @@ def tune_malloc() -> bool:
                 _log.warning("mallopt refused the allocator settings; large tensors stay mmap-backed")
     _state["done"] = done
     return done
+
+
+@contextlib.contextmanager
+def malloc_tuned():
+    """The settings of :func:`tune_malloc` inside the ``with`` block, glibc's defaults and a
+    ``malloc_trim`` after it (nothing changes where :func:`tune_malloc` is already in effect,
+    tuning is disabled, or the C library is not glibc). The 256-element basis build: 172 s
+    untuned, 151 s tuned (its pair I/Q step 23.6 -> 16.0 s, 9.0 -> 1.8 million page faults)."""
+    libc = None
+    if not _state.get("done") and malloc_tuning_enabled():
+        libc = _glibc()
+        if libc is not None and not (libc.mallopt(_M_MMAP_MAX, 0) and libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_BYTES)):
+            libc = None
+    try:
+        yield
+    finally:
+        if libc is not None:
+            libc.mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
+            libc.mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_BYTES)
+            libc.malloc_trim(0)
