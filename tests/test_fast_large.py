@@ -571,3 +571,33 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache):
             torch.testing.assert_close(got, want, rtol=1e-12, atol=0)
             torch.testing.assert_close(fast.bound(w, tier, env=env), want.amax(0), rtol=1e-12, atol=0)
     assert fast.bound(mixed[4:5], 1).abs().max() == 0  # no element used: nothing to bound
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
+    """The certificates' peak search compiled (batches without gradient on the CPU) against
+    torch's: the same peak pixels, thresholds and flags, with the error bounds as computed and
+    widened so that many pixels tie and the ambiguous images are settled exactly."""
+    from arraysel.physics.psf.refinement import Refinement
+
+    model = PSFModel(_setup(n_elements=16), dtype=dtype, fast=True, margin=2, block=4)
+    fast = model.basis
+    w = _weights(16, 12, seed=3)
+    w[4] = (torch.arange(16) % 2 == 0).to(dtype)
+    w = w.to(dtype)
+    img, eps, _ = fast.images(w, with_error=True)
+    r0, c0 = fast.rows.start, fast.cols.start
+    peak = img.abs().reshape(len(w), -1).amax(1)
+    tied = 0
+    for e in (eps, eps + 0.005 * peak, eps + 0.03 * peak, eps + 0.2 * peak):
+        got = {}
+        for name, least in (("compiled", 1), ("torch", 10 ** 9)):
+            monkeypatch.setattr(Refinement, "compiled_peaks_min", least)
+            got[name] = fast._locate(img, e, w, r0, c0)
+        (pz, px, thr, ok), (qz, qx, thr_t, ok_t) = got["compiled"], got["torch"]
+        assert torch.equal(ok, ok_t)
+        assert torch.equal(pz[ok], qz[ok]) and torch.equal(px[ok], qx[ok])
+        torch.testing.assert_close(thr, thr_t, rtol=1e-6, atol=0)
+        mag = img.abs().reshape(len(w), -1)
+        tied += int(((mag >= (mag.amax(1) - 2 * e)[:, None]).sum(1) > 1).sum())
+    assert tied > 10  # the widened bounds made near-ties that were settled exactly

@@ -280,6 +280,38 @@ def test_all_zero_image_raises_numerical_error():
         window_and_normalise(nan, 4)
 
 
+@pytest.mark.parametrize("dtype", [torch.complex64, torch.complex128])
+def test_compiled_window_cut_equals_torch(dtype, monkeypatch):
+    """cut_windows compiled (images without gradient, on the CPU) against torch's operations:
+    the same windows and norms to rounding, on scales from subnormal to near overflow, a zero
+    image (zero window, norm 0) and a non-finite one (NaN out, as torch)."""
+    from arraysel.physics.psf import window as W
+
+    g = torch.Generator().manual_seed(1)
+    img = torch.randn(12, 40, 36, dtype=dtype, generator=g)
+    tiny, huge = (1e-41, 1e37) if dtype == torch.complex64 else (1e-310, 1e300)
+    img[1] *= tiny
+    img[2] *= huge
+    img[3] = 0
+    z0 = torch.randint(0, 40 - 16 + 1, (12,), generator=g)
+    x0 = torch.randint(0, 36 - 16 + 1, (12,), generator=g)
+    img[4, z0[4] + 3, x0[4] + 5] = complex(math.nan, 0)
+    monkeypatch.setattr(W, "compiled_windows_min", 1)
+    fast, nf = W.cut_windows(img, z0, x0, 16)
+    monkeypatch.setattr(W, "compiled_windows_min", 10 ** 9)
+    slow, ns = W.cut_windows(img, z0, x0, 16)
+    assert fast.dtype == slow.dtype and nf.dtype == ns.dtype
+    ok = torch.tensor([i != 4 for i in range(12)])
+    rtol = 1e-5 if dtype == torch.complex64 else 1e-12
+    torch.testing.assert_close(fast[ok], slow[ok], rtol=rtol, atol=rtol * 1e-3)
+    torch.testing.assert_close(nf[ok], ns[ok], rtol=rtol, atol=0)
+    assert float(nf[3]) == 0.0 and bool((fast[3] == 0).all())
+    assert bool(torch.isnan(nf[4])) and bool(torch.isnan(torch.view_as_real(fast[4])).any())
+    norms = torch.linalg.vector_norm(torch.view_as_real(fast[ok]).reshape(11, -1), dim=1)
+    torch.testing.assert_close(norms[[0, 1, 2, 4, 5, 6, 7, 8, 9, 10]].double(),
+                               torch.ones(10, dtype=torch.float64), rtol=rtol, atol=0)
+
+
 # ---------------------------------------------------------------------------
 # extreme physics: near field, deep and attenuated, tilts, bandwidths, widths
 # ---------------------------------------------------------------------------

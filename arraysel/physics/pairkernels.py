@@ -283,3 +283,113 @@ def block_bound_sums(env: np.ndarray, index: np.ndarray, chans: np.ndarray, grou
     out = np.empty((index.shape[1], env.shape[2]), dtype=np.float64)
     _block_bound_sums_kernel(env, index, chans, max(1, int(group)), _BOUND_PARTIAL, out)
     return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _cut_windows_kernel(img, z0, x0, n, out, norms):
+    """Windows ``out[b] = img[b, z0:z0 + n, x0:x0 + n] / top / norm`` with ``top`` the window's
+    largest magnitude (1 when zero) and ``norm`` the L2 norm of the window divided by ``top``
+    (1 when zero); ``norms[b] = norm * top``. img: (B, h, w, 2) float [re, im]; out: (B, n, n,
+    2) of img's dtype; norms: (B,) of img's dtype. Divisions in img's precision, the squared
+    norm summed in float64."""
+    for b in numba.prange(img.shape[0]):
+        zb = z0[b]
+        xb = x0[b]
+        one = np.ones(2, dtype=img.dtype)
+        # the largest squared magnitude in float64 (exact range for float32 images); hypot
+        # where the square may have overflowed or underflowed (float64 images beyond 1e+-145,
+        # or an all-zero window)
+        m2 = 0.0
+        for i in range(n):
+            row = img[b, zb + i]
+            for j in range(n):
+                re = np.float64(row[xb + j, 0])
+                im = np.float64(row[xb + j, 1])
+                m2 = max(m2, re * re + im * im)
+        if not 1e-290 < m2 < 1e290:
+            top = one[0] * 0
+            for i in range(n):
+                row = img[b, zb + i]
+                for j in range(n):
+                    top = max(top, np.hypot(row[xb + j, 0], row[xb + j, 1]))
+        else:
+            one[1] = np.sqrt(m2)
+            top = one[1]
+        if not top > 0:
+            top = one[0]
+        ss = 0.0
+        for i in range(n):
+            row = img[b, zb + i]
+            for j in range(n):
+                re = row[xb + j, 0] / top
+                im = row[xb + j, 1] / top
+                out[b, i, j, 0] = re
+                out[b, i, j, 1] = im
+                ss += np.float64(re) * np.float64(re) + np.float64(im) * np.float64(im)
+        one[1] = np.sqrt(ss)
+        norm = one[1]
+        nd = norm if norm > 0 else one[0]
+        for i in range(n):
+            for j in range(n):
+                out[b, i, j, 0] = out[b, i, j, 0] / nd
+                out[b, i, j, 1] = out[b, i, j, 1] / nd
+        norms[b] = norm * top
+
+
+def cut_windows_compiled(img: np.ndarray, z0: np.ndarray, x0: np.ndarray, n: int):
+    """The normalised windows (B, n, n, 2) and their norms (B,) of
+    :func:`arraysel.physics.psf.window.cut_windows`, compiled (images without gradient on the
+    CPU: one read of each window instead of torch's half-dozen passes). img: (B, h, w, 2) float
+    [re, im]; z0, x0: (B,) window offsets."""
+    out = np.empty((img.shape[0], n, n, 2), dtype=img.dtype)
+    norms = np.empty(img.shape[0], dtype=img.dtype)
+    _cut_windows_kernel(np.ascontiguousarray(img), np.ascontiguousarray(z0, dtype=np.int64),
+                        np.ascontiguousarray(x0, dtype=np.int64), int(n), out, norms)
+    return out, norms
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _peak_stats_kernel(img, eps2, val, arg, count, cand):
+    """Per image of ``img`` (B, N, 2) [re, im]: the largest magnitude ``val`` (img's dtype),
+    its first index ``arg``, the pixels ``cand`` (B, N) whose magnitude is at least
+    ``val - eps2`` and their number ``count`` (``eps2``: (B,) float64; the threshold formed in
+    float64 from the rounded ``val``). Magnitudes compared through their float64 squares
+    (exact products of float32 parts)."""
+    npix = img.shape[1]
+    for b in numba.prange(img.shape[0]):
+        x = img[b]
+        best = -1.0
+        at = 0
+        for p in range(npix):
+            re = np.float64(x[p, 0])
+            im = np.float64(x[p, 1])
+            v = re * re + im * im
+            if v > best:
+                best = v
+                at = p
+        val[b] = np.sqrt(best)
+        arg[b] = at
+        t = np.float64(val[b]) - eps2[b]
+        t2 = t * t if t > 0 else -1.0
+        n = 0
+        for p in range(npix):
+            re = np.float64(x[p, 0])
+            im = np.float64(x[p, 1])
+            c = re * re + im * im >= t2
+            cand[b, p] = c
+            n += c
+        count[b] = n
+
+
+def peak_stats(img: np.ndarray, eps2: np.ndarray):
+    """(val, arg, count, cand) of :func:`_peak_stats_kernel` for images ``img`` (B, N, 2)
+    float: the certificates' peak search (:meth:`Refinement._locate`) in one compiled read of
+    each image instead of torch's magnitude, maximum, comparison and count."""
+    B = img.shape[0]
+    val = np.empty(B, dtype=img.dtype)
+    arg = np.empty(B, dtype=np.int64)
+    count = np.empty(B, dtype=np.int64)
+    cand = np.empty((B, img.shape[1]), dtype=np.bool_)
+    _peak_stats_kernel(np.ascontiguousarray(img), np.ascontiguousarray(eps2, dtype=np.float64), val, arg, count,
+                       cand)
+    return val, arg, count, cand

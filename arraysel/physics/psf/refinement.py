@@ -285,6 +285,11 @@ class Refinement:
         out[torch.cat(order).to(vals.device)] = vals
         return out
 
+    #: fewest images whose peaks :meth:`_locate` searches compiled on the CPU
+    #: (:func:`~arraysel.physics.pairkernels.peak_stats`; loading it costs a fresh process about
+    #: 0.3 s, so a cold single-mask run stays on torch)
+    compiled_peaks_min = 8
+
     def _locate(self, img: torch.Tensor, eps: torch.Tensor, w: torch.Tensor, row0: int, col0: int):
         """Peak pixel of the exact image, from an approximation ``img`` (B, h, wd) at grid offset
         (row0, col0) whose |.| error is at most ``eps`` (B,).
@@ -297,10 +302,18 @@ class Refinement:
         """
         B, h, wd = img.shape
         with torch.no_grad():
-            mag = img.detach().abs().reshape(B, -1)
-            val, arg = mag.max(dim=1)
-            cand = mag >= (val - 2 * eps)[:, None]
-            n = cand.sum(dim=1)
+            if B >= self.compiled_peaks_min and img.device.type == "cpu" and img.dtype in (torch.complex64,
+                                                                                           torch.complex128):
+                from arraysel.physics.pairkernels import peak_stats
+
+                two_eps = 2 * eps.detach().cpu().double()
+                val, arg, n, cand = (torch.from_numpy(a) for a in peak_stats(
+                    torch.view_as_real(img.detach().resolve_conj()).reshape(B, -1, 2).numpy(), two_eps.numpy()))
+            else:
+                mag = img.detach().abs().reshape(B, -1)
+                val, arg = mag.max(dim=1)
+                cand = mag >= (val - 2 * eps)[:, None]
+                n = cand.sum(dim=1)
             ok = (val > 0) & (n <= self.max_ties)
             amb = torch.nonzero(ok & (n > 1)).flatten()
             if amb.numel():
