@@ -5,7 +5,10 @@ are re-exported here for 0.1 callers.
 
 Everything here is written with torch, works on any device, accepts
 float32/float64 and complex64/complex128 tensors, is batched over leading
-dimensions and is differentiable with respect to the kernel ``kappa``.
+dimensions and is differentiable with respect to the kernel ``kappa``. A batch
+that needs no gradient on the CPU is scored by one compiled pass per kernel
+instead (:mod:`arraysel.objective.metric_kernels`, the same definitions; the
+tests run every metric both ways).
 Non-smooth points (the argmax that locates the peak, the max over the main
 lobe, the side-lobe quantile, ``|z|`` at ``z = 0``) give finite
 sub-gradients, never NaN.
