@@ -439,6 +439,17 @@ def test_dense_pair_images_equal_the_tiles_in_both_layouts(no_cache, monkeypatch
     torch.testing.assert_close(fast._dense_pair_images(X, plan, transposed=True), ref.T.contiguous(), rtol=0, atol=0)
     single = fast._dense_pair_images(X, plan, torch.float32)
     torch.testing.assert_close(single.double(), ref, rtol=1e-6, atol=1e-6 * float(ref.abs().max()))
+    # tiles of pixels (the sketched build's passes), each yielded in a reused buffer: several
+    # tiles a kernel call, and tiles larger than a call's share
+    from arraysel.physics.psf.build import _tile_pixels, _tile_rows
+
+    tiles = _tile_pixels(fast.shape, 4)
+    for pixels_a_call in (40, 10):
+        monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * pixels_a_call)
+        got = [(G, Ht.clone()) for G, Ht in fast._pair_image_tiles(X, plan, tiles)]
+        assert [G for G, _ in got] == tiles
+        for G, Ht in got:
+            torch.testing.assert_close(Ht, ref[:, _tile_rows(G, fast.npix)].T, rtol=0, atol=0)
 
 
 def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):

@@ -99,14 +99,14 @@ def _pair_images_kernel(X, i0, wt, rr, ri, nchunk, group, out):
 def pair_images(X: np.ndarray, plan: tuple, buffer: np.ndarray | None = None) -> np.ndarray:
     """Symmetric pair images (2, Npix, P) float64 [re, im] of every pair (upper-triangle order)
     on the plan's pixels. ``X`` and ``plan`` = (i0, wt, rr, ri) as documented in
-    :func:`_pair_images_kernel`. ``buffer``: a float64 array of at least ``2 Npix P`` entries to
-    write them into (a caller calling many times reuses its memory instead of having fresh
-    pages mapped for each call)."""
+    :func:`_pair_images_kernel`. ``buffer``: a float64 array to write them into when it holds
+    ``2 Npix P`` entries (a caller calling many times reuses its memory instead of having fresh
+    pages mapped for each call); a fresh array otherwise."""
     i0, wt, rr, ri = plan
     ne = X.shape[1]
     npix = i0.shape[2]
     shape = (2, npix, ne * (ne + 1) // 2)
-    if buffer is None:
+    if buffer is None or buffer.size < shape[0] * shape[1] * shape[2]:
         out = np.empty(shape, dtype=np.float64)
     else:
         out = buffer.reshape(-1)[:shape[0] * shape[1] * shape[2]].reshape(shape)

@@ -304,8 +304,10 @@ class BasisBuild:
         P = self.pairs_e.numel()
         per_call = max(1, self.build_tile_bytes // (P * 16))
         tiles = list(tiles)
-        buffer = np.empty(2 * min(per_call, sum(G.numel() for G in tiles)) * P, dtype=np.float64)
-        tile_buf = torch.empty(2 * max(G.numel() for G in tiles) * P, dtype=torch.float64)
+        largest = max(G.numel() for G in tiles)
+        # a group holds up to per_call pixels, or one tile larger than that
+        buffer = np.empty(2 * max(largest, min(per_call, sum(G.numel() for G in tiles))) * P, dtype=np.float64)
+        tile_buf = torch.empty(2 * largest * P, dtype=torch.float64)
 
         def run(group):
             pix = torch.cat(group).numpy()
