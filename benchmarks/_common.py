@@ -36,6 +36,21 @@ def set_threads(n: int | None) -> None:
     torch.set_num_threads(n)
 
 
+def alternated_args(doc: str, argv, scene: str, rounds: int):
+    """Parsed options of the benchmarks that alternate two settings of ``Objective.evaluate`` in
+    one process (``--scene``, ``--masks``, ``--rounds``, ``--threads``), threads set."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=doc.split("\n")[0])
+    p.add_argument("--scene", default=scene, help=f"built-in scene name or file (default {scene})")
+    p.add_argument("--masks", type=int, default=1024, help="random masks per evaluate round (default 1024)")
+    p.add_argument("--rounds", type=int, default=rounds, help=f"alternations of the two settings (default {rounds})")
+    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    a = p.parse_args(argv)
+    set_threads(a.threads)
+    return a
+
+
 def machine() -> dict:
     """A short description of where the figures were measured."""
     import torch

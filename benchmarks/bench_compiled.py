@@ -17,7 +17,6 @@ The last output line is a JSON record.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
@@ -29,13 +28,7 @@ import _common as C  # noqa: E402
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scene", default="paper", help="built-in scene name or file (default paper)")
-    p.add_argument("--masks", type=int, default=1024, help="random masks per evaluate round (default 1024)")
-    p.add_argument("--rounds", type=int, default=4, help="alternations of the two settings (default 4)")
-    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    a = p.parse_args(argv)
-    C.set_threads(a.threads)
+    a = C.alternated_args(__doc__, argv, scene="paper", rounds=4)
     import numpy as np
     import torch
 
