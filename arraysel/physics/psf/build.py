@@ -307,7 +307,7 @@ class BasisBuild:
         largest = max(G.numel() for G in tiles)
         # a group holds up to per_call pixels, or one tile larger than that
         buffer = np.empty(2 * max(largest, min(per_call, sum(G.numel() for G in tiles))) * P, dtype=np.float64)
-        tile_buf = torch.empty(2 * largest * P, dtype=torch.float64)
+        tile_buf = []  # made when a call holds several tiles
 
         def run(group):
             pix = torch.cat(group).numpy()
@@ -319,7 +319,9 @@ class BasisBuild:
                 if len(group) == 1:
                     yield G, v.view(2 * g, P)
                 else:
-                    Ht = tile_buf[:2 * g * P].view(2 * g, P)
+                    if not tile_buf:
+                        tile_buf.append(torch.empty(2 * largest * P, dtype=torch.float64))
+                    Ht = tile_buf[0][:2 * g * P].view(2 * g, P)
                     Ht.view(2, g, P).copy_(v[:, at:at + g])
                     yield G, Ht
                 at += g
