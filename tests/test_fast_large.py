@@ -561,7 +561,7 @@ def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeyp
         assert torch.equal(seen, used.amax(0, keepdim=True).expand_as(seen))
 
 
-def test_compiled_block_bounds_equal_the_sparse_product(no_cache):
+def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     """The certificates' block bounds summed compiled (channel by channel, the channels of
     unused receive elements skipped) equal the sparse product of the block matrix with the
     envelopes, on both tiers, per block and as the maximum, for one selection and for a mixed
@@ -582,6 +582,21 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache):
             torch.testing.assert_close(got, want, rtol=1e-12, atol=0)
             torch.testing.assert_close(fast.bound(w, tier, env=env), want.amax(0), rtol=1e-12, atol=0)
     assert fast.bound(mixed[4:5], 1).abs().max() == 0  # no element used: nothing to bound
+    # by default a small batch takes the sparse product for the first calls (a cold run need
+    # not load the compiled sums), and the compiled sums in a loop of them
+    from arraysel.physics import pairkernels
+
+    calls = []
+    real = pairkernels.block_bound_sums
+    monkeypatch.setattr(pairkernels, "block_bound_sums", lambda *a, **k: calls.append(1) or real(*a, **k))
+    fresh = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4).basis
+    env = fresh.envelopes(mixed[2:3])
+    want = fresh.bound(mixed[2:3], 1, env=env)
+    seen = [len(calls)]
+    for _ in range(fresh.compiled_bound_warm + 1):
+        torch.testing.assert_close(fresh.bound(mixed[2:3], 1, env=env), want, rtol=1e-12, atol=0)
+        seen.append(len(calls))
+    assert seen[:fresh.compiled_bound_warm] == [0] * fresh.compiled_bound_warm and seen[-1] >= 1
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
