@@ -34,34 +34,33 @@ def main(argv=None):
 
     from arraysel.objective import metrics as M
     from arraysel.objective.psf_objective import Objective
-    from arraysel.physics.psf import window as W
-    from arraysel.physics.psf.refinement import Refinement
+    from arraysel.physics import compiled
 
-    defaults = (M._COMPILED_BY_DEFAULT, W.compiled_windows_min, Refinement.compiled_peaks_min)
+    default = compiled.MIN_BATCH
 
-    def compiled(on: bool):
-        M._COMPILED_BY_DEFAULT = defaults[0] if on else False
-        W.compiled_windows_min = defaults[1] if on else 1 << 62
-        Refinement.compiled_peaks_min = defaults[2] if on else 1 << 62
+    def use_compiled(on: bool):
+        # off: every batch counts as small, as a gradient step's (the block bounds are summed
+        # compiled either way once a few small batches have passed)
+        compiled.MIN_BATCH = default if on else 1 << 62
 
     obj = Objective(a.scene)
     if obj.psf.basis is None:
         raise SystemExit(f"scene {a.scene!r} has no fast path")
     masks = C.random_masks(a.masks, obj.n_elements, obj.k, seed=1).astype(np.float32)
     for on in (True, False):  # warm-up: plans, compiled code
-        compiled(on)
+        use_compiled(on)
         obj.evaluate(masks[:256])
     times = {True: [], False: []}
     means = {}
     for r in range(a.rounds):
         for on in ((True, False) if r % 2 == 0 else (False, True)):
-            compiled(on)
+            use_compiled(on)
             t = time.perf_counter()
             out = obj.evaluate(masks, return_kernels=(r == 0))
             times[on].append((time.perf_counter() - t) / a.masks * 1e3)
             if r == 0:
                 means[on] = out
-    compiled(True)
+    use_compiled(True)
     kern = torch.from_numpy(means[True]["kernels"]).to(torch.complex128)
     ref = obj.psf.reference_kernel().to(torch.complex128)
     exact = M.psf_metrics(kern, kappa_ref=ref, compiled=False, **obj.metric_kw)["Mean"].numpy()

@@ -572,7 +572,10 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     mixed = _mixed_weights(ne, seed=6)
     mixed[:, 3] = 0
     tiers = [1, 2] if fast.block_envelopes_band.shape[0] else [1]
-    fast.compiled_bound_min = 1  # every batch compiled (by default a small one takes the product)
+    from arraysel.physics import compiled
+
+    default = compiled.MIN_BATCH
+    monkeypatch.setattr(compiled, "MIN_BATCH", 1)  # every batch compiled (by default a small one takes the product)
     for w in (mixed[2:3], mixed):
         env = fast.envelopes(w)
         for tier in tiers:
@@ -585,6 +588,8 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     # by default a small batch takes the sparse product for the first calls (a cold run need
     # not load the compiled sums), and the compiled sums in a loop of them
     from arraysel.physics import pairkernels
+
+    monkeypatch.setattr(compiled, "MIN_BATCH", default)
 
     calls = []
     real = pairkernels.block_bound_sums
@@ -604,7 +609,7 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
     """The certificates' peak search compiled (batches without gradient on the CPU) against
     torch's: the same peak pixels, thresholds and flags, with the error bounds as computed and
     widened so that many pixels tie and the ambiguous images are settled exactly."""
-    from arraysel.physics.psf.refinement import Refinement
+    from arraysel.physics import compiled
 
     model = PSFModel(_setup(n_elements=16), dtype=dtype, fast=True, margin=2, block=4)
     fast = model.basis
@@ -617,8 +622,8 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
     tied = 0
     for e in (eps, eps + 0.005 * peak, eps + 0.03 * peak, eps + 0.2 * peak):
         got = {}
-        for name, least in (("compiled", 1), ("torch", 10 ** 9)):
-            monkeypatch.setattr(Refinement, "compiled_peaks_min", least)
+        for name, least in (("compiled", 1), ("torch", 1 << 62)):
+            monkeypatch.setattr(compiled, "MIN_BATCH", least)
             got[name] = fast._locate(img, e, w, r0, c0)
         (pz, px, thr, ok), (qz, qx, thr_t, ok_t) = got["compiled"], got["torch"]
         assert torch.equal(ok, ok_t)
@@ -627,3 +632,10 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
         mag = img.abs().reshape(len(w), -1)
         tied += int(((mag >= (mag.amax(1) - 2 * e)[:, None]).sum(1) > 1).sum())
     assert tied > 10  # the widened bounds made near-ties that were settled exactly
+    # an image with a NaN is never located, as on torch's path
+    bad = img.clone()
+    bad[2, 1, 1] = complex(float("nan"), 0)
+    for least in (1, 1 << 62):
+        monkeypatch.setattr(compiled, "MIN_BATCH", least)
+        ok = fast._locate(bad, eps, w, r0, c0)[3]
+        assert not bool(ok[2]) and bool(ok[[0, 1, 3]].all())

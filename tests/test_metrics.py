@@ -27,15 +27,14 @@ from arraysel.objective.metrics import (
 )
 
 from arraysel.objective import metric_kernels
-from arraysel.objective import metrics as metrics_module
+from arraysel.physics import compiled
 
 
 @pytest.fixture(params=["compiled", "torch"], autouse=True)
 def metrics_path(request, monkeypatch):
     """Every test here runs twice: with the compiled pass of psf_metrics taken wherever it applies
-    (no gradient, CPU) and with torch's operations only."""
-    monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", request.param == "compiled")
-    monkeypatch.setattr(metrics_module, "_COMPILED_MIN_BATCH", 1)
+    (no gradient, CPU), however small the batch, and with torch's operations only."""
+    monkeypatch.setattr(compiled, "MIN_BATCH", 1 if request.param == "compiled" else 1 << 62)
     return request.param
 
 
@@ -678,8 +677,7 @@ def test_compiled_pass_is_taken_only_where_it_applies(monkeypatch):
     calls = []
     real = metric_kernels.psf_metrics_compiled
     monkeypatch.setattr(metric_kernels, "psf_metrics_compiled", lambda *a, **k: calls.append(1) or real(*a, **k))
-    monkeypatch.setattr(metrics_module, "_COMPILED_BY_DEFAULT", True)
-    monkeypatch.setattr(metrics_module, "_COMPILED_MIN_BATCH", 3)
+    monkeypatch.setattr(compiled, "MIN_BATCH", 3)
     k = _psf_like(3, 16, 16, torch.complex64, 2)
     kw = dict(pitch=0.1, wavelength=1.0, kappa_ref=k[0])
     psf_metrics(k, **kw)

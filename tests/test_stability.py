@@ -285,6 +285,7 @@ def test_compiled_window_cut_equals_torch(dtype, monkeypatch):
     """cut_windows compiled (images without gradient, on the CPU) against torch's operations:
     the same windows and norms to rounding, on scales from subnormal to near overflow, a zero
     image (zero window, norm 0) and a non-finite one (NaN out, as torch)."""
+    from arraysel.physics import compiled
     from arraysel.physics.psf import window as W
 
     g = torch.Generator().manual_seed(1)
@@ -296,9 +297,9 @@ def test_compiled_window_cut_equals_torch(dtype, monkeypatch):
     z0 = torch.randint(0, 40 - 16 + 1, (12,), generator=g)
     x0 = torch.randint(0, 36 - 16 + 1, (12,), generator=g)
     img[4, z0[4] + 3, x0[4] + 5] = complex(math.nan, 0)
-    monkeypatch.setattr(W, "compiled_windows_min", 1)
+    monkeypatch.setattr(compiled, "MIN_BATCH", 1)
     fast, nf = W.cut_windows(img, z0, x0, 16)
-    monkeypatch.setattr(W, "compiled_windows_min", 10 ** 9)
+    monkeypatch.setattr(compiled, "MIN_BATCH", 1 << 62)
     slow, ns = W.cut_windows(img, z0, x0, 16)
     assert fast.dtype == slow.dtype and nf.dtype == ns.dtype
     ok = torch.tensor([i != 4 for i in range(12)])

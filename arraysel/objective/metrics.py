@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
+from arraysel.physics import compiled as physics_compiled
 from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
 # the training loss terms and their weights have one home, arraysel.objective.losses; these names stay
 # importable from here (tests, plugins and notebooks use them)
@@ -461,22 +462,13 @@ def _parse_terms(terms: Iterable[str] | None, have_ref: bool) -> tuple[str, ...]
     return tuple(out)
 
 
-#: whether :func:`psf_metrics` takes the compiled pass where it applies when not told
-#: (``compiled=None``); the tests run every metric both ways
-_COMPILED_BY_DEFAULT = True
-#: fewest kernels the compiled pass is taken for when not told: loading it in a fresh process
-#: (numba's cached machine code and its threads) costs about 0.3 s, torch's operations about a
-#: millisecond a kernel, so a cold single-mask run stays on torch
-_COMPILED_MIN_BATCH = 8
-
-
 def _compiled_applies(flat: Tensor, ref: Tensor | None, compiled: bool | None) -> bool:
     """Whether :func:`psf_metrics` takes the compiled pass
     (:mod:`arraysel.objective.metric_kernels`): kernels on the CPU, no gradient wanted, and
     (with ``L_PSF``) one reference kernel of no higher precision. ``compiled=False``: never;
-    ``None``: whenever it applies to at least :data:`_COMPILED_MIN_BATCH` kernels
-    (:data:`_COMPILED_BY_DEFAULT`)."""
-    if compiled is False or (compiled is None and not (_COMPILED_BY_DEFAULT and flat.shape[0] >= _COMPILED_MIN_BATCH)):
+    ``None``: whenever it applies to a batch of at least
+    :data:`~arraysel.physics.compiled.MIN_BATCH` kernels."""
+    if compiled is False or (compiled is None and flat.shape[0] < physics_compiled.MIN_BATCH):
         return False
     if flat.device.type != "cpu" or flat.shape[0] == 0 or flat.dtype.to_real() not in (torch.float32, torch.float64):
         return False

@@ -355,21 +355,29 @@ def _peak_stats_kernel(img, eps2, val, arg, count, cand):
     its first index ``arg``, the pixels ``cand`` (B, N) whose magnitude is at least
     ``val - eps2`` and their number ``count`` (``eps2``: (B,) float64; the threshold formed in
     float64 from the rounded ``val``). Magnitudes compared through their float64 squares
-    (exact products of float32 parts)."""
+    (exact products of float32 parts). An image with a NaN gets ``val`` NaN and no candidates,
+    as torch's maximum and comparison give it."""
     npix = img.shape[1]
     for b in numba.prange(img.shape[0]):
         x = img[b]
         best = -1.0
         at = 0
+        nan = False
         for p in range(npix):
             re = np.float64(x[p, 0])
             im = np.float64(x[p, 1])
             v = re * re + im * im
+            nan = nan or v != v
             if v > best:
                 best = v
                 at = p
-        val[b] = np.sqrt(best)
         arg[b] = at
+        if nan:
+            val[b] = np.nan
+            cand[b] = False
+            count[b] = 0
+            continue
+        val[b] = np.sqrt(best)
         t = np.float64(val[b]) - eps2[b]
         t2 = t * t if t > 0 else -1.0
         n = 0

@@ -21,6 +21,8 @@ import warnings
 import numpy as np
 import torch
 
+from arraysel.physics import compiled
+
 
 def sparse_csr(crow, col, val, size):
     """A CSR tensor (checked), without torch's beta warning for sparse CSR."""
@@ -196,21 +198,19 @@ class Certificates:
             index = self._block_index[tier] = index.numpy()
         return index
 
-    #: fewest selections whose block bounds are summed compiled (:meth:`bound`): loading the
-    #: compiled sums in a fresh process costs about 0.3 s, so a cold single-mask run takes the
-    #: sparse product ...
-    compiled_bound_min = 8
-    #: ... for its first calls only: from the call after this many smaller batches on (a loop
-    #: of gradient steps) they are summed compiled too (one mask: 0.85 against 1.6-1.9 ms for
-    #: the sparse product on the paper scene, 4.5-5.3 against 7.1-7.3 at 256 elements)
+    #: a batch smaller than :data:`arraysel.physics.compiled.MIN_BATCH` takes the sparse product
+    #: for the first calls only (a cold single-mask run loads no compiled code): from the call
+    #: after this many such batches on (a loop of gradient steps) its bounds are summed compiled
+    #: too (one mask: 0.85 against 1.6-1.9 ms for the sparse product on the paper scene, 4.5-5.3
+    #: against 7.1-7.3 at 256 elements)
     compiled_bound_warm = 4
 
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
         """(B,) upper bound of |I| on the blocks outside E (tier 1) or outside the band (tier 2);
         with ``per_block`` the (nQ, B) bounds of every block. ``env``: :meth:`envelopes` of w.
 
-        On the CPU, for at least :attr:`compiled_bound_min` selections (or after
-        :attr:`compiled_bound_warm` smaller calls), the sums run compiled,
+        On the CPU, for at least :data:`~arraysel.physics.compiled.MIN_BATCH` selections (or
+        after :attr:`compiled_bound_warm` smaller calls), the sums run compiled,
         channel by channel over the channels of the receive elements the selections use,
         float32 partial sums totalled in float64
         (:func:`~arraysel.physics.pairkernels.block_bound_sums`:
@@ -222,10 +222,11 @@ class Certificates:
             return torch.zeros((0, B) if per_block else B, dtype=w.dtype, device=w.device)
         if env is None:
             env = self.envelopes(w)
-        if B < self.compiled_bound_min:
+        large = B >= compiled.MIN_BATCH
+        if not large:
             self._small_bounds = getattr(self, "_small_bounds", 0) + 1
         if env.device.type == "cpu" and not env.requires_grad and (
-                B >= self.compiled_bound_min or self._small_bounds > self.compiled_bound_warm):
+                large or self._small_bounds > self.compiled_bound_warm):
             from arraysel.physics.pairkernels import block_bound_sums
 
             ntx, ne = len(self.model.transmits), self.model.n_elements

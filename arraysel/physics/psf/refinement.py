@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from arraysel.physics import compiled
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.psf.window import cut_windows, window_start
 
@@ -285,11 +286,6 @@ class Refinement:
         out[torch.cat(order).to(vals.device)] = vals
         return out
 
-    #: fewest images whose peaks :meth:`_locate` searches compiled on the CPU
-    #: (:func:`~arraysel.physics.pairkernels.peak_stats`; loading it costs a fresh process about
-    #: 0.3 s, so a cold single-mask run stays on torch)
-    compiled_peaks_min = 8
-
     def _locate(self, img: torch.Tensor, eps: torch.Tensor, w: torch.Tensor, row0: int, col0: int):
         """Peak pixel of the exact image, from an approximation ``img`` (B, h, wd) at grid offset
         (row0, col0) whose |.| error is at most ``eps`` (B,).
@@ -302,8 +298,9 @@ class Refinement:
         """
         B, h, wd = img.shape
         with torch.no_grad():
-            if B >= self.compiled_peaks_min and img.device.type == "cpu" and img.dtype in (torch.complex64,
-                                                                                           torch.complex128):
+            if B >= compiled.MIN_BATCH and img.device.type == "cpu" and img.dtype in (torch.complex64,
+                                                                                      torch.complex128):
+                # one compiled read of each image (a batch of at least MIN_BATCH)
                 from arraysel.physics.pairkernels import peak_stats
 
                 two_eps = 2 * eps.detach().cpu().double()

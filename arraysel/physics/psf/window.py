@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from arraysel.errors import NumericalError
+from arraysel.physics import compiled
 
 
 def window_start(peak: torch.Tensor, size: int, n: int) -> torch.Tensor:
@@ -53,19 +54,14 @@ def unit_norm(win: torch.Tensor, top: torch.Tensor, with_norm: bool = False):
     return (out, norm.detach() * top) if with_norm else out
 
 
-#: fewest images whose windows :func:`cut_windows` cuts compiled when they carry no gradient
-#: (on the CPU: :func:`~arraysel.physics.pairkernels.cut_windows_compiled`; loading it costs a
-#: fresh process about 0.3 s, so a cold single-mask run stays on torch)
-compiled_windows_min = 8
-
-
 def cut_windows(img: torch.Tensor, z0: torch.Tensor, x0: torch.Tensor, size: int):
     """Windows (B, size, size) of ``img`` (B, h, w) at offsets (z0, x0), L2-normalised, and
     their (detached) norms (scaled by each window's peak magnitude first; an all-zero window
-    stays zero). At least :data:`compiled_windows_min` images without gradient on the CPU are
-    cut by a compiled kernel (the same values to rounding)."""
+    stays zero). A batch of at least :data:`~arraysel.physics.compiled.MIN_BATCH` images without
+    gradient on the CPU is cut by a compiled kernel
+    (:func:`~arraysel.physics.pairkernels.cut_windows_compiled`: the same values to rounding)."""
     B = img.shape[0]
-    if (B >= compiled_windows_min and not img.requires_grad and img.device.type == "cpu"
+    if (B >= compiled.MIN_BATCH and not img.requires_grad and img.device.type == "cpu"
             and img.dtype in (torch.complex64, torch.complex128)):
         from arraysel.physics.pairkernels import cut_windows_compiled
 
