@@ -37,12 +37,12 @@ import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
-from arraysel.physics import compiled as physics_compiled
 from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
 # the training loss terms and their weights have one home, arraysel.objective.losses; these names stay
 # importable from here (tests, plugins and notebooks use them)
 from arraysel.objective.losses import (DEFAULT_WEIGHTS, composite_loss, l_conv, l_ent,  # noqa: F401
                                        l_rec, l_row)
+from arraysel.physics import compiled as physics_compiled
 
 __all__ = [
     "METRIC_NAMES",
@@ -535,7 +535,8 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
         kernels on the CPU that need no gradient are scored by one compiled pass per kernel
         (:mod:`arraysel.objective.metric_kernels`: the same values to float rounding, several
         times faster); ``False`` keeps the torch operations, ``None`` (default) takes the
-        compiled pass wherever it applies.
+        compiled pass wherever it applies to a batch of at least
+        :data:`arraysel.physics.compiled.MIN_BATCH` kernels, ``True`` to any batch.
 
     Returns
     -------
