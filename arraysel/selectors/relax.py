@@ -18,6 +18,7 @@ import dataclasses
 import math
 import warnings
 
+import numpy as np
 import torch
 
 from arraysel.objective.losses import l_ent, l_row
@@ -101,28 +102,34 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
     scores_all = logits if noise is None else logits + noise
     scores_all = scores_all / tau
     finfo = torch.finfo(logits.dtype)
-    available = torch.ones(n, dtype=torch.bool, device=logits.device)
-    arange = torch.arange(n, device=logits.device)
-    soft_cols, hard_cols, chosen = [], [], []
+    # The draws need no gradient: column j picks among the elements that columns 0 .. j-1 left,
+    # from finite, NaN-proof scores (on the host, in float64: exact for any float dtype, and the
+    # order of the scores, hence every arg-max, is that of the scores themselves).
+    # ``available[j]`` records what column j could choose.
+    with torch.no_grad():
+        picks = torch.nan_to_num(scores_all.detach(), nan=finfo.min, posinf=finfo.max, neginf=finfo.min)
+        picks = picks.t().to(device="cpu", dtype=torch.float64).numpy()
+    available = np.ones((k, n), dtype=bool)
+    left = np.ones(n, dtype=bool)
+    chosen = []
     for j in range(k):
-        s = scores_all[:, j].masked_fill(~available, -math.inf)
-        logp = torch.log_softmax(s, dim=0)
-        p = torch.exp(logp)
-        # which element: finite, available, NaN-proof
-        pick_scores = torch.nan_to_num(s.detach(), nan=finfo.min, posinf=finfo.max, neginf=finfo.min)
-        pick_scores = pick_scores.masked_fill(~available, -math.inf)
-        i = int(torch.argmax(pick_scores))
+        available[j] = left
+        i = int(np.argmax(np.where(left, picks[j], -np.inf)))
         if sample:
-            probs = p.detach()
-            if bool(torch.isfinite(probs).all()) and float(probs.sum()) > 0:
-                i = int(torch.multinomial(probs, 1, generator=generator))
-        onehot = (arange == i).to(logits.dtype)
-        soft_cols.append(torch.nan_to_num(p, nan=0.0))
-        hard_cols.append(onehot)
+            with torch.no_grad():
+                gone = torch.from_numpy(~left).to(logits.device)
+                probs = torch.exp(torch.log_softmax(scores_all[:, j].detach().masked_fill(gone, -math.inf), dim=0))
+                if bool(torch.isfinite(probs).all()) and float(probs.sum()) > 0:
+                    i = int(torch.multinomial(probs, 1, generator=generator))
         chosen.append(i)
-        available = available & (arange != i)
-    P_soft = torch.stack(soft_cols, dim=1)
-    P_hard = torch.stack(hard_cols, dim=1)
+        left[i] = False
+    available = torch.from_numpy(available).to(logits.device)
+    # All k masked softmax columns at once, as rows of the transposed scores (each row is
+    # reduced exactly as one column on its own would be).
+    s = scores_all.t().masked_fill(~available, -math.inf).contiguous()
+    P_soft = torch.nan_to_num(torch.exp(torch.log_softmax(s, dim=1)), nan=0.0).t().contiguous()
+    P_hard = torch.zeros(n, k, dtype=logits.dtype, device=logits.device)
+    P_hard[torch.tensor(chosen, device=logits.device), torch.arange(k, device=logits.device)] = 1.0
     P = (P_hard - P_soft).detach() + P_soft if hard else P_soft
     return Relaxation(P=P, P_soft=P_soft, P_hard=P_hard, indices=chosen)
 
