@@ -3,6 +3,8 @@ the pair images used for probes with many elements, and the build without strips
 
 Small grids keep these tests fast; the sketch and the strip-free path are forced on small
 probes by lowering their thresholds, and a 128-element probe is built on a tiny grid."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -511,15 +513,18 @@ def _mixed_weights(ne, seed):
     return w
 
 
-@pytest.mark.parametrize("step_bytes", [0, 1 << 30])
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30, "compiled"])
 def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch, step_bytes):
     """The certificate's segment envelopes equal the maxima of ``|X_ne(t)|`` over every run of
     1 .. max_run segments (clipped at the window's end), computed from the selection's channels,
     whether the receive products are formed one receive element a step or whole runs at once,
-    for one selection and for batches mixing soft weights, masks and empty selections."""
+    or the channels compiled from the rows each selection uses, for one selection and for
+    batches mixing soft weights, masks and empty selections."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "receive_step_bytes", step_bytes)
+    compiled_peaks = step_bytes == "compiled"
+    monkeypatch.setattr(type(fast), "_channel_peaks_compiled", lambda self, w: compiled_peaks)
+    monkeypatch.setattr(type(fast), "receive_step_bytes", 0 if compiled_peaks else step_bytes)
     monkeypatch.setattr(type(fast), "receive_subset_min", 2)
     ntx, ne, sg = len(model.transmits), model.n_elements, fast.segment
     nS, M = fast.window_samples // sg, fast.max_run
@@ -532,6 +537,44 @@ def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch,
             for a in range(nS):
                 want = seg[:, :, :, a:min(nS, a + m + 1)].amax(-1).permute(1, 2, 0)
                 torch.testing.assert_close(env[:, :, m, a], want, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_envelopes_of_a_few_selections(no_cache, monkeypatch, dtype):
+    """A small batch's envelopes formed compiled (each channel from the rows its selection uses)
+    against the receive products: equal within float32 rounding (the compiled sums are float64),
+    NaN where a weight is NaN on both paths. They serve a loop of small batches (after
+    ``compiled_bound_warm`` of them, so a cold single-mask run loads no compiled code) and only
+    when they read less: not a batch of MIN_BATCH, not soft weights on every element, not
+    weights that need a gradient."""
+    from arraysel.physics import compiled
+
+    model = PSFModel(_setup(n_elements=16), dtype=dtype, fast=True, margin=2, block=4)
+    fast = model.basis
+    cls = type(fast)
+    real = cls._channel_peaks_compiled
+    ne = model.n_elements
+    mask = torch.zeros(1, ne, dtype=dtype)
+    mask[0, [0, 3, 4, 9, 15]] = 1
+    soft = _mixed_weights(ne, seed=4)[:1].to(dtype)
+    nan = mask.clone()
+    nan[0, 3] = math.nan
+    rtol = 1e-12 if dtype == torch.float64 else 1e-5
+    for w in (mask, soft, _mixed_weights(ne, seed=5)[:3].to(dtype), nan):
+        got = {}
+        for on in (False, True):
+            monkeypatch.setattr(cls, "_channel_peaks_compiled", lambda self, w, on=on: on)
+            got[on] = fast.envelopes(w)
+        torch.testing.assert_close(got[True], got[False], rtol=rtol, atol=rtol * float(got[False].nan_to_num().abs().max()),
+                                   equal_nan=True)
+        assert bool(got[True].isnan().any()) is (w is nan)
+    monkeypatch.setattr(cls, "_channel_peaks_compiled", real)
+    fast.__dict__.pop("_small_calls", None)
+    seen = [real(fast, mask) for _ in range(fast.compiled_bound_warm + 2)]
+    assert seen == [False] * fast.compiled_bound_warm + [True, True]
+    assert not real(fast, torch.ones(1, ne, dtype=dtype))  # every row of every receive element
+    assert not real(fast, mask.expand(compiled.MIN_BATCH, ne))  # a batch: one product reads less
+    assert not real(fast, mask.clone().requires_grad_(True))
 
 
 @pytest.mark.parametrize("subset_min", [1, 1000])

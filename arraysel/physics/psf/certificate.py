@@ -166,15 +166,20 @@ class Certificates:
         sg = self.segment
         nS = self.window_samples // sg
         nch = ntx * ne
-        peaks = w.new_zeros(B, ne, ntx, nS)
-        for e0, e1, s, y in self._receive_products(w):
-            sq = y[:, :, 1].square_().addcmul_(y[:, :, 0], y[:, :, 0])  # |X|^2 (n, g, ntx, T), in y
-            peak = sq.unflatten(-1, (sg, nS)).amax(3)  # (n, g, ntx, nS)
-            if s is None:
-                peaks[:, e0:e1] = peak
-            else:
-                peaks[s, e0:e1] = peak
-        peaks.sqrt_().mul_(w.abs()[:, :, None, None])
+        if self._channel_peaks_compiled(w):
+            from arraysel.physics.pairkernels import channel_peaks
+
+            peaks = torch.from_numpy(channel_peaks(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), ntx, nS))
+        else:
+            peaks = w.new_zeros(B, ne, ntx, nS)
+            for e0, e1, s, y in self._receive_products(w):
+                sq = y[:, :, 1].square_().addcmul_(y[:, :, 0], y[:, :, 0])  # |X|^2 (n, g, ntx, T), in y
+                peak = sq.unflatten(-1, (sg, nS)).amax(3)  # (n, g, ntx, nS)
+                if s is None:
+                    peaks[:, e0:e1] = peak
+                else:
+                    peaks[s, e0:e1] = peak
+            peaks.sqrt_().mul_(w.abs()[:, :, None, None])
         env = w.new_empty(nch, self.max_run, nS, B)
         seg = env[:, 0]
         seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
@@ -182,6 +187,29 @@ class Certificates:
             env[:, m, nS - m:] = env[:, m - 1, nS - m:]
             torch.maximum(env[:, m - 1, : nS - m], seg[:, m:], out=env[:, m, : nS - m])
         return env.view(-1, B)
+
+    def _channel_peaks_compiled(self, w: torch.Tensor) -> bool:
+        """Whether :meth:`envelopes` forms the channels of ``w`` compiled
+        (:func:`~arraysel.physics.pairkernels.channel_peaks`): on the CPU, for a batch smaller
+        than :data:`~arraysel.physics.compiled.MIN_BATCH` after :attr:`compiled_bound_warm` such
+        batches (a loop of gradient steps), when its selections' own rows of ``pair_channels``
+        (``sum_b nnz_b^2`` blocks, k^2 for a mask of k elements) are fewer than the product
+        ``w @ pair_channels`` reads (Ne blocks per receive element any selection uses). Both are
+        bound by those reads: one mask of 32 of 64 elements reads a quarter of the channels
+        instead of half."""
+        if w.device.type != "cpu" or w.requires_grad or w.shape[0] >= compiled.MIN_BATCH:
+            return False
+        if not self._warm("envelopes"):
+            return False
+        on = w != 0
+        return int(on.sum(1).square().sum()) < self.model.n_elements * int(on.any(0).sum())
+
+    def _warm(self, what: str) -> bool:
+        """Count a batch smaller than :data:`~arraysel.physics.compiled.MIN_BATCH` for the
+        compiled pass ``what``; True from the call after :attr:`compiled_bound_warm` of them."""
+        counts = self.__dict__.setdefault("_small_calls", {})
+        counts[what] = counts.get(what, 0) + 1
+        return counts[what] > self.compiled_bound_warm
 
     def _bound_index(self, tier: int) -> np.ndarray:
         """(ntx * Ne, nQ) int32: for each channel and block of ``tier``, the row of the channel's
@@ -222,11 +250,8 @@ class Certificates:
             return torch.zeros((0, B) if per_block else B, dtype=w.dtype, device=w.device)
         if env is None:
             env = self.envelopes(w)
-        large = B >= compiled.MIN_BATCH
-        if not large:
-            self._small_bounds = getattr(self, "_small_bounds", 0) + 1
         if env.device.type == "cpu" and not env.requires_grad and (
-                large or self._small_bounds > self.compiled_bound_warm):
+                B >= compiled.MIN_BATCH or self._warm("bound")):
             from arraysel.physics.pairkernels import block_bound_sums
 
             ntx, ne = len(self.model.transmits), self.model.n_elements
