@@ -513,18 +513,18 @@ def _mixed_weights(ne, seed):
     return w
 
 
-@pytest.mark.parametrize("step_bytes", [0, 1 << 30, "compiled"])
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30, "rows"])
 def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch, step_bytes):
     """The certificate's segment envelopes equal the maxima of ``|X_ne(t)|`` over every run of
     1 .. max_run segments (clipped at the window's end), computed from the selection's channels,
     whether the receive products are formed one receive element a step or whole runs at once,
-    or the channels compiled from the rows each selection uses, for one selection and for
-    batches mixing soft weights, masks and empty selections."""
+    or each channel is summed compiled from the rows its selection uses, for one selection and
+    for batches mixing soft weights, masks and empty selections."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    compiled_peaks = step_bytes == "compiled"
-    monkeypatch.setattr(type(fast), "_channel_peaks_compiled", lambda self, w: compiled_peaks)
-    monkeypatch.setattr(type(fast), "receive_step_bytes", 0 if compiled_peaks else step_bytes)
+    rows = step_bytes == "rows"
+    monkeypatch.setattr(type(fast), "_channels_from_rows", lambda self, w: rows)
+    monkeypatch.setattr(type(fast), "receive_step_bytes", 0 if rows else step_bytes)
     monkeypatch.setattr(type(fast), "receive_subset_min", 2)
     ntx, ne, sg = len(model.transmits), model.n_elements, fast.segment
     nS, M = fast.window_samples // sg, fast.max_run
@@ -540,10 +540,10 @@ def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch,
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_compiled_envelopes_of_a_few_selections(no_cache, monkeypatch, dtype):
-    """A small batch's envelopes formed compiled (each channel from the rows its selection uses)
-    against the receive products: equal within float32 rounding (the compiled sums are float64),
-    NaN where a weight is NaN on both paths. They serve a loop of small batches (after
+def test_envelopes_of_a_few_selections_from_their_rows(no_cache, monkeypatch, dtype):
+    """A few selections' envelopes with each channel summed compiled from the rows its selection
+    uses, against the receive products: equal within float32 rounding (the compiled sums are
+    float64), NaN where a weight is NaN on both paths. They serve a loop of small batches (after
     ``compiled_bound_warm`` of them, so a cold single-mask run loads no compiled code) and only
     when they read less: not a batch of MIN_BATCH, not soft weights on every element, not
     weights that need a gradient."""
@@ -552,7 +552,7 @@ def test_compiled_envelopes_of_a_few_selections(no_cache, monkeypatch, dtype):
     model = PSFModel(_setup(n_elements=16), dtype=dtype, fast=True, margin=2, block=4)
     fast = model.basis
     cls = type(fast)
-    real = cls._channel_peaks_compiled
+    real = cls._channels_from_rows
     ne = model.n_elements
     mask = torch.zeros(1, ne, dtype=dtype)
     mask[0, [0, 3, 4, 9, 15]] = 1
@@ -562,13 +562,13 @@ def test_compiled_envelopes_of_a_few_selections(no_cache, monkeypatch, dtype):
     rtol = 1e-12 if dtype == torch.float64 else 1e-5
     for w in (mask, soft, _mixed_weights(ne, seed=5)[:3].to(dtype), nan):
         got = {}
-        for on in (False, True):
-            monkeypatch.setattr(cls, "_channel_peaks_compiled", lambda self, w, on=on: on)
-            got[on] = fast.envelopes(w)
-        torch.testing.assert_close(got[True], got[False], rtol=rtol, atol=rtol * float(got[False].nan_to_num().abs().max()),
-                                   equal_nan=True)
+        for rows in (False, True):
+            monkeypatch.setattr(cls, "_channels_from_rows", lambda self, w, rows=rows: rows)
+            got[rows] = fast.envelopes(w)
+        scale = float(got[False].nan_to_num().abs().max())
+        torch.testing.assert_close(got[True], got[False], rtol=rtol, atol=rtol * scale, equal_nan=True)
         assert bool(got[True].isnan().any()) is (w is nan)
-    monkeypatch.setattr(cls, "_channel_peaks_compiled", real)
+    monkeypatch.setattr(cls, "_channels_from_rows", real)
     fast.__dict__.pop("_small_calls", None)
     seen = [real(fast, mask) for _ in range(fast.compiled_bound_warm + 2)]
     assert seen == [False] * fast.compiled_bound_warm + [True, True]

@@ -287,21 +287,22 @@ def block_bound_sums(env: np.ndarray, index: np.ndarray, chans: np.ndarray, grou
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, out):
-    """``out[b, e, n, a] = |w[b, e]| max_r |sum_j w[b, j] A[j, e, :, n, r, a]|`` for the pairs
-    ``(sel_b[q], sel_e[q])``: the segment peaks of one receive channel of one selection, from
-    the rows j of ``pair_channels`` that the selection uses. A: (Ne, Ne * 2 * ntx * T) float,
-    ``pair_channels`` (columns of receive e: part [re, im], transmit n, segment offset r,
-    segment a; T = segment * nS); w: (B, Ne) float; out: (B, Ne, ntx, nS) of w's dtype. The
+def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, env):
+    """``env[n * Ne + e, 0, a, b] = |w[b, e]| max_r |sum_j w[b, j] A[j, e, :, n, r, a]|`` for the
+    pairs ``(b, e) = (sel_b[q], sel_e[q])``: the segment peaks of one receive channel of one
+    selection, from the rows j of ``pair_channels`` that the selection uses. A: (Ne, Ne * 2 *
+    ntx * T) float, ``pair_channels`` (columns of receive e: part [re, im], transmit n, segment
+    offset r, segment a; T = segment * nS); w: (B, Ne) float; env: (ntx * Ne, M, nS, B). The
     channel is summed in float64 in a buffer that stays in cache; a NaN stays NaN (as torch's
     maximum keeps it). Parallel over the pairs."""
     ne = w.shape[1]
-    ns = out.shape[3]
+    ns = env.shape[2]
     half = A.shape[1] // (2 * ne)
     seg = half // (ntx * ns)
     for q in numba.prange(sel_b.shape[0]):
         b = sel_b[q]
-        base = sel_e[q] * 2 * half
+        e = sel_e[q]
+        base = e * 2 * half
         acc = np.empty(2 * half)
         mx = np.empty(ns)
         for c in range(2 * half):
@@ -312,7 +313,7 @@ def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, out):
                 row = A[j, base:base + 2 * half]  # a contiguous view: the loop vectorises (10x)
                 for c in range(2 * half):
                     acc[c] += wj * row[c]
-        we = abs(np.float64(w[b, sel_e[q]]))
+        we = abs(np.float64(w[b, e]))
         for n in range(ntx):
             for a in range(ns):
                 mx[a] = 0.0
@@ -325,19 +326,18 @@ def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, out):
                     elif v != v:
                         mx[a] = v
             for a in range(ns):
-                out[b, sel_e[q], n, a] = np.sqrt(mx[a]) * we
+                env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * we
 
 
-def channel_peaks(A: np.ndarray, w: np.ndarray, ntx: int, ns: int) -> np.ndarray:
-    """(B, Ne, ntx, nS) segment peaks ``|X_ne|`` of the receive channels of selections ``w``
-    (B, Ne) from ``pair_channels`` A (:meth:`Certificates.envelopes` for a few selections: each
-    channel reads only the rows of the elements its selection uses, k^2 of the Ne^2 blocks,
-    where the product ``w @ pair_channels`` reads Ne of them per receive element); zero for
-    receive elements a selection does not use."""
-    out = np.zeros((w.shape[0], w.shape[1], ntx, ns), dtype=w.dtype)
+def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
+    """Write the segment peaks ``|X_ne|`` of the receive channels of selections ``w`` (B, Ne),
+    formed from ``pair_channels`` A, into the first run of the envelopes ``env`` (ntx * Ne, M,
+    nS, B) (:meth:`Certificates.envelopes` for a few selections: each channel reads only the rows
+    of the elements its selection uses, k^2 of the Ne^2 blocks, where the product
+    ``w @ pair_channels`` reads Ne of them per receive element); entries of receive elements a
+    selection does not use are left as they are (zero)."""
     sel_b, sel_e = np.nonzero(w)
-    _channel_peaks_kernel(A, w, sel_b.astype(np.int64), sel_e.astype(np.int64), ntx, out)
-    return out
+    _channel_peaks_kernel(A, w, sel_b.astype(np.int64), sel_e.astype(np.int64), env.shape[0] // w.shape[1], env)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

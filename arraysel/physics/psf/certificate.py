@@ -157,8 +157,9 @@ class Certificates:
         Entry (n, e, m, a): ``max |X_ne(t)|`` over segments ``a .. a + m`` (``segment`` samples
         each; zeros past the end). The channel sums of the receive elements a selection uses are
         formed a few receive elements at a time (:meth:`_receive_products`) and reduced to
-        segment maxima at once, so they never reach main memory; then M - 1 running maxima on
-        the segment array (``segment`` times smaller than the channels).
+        segment maxima at once, so they never reach main memory (or, for a few selections in a
+        loop, each channel compiled from the rows it uses: :meth:`_channels_from_rows`); then
+        M - 1 running maxima on the segment array (``segment`` times smaller than the channels).
         """
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
@@ -166,10 +167,13 @@ class Certificates:
         sg = self.segment
         nS = self.window_samples // sg
         nch = ntx * ne
-        if self._channel_peaks_compiled(w):
-            from arraysel.physics.pairkernels import channel_peaks
+        env = w.new_empty(nch, self.max_run, nS, B)
+        seg = env[:, 0]
+        if self._channels_from_rows(w):
+            from arraysel.physics.pairkernels import channel_peaks_into
 
-            peaks = torch.from_numpy(channel_peaks(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), ntx, nS))
+            seg.zero_()
+            channel_peaks_into(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), env.numpy())
         else:
             peaks = w.new_zeros(B, ne, ntx, nS)
             for e0, e1, s, y in self._receive_products(w):
@@ -180,23 +184,22 @@ class Certificates:
                 else:
                     peaks[s, e0:e1] = peak
             peaks.sqrt_().mul_(w.abs()[:, :, None, None])
-        env = w.new_empty(nch, self.max_run, nS, B)
-        seg = env[:, 0]
-        seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
+            seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
         for m in range(1, self.max_run):
             env[:, m, nS - m:] = env[:, m - 1, nS - m:]
             torch.maximum(env[:, m - 1, : nS - m], seg[:, m:], out=env[:, m, : nS - m])
         return env.view(-1, B)
 
-    def _channel_peaks_compiled(self, w: torch.Tensor) -> bool:
-        """Whether :meth:`envelopes` forms the channels of ``w`` compiled
-        (:func:`~arraysel.physics.pairkernels.channel_peaks`): on the CPU, for a batch smaller
-        than :data:`~arraysel.physics.compiled.MIN_BATCH` after :attr:`compiled_bound_warm` such
-        batches (a loop of gradient steps), when its selections' own rows of ``pair_channels``
-        (``sum_b nnz_b^2`` blocks, k^2 for a mask of k elements) are fewer than the product
-        ``w @ pair_channels`` reads (Ne blocks per receive element any selection uses). Both are
-        bound by those reads: one mask of 32 of 64 elements reads a quarter of the channels
-        instead of half."""
+    def _channels_from_rows(self, w: torch.Tensor) -> bool:
+        """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of
+        ``pair_channels`` its selection uses (:func:`~arraysel.physics.pairkernels.channel_peaks_into`)
+        instead of forming the receive products: on the CPU without gradient, for a batch
+        smaller than :data:`~arraysel.physics.compiled.MIN_BATCH` after
+        :attr:`compiled_bound_warm` of them (a loop of gradient steps; a cold single-mask run
+        loads no compiled code), when those rows (``sum_b nnz_b^2`` blocks, k^2 for a mask of k
+        elements) are fewer than the product ``w @ pair_channels`` reads (Ne blocks per receive
+        element any selection uses). Both are bound by those reads: one mask of 32 of 64
+        elements reads a quarter of the channels instead of half (1.1 against 3.2-4.9 ms)."""
         if w.device.type != "cpu" or w.requires_grad or w.shape[0] >= compiled.MIN_BATCH:
             return False
         if not self._warm("envelopes"):
