@@ -6,8 +6,10 @@ window cut (:mod:`arraysel.physics.pairkernels`), and the Table-1 metrics
 (:mod:`arraysel.objective.metric_kernels`). Loading a compiled function in a fresh process
 (numba's cached machine code and its threads) costs about 0.3 s, more than torch spends on a
 few kernels, so a batch smaller than :data:`MIN_BATCH` keeps torch's operations: a cold
-single-mask run loads no compiled code (its first kernel 0.02 s instead of 0.7 s). This module
-imports nothing, so that asking costs nothing either.
+single-mask run loads no compiled code (its first kernel 0.02 s instead of 0.7 s). A loop of
+small batches (gradient steps) switches to the compiled block bounds and envelopes after a few
+of them (``Certificates.compiled_bound_warm``). This module imports nothing, so that asking
+costs nothing either.
 """
 from __future__ import annotations
 

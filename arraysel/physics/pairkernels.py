@@ -1,8 +1,9 @@
 """Compiled kernels of the fast path: symmetric pair images and their sparse sketch (the
 precomputation), the delay-and-sum of one selection's channels on chosen pixels (the
 certificates' refinement), the sums of envelope entries that bound each grid block (the
-certificates' block bounds), and, for batches without gradient, the peak search on E and the
-cut and normalisation of the kernels' windows.
+certificates' block bounds), the envelopes of a few selections' channels from the rows they
+use, and, for batches without gradient, the peak search on E and the cut and normalisation of
+the kernels' windows.
 
 For one scatterer the image of a selection ``m`` is ``I(p) = sum_{e<=j} m_e m_j H_ej(p)``
 with the symmetric pair image ``H_ej = D_ej + D_je`` (``e < j``), ``H_ee = D_ee``, where

@@ -9,8 +9,9 @@ block Q of pixels ``|I(p)| <= sum_{n,e} max_{t in [lo, hi]_neQ} |X_ne(t)|``, whe
 spans the samples the block's pixels read. The maxima come from aligned segments of
 ``segment`` samples: ``[lo, hi]`` lies inside segments ``lo // segment .. hi // segment``, and
 the envelope of every run of 1 .. ``max_run`` consecutive segments is formed once per batch
-(:meth:`Certificates.envelopes`), so a block's bound sums one entry per (transmit, element):
-the right run (:meth:`Certificates.bound`: compiled on the CPU, a sparse product elsewhere).
+(:meth:`Certificates.envelopes`: a few selections in a loop sum each channel compiled from the
+rows of A they use), so a block's bound sums one entry per (transmit, element): the right run
+(:meth:`Certificates.bound`: compiled on the CPU, a sparse product elsewhere).
 
 :class:`Certificates` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`.
 """
@@ -229,11 +230,12 @@ class Certificates:
             index = self._block_index[tier] = index.numpy()
         return index
 
-    #: a batch smaller than :data:`arraysel.physics.compiled.MIN_BATCH` takes the sparse product
-    #: for the first calls only (a cold single-mask run loads no compiled code): from the call
-    #: after this many such batches on (a loop of gradient steps) its bounds are summed compiled
-    #: too (one mask: 0.85 against 1.6-1.9 ms for the sparse product on the paper scene, 4.5-5.3
-    #: against 7.1-7.3 at 256 elements)
+    #: a batch smaller than :data:`arraysel.physics.compiled.MIN_BATCH` takes torch's
+    #: operations for the first calls only (a cold single-mask run loads no compiled code): from
+    #: the call after this many such batches on (a loop of gradient steps), counted per pass
+    #: (:meth:`_warm`), its block bounds are summed compiled too (one mask: 0.85 against 1.6-1.9
+    #: ms for the sparse product on the paper scene, 4.5-5.3 against 7.1-7.3 at 256 elements)
+    #: and its envelopes summed from the rows it uses (:meth:`_channels_from_rows`)
     compiled_bound_warm = 4
 
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:
