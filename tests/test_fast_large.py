@@ -351,10 +351,10 @@ def test_band_images_only_for_peaks_tier_one_cannot_certify(no_cache, monkeypatc
 
     real_refine = cls.refine
 
-    def refine_tier1_fails(self, w_, threshold, env=None, tier=2):
+    def refine_tier1_fails(self, w_, threshold, env=None, tier=2, bounds=None):
         if tier == 1:
             return torch.zeros(w_.shape[0], dtype=torch.bool)
-        return real_refine(self, w_, threshold, env=env, tier=tier)
+        return real_refine(self, w_, threshold, env=env, tier=tier, bounds=bounds)
 
     monkeypatch.setattr(cls, "bound", tier1_fails)
     monkeypatch.setattr(cls, "refine", refine_tier1_fails)
