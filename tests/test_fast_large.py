@@ -604,6 +604,26 @@ def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeyp
         assert torch.equal(seen, used.amax(0, keepdim=True).expand_as(seen))
 
 
+def test_refine_with_the_batch_per_block_bounds_settles_as_from_the_envelopes(no_cache):
+    """``refine`` given the columns of a batch's per-block bounds (what ``kernels`` passes on)
+    settles each selection as it does forming the bounds from the selections' own envelopes,
+    on both tiers, with thresholds that leave some blocks loose and some selections unsettled."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    w = _mixed_weights(model.n_elements, seed=7)
+    env = fast.envelopes(w)
+    for tier in ([1, 2] if fast.block_envelopes_band.shape[0] else [1]):
+        bounds = fast.bound(w, tier, per_block=True, env=env)
+        if not bounds.shape[0]:
+            continue
+        rows = torch.tensor([3, 0, 1])
+        for q in (0.2, 0.5, 1.0):
+            thr = bounds[:, rows].quantile(q, dim=0) * 1.0001
+            want = fast.refine(w[rows], thr, env=env[:, rows], tier=tier)
+            got = fast.refine(w[rows], thr, tier=tier, bounds=bounds[:, rows])
+            assert torch.equal(got, want)
+
+
 def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     """The certificates' block bounds summed compiled (channel by channel, the channels of
     unused receive elements skipped) equal the sparse product of the block matrix with the
