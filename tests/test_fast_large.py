@@ -624,6 +624,31 @@ def test_refine_with_the_batch_per_block_bounds_settles_as_from_the_envelopes(no
             assert torch.equal(got, want)
 
 
+def test_strip_bounds_read_runs_of_slots_in_place_as_the_gathered_factors(paper_objective, monkeypatch):
+    """The strips' factor bounds of increasing slots in a few runs (read in place) equal those
+    of the gathered factors, bit for bit, for runs, single slots, every slot and slots in too
+    many runs (which take the gather)."""
+    from arraysel.physics.psf import refinement
+
+    fast = paper_objective.psf.basis
+    n = fast.strip_left.shape[0]
+    assert n >= 64  # the paper scene's strips: 576 blocks
+    c = fast._pairs(_mixed_weights(fast.model.n_elements, seed=5).to(fast.strip_left.dtype))
+    cases = [torch.arange(n), torch.tensor([n // 2]), torch.cat([torch.arange(0, 3), torch.arange(5, n - 1)]),
+             torch.cat([torch.arange(10, 40), torch.arange(100, 180), torch.arange(300, 301)]), torch.arange(0, n, 2)]
+    real = refinement._runs
+    for slots in cases:
+        got = fast.strip_bounds(c, slots)
+        monkeypatch.setattr(refinement, "_runs", lambda s, most=32: None)
+        want = fast.strip_bounds(c, slots)
+        monkeypatch.setattr(refinement, "_runs", real)
+        assert torch.equal(got, want)
+    assert refinement._runs(torch.tensor([2, 3, 4, 7, 9, 10])) == [(2, 5), (7, 8), (9, 11)]
+    assert refinement._runs(torch.tensor([3, 2])) is None
+    assert refinement._runs(torch.arange(0, 20, 2), most=4) is None
+    assert refinement._runs(torch.arange(0, 20, 2), most=10) == [(i, i + 1) for i in range(0, 20, 2)]
+
+
 def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     """The certificates' block bounds summed compiled (channel by channel, the channels of
     unused receive elements skipped) equal the sparse product of the block matrix with the
