@@ -117,6 +117,36 @@ def test_cache_bit_flip_is_reported_and_rebuilt(cache_folder, caplog):
     assert calls == [1, 1]
 
 
+def test_cache_entries_carry_crc32_and_older_sha256_entries_still_load(cache_folder, caplog):
+    """New entries carry the CRC-32 of every block (the bytes of each file, checked here with
+    zlib); an entry whose manifest carries SHA-256 digests (written by earlier versions) loads,
+    verified with them, and a flipped bit in it is still reported and rebuilt."""
+    import hashlib
+    import json
+    import zlib
+
+    build, calls = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    entry = _entry(cache_folder)
+    manifest = json.loads((entry / "manifest.json").read_text())
+    for info in manifest["tensors"].values():
+        data = (entry / info["file"]).read_bytes()
+        blocks = [data[i:i + manifest["block"]] for i in range(0, max(1, len(data)), manifest["block"])]
+        assert "sha256" not in info and info["crc32"] == [f"{zlib.crc32(b):08x}" for b in blocks]
+        # rewrite the manifest as an earlier version did
+        info["sha256"] = [hashlib.sha256(b).hexdigest() for b in blocks]
+        del info["crc32"]
+    (entry / "manifest.json").write_text(json.dumps(manifest))
+    assert _same(cache.load_or_build("t", ("k",), build), _state()) and calls == [1]
+    _flip_bit(entry / "V.npy", 600_001)
+    with caplog.at_level(logging.WARNING, logger="arraysel.io.cache"):
+        again = cache.load_or_build("t", ("k",), build)
+    assert calls == [1, 1] and _same(again, _state())
+    assert sum("checksum mismatch" in r.getMessage() for r in caplog.records) == 1
+    rebuilt = json.loads((entry / "manifest.json").read_text())
+    assert all("crc32" in info for info in rebuilt["tensors"].values())
+
+
 @pytest.mark.parametrize("damage", ["truncate", "manifest", "missing", "header", "garbage-manifest"])
 def test_cache_partial_or_altered_entry_is_rebuilt(cache_folder, caplog, damage):
     build, calls = _counting_builder()
