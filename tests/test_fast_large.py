@@ -649,6 +649,35 @@ def test_strip_bounds_read_runs_of_slots_in_place_as_the_gathered_factors(paper_
     assert refinement._runs(torch.arange(0, 20, 2), most=10) == [(i, i + 1) for i in range(0, 20, 2)]
 
 
+def test_fast_batches_follow_the_memory_budget_and_do_not_change_the_scores(paper_objective, monkeypatch):
+    """The fast path takes as many masks at once as keep their tensors within
+    ``fast_batch_bytes`` (at most 256; the paper scene: 256), and ``evaluate`` scores the same
+    whatever the batch (to float32 rounding)."""
+    from arraysel.physics.psf.operator import PSFModel as Model
+
+    psf = paper_objective.psf
+    per = psf.basis.bytes_per_selection()
+    # envelopes of 7 x 64 channels, 3 runs of 65 segments, the 144 x 144 image twice, 2176 block
+    # bounds, the 128 x 128 window twice (float32)
+    assert per == 7 * 64 * 3 * 65 * 4 + 2 * 2 * 144 * 144 * 4 + 2176 * 12 + 2 * 2 * 128 * 128 * 4
+    assert psf.masks_per_batch() == min(256, Model.fast_batch_bytes // per) == 256
+    masks = np.zeros((23, 64), dtype=np.float32)
+    rng = np.random.default_rng(4)
+    for m in masks:
+        m[rng.choice(64, 32, replace=False)] = 1
+    want = paper_objective.evaluate(masks)
+    # batches of at least compiled.MIN_BATCH, so that both runs take the compiled passes
+    monkeypatch.setattr(Model, "fast_batch_bytes", 12 * per + 1)
+    assert psf.masks_per_batch() == 12
+    calls = []
+    real = Model.kernels
+    monkeypatch.setattr(Model, "kernels", lambda self, w, **kw: calls.append(w.shape[0]) or real(self, w, **kw))
+    got = paper_objective.evaluate(masks)
+    assert calls == [12, 11]
+    for name in want:  # the same to float32 rounding (the products' blocking depends on the batch)
+        np.testing.assert_allclose(got[name], want[name], rtol=1e-5, atol=1e-9, err_msg=name)
+
+
 def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     """The certificates' block bounds summed compiled (channel by channel, the channels of
     unused receive elements skipped) equal the sparse product of the block matrix with the

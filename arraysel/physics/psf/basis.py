@@ -360,6 +360,19 @@ class PairBasis(BasisBuild, Certificates, Refinement):
                 rank = min(rank, max(1, int(small[0])))
         return rank
 
+    def bytes_per_selection(self) -> int:
+        """Memory (bytes) that one more selection adds to a batch of :meth:`kernels`: its
+        envelopes (every run of segments of every channel), its image on E and that image's
+        complex copy, its per-block bounds (float64 sums and their cast) and its kernel window
+        twice (the cut window and the metrics' copy)."""
+        m = self.model
+        item = m.dtype.itemsize
+        env = len(m.transmits) * m.n_elements * self.max_run * (self.window_samples // self.segment) * item
+        images = 2 * 2 * self.npix * item
+        bounds = self.block_envelopes_e.shape[0] * (8 + item)
+        kernels = 2 * 2 * m.setup.window ** 2 * item
+        return env + images + bounds + kernels
+
     @property
     def H2(self) -> torch.Tensor:
         """:attr:`strip_images` under its 0.1 name."""

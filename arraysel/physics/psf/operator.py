@@ -325,10 +325,18 @@ class PSFModel:
             while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
                 batch = max(1, min(batch - 1, int(batch * 0.85)))
         return batch, self._das_pixels(batch)
+    #: memory (bytes) of the per-selection tensors of one fast-path batch (:meth:`masks_per_batch`)
+    fast_batch_bytes = 256 << 20
+
     def masks_per_batch(self) -> int:
-        """Masks an evaluation should hand to :meth:`kernels` at once (bounded memory on the exact path)."""
+        """Masks an evaluation should hand to :meth:`kernels` at once: on the fast path as many
+        as keep the batch's per-selection tensors (:meth:`PairBasis.bytes_per_selection
+        <arraysel.physics.psf.basis.PairBasis.bytes_per_selection>`) within
+        :attr:`fast_batch_bytes` (the paper scene: 256; the 128-element built-in scenes: about
+        200), at most 256; on the exact path what its memory allows."""
         if self.basis is not None:
-            return _EXACT_MAX_BATCH
+            fit = self.fast_batch_bytes // max(1, self.basis.bytes_per_selection())
+            return int(max(1, min(_EXACT_MAX_BATCH, fit)))
         return self.exact_chunking()[0]
 
     def exact_seconds_per_mask(self, batch: int | None = None) -> float:
