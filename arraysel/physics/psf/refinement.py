@@ -201,8 +201,9 @@ class Refinement:
         else:
             # the factors of each run of consecutive slots read in place: gathering them copied
             # (n, P, r) floats, 24 MB for a typical call on the paper scene (180 slots in 1 to
-            # 18 runs), more than the products: 3.7-4.0 against 8.9 ms for that call; a run
-            # costs about 0.06 ms more, hence at most 32 of them
+            # 18 runs), more than the products: 1.8-2.0 against 4.0-4.2 ms for that call with
+            # the allocator tuned as the command line tunes it (3.7-4.0 against 8.9 without);
+            # a run costs about 0.06 ms more, hence at most 32 of them
             cf = torch.cat([torch.matmul(c[None], self.strip_left[a:b]) for a, b in runs])
             v = torch.cat([torch.matmul(cf[i:i + b - a], self.strip_right[a:b])
                            for i, (a, b) in zip(_offsets(runs), runs)])
