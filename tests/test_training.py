@@ -389,14 +389,21 @@ def test_no_drift_after_psf_warmup_on_the_toy_objective(images):
     sel_warm = t.learned_indices().tolist()
     assert after_warmup < start  # the warm-up optimised the PSF
     assert all("rec" not in h for h in t.history)  # data terms off in the warm-up
-    t.train(warm + 120)
+    visited = []
+    for step in range(warm + 10, warm + 121, 10):
+        t.train(step)
+        visited.append(t.learned_indices().tolist())
     assert all("rec" in h for h in t.history[warm:])
     end = _psf_of(t, psf_fn)
     # the toy's arg-max STE oscillates by ~15 % between neighbouring selections even when the
     # PSF-only training simply goes on; drift would take it back towards the random start
     assert end <= after_warmup * 1.15 and end < start, (start, after_warmup, end)
-    changed = len(set(sel_warm) ^ set(t.learned_indices().tolist())) // 2
-    assert changed <= 1, (sel_warm, t.learned_indices().tolist())
+    # near-tied logits make the selection hop between neighbours of the warm-up one (which hop,
+    # and where the run ends, depends on the platform's float rounding: on one machine it ended
+    # one swap away, on another two), but it never wanders off: every selection the joint phase
+    # visits is within two swaps of the warm-up's (a random 6 of 16 is 3.75 swaps away on average)
+    swaps = [len(set(sel_warm) ^ set(v)) // 2 for v in visited]
+    assert max(swaps) <= 2, (sel_warm, visited)
 
 
 def test_warm_start_from_the_best_psf_only_selection_does_not_drift(images):
