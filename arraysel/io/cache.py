@@ -71,6 +71,8 @@ __all__ = ["FORMAT", "BLOCK", "cache_dir", "entry_name", "save_state", "load_sta
 FORMAT = 1
 #: bytes per checksum block
 BLOCK = 16 * 2 ** 20
+MANIFEST = "manifest.json"
+_OFF = ("", "0", "off", "none", "false", "no")
 #: checksum that new entries carry (the manifest key of each tensor's block digests)
 CHECKSUM = "crc32"
 
@@ -90,8 +92,6 @@ class _Crc32:
 
 #: block checksums a manifest may carry (older entries: SHA-256)
 _CHECKSUMS = {"crc32": _Crc32, "sha256": hashlib.sha256}
-MANIFEST = "manifest.json"
-_OFF = ("", "0", "off", "none", "false", "no")
 
 
 class DamagedEntry(ArrayselError):

@@ -325,6 +325,7 @@ class PSFModel:
             while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
                 batch = max(1, min(batch - 1, int(batch * 0.85)))
         return batch, self._das_pixels(batch)
+
     #: memory (bytes) of the per-selection tensors of one fast-path batch (:meth:`masks_per_batch`)
     fast_batch_bytes = 256 << 20
 
