@@ -25,6 +25,11 @@ import torch
 from arraysel.physics import compiled
 
 
+def largest_bound(bounds: torch.Tensor) -> torch.Tensor:
+    """(B,) largest of per-block bounds (nQ, B) (:meth:`Certificates.bound`); zero without blocks."""
+    return bounds.amax(dim=0) if bounds.shape[0] else bounds.new_zeros(bounds.shape[1])
+
+
 def sparse_csr(crow, col, val, size):
     """A CSR tensor (checked), without torch's beta warning for sparse CSR."""
     with warnings.catch_warnings():
@@ -266,4 +271,4 @@ class Certificates:
             bounds = (torch.from_numpy(sums) * self.bound_margin).to(env.dtype)
         else:
             bounds = torch.sparse.mm(S, env)  # (nQ, B)
-        return bounds if per_block else bounds.amax(dim=0)
+        return bounds if per_block else largest_bound(bounds)

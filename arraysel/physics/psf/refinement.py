@@ -15,12 +15,8 @@ import torch
 
 from arraysel.physics import compiled
 from arraysel.physics.beamform import das_apply
+from arraysel.physics.psf.certificate import largest_bound
 from arraysel.physics.psf.window import cut_windows, window_start
-
-
-def _largest(bounds: torch.Tensor) -> torch.Tensor:
-    """(B,) largest of per-block bounds (nQ, B); zero without blocks (:meth:`Certificates.bound`)."""
-    return bounds.amax(dim=0) if bounds.shape[0] else bounds.new_zeros(bounds.shape[1])
 
 
 class RawChannels(NamedTuple):
@@ -50,15 +46,6 @@ def _runs(slots: torch.Tensor, most: int = 32) -> list[tuple[int, int]] | None:
     starts = [0] + cut
     ends = cut + [s.numel()]
     return [(int(s[i]), int(s[j - 1]) + 1) for i, j in zip(starts, ends)]
-
-
-def _offsets(runs: list[tuple[int, int]]) -> list[int]:
-    """Start of each run in the concatenation of ``runs``."""
-    out, at = [], 0
-    for a, b in runs:
-        out.append(at)
-        at += b - a
-    return out
 
 
 class Refinement:
@@ -204,9 +191,9 @@ class Refinement:
             # 18 runs), more than the products: 1.8-2.0 against 4.0-4.2 ms for that call with
             # the allocator tuned as the command line tunes it (3.7-4.0 against 8.9 without);
             # a run costs about 0.06 ms more, hence at most 32 of them
-            cf = torch.cat([torch.matmul(c[None], self.strip_left[a:b]) for a, b in runs])
-            v = torch.cat([torch.matmul(cf[i:i + b - a], self.strip_right[a:b])
-                           for i, (a, b) in zip(_offsets(runs), runs)])
+            cfs = [torch.matmul(c[None], self.strip_left[a:b]) for a, b in runs]
+            cf = torch.cat(cfs)
+            v = torch.cat([torch.matmul(f, self.strip_right[a:b]) for f, (a, b) in zip(cfs, runs)])
         v = v.view(sl.numel(), c.shape[0], 2, bb)
         peak = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(-1).sqrt()
         cw2 = (cf / self.strip_sigma[sl][:, None, :]).square().sum(-1).double()
@@ -419,7 +406,7 @@ class Refinement:
             # (forming them again for those selections, from a copy of their envelopes' columns,
             # cost more than the first time: about 0.6 ms a mask on C5-2v)
             bounds = self.bound(wd, 1, per_block=True, env=env)
-            passed = ok & (_largest(bounds) < thr)
+            passed = ok & (largest_bound(bounds) < thr)
             retry = torch.nonzero(ok & ~passed).flatten()
             if retry.numel():
                 passed[retry] = self.refine(wd[retry], thr[retry], tier=1, bounds=bounds[:, retry]).to(passed.device)
@@ -443,7 +430,7 @@ class Refinement:
             with torch.no_grad():
                 ok2 = ok2 & fits2
                 bounds = self.bound(wd[todo], 2, per_block=True, env=env[:, todo])
-                passed = ok2 & (_largest(bounds) < thr2)
+                passed = ok2 & (largest_bound(bounds) < thr2)
                 retry = torch.nonzero(ok2 & ~passed).flatten()
                 if retry.numel():
                     passed[retry] = self.refine(wd[todo][retry], thr2[retry], bounds=bounds[:, retry]).to(passed.device)
