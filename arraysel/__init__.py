@@ -30,10 +30,6 @@ _LAZY = {
 
 __all__ = ["__version__", "selectors", *_LAZY]
 
-from arraysel import _compat  # noqa: E402  (old flat module paths keep importing, with a DeprecationWarning)
-
-_compat.install()
-
 
 def __getattr__(name):
     if name == "selectors":  # the package is callable: asel.selectors() lists the registered names

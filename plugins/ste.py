@@ -5,8 +5,7 @@ elements not chosen by columns ``0..j-1``; the forward pass uses the one-hot
 ``P_hard`` and the backward pass the gradient of ``P_soft``
 (``P = (P_hard - P_soft).detach() + P_soft``). The temperature follows a
 cosine decay from ``tau_start`` to ``tau_end`` over ``tau_steps`` steps (the
-scene key ``training.tau_steps``; the old option name ``anneal_steps`` still
-works, with a ``DeprecationWarning``).
+scene key ``training.tau_steps``).
 The loss is ``objective.selection_loss(P, P_soft, step)``, minimised with
 Adam. Every new hard selection is scored with ``objective.evaluate`` and the
 best one is returned.
@@ -15,12 +14,10 @@ The shared training loop (:class:`MatrixSelector`) is reused by ``gumbel``.
 """
 from __future__ import annotations
 
-import warnings
-from typing import Any
 
 import torch
 
-from arraysel.errors import NumericalError, ParameterError
+from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
 from arraysel.selectors.contract import BudgetExhausted, Option, Selector, indices_to_mask, torch_rng
@@ -50,28 +47,6 @@ class MatrixSelector(Selector):
     options = dict(_COMMON)
     #: consecutive NaN/Inf losses after which the loop stops (the logits no longer move)
     MAX_BAD_STEPS = 50
-
-    #: old option name -> its name now (accepted with a DeprecationWarning)
-    RENAMED_OPTIONS = {"anneal_steps": "tau_steps"}
-
-    @classmethod
-    def _renamed(cls, options: dict) -> dict:
-        out = dict(options)
-        for old, new in cls.RENAMED_OPTIONS.items():
-            if old in out:
-                warnings.warn(f"option {cls.name}.{old} is now {cls.name}.{new} (the name of the scene key "
-                              f"training.{new}); give -o {cls.name}.{new}=...", DeprecationWarning, stacklevel=3)
-                if new in out:
-                    raise ParameterError(f"selector {cls.name!r}: give {new} only ({old} is its old name)")
-                out[new] = out.pop(old)
-        return out
-
-    def __init__(self, **options: Any):
-        super().__init__(**self._renamed(options))
-
-    @classmethod
-    def parse_options(cls, pairs: dict[str, str]) -> dict[str, Any]:
-        return super().parse_options(cls._renamed(pairs))
 
     def batch_size(self, n_elements, k):
         return 2  # one selection_loss + at most one evaluate per step

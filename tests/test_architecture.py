@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: the layers, bottom up; a module belongs to the layer of its longest matching prefix
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("arraysel", "arraysel._compat", "arraysel.errors",     # version, old-path aliases, error types,
+    ("arraysel", "arraysel.errors",                         # version, error types,
      "arraysel.selection"),                                 # a selection's representations and checks
     ("arraysel.io",),                                       # atomic writes, cache folder, mask files
     ("arraysel.physics",),                                  # probes, delays, SIMUS, beamforming, PSF
@@ -27,7 +27,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("arraysel.run",),                                      # experiments, compare, executors
     ("arraysel.e2e",),                                      # end-to-end training
     ("arraysel.api", "arraysel.testing"),                   # notebook API, conformance suite
-    ("arraysel.cli",),                                      # the `arraysel` command
+    ("arraysel.cli", "arraysel.__main__"),                  # the `arraysel` command, python -m arraysel
 )
 
 

@@ -49,7 +49,7 @@ class BestOfBatch(Selector):
     def batch_size(self, n_elements, k):
         return 40
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         marker = self.options["marker"]
         if marker and not os.path.exists(marker):
             with open(marker, "w") as fh:
@@ -60,16 +60,14 @@ class BestOfBatch(Selector):
         masks = np.zeros((40, n), dtype=bool)
         np.put_along_axis(masks, subsets, True, axis=1)
         means = objective.evaluate(masks)["Mean"]
-        i = int(np.argmin(means))
-        recorder.report(subsets[i].tolist(), float(means[i]))
-        return subsets[i].tolist()
+        return subsets[int(np.argmin(means))].tolist()
 
 
 class AlwaysCrash(Selector):
     name = "always_crash"
     description = "kills its worker every time"
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         _die()
 
 

@@ -60,7 +60,7 @@ def test_duplicate_name_raises():
         name = "uniform"
         description = "clashes with the built-in"
 
-        def select(self, objective, k, budget, seed, recorder):
+        def select(self, objective, k, seed):
             return list(range(k))
 
     plugin = types.SimpleNamespace(arraysel_register_selectors=hookimpl(lambda register: register(Twin)))
@@ -167,7 +167,7 @@ def test_plugin_object_registered_on_the_manager(isolated_pm, tmp_path, capsys):
         description = "the last k elements"
         options = {"unused": Option(int, 0, "an option, to test -o", lo=0)}
 
-        def select(self, objective, k, budget, seed, recorder):
+        def select(self, objective, k, seed):
             return list(range(objective.n_elements - k, objective.n_elements))
 
     plugin = types.SimpleNamespace(arraysel_register_selectors=hookimpl(lambda register: register(Last)))
@@ -225,72 +225,11 @@ def test_installed_command_lists_builtins():
     assert BUILTINS <= names
 
 
-@pytest.mark.parametrize("old, new", [("arraysel.selector", "arraysel.selectors.contract"),
-                                      ("arraysel.hookspecs", "arraysel.selectors.hookspecs"),
-                                      ("arraysel.registry", "arraysel.selectors.registry"),
-                                      ("arraysel.relax", "arraysel.selectors.relax"),
-                                      ("arraysel.psf", "arraysel.physics.psf"),
-                                      ("arraysel.runner", "arraysel.run._legacy_runner"),
-                                      ("arraysel.executors", "arraysel.run._legacy_executors"),
-                                      ("arraysel.commands.compare", "arraysel.cli.compare")])
-def test_old_module_paths_still_import_with_a_deprecation_naming_the_new_one(old, new):
-    """Plugins written against the flat 0.1 layout keep working; the warning says where to import from."""
-    import importlib
-    import sys
-    import warnings
-
-    sys.modules.pop(old, None)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        module = importlib.import_module(old)
-    assert module is importlib.import_module(new)
-    messages = [str(w.message) for w in caught if issubclass(w.category, DeprecationWarning)]
-    assert any(old in m and new in m for m in messages), messages
-
-
-def test_a_plugin_written_against_the_flat_layout_registers_and_runs(isolated_pm):
-    """The 0.1 spelling (arraysel.selector / arraysel.hookspecs) still gives a working selector."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        from arraysel.hookspecs import hookimpl as old_hookimpl
-        from arraysel.selector import Selector as OldSelector
-
-    class FirstK(OldSelector):
-        name = "first-k-old-style"
-        description = "the first k elements"
-
-        def select(self, objective, k, seed):
-            return list(range(k))
-
-    class Plugin:
-        @old_hookimpl
-        def arraysel_register_selectors(self, register):
-            register(FirstK)
-
-    isolated_pm.register(Plugin(), name="old-style")
-    from arraysel.selectors.registry import get_registry
-    from arraysel.testing import ToyObjective
-
-    registry = get_registry(isolated_pm)
-    assert "first-k-old-style" in registry.names()
-    assert registry["first-k-old-style"]().select(ToyObjective(8, 3), 3, 0) == [0, 1, 2]
-
-
 @pytest.mark.parametrize("name", ["ste", "gumbel"])
-def test_decay_length_option_is_tau_steps_anneal_steps_deprecated(name):
-    from arraysel.errors import ParameterError
-
+def test_decay_length_option_is_tau_steps(name):
     import importlib
 
     cls = {"ste": importlib.import_module("arraysel_plugins.ste").STESelector,
            "gumbel": importlib.import_module("arraysel_plugins.gumbel").GumbelSelector}[name]
     assert "tau_steps" in cls.options and "anneal_steps" not in cls.options
     assert cls(tau_steps=7).options["tau_steps"] == 7
-    with pytest.warns(DeprecationWarning, match=f"{name}.tau_steps"):
-        assert cls(anneal_steps=6).options["tau_steps"] == 6
-    with pytest.warns(DeprecationWarning, match="tau_steps"):
-        assert cls.parse_options({"anneal_steps": "5"}) == {"tau_steps": 5}
-    with pytest.warns(DeprecationWarning), pytest.raises(ParameterError, match="tau_steps"):
-        cls(anneal_steps=6, tau_steps=7)

@@ -115,7 +115,7 @@ def test_gradcheck_fast_path_soft_weights(monkeypatch):
     w0 = torch.linspace(0.4, 1.0, 8, dtype=torch.float64)[None].requires_grad_(True)
 
     def f(w):
-        return torch.view_as_real(model.fast.kernels(w)[0])
+        return torch.view_as_real(model.basis.kernels(w)[0])
 
     assert torch.autograd.gradcheck(f, (w0,), eps=1e-6, atol=1e-6, rtol=1e-4)
 
@@ -179,7 +179,7 @@ def _block_max(img, b):
 @pytest.mark.parametrize("tier", [1, 2])
 def test_block_bounds_cover_the_exact_image(paper_objective, exact_grid_images, tier):
     """Every block's envelope bound is at least the exact |I| on the block (the certificate)."""
-    fast = paper_objective.psf.fast
+    fast = paper_objective.psf.basis
     w = _certificate_masks()
     with torch.no_grad():
         bounds = fast.bound(w, tier, per_block=True)  # (nQ, B)
@@ -193,14 +193,14 @@ def test_block_bounds_cover_the_exact_image(paper_objective, exact_grid_images, 
 
 def test_strip_pair_images_match_the_exact_image(paper_objective, exact_grid_images):
     """Block-major strip columns of H2 reproduce the exact image on every whole strip block."""
-    fast = paper_objective.psf.fast
+    fast = paper_objective.psf.basis
     b = paper_objective.psf.block
     w = _certificate_masks()
     q = torch.nonzero(fast.strip_block_col >= 0).flatten()[::37]
     c = fast._pairs(w)
     for qi in q.tolist():
         c0 = int(fast.strip_block_col[qi])
-        v = (c @ fast.H2[:, c0:c0 + 2 * b * b]).view(w.shape[0], 2, b * b)
+        v = (c @ fast.strip_images[:, c0:c0 + 2 * b * b]).view(w.shape[0], 2, b * b)
         got = torch.complex(v[:, 0], v[:, 1]).view(-1, b, b)
         qz, qx = (int(t) for t in fast.blocks1[qi])
         ref = exact_grid_images[:, qz * b:(qz + 1) * b, qx * b:(qx + 1) * b]
@@ -220,7 +220,7 @@ def test_truncated_basis_error_bounds_hold(paper_objective, exact_grid_images, r
     """A truncated basis widens its constants: the per-pixel bound covers |I_r - I| on E and
     the window bound covers the L2 error of any window (here the whole of E's 128 x 128
     top-left window)."""
-    fast = paper_objective.psf.fast
+    fast = paper_objective.psf.basis
     full = fast.finer or fast
     tr = full.truncated(rank)
     assert tr.rank == rank and tr.finer is full
@@ -240,7 +240,7 @@ def test_truncated_basis_error_bounds_hold(paper_objective, exact_grid_images, r
 def test_fast_kernels_match_exact_path_for_hard_masks(paper_objective):
     """Masks that exercise refine (k = 4 grating lobes) still give the exact kernel."""
     w = _certificate_masks()
-    k, ok = paper_objective.psf.fast.kernels(w)
+    k, ok = paper_objective.psf.basis.kernels(w)
     ke = paper_objective.psf.kernels_exact(w)
     for i in range(w.shape[0]):
         if bool(ok[i]):
@@ -250,7 +250,7 @@ def test_fast_kernels_match_exact_path_for_hard_masks(paper_objective):
 def test_strip_low_rank_bounds_cover_the_exact_image(paper_objective, exact_grid_images):
     """The rank-r factor bound of every whole strip block is at least the exact |I| there, and
     tight enough to be useful (within a factor 2 on the strongest blocks)."""
-    fast = paper_objective.psf.fast
+    fast = paper_objective.psf.basis
     b = paper_objective.psf.block
     w = _certificate_masks()
     whole = torch.nonzero(fast.strip_block_col >= 0).flatten()

@@ -195,10 +195,4 @@ def test_project_capped_simplex(k):
 
 
 def test_decay_length_is_named_tau_steps_like_the_scene_key():
-    import warnings
-
     assert cosine_temperature(750, 6.0, 1.2, tau_steps=1500) == pytest.approx(3.6)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        assert cosine_temperature(750, 6.0, 1.2, steps=1500) == pytest.approx(3.6)
-    assert any(issubclass(w.category, DeprecationWarning) and "tau_steps" in str(w.message) for w in caught)

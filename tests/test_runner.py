@@ -27,7 +27,7 @@ class Broken(Selector):
     name = "broken"
     description = "raises"
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         raise RuntimeError("selector exploded")
 
 
@@ -35,7 +35,7 @@ class Repeats(Selector):
     name = "repeats"
     description = "returns an invalid selection"
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         return [0] * k
 
 
@@ -46,8 +46,9 @@ class Greedy4Budget(Selector):
     def batch_size(self, n_elements, k):
         return 4
 
-    def select(self, objective, k, budget, seed, recorder):
-        objective.evaluate(np.ones((100, objective.n_elements), dtype=bool))
+    def select(self, objective, k, seed):
+        # past the budgeted view (which would stop at the budget), on the objective it wraps
+        objective._inner.evaluate(np.ones((100, objective.n_elements), dtype=bool))
         return list(range(k))
 
 
@@ -56,7 +57,7 @@ class Interrupts(Selector):
     description = "Ctrl-C on seed 1"
     options = {"when": Option(int, 1, "seed that interrupts", lo=0)}
 
-    def select(self, objective, k, budget, seed, recorder):
+    def select(self, objective, k, seed):
         if seed == self.options["when"]:
             raise KeyboardInterrupt
         return list(range(k))

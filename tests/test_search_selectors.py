@@ -103,27 +103,6 @@ def test_time_budget_stops_a_large_batch():
     assert row["error"] == "" and row["seconds"] < 2.0
 
 
-class Legacy(Selector):
-    name = "legacy"
-    description = "the five-argument contract"
-
-    def select(self, objective, k, budget, seed, recorder):
-        chosen = list(range(k))
-        if budget.allowed(1):
-            mask = np.zeros((1, objective.n_elements), dtype=bool)
-            mask[0, chosen] = True
-            recorder.report(chosen, objective.evaluate(mask)["Mean"][0])
-        return chosen
-
-
-def test_legacy_selectors_still_work_with_a_deprecation_warning():
-    with pytest.warns(DeprecationWarning, match=r"select\(self, objective, k, seed\)"):
-        exp = Experiment(ToyObjective(12, 6), Legacy, budget=Budget(evaluations=5))
-        row = exp.run()
-    assert row["error"] == "" and row["elements"] == "0 1 2 3 4 5" and row["evaluations"] == 1
-    assert [t["event"] for t in exp.trace] == ["improvement", "end"]
-
-
 # ---------------------------------------------------------------------------
 # the combinatorial selectors find the planted optimum
 # ---------------------------------------------------------------------------

@@ -624,7 +624,7 @@ def test_composite_loss_with_terms_1e4_apart(dtype):
 # ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("selector,options", [
-    ("ste", {"tau_start": 1e3, "tau_end": 1e-3, "anneal_steps": 6, "lr": 1e4, "init_std": 1e4}),
+    ("ste", {"tau_start": 1e3, "tau_end": 1e-3, "tau_steps": 6, "lr": 1e4, "init_std": 1e4}),
     ("gumbel", {"tau_start": 1e-3, "tau_end": 1e-3, "lr": 1e3, "variant": "soft"}),
 ])
 def test_matrix_selectors_with_extreme_settings_return_valid_rows(selector, options):

@@ -148,8 +148,6 @@ def test_tau_schedule_decay_length_is_tau_steps_and_defaults_come_from_the_schem
     from arraysel.scenes.schema import SCHEMA
 
     assert tau_schedule(750, 6.0, 1.2, tau_steps=1500) == pytest.approx(3.6)
-    with pytest.warns(DeprecationWarning, match="tau_steps"):
-        assert tau_schedule(750, 6.0, 1.2, decay_steps=1500) == pytest.approx(3.6)
     cfg, settings = TrainConfig(), E2ESettings()
     for key in ("batch_size", "epochs", "lr_mask", "lr_ista", "lr_head", "tau_start", "tau_end", "tau_steps"):
         assert getattr(cfg, key) == SCHEMA["training"][key].default, key

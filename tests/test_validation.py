@@ -212,7 +212,7 @@ def _selector_returning(value, name):
         description = "returns a fixed (invalid) result"
         deterministic = True
 
-        def select(self, objective, k, budget, seed, recorder):
+        def select(self, objective, k, seed):
             return value() if callable(value) else value
 
     Bad.name = name

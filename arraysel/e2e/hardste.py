@@ -5,7 +5,6 @@ A *selection module* is an ``nn.Module`` called as ``selection(tau, generator) -
 """
 from __future__ import annotations
 
-import warnings
 
 import torch
 import torch.nn as nn
@@ -18,15 +17,11 @@ __all__ = ["tau_schedule", "HardSTESelection"]
 
 
 def tau_schedule(step: int, tau_start: float = _T("tau_start"), tau_end: float = _T("tau_end"),
-                 tau_steps: int = _T("tau_steps"), *, decay_steps: int | None = None) -> float:
+                 tau_steps: int = _T("tau_steps")) -> float:
     """Cosine decay of the softmax temperature from ``tau_start`` (step 0) to
     ``tau_end`` (step ``tau_steps``, the scene key ``training.tau_steps``), constant afterwards
     (:func:`arraysel.selectors.relax.cosine_temperature`). Defaults: the scene schema's
-    ``[training]``. ``decay_steps=`` is the old keyword of ``tau_steps`` (deprecated)."""
-    if decay_steps is not None:
-        warnings.warn("tau_schedule(decay_steps=...) is now tau_schedule(tau_steps=...), the name of the "
-                      "scene key training.tau_steps", DeprecationWarning, stacklevel=2)
-        tau_steps = decay_steps
+    ``[training]``."""
     return cosine_temperature(step, tau_start, tau_end, tau_steps)
 
 

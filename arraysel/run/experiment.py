@@ -33,7 +33,6 @@ import math
 import sys
 import threading
 import time
-import warnings
 from typing import Any
 
 import numpy as np
@@ -42,7 +41,7 @@ from arraysel.errors import SelectionError, check_number, error_text as _error_t
 from arraysel.report.columns import METRICS, ROW_COLUMNS, TRACE_COLUMNS  # noqa: F401  (re-exported)
 from arraysel.selection import format_elements
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder,
-                                         Selector, check_selection, indices_to_mask, is_legacy_selector, numpy_rng)
+                                         Selector, check_selection, indices_to_mask, numpy_rng)
 
 __all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label"]
 
@@ -167,8 +166,6 @@ class Experiment:
             if not error and not math.isfinite(metrics["Mean"]):
                 error = (f"NumericalError: the objective returned NaN/Inf for the selected elements "
                          f"(Mean = {metrics['Mean']})")
-        if not error and is_legacy_selector(selector):
-            error = _check_reported(obj, recorder, selection, metrics)
         self.selection = selection
         self.trace = [dict(r) for r in recorder.rows]
         obj_seconds = s1 - s0
@@ -184,50 +181,14 @@ class Experiment:
         }
 
 
-_WARNED_LEGACY: set = set()
-
-
-def _warn_legacy(cls) -> None:
-    if cls in _WARNED_LEGACY:
-        return
-    _WARNED_LEGACY.add(cls)
-    warnings.warn(
-        f"selector {cls.name!r} ({cls.__module__}.{cls.__qualname__}) uses the legacy signature "
-        f"select(objective, k, budget, seed, recorder); define select(self, objective, k, seed) instead and "
-        f"drop the budget checks and recorder.report calls: the objective it receives counts, clips to "
-        f"the budget and records the trace (see docs/selectors.md)", DeprecationWarning, stacklevel=3)
-
-
 def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
-    """Call ``selector.select`` under either contract; return what it returned (or, when the
-    budget ended the search, the best selection recorded)."""
-    if is_legacy_selector(selector):
-        _warn_legacy(type(selector))
-        return selector.select(obj, k, budget, seed, recorder)
+    """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj``; return what it
+    returned (or, when the budget ended the search, the best selection recorded)."""
     view = BudgetedObjective(obj, budget, recorder, k)
     try:
         return selector.select(view, k, seed)
     except BudgetExhausted:
         return _best_or_first(recorder)
-
-
-def _check_reported(obj, recorder: Recorder, selection, metrics: dict) -> str:
-    """A legacy plugin reports its own scores (``recorder.report``): check its best one against
-    the objective (the new contract records what the objective returns, nothing to check).
-    Returns an error text when they differ by more than float32 rounding, else ''."""
-    if recorder.best is None or not math.isfinite(recorder.best_mean):
-        return ""
-    best = list(recorder.best)
-    try:
-        true = metrics["Mean"] if selection is not None and best == list(selection) else \
-            _final_metrics(obj, best)["Mean"]
-    except Exception as exc:  # a reported selection the objective cannot score
-        return f"the plugin reported Mean {recorder.best_mean:.6g} for elements {best}, which the objective " \
-               f"cannot score: {_error_text(exc)}"
-    if not math.isfinite(true) or abs(true - recorder.best_mean) > 1e-3 * abs(true) + 1e-6:
-        return (f"the plugin reported Mean {recorder.best_mean:.6g} for elements {best}, the objective gives "
-                f"{true:.6g}: its trace cannot be trusted")
-    return ""
 
 
 def _best_or_first(recorder: Recorder) -> list[int]:

@@ -23,18 +23,10 @@ where
 
 The returned list must hold exactly ``k`` distinct ints in ``[0, Ne)``. When
 :class:`BudgetExhausted` ends ``select`` the runner takes ``objective.best``.
-
-Legacy contract (still supported, deprecated): a selector whose ``select``
-takes five arguments, ``select(objective, k, budget, seed, recorder)``, gets
-the bare objective, the started :class:`Budget` and a :class:`Recorder`, and
-must ask ``budget.allowed(n)`` and call ``recorder.report(elements, mean)``
-itself, as before. The runner emits one :class:`DeprecationWarning` per class
-naming the change: drop ``budget`` and ``recorder`` from the signature.
 """
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import time
 from typing import Any, ClassVar, Iterable
@@ -47,7 +39,7 @@ from arraysel.selection import check_selection, indices_to_mask, mask_to_indices
 
 __all__ = [
     "Option", "Selector", "Budget", "Recorder", "BudgetExceededError", "BudgetExhausted",
-    "BudgetedObjective", "POLISH_OPTION", "is_legacy_selector",
+    "BudgetedObjective", "POLISH_OPTION",
     "numpy_rng", "torch_rng", "check_selection", "indices_to_mask", "mask_to_indices",
     "top_k", "finite_or_inf",
 ]
@@ -493,18 +485,6 @@ class BudgetedObjective:
         if self.budget.allowed(1) < 1:
             raise self._exhausted("selection_loss")
         return self._inner.selection_loss(P, P_soft, *args, **kwargs)
-
-
-def is_legacy_selector(selector) -> bool:
-    """True when ``selector.select`` has the five-argument legacy signature
-    ``(objective, k, budget, seed, recorder)``."""
-    try:
-        params = inspect.signature(selector.select).parameters
-    except (TypeError, ValueError):
-        return False
-    positional = [p for p in params.values()
-                  if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)]
-    return "recorder" in params or "budget" in params or len(positional) >= 5
 
 
 def _looks_like_mask(elements, n_elements) -> bool:

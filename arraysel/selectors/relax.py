@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 
 import numpy as np
 import torch
@@ -29,19 +28,13 @@ __all__ = [
 ]
 
 
-def cosine_temperature(step: int, tau_start: float = 6.0, tau_end: float = 1.2, tau_steps: int = 1500, *,
-                       steps: int | None = None) -> float:
+def cosine_temperature(step: int, tau_start: float = 6.0, tau_end: float = 1.2, tau_steps: int = 1500) -> float:
     """Cosine decay of the temperature from ``tau_start`` (step 0) to ``tau_end``
     (step ``tau_steps``, the scene key ``training.tau_steps``), constant afterwards.
-    ``steps=`` is the old keyword of ``tau_steps`` (deprecated).
 
     >>> cosine_temperature(0), cosine_temperature(1500), cosine_temperature(10**6)
     (6.0, 1.2, 1.2)
     """
-    if steps is not None:
-        warnings.warn("cosine_temperature(steps=...) is now cosine_temperature(tau_steps=...), the name of the "
-                      "scene key training.tau_steps", DeprecationWarning, stacklevel=2)
-        tau_steps = steps
     if tau_steps <= 0:
         return float(tau_end)
     t = min(max(step, 0), tau_steps) / tau_steps

@@ -23,9 +23,6 @@ from arraysel.physics.psf.setup import PSFSetup
 from arraysel.physics.psf.store import BASIS_VERSION
 from arraysel.physics.psf.window import window_and_normalise
 
-#: the 0.1 name of :class:`PairBasis`
-_PairBasis = PairBasis
-
 __all__ = ["BASIS_VERSION", "BUILD_RANK_TOL", "ErrorConstants", "PSFModel", "PSFSetup", "PairBasis", "Transmit",
            "basis_limit_bytes", "cache_dir", "memory_limit_bytes", "pair_index", "pair_products",
            "window_and_normalise"]

@@ -373,11 +373,6 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         kernels = 2 * 2 * m.setup.window ** 2 * item
         return env + images + bounds + kernels
 
-    @property
-    def H2(self) -> torch.Tensor:
-        """:attr:`strip_images` under its 0.1 name."""
-        return self.strip_images
-
     # ------------------------------------------------------------------ evaluation
     def _pairs(self, w):
         return pair_products(w, self.pairs_e.to(w.device), self.pairs_j.to(w.device))

@@ -544,11 +544,6 @@ class PSFModel:
             k = k.index_put((bad,), ke.to(k.dtype)) if k.requires_grad else k.index_copy(0, bad, ke.to(k.dtype))
         return (k, ~ok) if return_info else k
 
-    @property
-    def fast(self) -> PairBasis | None:
-        """The pair basis (:attr:`basis`) under its 0.1 name; new code reads :attr:`basis`."""
-        return self.basis
-
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel (window, window), cached."""
         if self._ref is None:
