@@ -5,9 +5,7 @@ import math
 import sys
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.selectors.registry import get_registry, load_plugin
-from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it
-from arraysel.selectors.contract import Budget
+from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it (loads no torch)
 
 #: the default time budget: the runs of one comparison share DEFAULT_TOTAL_S seconds, each getting
 #: at least DEFAULT_MIN_S and at most DEFAULT_BUDGET_S (so that the main job, 5 seeds of two
@@ -140,7 +138,10 @@ def _exact_run_notice(objective, budget, runs: int) -> str | None:
 
 
 def run(args) -> int:
+    # imported here, not at the top: building the parser (``arraysel --help``) loads no torch
     from arraysel.run.compare import compare
+    from arraysel.selectors.contract import Budget
+    from arraysel.selectors.registry import get_registry, load_plugin
 
     for spec in args.plugin:
         load_plugin(spec)

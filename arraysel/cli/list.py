@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import json
 
-from arraysel.selectors.registry import get_registry, load_plugin
-
 
 def _flags(cls) -> str:
     flags = []
@@ -30,6 +28,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    # imported here, not at the top: building the parser (``arraysel --help``) loads no torch
+    from arraysel.selectors.registry import get_registry, load_plugin
+
     for spec in args.plugin:
         load_plugin(spec)
     reg = get_registry()

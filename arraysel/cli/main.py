@@ -1,12 +1,19 @@
 """Command-line entry point: ``arraysel <command> ...``.
 
 Each command lives in its own module under :mod:`arraysel.cli` and
-provides ``add_parser(subparsers)`` (which sets ``func`` on its parser) .
+provides ``add_parser(subparsers)`` (which sets ``func`` on its parser); a module imports
+torch, pandas or matplotlib only inside its ``func``, so that ``arraysel --help``,
+``scenes`` and ``cache`` start without them.
+
+The global ``-v`` / ``-q`` set the level of the ``arraysel`` logger (warnings by default;
+``-v`` information such as the basis build's steps, ``-vv`` debug; ``-q`` errors only), whose
+records go to stderr. An error of the command is one line on stderr and exit code 2.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
 from arraysel.errors import ArrayselError
@@ -23,6 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Design sparse ultrasound probes: choose which k of Ne elements stay active.",
     )
     parser.add_argument("--version", action="version", version=f"arraysel {__version__}")
+    level = parser.add_mutually_exclusive_group()
+    level.add_argument("-v", "--verbose", dest="log_verbose", action="count", default=0,
+                       help="log more: -v information (e.g. the basis build's steps), -vv debug")
+    level.add_argument("-q", "--quiet", dest="log_quiet", action="count", default=0,
+                       help="log errors only (no warnings or notices)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
@@ -30,9 +42,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Handler(logging.StreamHandler):
+    """The command's log handler: writes to the ``sys.stderr`` of the moment of each record."""
+
+    def __init__(self):
+        super().__init__()
+        self.setFormatter(logging.Formatter("%(message)s"))
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):  # StreamHandler sets it; the handler always uses the current stderr
+        pass
+
+
+def configure_logging(verbose: int = 0, quiet: int = 0) -> int:
+    """Set the ``arraysel`` logger's level from the count of ``-v`` and ``-q`` (warnings by
+    default) and give it one stderr handler; returns the level."""
+    level = min(logging.CRITICAL, max(logging.DEBUG, logging.WARNING - 10 * verbose + 10 * quiet))
+    log = logging.getLogger("arraysel")
+    for h in [h for h in log.handlers if isinstance(h, _Handler)]:
+        log.removeHandler(h)
+    log.addHandler(_Handler())
+    log.setLevel(level)
+    return level
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_logging(args.log_verbose, args.log_quiet)
     from arraysel.io.allocator import tune_malloc
 
     tune_malloc()
