@@ -1,8 +1,6 @@
 """``arraysel psf``: the PSF kernel of one selection (npz, optional PNG)."""
 from __future__ import annotations
 
-import numpy as np
-
 from arraysel.errors import ParameterError
 
 
@@ -22,6 +20,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    import numpy as np
     import torch
 
     from arraysel.io.masks import atomic_savez, parse_elements
