@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     level.add_argument("-v", "--verbose", dest="log_verbose", action="count", default=0,
                        help="log more: -v information (e.g. the basis build's steps), -vv debug")
     level.add_argument("-q", "--quiet", dest="log_quiet", action="count", default=0,
-                       help="log errors only (no warnings or notices)")
+                       help="log errors only (no warnings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
