@@ -184,3 +184,70 @@ def test_user_docs_read_as_docs_not_as_a_work_diary():
                 findings.append(f"{name}:{number}: {what}: {line.strip()[:120]}")
     assert not findings, ("the user documentation reads as a work diary (the history belongs in "
                           "the git log):\n" + _report(findings))
+
+
+# -- the docs site's generated pages (docs/gen_ref.py; `mkdocs build --strict` builds the site) --
+
+def _gen_ref():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gen_ref", ROOT / "docs" / "gen_ref.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_scene_key_table_lists_every_key_of_the_schema():
+    from arraysel.scenes.schema import SCHEMA
+
+    table = _gen_ref().scene_key_table()
+    for section, keys in SCHEMA.items():
+        assert f"## `[{section}]`" in table
+        for name, key in keys.items():
+            row = next((line for line in table.splitlines() if line.startswith(f"| `{name}` |")), None)
+            assert row is not None, f"{section}.{name} missing"
+    assert "| `k` | int | 1 … 4096 |  |" in table                     # required, no default
+    assert "| `window` | length | [4, 8192] px (whole pixels) | 128 |" in table
+    assert '| `aggregate` | str | "mean", "worst" | "mean" |' in table
+    assert "| `height` | float | (0, ∞) |" in table
+
+
+def test_cli_reference_shows_every_command_help():
+    import argparse
+
+    from arraysel.cli.main import build_parser
+
+    text = _gen_ref().cli_reference()
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert sub.choices
+    for name in sub.choices:
+        assert f"## `arraysel {name}`" in text
+        assert f"usage: arraysel {name}" in text
+
+
+def test_links_that_leave_docs_point_at_pages_of_the_site():
+    gen = _gen_ref()
+    copies: set[str] = set()
+    text = ("[b](../benchmarks/README.md) ![p](../benchmarks/results/work_precision.png) "
+            "[s](scenes.md#units) [w](https://example.org/x.md) [a](#here)")
+    out = gen.rewrite_links(text, "docs/performance.md", copies)
+    assert out == ("[b](benchmarks.md) ![p](benchmarks/results/work_precision.png) "
+                   "[s](scenes.md#units) [w](https://example.org/x.md) [a](#here)")
+    assert copies == {"benchmarks/results/work_precision.png"}
+    assert gen.rewrite_links("[s](docs/scenes.md)", "README.md", copies) == "[s](scenes.md)"
+    assert gen.rewrite_links("[p](../docs/performance.md)", "benchmarks/README.md", copies) == "[p](performance.md)"
+
+
+def test_relative_links_of_the_markdown_files_resolve():
+    link = re.compile(r"\]\(([^)\s]+)\)")
+    broken = []
+    for name, text in sorted(_tracked_text_files().items()):
+        if not name.endswith(".md"):
+            continue
+        for target in link.findall(text):
+            if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+                continue
+            path = (ROOT / name).parent / target.partition("#")[0]
+            if not path.exists():
+                broken.append(f"{name}: {target}")
+    assert not broken, "links to files that do not exist:\n" + "\n".join(broken)
