@@ -57,6 +57,13 @@ DIARY: tuple[tuple[str, re.Pattern[str]], ...] = (
     ("other people's runs", re.compile(r"\bother engineers?\b", re.IGNORECASE)),
 )
 
+#: the ordinary uses of those words, removed from a line before it is searched
+DIARY_ALLOWED: tuple[re.Pattern[str], ...] = (
+    # a program's session, not a work session
+    re.compile(r"\b(?:Jupyter|IPython|interactive|notebook|Python|dask|SSH|tmux|screen|HTTP|login)"
+               r"(?:'s)? sessions?\b", re.IGNORECASE),
+)
+
 #: the history's own place (written as history on purpose)
 DIARY_EXEMPT = {"CHANGELOG.md"}
 
@@ -70,6 +77,8 @@ def machine_path_findings(line: str) -> list[str]:
 
 def diary_findings(line: str) -> list[str]:
     """Names of the diary wordings a line of documentation contains."""
+    for allowed in DIARY_ALLOWED:
+        line = allowed.sub(" ", line)
     return [name for name, pattern in DIARY if pattern.search(line)]
 
 
@@ -155,6 +164,7 @@ def test_diary_wording_is_found(line):
     "a run that overruns its budget stops the comparison",
     "Ctrl-C stops the run; `--resume` finishes it",
     "the stop criterion of the swap search",
+    "run it in a Jupyter session or an interactive session",
 ])
 def test_ordinary_words_pass(line):
     assert diary_findings(line) == []
