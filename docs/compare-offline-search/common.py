@@ -1,10 +1,16 @@
-import sys, time, math, numpy as np, arraysel
+"""Shared scorer of the offline searches: every mask scored once by the paper scene's objective.
+
+Logs go to ``LOG_DIR/<tag>.log``; LOG_DIR is the environment variable ``SEARCH_LOG_DIR``,
+by default the current folder.
+"""
+import os, sys, time, math, numpy as np, arraysel
+LOG_DIR = os.environ.get("SEARCH_LOG_DIR", ".")
 obj = arraysel.build_objective(arraysel.load_scene("paper"))
 N, K = 64, 32
 class S:
     def __init__(self, tag):
         self.cache = {}; self.n = 0; self.best = math.inf; self.bm = None; self.t0 = time.time()
-        self.log = open(f"/tmp/srch/{tag}.log", "a")
+        self.log = open(os.path.join(LOG_DIR, f"{tag}.log"), "a")
     def p(self, *a): print(f"{time.time()-self.t0:8.1f}s evals {self.n}", *a, file=self.log, flush=True)
     def __call__(self, masks):
         masks = np.asarray(masks, bool)

@@ -1,5 +1,9 @@
-"""Offline search for issue 13's 95% target: symmetric ILS, then full swap ILS from the best."""
-import sys, time, math, json, numpy as np, arraysel
+"""Offline search for the 95% target: symmetric ILS, then full swap ILS from the best.
+
+Usage: OMP_NUM_THREADS=1 python sym.py SEED SECONDS TAG  (log: TAG.log in $SEARCH_LOG_DIR, default
+the current folder)
+"""
+import os, sys, time, math, json, numpy as np, arraysel
 obj = arraysel.build_objective(arraysel.load_scene("paper"))
 N, K = 64, 32
 seed = int(sys.argv[1]); budget_s = float(sys.argv[2]); tag = sys.argv[3]
@@ -8,7 +12,7 @@ cache = {}
 n_eval = 0
 best = [math.inf, None]
 t0 = time.time()
-log = open(f"/tmp/srch/{tag}.log", "a")
+log = open(os.path.join(os.environ.get("SEARCH_LOG_DIR", "."), f"{tag}.log"), "a")
 def score(masks):
     global n_eval
     masks = np.asarray(masks, bool)

@@ -1,4 +1,8 @@
-import sys; sys.path.insert(0, "/tmp/srch")
+"""Tabu search from the best known mask.
+
+Usage: OMP_NUM_THREADS=1 python tabu.py SEED SECONDS TAG SAMPLE TENURE  (log: TAG.log, see common.py)
+"""
+import os, sys; sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import *
 seed, budget, tag = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
 sample, tenure = int(sys.argv[4]), int(sys.argv[5])

@@ -1,4 +1,4 @@
-"""Exhaustive 1-swap and 2-swap neighbourhood of a mask on the paper scene (offline evidence for issue 13).
+"""Exhaustive 1-swap and 2-swap neighbourhood of a mask on the paper scene (offline evidence for the 95 % target).
 
 Usage: OMP_NUM_THREADS=1 python two_swap.py "2 3 4 ..." OUT.log
 Scores every mask reachable by exchanging one or two active elements for inactive ones
