@@ -142,3 +142,84 @@ def test_committed_comparisons_report(name):
     assert list(committed.columns) == list(comp.table.columns)
     assert committed["Mean"].to_numpy() == pytest.approx(comp.table["Mean"].to_numpy().astype(float))
     assert "| swap |" in render(folder, "md")
+
+
+# ---------------------------------------------------------------------------
+# one figure style for compare, psf --plot and train figures
+# ---------------------------------------------------------------------------
+
+def _all_figures():
+    import numpy as np
+
+    from arraysel.e2e import figures as e2e
+    from arraysel.report import plots
+
+    rng = np.random.default_rng(0)
+    k = rng.normal(size=(3, 17, 17)) + 1j * rng.normal(size=(3, 17, 17))
+    ref = k[0] * 2
+    masks = np.zeros((2, 8), dtype=bool)
+    masks[0, ::2] = masks[1, :4] = True
+    trace = pd.DataFrame({"config": ["a"] * 3 + ["b"] * 2, "seed": [0, 0, 0, 0, 0],
+                          "seconds": [0.1, 1.0, 2.0, 0.2, 2.0], "evaluations": [1, 10, 20, 1, 20],
+                          "gradient_steps": 0, "best_Mean": [0.5, 0.3, 0.3, 0.4, 0.4],
+                          "event": ["improvement", "improvement", "end", "improvement", "end"]})
+    return {
+        "masks": plots.masks_figure(["a", "b"], masks),
+        "psfs": plots.psfs_figure(["a", "b"], k[1:], ref, 1e-4),
+        "profiles": plots.profiles_figure(["a", "b"], k[1:], ref, 1e-4),
+        "trace": plots.trace_figure(trace, 0.1),
+        "anytime": plots.plot_anytime(trace, 0.1),
+        "psf --plot": plots.psf_figure(k[1], ref, 1e-4, [0, 2, 4], 8),
+        "train fig_mask": e2e.fig_mask({"learned": [0, 2, 5], "uniform": [0, 3, 6]}, 8),
+        "train fig_psf": e2e.fig_psf({"learned": k[1], "uniform": k[2], "full": ref}, ref, 1e-4),
+        "train fig_loss": e2e.fig_loss([{"total": 1.0, "psf": 0.5}, {"total": 0.5, "psf": 0.2}]),
+    }
+
+
+def test_every_figure_has_the_one_style_whatever_the_callers_settings():
+    import matplotlib
+    from matplotlib.image import AxesImage
+
+    from arraysel.report import plots
+
+    loud = {"font.size": 20.0, "axes.titlesize": 21.0, "xtick.labelsize": 19.0, "ytick.labelsize": 19.0,
+            "legend.fontsize": 18.0, "image.cmap": "viridis"}
+    with matplotlib.rc_context(loud):
+        figs = _all_figures()
+        assert matplotlib.rcParams["axes.titlesize"] == 21.0  # the caller's settings are left alone
+    style = plots.STYLE
+    for name, fig in figs.items():
+        fig.canvas.draw()  # ticks and legends laid out (outside the style context)
+        for ax in fig.axes:
+            if ax.get_title():
+                assert ax.title.get_fontsize() == style["axes.titlesize"], name
+            labels = [t for t in ax.get_xticklabels() if t.get_text()]
+            if labels and ax.get_label() != "<colorbar>":
+                assert labels[0].get_fontsize() == style["xtick.labelsize"], name
+                assert labels[0].get_fontfamily() == [style["font.family"]], name
+            if ax.get_legend() is not None:
+                assert ax.get_legend().get_texts()[0].get_fontsize() == style["legend.fontsize"], name
+            for im in ax.get_images():
+                assert isinstance(im, AxesImage)
+                if im.get_cmap().name == plots.IMAGE_CMAP:  # a PSF: the one dB range
+                    assert im.get_clim() == (-plots.DYN_RANGE_DB, 0), name
+                else:
+                    assert im.get_cmap().name == plots.MASK_CMAP and im.get_clim() == (0, 1), name
+    for name in ("psfs", "psf --plot", "train fig_psf"):  # PSF images in mm
+        assert "x (mm)" in [ax.get_xlabel() for ax in figs[name].axes], name
+    for name in ("profiles", "train fig_psf"):
+        assert "lateral distance from the peak (mm)" in [ax.get_xlabel() for ax in figs[name].axes], name
+
+
+def test_compare_psf_and_train_figures_are_saved_alike(tmp_path):
+    from PIL import Image
+
+    from arraysel.e2e import figures as e2e
+    from arraysel.report import plots
+
+    assert e2e.save_figure is plots.save_figure
+    figs = _all_figures()
+    for i, fig in enumerate((figs["psfs"], figs["psf --plot"], figs["train fig_psf"])):
+        e2e.save_figure(fig, tmp_path / f"{i}.png")
+        with Image.open(tmp_path / f"{i}.png") as im:
+            assert im.info["dpi"] == pytest.approx((plots.DPI, plots.DPI), abs=0.01)
