@@ -175,3 +175,19 @@ def test_paper_table1_metrics_are_those_of_its_elements(reg, tmp_path, paper_obj
     t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
     assert list(t1["config"]) == ["full", "uniform", "random"]
     _check_rows_are_their_elements(t1, paper_objective, 1e-5)
+
+
+def test_api_result_carries_the_stats_table(tmp_path):
+    import arraysel as asel
+
+    res = asel.compare("toy", ["uniform", "random", "ste"], seeds=[0, 1], budget_s=None, budget_evals=30,
+                       out_dir=tmp_path, progress=False, figures=False)
+    assert tuple(res.stats.columns) == STATS_COLUMNS
+    assert list(res.stats["config"]) == list(res.table["config"]) == ["full", "uniform", "random", "ste"]
+    s = res.stats.set_index("config")
+    means = res.runs.loc[res.runs["config"] == "ste", "Mean"]
+    assert s.loc["ste", "Mean_median"] == pytest.approx(means.median())
+    assert s.loc["ste", "p_vs_random"] == pytest.approx(
+        sps.mannwhitneyu(means, res.runs.loc[res.runs["config"] == "random", "Mean"]).pvalue)
+    assert s.loc["uniform", "note"].startswith("no confidence interval") and s.loc["ste", "note"] == ""
+    assert res.table.set_index("config").loc["ste", "Mean"] == pytest.approx(means.min())

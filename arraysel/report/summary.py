@@ -144,7 +144,7 @@ def _best_row(comp: Comparison) -> int | None:
     return i if means and math.isfinite(means[i]) else None
 
 
-def _caption(comp: Comparison, latex: bool) -> str:
+def _caption(comp: Comparison) -> str:
     meta = comp.meta
     budget = meta.get("budget") or {}
     parts = []
@@ -153,11 +153,10 @@ def _caption(comp: Comparison, latex: bool) -> str:
     if budget.get("evaluations"):
         parts.append(f"{budget['evaluations']:,} evaluations")
     scene = meta.get("scene_name") or "?"
-    pct = r"\%" if latex else "%"
     return (f"Scene {scene}, k = {meta.get('k', '?')} of {meta.get('n_elements', '?')} elements, "
             f"budget {' and '.join(parts) or 'none'} per run. Metrics: of each selector's listed selection, "
             f"the best of its seeds by Mean (lower is better). Over seeds: median Mean [IQR], percentile-"
-            f"bootstrap {CI_LEVEL * 100:.0f} {pct} confidence interval of the median, two-sided Mann-Whitney U "
+            f"bootstrap {CI_LEVEL * 100:.0f} % confidence interval of the median, two-sided Mann-Whitney U "
             f"test of the Means against {BASELINE}'s.")
 
 
@@ -177,7 +176,7 @@ def to_markdown(comp: Comparison) -> str:
         if i == best:
             cells[keys.index("Mean")] = f"**{cells[keys.index('Mean')]}**"
         lines.append("| " + " | ".join(cells) + " |")
-    return _caption(comp, False) + "\n\n" + "\n".join(lines) + "\n"
+    return _caption(comp) + "\n\n" + "\n".join(lines) + "\n"
 
 
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
@@ -193,7 +192,7 @@ def to_latex(comp: Comparison) -> str:
     rows = summary_rows(comp, latex=True)
     best = _best_row(comp)
     keys = list(SUMMARY_HEADERS)
-    out = [r"\begin{table}", r"\centering", r"\caption{" + _latex_text(_caption(comp, False)) + "}",
+    out = [r"\begin{table}", r"\centering", r"\caption{" + _latex_text(_caption(comp)) + "}",
            r"\begin{tabular}{l" + "r" * (len(keys) - 1) + "}", r"\toprule",
            " & ".join(SUMMARY_HEADERS[k][1] for k in keys) + r" \\", r"\midrule"]
     for i, r in enumerate(rows):
