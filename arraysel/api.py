@@ -5,7 +5,8 @@
 >>> obj = asel.build_objective(scene)
 >>> obj.evaluate_indices([list(range(0, 64, 2))])["Mean"]
 >>> res = asel.compare("paper", ["uniform", "random"], budget_s=30)
->>> res.table            # pandas DataFrame (table1.csv)
+>>> res.table            # pandas DataFrame (table1.csv: each selector's best run)
+>>> res.stats            # pandas DataFrame (stats.csv: statistics over seeds)
 >>> res.figures["psfs"]  # matplotlib Figure
 
 Everything here is a thin layer over the modules that do the work
@@ -24,7 +25,10 @@ __all__ = ["CompareResult", "compare"]
 class CompareResult:
     """What :func:`compare` returns.
 
-    table : ``table1.csv`` (one row per configuration, ``full`` first)
+    table : ``table1.csv`` (one row per configuration, ``full`` first: the metrics of its listed
+        selection, the run with the best Mean over its seeds)
+    stats : ``stats.csv`` (one row per configuration: the statistics of its Means over seeds,
+        bootstrap confidence interval of the median, rank test against ``random``)
     runs : ``runs.csv`` (one row per (configuration, seed) run)
     trace : ``trace.csv`` (improvements of the best Mean over time)
     figures : ``{"masks", "psfs", "profiles", "trace"}`` -> matplotlib Figure (those drawn)
@@ -36,6 +40,7 @@ class CompareResult:
     trace: Any
     figures: dict
     out_dir: str
+    stats: Any = None
 
     def _repr_html_(self) -> str:  # a notebook shows the table
         return self.table._repr_html_()
@@ -97,4 +102,6 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
     out = os.fspath(out_dir)
     runs = pd.read_csv(os.path.join(out, "runs.csv"), keep_default_na=False, na_values=["", "nan", "NaN"])
     trace = pd.read_csv(os.path.join(out, "trace.csv"))
-    return CompareResult(table=table, runs=runs, trace=trace, figures=dict(figs), out_dir=out)
+    stats = pd.read_csv(os.path.join(out, "stats.csv"), keep_default_na=False, na_values=["", "nan", "NaN"])
+    stats["note"] = stats["note"].fillna("")
+    return CompareResult(table=table, runs=runs, trace=trace, figures=dict(figs), out_dir=out, stats=stats)

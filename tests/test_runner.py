@@ -11,7 +11,7 @@ import pytest
 from arraysel.cli.compare import build_objective
 from arraysel.errors import ArrayselError, ParameterError
 from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
-from arraysel.report.columns import ROW_COLUMNS, TRACE_COLUMNS
+from arraysel.report.columns import ROW_COLUMNS, STATS_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
 from arraysel.run.compare import compare
 from arraysel.run.experiment import Experiment
 from arraysel.selectors.contract import Budget, BudgetExceededError, Option, Selector, check_selection
@@ -146,13 +146,14 @@ def test_compare_writes_all_files(reg, tmp_path):
                     budget=Budget(evaluations=60, seconds=10), registry=reg, progress=False,
                     command_line=["arraysel", "compare"])
     names = {p.name for p in tmp_path.iterdir()}
-    assert {"table1.csv", "runs.csv", "trace.csv", "ioh", "run.json", "masks.png",
+    assert {"table1.csv", "stats.csv", "runs.csv", "trace.csv", "ioh", "run.json", "masks.png",
             "psfs.png", "profiles.png", "trace.png", "anytime.png"} <= names
     assert not [n for n in names if n.endswith(".tmp")]
     t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
     assert list(t1.columns[:9]) == ["config", "L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "Mean", "seconds",
                                     "evaluations", "elements"]
-    assert {"Mean_std", "L_PSF_std", "error", "overhead_seconds"} <= set(t1.columns)
+    assert tuple(t1.columns) == TABLE1_COLUMNS
+    assert tuple(pd.read_csv(tmp_path / "stats.csv").columns) == STATS_COLUMNS
     assert list(t1["config"]) == ["full", "ste", "random", "uniform"]
     assert t1.set_index("config").loc["full", "elements"] == " ".join(map(str, range(16)))
     assert list(table["config"]) == list(t1["config"])

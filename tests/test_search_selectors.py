@@ -193,13 +193,13 @@ def test_default_seeds_run_deterministic_selectors_once(reg, tmp_path):
     runs = pd.read_csv(tmp_path / "runs.csv")
     assert list(runs[runs["config"] == "uniform"]["seed"]) == [DEFAULT_SEEDS[0]]
     assert list(runs[runs["config"] == "random"]["seed"]) == list(DEFAULT_SEEDS)
-    t1 = pd.read_csv(tmp_path / "table1.csv").set_index("config")
+    t1 = pd.read_csv(tmp_path / "stats.csv").set_index("config")
     means = runs[runs["config"] == "random"]["Mean"].to_numpy()
     assert t1.loc["random", "Mean_median"] == pytest.approx(np.median(means))
     assert t1.loc["random", "Mean_best"] == pytest.approx(means.min())
     q25, q75 = np.percentile(means, [25, 75])
     assert t1.loc["random", "Mean_iqr"] == pytest.approx(q75 - q25)
-    assert t1.loc["random", "seeds"] == 5 and t1.loc["uniform", "seeds"] == 1
+    assert t1.loc["random", "n_seeds"] == 5 and t1.loc["uniform", "n_seeds"] == 1
 
 
 def test_explicit_seeds_run_deterministic_selectors_once(reg, tmp_path):

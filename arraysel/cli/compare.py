@@ -28,7 +28,8 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "compare", help="compare selectors on a scene (Table 1, traces, figures)",
         description="Run each selector once per seed on the scene's objective, add the full-array "
-                    "reference row and write table1.csv, runs.csv, trace.csv, IOHprofiler files (ioh/), "
+                    "reference row and write table1.csv (the metrics of each selector's best run), stats.csv "
+                    "(statistics over seeds), runs.csv, trace.csv, IOHprofiler files (ioh/), "
                     "run.json and figures to --out. Rows are saved as each run finishes; after an "
                     "interruption, rerun the same command with --resume.")
     p.add_argument("--selectors", required=True, metavar="A,B,...",
@@ -188,12 +189,13 @@ def run(args) -> int:
     finally:
         if executor is not None:
             executor.close()
-    cols = [c for c in ("config", "Mean", "Mean_median", "Mean_iqr", "Mean_best", "seeds", "seconds",
-                        "evaluations", "error") if c in table]
-    with __import__("pandas").option_context("display.width", 160, "display.max_colwidth", 60):
-        print(table[cols].to_string(index=False))
-    print(f"wrote {args.out}/table1.csv, runs.csv, trace.csv, ioh/, run.json"
-          + ("" if args.no_figures else " and figures"))
+    from arraysel.report.stats import stats_table
+    from arraysel.report.summary import to_text
+    from arraysel.report.tables import read_runs
+
+    print(to_text(table, stats_table(read_runs(f"{args.out}/runs.csv"))))
+    print(f"wrote {args.out}/table1.csv (each selector's best run), stats.csv (statistics over seeds), "
+          f"runs.csv, trace.csv, ioh/, run.json" + ("" if args.no_figures else " and figures"))
     return _report_failures(args.out)
 
 

@@ -2,41 +2,26 @@
 
 Every ``fig_*`` function returns a :class:`matplotlib.figure.Figure` (built
 without pyplot, so no backend is chosen or changed: ``matplotlib.use`` is
-never called); :func:`save_figure` writes one as a PNG atomically and
+never called), in the one figure style of :mod:`arraysel.report.plots` (its
+fonts, dpi, dB range, mm axes and colour maps); :func:`save_figure` (that of
+:mod:`arraysel.report.plots`) writes one as a PNG atomically and
 :func:`write_figures` writes all of a run's.
 """
 from __future__ import annotations
 
-import io
 import os
 from typing import Any
 
 import numpy as np
 import torch
 
-from arraysel.io.atomic import atomic_write_bytes
+from arraysel.report.plots import (IMAGE_CMAP, figure as _figure, mask_strip, profile_lines, psf_image,
+                                   save_figure, styled)
 
-DYN_RANGE_DB = 40.0
-
-
-def _figure(figsize):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=figsize)
+__all__ = ["fig_mask", "fig_psf", "fig_images", "fig_loss", "save_figure", "write_figures"]
 
 
-def save_figure(fig, path: str, dpi: int = 100) -> None:
-    """Write ``fig`` as a PNG to ``path`` atomically (temporary file, then rename)."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def _db(k: np.ndarray) -> np.ndarray:
-    a = np.abs(k)
-    return 20 * np.log10(a / max(a.max(), 1e-30) + 1e-12)
-
-
+@styled
 def fig_mask(masks: dict[str, list[int]], n_elements: int):
     """Active elements of each selection (one row per selection, the full array left out;
     the learned one first, the uniform one right below it)."""
@@ -49,44 +34,31 @@ def fig_mask(masks: dict[str, list[int]], n_elements: int):
         grid[r, masks[name]] = 1
     fig = _figure((max(6, n_elements / 8), 0.5 + 0.45 * len(names)))
     ax = fig.subplots()
-    ax.imshow(grid, cmap="Greys", vmin=0, vmax=1, aspect="auto", interpolation="nearest")
-    ax.set_yticks(range(len(names)), [f"{n} ({len(masks[n])})" for n in names])
+    mask_strip(ax, [f"{n} ({len(masks[n])})" for n in names], grid)
     ax.set_xticks(range(0, n_elements, max(1, n_elements // 16)))
     ax.set_xlabel("element (0-based)")
     ax.set_title("active elements (black)")
     return fig
 
 
+@styled
 def fig_psf(kernels: dict[str, np.ndarray], kernel_ref: np.ndarray, pitch: float):
-    """Learned and reference PSF in dB (40 dB range) and lateral / axial profiles through the peak."""
-    n = kernel_ref.shape[0]
-    ext = np.array([-n / 2, n / 2, n / 2, -n / 2]) * pitch * 1e3
+    """Learned and reference PSF in dB (:data:`~arraysel.report.plots.DYN_RANGE_DB` range, each of its
+    own peak) and lateral / axial profiles through each selection's peak."""
     fig = _figure((11, 9))
     axes = fig.subplots(2, 2)
+    im = None
     for ax, k, title in ((axes[0, 0], kernels["learned"], "learned selection"),
                          (axes[0, 1], kernel_ref, "reference (full array)")):
-        im = ax.imshow(_db(k), vmin=-DYN_RANGE_DB, vmax=0, cmap="gray", extent=ext)
-        ax.set_title(f"PSF, {title} (dB)")
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("z - z_peak (mm)")
+        im = psf_image(ax, k, pitch, title=f"PSF, {title} (dB)")
     fig.colorbar(im, ax=axes[0, :], label="dB", shrink=0.8)
-    coord = (np.arange(n) - n // 2) * pitch * 1e3
-    for name, k in kernels.items():
-        a = np.abs(k)
-        i, j = np.unravel_index(np.argmax(a), a.shape)
-        style = "-" if name in ("learned", "full") else "--"
-        axes[1, 0].plot(coord, _db(a[i, :]), style, label=name, lw=1.2)
-        axes[1, 1].plot(coord, _db(a[:, j]), style, label=name, lw=1.2)
-    for ax, what in ((axes[1, 0], "lateral (x) profile"), (axes[1, 1], "axial (z) profile")):
-        ax.set_ylim(-DYN_RANGE_DB - 20, 2)
-        ax.set_xlabel("distance from the peak (mm)")
-        ax.set_ylabel("dB")
-        ax.set_title(f"{what} through the peak")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+    profile_lines(axes[1, 0], axes[1, 1], kernels, pitch, bold=("learned", "full"))
+    for ax in axes[1]:
+        ax.grid(True)
     return fig
 
 
+@styled
 @torch.no_grad()
 def fig_images(trainer, masks: dict[str, list[int]], recons: dict[str, Any], images: torch.Tensor,
                n_elements: int, n_show: int = 3, names: list[str] | None = None):
@@ -121,21 +93,21 @@ def fig_images(trainer, masks: dict[str, list[int]], recons: dict[str, Any], ima
         for c in range(n_show):
             for j, (label, img) in enumerate((("truth", ref), ("blurred |Y|", blur), ("recon", i_hat))):
                 ax = axes[r, 3 * c + j]
-                ax.imshow(img[c, 0].float().cpu().numpy(), cmap="gray", vmin=0, vmax=1)
+                ax.imshow(img[c, 0].float().cpu().numpy(), cmap=IMAGE_CMAP, vmin=0, vmax=1)
                 ax.set_xticks([])
                 ax.set_yticks([])
                 if j == 0:
-                    ax.set_title("ground truth", fontsize=8)
+                    ax.set_title("ground truth")
                 else:
                     p = float(psnr(img[c:c + 1].float(), ref[c:c + 1].float()))
-                    ax.set_title(f"{label} {p:.1f} dB", fontsize=8)
+                    ax.set_title(f"{label} {p:.1f} dB")
                 if c == 0 and j == 0:
-                    ax.set_ylabel(name, fontsize=9)
-    fig.suptitle("held-out scenes: ground truth | blurred measurement | reconstruction (PSNR)",
-                 fontsize=10)
+                    ax.set_ylabel(name)
+    fig.suptitle("held-out scenes: ground truth | blurred measurement | reconstruction (PSNR)")
     return fig
 
 
+@styled
 def fig_loss(history: list[dict[str, float]]):
     """Loss terms per training step (log scale)."""
     fig = _figure((8, 4.5))
@@ -148,10 +120,10 @@ def fig_loss(history: list[dict[str, float]]):
             ok = np.isfinite(v)
             if ok.any() and np.all(v[ok] > 0):
                 ax.semilogy(steps, v, lw=1.5 if key == "total" else 0.8, label=key)
-        ax.legend(fontsize=8, ncol=4)
+        ax.legend(ncol=4)
     ax.set_xlabel("step")
     ax.set_ylabel("loss term")
-    ax.grid(alpha=0.3)
+    ax.grid(True)
     ax.set_title("training loss terms (unweighted; total is weighted and balanced)")
     return fig
 

@@ -1,10 +1,12 @@
 """The column schema of ``arraysel compare``'s files: one definition that the runs (``arraysel.run``)
-write and the tables (``arraysel.report.tables``) read."""
+write and the tables (``arraysel.report.tables``, ``arraysel.report.stats``,
+``arraysel.report.summary``) read."""
 from __future__ import annotations
 
 from arraysel.objective.metrics import METRIC_NAMES
 
-__all__ = ["METRICS", "TABLE1_METRICS", "ROW_COLUMNS", "TRACE_COLUMNS"]
+__all__ = ["METRICS", "TABLE1_METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "TABLE1_COLUMNS", "STATS_COLUMNS",
+           "PAPER_NAMES"]
 
 METRICS = METRIC_NAMES
 #: columns of a run row, in this order
@@ -15,3 +17,37 @@ ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "secon
 TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean", "event")
 #: the metrics of ``table1.csv``'s leading columns (``L_SLR``, their mean, comes later)
 TABLE1_METRICS = tuple(m for m in METRICS if m != "L_SLR")
+
+#: columns of ``table1.csv``: one row per configuration, every value but ``seeds`` and ``error``
+#: taken from ONE run of ``runs.csv``, the configuration's listed selection: the run with the
+#: lowest finite ``Mean`` over its seeds (``seed`` names it; the first run when none has a
+#: finite Mean). ``seeds``: the configuration's runs; ``error``: the errors of all its runs.
+TABLE1_COLUMNS = ("config", *TABLE1_METRICS, "seconds", "evaluations", "elements", "L_SLR", "gradient_steps",
+                  "overhead_seconds", "seed", "seeds", "error")
+
+#: columns of ``stats.csv``: one row per configuration, statistics of its runs' ``Mean`` over seeds
+#: (runs without a finite Mean are left out and counted in ``n_failed``):
+#:
+#: * ``n_seeds`` runs used, ``n_failed`` runs left out;
+#: * ``Mean_median``, ``Mean_q25``, ``Mean_q75``, ``Mean_iqr`` (``q75 - q25``; numpy's linear
+#:   percentiles), ``Mean_mean``, ``Mean_std`` (ddof 1), ``Mean_best`` (lowest), ``Mean_worst``;
+#: * ``Mean_median_ci_low`` / ``_high``: percentile-bootstrap 95 % confidence interval of the
+#:   median (``scipy.stats.bootstrap``, fixed seed; see :mod:`arraysel.report.stats`);
+#: * ``evaluations_median``, ``seconds_median``;
+#: * ``U_vs_random``, ``p_vs_random``: two-sided Mann-Whitney U test of the runs' Means against
+#:   those of the ``random`` configuration (``scipy.stats.mannwhitneyu``);
+#: * ``note``: why a statistic is NaN (fewer than 2 runs, no ``random`` configuration, ...).
+STATS_COLUMNS = ("config", "n_seeds", "n_failed", "Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr",
+                 "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "Mean_median_ci_low",
+                 "Mean_median_ci_high", "evaluations_median", "seconds_median", "U_vs_random", "p_vs_random",
+                 "note")
+
+#: the paper's names of the Table-1 metrics: ``{column: (plain text / Markdown, LaTeX)}``
+PAPER_NAMES = {
+    "L_PSF": ("L_PSF", r"$\mathcal{L}_{\mathrm{PSF}}$"),
+    "L_contrast": ("L_contrast", r"$\mathcal{L}_{\mathrm{contrast}}$"),
+    "L_SLR_q": ("L_SLR_q", r"$\mathcal{L}_{\mathrm{SLR},q}$"),
+    "L_SLR_i": ("L_SLR_i", r"$\mathcal{L}_{\mathrm{SLR},i}$"),
+    "L_SLR": ("L_SLR", r"$\mathcal{L}_{\mathrm{SLR}}$"),
+    "Mean": ("Mean", "Mean"),
+}

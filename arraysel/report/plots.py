@@ -3,18 +3,23 @@ and the caller (a command, ``compare``) saves it with :func:`save_figure` (atomi
 :data:`DPI`). Nothing here selects a matplotlib backend or touches pyplot state: figures are
 built with the object API (``matplotlib.figure.Figure``), so notebooks keep their own backend.
 
-One style: PSF images in dB over :data:`DYN_RANGE_DB` (grey map, peak at 0 dB), profiles down
-to :data:`PROFILE_FLOOR_DB`, axes in millimetres from the peak when the pixel pitch is known
-(pixels otherwise, e.g. the toy objective's synthetic kernels).
+One style for every figure of arraysel (``compare``, ``psf --plot``, ``train``): fonts and
+resolution from :data:`STYLE`, applied by :func:`figure_style` while a figure is built (the
+:func:`styled` decorator) and while it is saved; PSF images in dB over :data:`DYN_RANGE_DB`
+(:data:`IMAGE_CMAP`, peak at 0 dB), profiles down to :data:`PROFILE_FLOOR_DB`, masks in
+:data:`MASK_CMAP`, axes in millimetres from the peak when the pixel pitch is known (pixels
+otherwise, e.g. the toy objective's synthetic kernels).
 
-Public helpers for other figure modules (``arraysel.e2e.figures``): :func:`db`,
-:func:`extent_mm`, :func:`psf_image` (one PSF on an axis), :func:`mask_strip` (active
-elements, one row per selection).
+Public helpers for other figure modules (``arraysel.e2e.figures``): :func:`styled`,
+:func:`figure`, :func:`db`, :func:`extent_mm`, :func:`psf_image` (one PSF on an axis),
+:func:`profile_lines` (lateral and axial profiles through the peaks), :func:`mask_strip`
+(active elements, one row per selection).
 """
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import io
 import math
 from pathlib import Path
@@ -22,8 +27,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["DYN_RANGE_DB", "PROFILE_FLOOR_DB", "DPI", "db", "extent_mm", "psf_image", "mask_strip",
-           "masks_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
+__all__ = ["DYN_RANGE_DB", "PROFILE_FLOOR_DB", "DPI", "IMAGE_CMAP", "MASK_CMAP", "STYLE", "figure_style", "styled",
+           "figure", "db", "extent_mm", "psf_image", "profile_lines", "mask_strip", "masks_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
            "ecdf_targets", "save_figure", "collect_figures"]
 
 #: dynamic range (dB) of every PSF image
@@ -32,15 +37,45 @@ DYN_RANGE_DB = 40.0
 PROFILE_FLOOR_DB = -60.0
 #: resolution of every saved figure
 DPI = 110
+#: colour map of every PSF and B-mode image
+IMAGE_CMAP = "gray"
+#: colour map of every element mask (active elements black)
+MASK_CMAP = "Greys"
+#: matplotlib settings of every figure (:func:`figure_style`)
+STYLE = {
+    "font.family": "DejaVu Sans", "font.size": 9.0, "axes.titlesize": 9.0, "axes.labelsize": 9.0,
+    "xtick.labelsize": 8.0, "ytick.labelsize": 8.0, "legend.fontsize": 7.0, "figure.titlesize": 10.0,
+    "figure.dpi": DPI, "savefig.dpi": DPI, "image.cmap": IMAGE_CMAP, "grid.alpha": 0.3,
+}
 
 #: where :func:`collect_figures` keeps the figures :func:`save_figure` saves (None: not kept)
 _FIGURES: "contextvars.ContextVar[dict | None]" = contextvars.ContextVar("arraysel_figures", default=None)
 
 
-def _figure(**kw):
+@contextlib.contextmanager
+def figure_style():
+    """Context manager: matplotlib's settings are :data:`STYLE` inside it (``rc_context``; the
+    caller's settings come back after it)."""
+    import matplotlib
+
+    with matplotlib.rc_context(STYLE):
+        yield
+
+
+def styled(fn):
+    """Decorator of a function that builds a figure: it runs under :func:`figure_style`."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with figure_style():
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+def figure(figsize):
+    """A new :class:`~matplotlib.figure.Figure` of ``figsize`` inches (object API, no pyplot)."""
     from matplotlib.figure import Figure
 
-    return Figure(**kw)
+    return Figure(figsize=figsize)
 
 
 # ---------------------------------------------------------------------------
@@ -52,7 +87,8 @@ def save_figure(fig, path: str | Path) -> None:
     from arraysel.io.atomic import atomic_write_bytes
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    with figure_style():
+        fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
     sink = _FIGURES.get()
     if sink is not None:
@@ -104,10 +140,10 @@ def psf_image(ax, kernel: np.ndarray, pitch: float | None = None, *, ref_peak: f
               title: str | None = None, ticks: bool = True):
     """Draw ``|kernel|`` in dB (:data:`DYN_RANGE_DB`, relative to ``ref_peak`` or its own peak) on
     ``ax``, in mm when ``pitch`` (metres per pixel) is given; returns the image (for a colorbar)."""
-    im = ax.imshow(db(kernel, ref_peak), vmin=-DYN_RANGE_DB, vmax=0, cmap="gray",
+    im = ax.imshow(db(kernel, ref_peak), vmin=-DYN_RANGE_DB, vmax=0, cmap=IMAGE_CMAP,
                    extent=extent_mm(np.shape(kernel), pitch))
     if title is not None:
-        ax.set_title(title, fontsize=8)
+        ax.set_title(title)
     if ticks:
         _axis_labels(ax, pitch)
     else:
@@ -120,7 +156,7 @@ def mask_strip(ax, labels: Sequence[str], masks: np.ndarray) -> None:
     """Active elements (black), one row per selection: ``masks`` ``(rows, Ne)`` of 0/1."""
     masks = np.asarray(masks, dtype=float).reshape(len(labels), -1)
     if len(labels):
-        ax.imshow(masks, aspect="auto", cmap="Greys", vmin=0, vmax=1, interpolation="nearest")
+        ax.imshow(masks, aspect="auto", cmap=MASK_CMAP, vmin=0, vmax=1, interpolation="nearest")
     ax.set_yticks(range(len(labels)), list(labels))
     ax.set_xlabel("element index")
     ax.set_title("active elements")
@@ -130,19 +166,21 @@ def mask_strip(ax, labels: Sequence[str], masks: np.ndarray) -> None:
 # figures of ``arraysel compare``
 # ---------------------------------------------------------------------------
 
+@styled
 def masks_figure(labels: Sequence[str], masks: np.ndarray):
     """``masks.png``: the active elements of every configuration."""
-    fig = _figure(figsize=(8, 0.4 * max(len(labels), 1) + 1.2))
+    fig = figure((8, 0.4 * max(len(labels), 1) + 1.2))
     mask_strip(fig.subplots(), labels, masks)
     return fig
 
 
+@styled
 def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
     """``psfs.png``: the full array's PSF, then each configuration's, in dB relative to the full array's peak."""
     peak = float(np.abs(ref).max())
     cols = min(4, len(labels) + 1)
     rows = math.ceil((len(labels) + 1) / cols)
-    fig = _figure(figsize=(3 * cols, 3 * rows))
+    fig = figure((3 * cols, 3 * rows))
     axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     im = None
     for i, (ax, (lab, kk)) in enumerate(zip(axes, [("full (reference)", ref)] + list(zip(labels, kernels)))):
@@ -157,18 +195,21 @@ def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pit
     return fig
 
 
-def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
-    """``profiles.png``: lateral and axial profiles through each PSF's peak, against the full array's."""
-    peak = float(np.abs(ref).max())
-    fig = _figure(figsize=(10, 4))
-    ax_l, ax_a = fig.subplots(1, 2)
-    for lab, kk in [("full", ref)] + list(zip(labels, kernels)):
+def profile_lines(ax_l, ax_a, kernels: dict, pitch: float | None = None, *, ref_peak: float | None = None,
+                  bold: Sequence[str] = ("full",)) -> None:
+    """Lateral (``ax_l``) and axial (``ax_a``) profiles through each kernel's peak, in dB of
+    ``ref_peak`` (each kernel's own peak without it) down to :data:`PROFILE_FLOOR_DB`, against
+    the distance from the peak (mm with ``pitch``, pixels without); ``kernels`` ``{label: kernel}``,
+    the labels in ``bold`` drawn thick and black."""
+    for lab, kk in kernels.items():
+        kk = np.asarray(kk)
         r, c = np.unravel_index(int(np.argmax(np.abs(kk))), kk.shape)
-        style = dict(color="k", lw=2) if lab == "full" else dict(lw=1)
+        style = dict(color="k", lw=2) if lab in bold else dict(lw=1)
         x_l = np.arange(kk.shape[1]) - c
         x_a = np.arange(kk.shape[0]) - r
         if pitch is not None:
             x_l, x_a = x_l * pitch * 1e3, x_a * pitch * 1e3
+        peak = float(np.abs(kk).max()) if ref_peak is None else ref_peak
         ax_l.plot(x_l, db(kk[r, :], peak), label=lab, **style)
         ax_a.plot(x_a, db(kk[:, c], peak), label=lab, **style)
     unit = "pixel" if pitch is None else "mm"
@@ -177,13 +218,23 @@ def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray,
         ax.set_xlabel(f"{what} distance from the peak ({unit})")
         ax.set_ylabel("dB")
         ax.set_title(f"{what} profile through the peak")
-    ax_a.legend(fontsize=7)
+    ax_a.legend()
+
+
+@styled
+def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
+    """``profiles.png``: lateral and axial profiles through each PSF's peak, against the full array's."""
+    fig = figure((10, 4))
+    ax_l, ax_a = fig.subplots(1, 2)
+    profile_lines(ax_l, ax_a, {"full": ref, **dict(zip(labels, kernels))}, pitch,
+                  ref_peak=float(np.abs(ref).max()))
     return fig
 
 
+@styled
 def trace_figure(trace, full_mean: float | None = None):
     """``trace.png``: the best Mean against time of every run (log time)."""
-    fig = _figure(figsize=(7, 4.5))
+    fig = figure((7, 4.5))
     ax = fig.subplots()
     if trace is not None and len(trace):
         for (config, seed), g in trace.groupby(["config", "seed"], sort=False):
@@ -193,7 +244,7 @@ def trace_figure(trace, full_mean: float | None = None):
             line, = ax.step(x, y, where="post", label=f"{config} (seed {seed})")
             ax.plot(x[-1:], y[-1:], marker="o", ms=4, color=line.get_color())  # single-point runs too
         ax.set_xscale("log")
-        ax.legend(fontsize=7)
+        ax.legend()
     if full_mean is not None and np.isfinite(full_mean):
         ax.axhline(float(full_mean), color="k", ls="--", lw=1, label="full")
     ax.set_xlabel("seconds")
@@ -206,9 +257,10 @@ def trace_figure(trace, full_mean: float | None = None):
 # ``arraysel psf --plot``
 # ---------------------------------------------------------------------------
 
+@styled
 def psf_figure(kernel: np.ndarray, ref: np.ndarray, pitch: float | None, elements: Sequence[int], n_elements: int):
     """One selection's PSF and the full array's, each in dB of its own peak, with the mask."""
-    fig = _figure(figsize=(12, 4))
+    fig = figure((12, 4))
     axes = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 1, 1.2]})
     im = None
     for ax, k, title in ((axes[0], kernel, "selection"), (axes[1], ref, "full array")):
@@ -256,6 +308,7 @@ def ecdf_targets(trace, count: int = 51) -> np.ndarray:
     return np.geomspace(hi, lo, count)
 
 
+@styled
 def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | None = None):
     """Anytime comparison over seeds; returns a matplotlib ``Figure`` (the caller saves it).
 
@@ -269,7 +322,7 @@ def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | No
     starts at that point, marked, and holds to the end of the x range).
     ``full_mean`` draws the full array's Mean as a dashed line.
     """
-    fig = _figure(figsize=(15, 4.6))
+    fig = figure((15, 4.6))
     ax_t, ax_e, ax_c = fig.subplots(1, 3)
     if trace is None or not len(trace):
         for ax in (ax_t, ax_e, ax_c):
@@ -320,7 +373,7 @@ def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | No
         ax.set_yscale("log")
         ax.set_ylabel("best Mean so far (median, IQR band)")
         ax.set_title(f"best Mean vs {what}")
-    ax_t.legend(fontsize=7)
+    ax_t.legend()
     ax_c.set_xscale("log")
     ax_c.set_ylim(-0.02, 1.02)
     ax_c.set_xlabel("seconds")

@@ -3,18 +3,21 @@
 Files (see ``docs/selectors.md``):
 
 * ``runs.csv`` — one row per (config, seed) run plus ``full``; columns
-  :data:`arraysel.report.columns.ROW_COLUMNS`.
-* ``table1.csv`` — one row per config: ``config,L_PSF,L_contrast,L_SLR_q,
-  L_SLR_i,Mean,seconds,evaluations,elements`` (means over seeds), then
-  ``<col>_std`` columns when several seeds ran, then ``L_SLR, gradient_steps,
-  overhead_seconds, seeds, best_seed, error``. ``elements`` is the selection
-  of the best seed.
-  Then the statistics over seeds: ``Mean_median, Mean_q25, Mean_q75,
-  Mean_iqr, Mean_best, evaluations_median``.
+  :data:`arraysel.report.columns.ROW_COLUMNS`. The other tables are built from it
+  (:func:`rebuild_tables` rebuilds them from a folder's ``runs.csv``).
+* ``table1.csv`` — one row per config, columns :data:`arraysel.report.columns.TABLE1_COLUMNS`:
+  ``config, L_PSF, L_contrast, L_SLR_q, L_SLR_i, Mean, seconds, evaluations, elements,
+  L_SLR, gradient_steps, overhead_seconds, seed, seeds, error``. Every value but ``seeds``
+  (the config's runs) and ``error`` (the errors of all its runs) is that of ONE run, the
+  config's listed selection: its run with the lowest finite ``Mean`` (``seed`` names it),
+  so the metrics are those of ``elements``.
+* ``stats.csv`` — one row per config, the statistics of its runs' Means over seeds
+  (median, quartiles, IQR, mean, std, best, worst, bootstrap confidence interval of the
+  median, Mann-Whitney U test against ``random``): :mod:`arraysel.report.stats`, columns
+  :data:`arraysel.report.columns.STATS_COLUMNS`.
 * ``trace.csv`` — ``config,seed,seconds,evaluations,gradient_steps,best_Mean,event``,
-  one ``improvement`` row per new best evaluated selection, then one ``end``
-  row at the run's last evaluation and time (the trace reaches the end of the
-  budget).
+  one ``improvement`` row per new best evaluated selection, then one ``end`` row at the
+  run's last evaluation and time (the trace reaches the end of the budget).
 * ``ioh/<config>/IOHprofiler_f1_<scene>.json`` + ``data_f1_<scene>/IOHprofiler_f1_DIM<Ne>.dat``
   — the same traces in the IOHprofiler format (:func:`write_ioh`), for
   IOHanalyzer and ``iohinspector``.
@@ -30,16 +33,15 @@ from typing import Any
 import numpy as np
 
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
-from arraysel.report.columns import ROW_COLUMNS, TABLE1_METRICS, TRACE_COLUMNS
+from arraysel.report.columns import ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
+from arraysel.report.stats import stats_table
 from arraysel.selection import parse_element_text
 
-__all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "TABLE1_COLUMNS"]
+__all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "stats_table",
+           "read_runs", "rebuild_tables", "TABLE1_COLUMNS"]
 
-TABLE1_COLUMNS = ("config", *TABLE1_METRICS, "seconds", "evaluations", "elements")
-_STD_OF = (*TABLE1_METRICS, "seconds", "evaluations")
-_EXTRA = ("L_SLR", "gradient_steps", "overhead_seconds", "seeds", "best_seed", "error")
-#: statistics over seeds (always written): median, quartiles, IQR and best of Mean, median evaluations
-_SEED_STATS = ("Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr", "Mean_best", "evaluations_median")
+#: text columns of ``runs.csv`` (read as text, an empty cell as "")
+_TEXT_COLUMNS = ("config", "selector", "elements", "options", "error")
 
 
 def write_json(path, data: Any) -> None:
@@ -50,6 +52,35 @@ def write_csv(path, df) -> None:
     atomic_write_text(path, df.to_csv(index=False))
 
 
+def write_tables(out: Path, runs) -> None:
+    """Write ``table1.csv`` and ``stats.csv`` of the runs table ``runs`` to the folder ``out``."""
+    write_csv(Path(out) / "table1.csv", table1(runs))
+    write_csv(Path(out) / "stats.csv", stats_table(runs))
+
+
+def read_runs(path):
+    """``runs.csv`` as a DataFrame: the text columns as text (an empty cell as ``""``), the numbers
+    as numbers (``nan`` as NaN)."""
+    import pandas as pd
+
+    runs = pd.read_csv(path, dtype={c: str for c in _TEXT_COLUMNS}, keep_default_na=False,
+                       na_values=["", "nan", "NaN"])
+    for c in _TEXT_COLUMNS:
+        if c in runs:
+            runs[c] = runs[c].fillna("").astype(str)
+    if "seed" in runs:  # the full row has none: integers with a gap, not floats
+        runs["seed"] = pd.to_numeric(runs["seed"], errors="coerce").astype("Int64")
+    return runs
+
+
+def rebuild_tables(folder) -> list[Path]:
+    """Rebuild ``table1.csv`` and ``stats.csv`` of a comparison folder from its ``runs.csv``;
+    returns the paths written."""
+    folder = Path(folder)
+    write_tables(folder, read_runs(folder / "runs.csv"))
+    return [folder / "table1.csv", folder / "stats.csv"]
+
+
 def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: str | None = None) -> None:
     """Write ``runs.csv``, ``table1.csv``, ``trace.csv`` and the IOHprofiler files (``ioh/``)."""
     import pandas as pd
@@ -58,7 +89,7 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
     extra = list(dict.fromkeys(k for r in rows for k in r if k not in ROW_COLUMNS))
     runs = pd.DataFrame(rows, columns=list(ROW_COLUMNS) + extra)
     write_csv(out / "runs.csv", runs)
-    write_csv(out / "table1.csv", table1(runs))
+    write_tables(out, runs)
     write_csv(out / "trace.csv", pd.DataFrame(trace, columns=list(TRACE_COLUMNS)))
     write_ioh(out / "ioh", rows, trace, problem or "arraysel")
 
@@ -151,51 +182,23 @@ def pd_float(v) -> float:
         return math.nan
 
 
-def _nanmean(x) -> float:
-    v = np.asarray(x, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    return float(v.mean()) if v.size else math.nan
-
-
-def _nanstd(x) -> float:
-    v = np.asarray(x, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    return float(v.std(ddof=1)) if v.size > 1 else math.nan
-
-
 def table1(runs) -> "Any":
-    """Aggregate run rows (a DataFrame with ``ROW_COLUMNS``) to the Table-1 layout."""
+    """``table1.csv`` of a runs table (a DataFrame with ``ROW_COLUMNS``): one row per config, in
+    their order, each the row of the config's run with the lowest finite ``Mean`` (its first run
+    when none has one), with ``seeds`` (its runs) and ``error`` (the errors of all its runs)."""
     import pandas as pd
 
-    several = runs[runs["config"] != "full"].groupby("config", sort=False).size().max()
-    several = bool(several and several > 1)
     out = []
     for config, g in runs.groupby("config", sort=False):
-        rec: dict[str, Any] = {"config": config}
-        for col in (*_STD_OF, "L_SLR", "gradient_steps", "overhead_seconds"):
-            rec[col] = _nanmean(g[col])
         means = pd.to_numeric(g["Mean"], errors="coerce").to_numpy(dtype=np.float64)
-        finite = np.where(np.isfinite(means), means, np.inf)
-        best = int(np.argmin(finite)) if len(finite) else 0
-        rec["elements"] = g["elements"].iloc[best] if len(g) else ""
-        rec["best_seed"] = g["seed"].iloc[best] if len(g) else ""
+        best = int(np.argmin(np.where(np.isfinite(means), means, np.inf)))
+        row = g.iloc[best]
+        rec: dict[str, Any] = {c: row[c] for c in TABLE1_COLUMNS if c in row.index}
+        rec["config"] = config
+        rec["elements"] = row["elements"] if isinstance(row["elements"], str) else ""
         rec["seeds"] = len(g)
         errs = [f"seed {s}: {e}" if str(s) != "" else str(e)
                 for s, e in zip(g["seed"], g["error"]) if isinstance(e, str) and e]
         rec["error"] = "; ".join(errs)
-        if several:
-            for col in _STD_OF:
-                rec[f"{col}_std"] = _nanstd(g[col])
-        fin = means[np.isfinite(means)]
-        q25, med, q75 = (np.percentile(fin, [25, 50, 75]) if fin.size else (math.nan,) * 3)
-        rec.update({"Mean_median": float(med), "Mean_q25": float(q25), "Mean_q75": float(q75),
-                    "Mean_iqr": float(q75 - q25), "Mean_best": float(fin.min()) if fin.size else math.nan})
-        ev = pd.to_numeric(g["evaluations"], errors="coerce").to_numpy(dtype=np.float64)
-        ev = ev[np.isfinite(ev)]
-        rec["evaluations_median"] = float(np.median(ev)) if ev.size else math.nan
         out.append(rec)
-    cols = list(TABLE1_COLUMNS)
-    if several:
-        cols += [f"{c}_std" for c in _STD_OF]
-    cols += list(_EXTRA) + list(_SEED_STATS)
-    return pd.DataFrame(out, columns=cols)
+    return pd.DataFrame(out, columns=list(TABLE1_COLUMNS))

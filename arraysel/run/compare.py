@@ -1,7 +1,7 @@
 """``compare``: run every selector for every seed on one objective and write the report.
 
 It adds the ``full`` reference row and writes, atomically and after each finished run, the
-files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``, ``trace.csv``, the
+files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``, ``stats.csv``, ``trace.csv``, the
 IOHprofiler files under ``ioh/``, ``run.json``, then the figures). The runs go one after
 another in this process, each in an isolated child process (:mod:`arraysel.run.isolation`),
 or on an executor's workers (:mod:`arraysel.run.executors`, :mod:`arraysel.run.compare_task`).
@@ -148,7 +148,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
 
     Returns
     -------
-    pandas.DataFrame : the ``table1.csv`` table
+    pandas.DataFrame : the ``table1.csv`` table (each configuration's best run; the statistics
+    over seeds are in ``stats.csv``, :func:`arraysel.report.stats.stats_table`)
 
     ``resume`` refuses (:class:`~arraysel.errors.ParameterError` naming the field) when the
     scene, ``k``, the number of elements, the dtype or the budget differ from ``run.json``;

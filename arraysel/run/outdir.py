@@ -12,8 +12,8 @@ from arraysel.io.atomic import check_writable
 __all__ = ["RESULT_FILES", "RESUME_FIELDS", "check_out_dir", "check_resume", "remove_results"]
 
 #: files ``compare`` writes in its folder (``--force`` removes these and nothing else)
-RESULT_FILES = ("runs.csv", "table1.csv", "trace.csv", "trace_nevergrad.csv", "ioh", "run.json", "masks.png",
-                "psfs.png", "profiles.png", "trace.png", "anytime.png")
+RESULT_FILES = ("runs.csv", "table1.csv", "stats.csv", "trace.csv", "trace_nevergrad.csv", "ioh", "run.json",
+                "masks.png", "psfs.png", "profiles.png", "trace.png", "anytime.png")
 #: fields of ``run.json`` that a resumed run must share with the new one
 RESUME_FIELDS = ("scene", "n_elements", "k", "dtype", "budget")
 

@@ -1,0 +1,141 @@
+"""Statistics over seeds of a comparison (``stats.csv``, columns
+:data:`arraysel.report.columns.STATS_COLUMNS`).
+
+For each configuration, the ``Mean`` of each of its runs (one per seed; runs without a finite
+Mean are left out and counted): median, quartiles, IQR, mean, standard deviation, best and
+worst, a bootstrap confidence interval of the median, and a rank test against the runs of the
+``random`` configuration.
+
+* **Confidence interval**: ``scipy.stats.bootstrap`` of the median, percentile method,
+  :data:`BOOTSTRAP_RESAMPLES` resamples, level :data:`CI_LEVEL`, a generator seeded with
+  :data:`BOOTSTRAP_SEED` (the same table gives the same interval). The percentile method is
+  used because BCa's jackknife of a median is degenerate for a handful of seeds. With 5 seeds
+  the interval is wide by nature (it is often the range of the middle three or all five);
+  NaN with fewer than 2 runs.
+* **Rank test**: ``scipy.stats.mannwhitneyu(means, random_means, alternative="two-sided")``
+  (exact p-value for small samples without ties, the normal approximation otherwise, as scipy
+  chooses with ``method="auto"``); NaN, with the reason in ``note``, when there is no ``random``
+  configuration, for ``random`` itself, or when either side has fewer than 2 runs.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from arraysel.report.columns import STATS_COLUMNS
+
+__all__ = ["CI_LEVEL", "BOOTSTRAP_RESAMPLES", "BOOTSTRAP_SEED", "BASELINE", "finite", "seed_statistics",
+           "median_ci", "rank_test", "baseline_config", "stats_table"]
+
+#: confidence level of the bootstrap interval of the median Mean
+CI_LEVEL = 0.95
+#: bootstrap resamples
+BOOTSTRAP_RESAMPLES = 9999
+#: seed of the bootstrap's generator
+BOOTSTRAP_SEED = 0
+#: the selector every configuration is tested against
+BASELINE = "random"
+
+
+def finite(values) -> np.ndarray:
+    """``values`` as float64 with the non-numbers and non-finite values left out."""
+    import pandas as pd
+
+    v = pd.to_numeric(pd.Series(list(values), dtype=object), errors="coerce").to_numpy(dtype=np.float64)
+    return v[np.isfinite(v)]
+
+
+def seed_statistics(means) -> dict[str, float]:
+    """Median, quartiles (numpy's linear percentiles), IQR, mean, standard deviation (ddof 1; NaN
+    for one value), best (lowest) and worst of the finite values of ``means``; NaN for none."""
+    v = finite(means)
+    if not v.size:
+        return {k: math.nan for k in ("Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr", "Mean_mean",
+                                      "Mean_std", "Mean_best", "Mean_worst")}
+    q25, med, q75 = (float(x) for x in np.percentile(v, [25, 50, 75]))
+    return {"Mean_median": med, "Mean_q25": q25, "Mean_q75": q75, "Mean_iqr": q75 - q25,
+            "Mean_mean": float(v.mean()), "Mean_std": float(v.std(ddof=1)) if v.size > 1 else math.nan,
+            "Mean_best": float(v.min()), "Mean_worst": float(v.max())}
+
+
+def median_ci(values, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
+              seed: int = BOOTSTRAP_SEED) -> tuple[float, float, str]:
+    """Percentile-bootstrap confidence interval of the median of the finite ``values``:
+    ``(low, high, note)``; ``(nan, nan, reason)`` with fewer than 2 values."""
+    from scipy import stats
+
+    v = finite(values)
+    if v.size < 2:
+        return math.nan, math.nan, f"no confidence interval: {v.size} run(s) with a finite Mean, 2 needed"
+    if np.all(v == v[0]):  # every resample has this median
+        return float(v[0]), float(v[0]), ""
+    kw = dict(confidence_level=level, n_resamples=int(resamples), method="percentile", vectorized=True,
+              axis=-1)
+    try:
+        res = stats.bootstrap((v,), np.median, rng=np.random.default_rng(seed), **kw)
+    except TypeError:  # scipy < 1.15 names the generator random_state
+        res = stats.bootstrap((v,), np.median, random_state=np.random.default_rng(seed), **kw)
+    return float(res.confidence_interval.low), float(res.confidence_interval.high), ""
+
+
+def rank_test(values, reference) -> tuple[float, float, str]:
+    """Two-sided Mann-Whitney U test of the finite ``values`` against the finite ``reference``:
+    ``(U, p, note)``; ``(nan, nan, reason)`` when either side has fewer than 2 values."""
+    from scipy import stats
+
+    a, b = finite(values), finite(reference)
+    if a.size < 2 or b.size < 2:
+        return math.nan, math.nan, (f"no rank test: {a.size} run(s) here and {b.size} of {BASELINE} with a "
+                                    f"finite Mean, 2 needed on each side")
+    res = stats.mannwhitneyu(a, b, alternative="two-sided")
+    return float(res.statistic), float(res.pvalue), ""
+
+
+def baseline_config(runs) -> tuple[str | None, str]:
+    """The configuration the rank test compares against: the one labelled :data:`BASELINE`, else
+    the only one whose selector is :data:`BASELINE`. Returns ``(config, "")`` or ``(None, reason)``."""
+    configs = [str(c) for c in dict.fromkeys(runs["config"])]
+    if BASELINE in configs:
+        return BASELINE, ""
+    if "selector" in runs:
+        own = [str(c) for c in dict.fromkeys(runs.loc[runs["selector"].astype(str) == BASELINE, "config"])]
+        if len(own) == 1:
+            return own[0], ""
+        if len(own) > 1:
+            return None, f"no rank test: several {BASELINE} configurations ({', '.join(own)})"
+    return None, f"no rank test: the comparison has no {BASELINE} configuration"
+
+
+def _median(values) -> float:
+    v = finite(values)
+    return float(np.median(v)) if v.size else math.nan
+
+
+def stats_table(runs) -> Any:
+    """``stats.csv`` of a runs table (a DataFrame with ``config``, ``Mean``, ``evaluations``,
+    ``seconds`` and optionally ``selector``): one row per configuration, in their order."""
+    import pandas as pd
+
+    base, base_note = baseline_config(runs)
+    ref = runs.loc[runs["config"].astype(str) == base, "Mean"] if base is not None else []
+    out = []
+    for config, g in runs.groupby("config", sort=False):
+        means = finite(g["Mean"])
+        rec: dict[str, Any] = {"config": config, "n_seeds": int(means.size), "n_failed": int(len(g) - means.size)}
+        rec.update(seed_statistics(means))
+        low, high, ci_note = median_ci(means)
+        rec["Mean_median_ci_low"], rec["Mean_median_ci_high"] = low, high
+        rec["evaluations_median"] = _median(g["evaluations"])
+        rec["seconds_median"] = _median(g["seconds"])
+        if base is None:
+            u, p, test_note = math.nan, math.nan, base_note
+        elif str(config) == base:
+            u, p, test_note = math.nan, math.nan, f"no rank test: {config} is the reference"
+        else:
+            u, p, test_note = rank_test(means, ref)
+        rec["U_vs_random"], rec["p_vs_random"] = u, p
+        rec["note"] = "; ".join(n for n in (ci_note, test_note) if n)
+        out.append(rec)
+    return pd.DataFrame(out, columns=list(STATS_COLUMNS))
