@@ -653,8 +653,10 @@ def load_scene(name_or_path: "str | Scene | dict", overrides: dict | None = None
         tree = name_or_path
         name = tree.get("name", "custom")
     elif isinstance(name_or_path, (str, os.PathLike)):
+        from arraysel.io.outputs import scene_input
+
         s = str(name_or_path)
-        if s.endswith(".toml") or os.path.sep in s:
+        if scene_input(s) is not None:
             tree = _read_file(s)
             name = tree.get("name", os.path.splitext(os.path.basename(s))[0])
         else:
