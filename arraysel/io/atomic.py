@@ -36,7 +36,7 @@ import zlib
 
 __all__ = ["TMP_SUFFIX", "file_mode", "atomic_write_bytes", "atomic_write_text", "atomic_savez",
            "AtomicFile", "StreamingNpz", "remove_stale_temporaries", "check_writable", "writer_tag",
-           "pid_alive", "stale_writer", "check_replaceable"]
+           "pid_alive", "stale_writer", "check_replaceable", "file_kind"]
 
 TMP_SUFFIX = ".tmp"
 
@@ -104,7 +104,7 @@ def stale_writer(tag: str) -> bool:
     return pid != os.getpid() and not pid_alive(pid)
 
 
-def _kind(mode: int) -> str | None:
+def file_kind(mode: int) -> str | None:
     """What a non-regular file is, in words (None for a regular file)."""
     for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device"),
                        (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
@@ -130,7 +130,7 @@ def check_replaceable(path: str | os.PathLike, what: str | None = None, follow: 
         raise ParameterError(f"{what + ': ' if what else ''}cannot examine {path!r} ({exc.strerror})") from None
     if stat.S_ISLNK(st.st_mode):
         return
-    kind = _kind(st.st_mode)
+    kind = file_kind(st.st_mode)
     if kind is not None:
         raise ParameterError(f"{what + ': ' if what else ''}{path!r} is {kind}, not a regular file; "
                              f"give the path of a file to write")

@@ -744,7 +744,7 @@ def classify(folder: str, name: str) -> dict:
             return info
         info.update(kind="entry", owner="cache", entry=name)
         try:
-            _read_manifest(p)
+            load_state(p, verify="size")  # the manifest, file sizes and headers (no block is read)
             info["status"] = "ok"
         except DamagedEntry as exc:
             info["status"] = f"damaged: {exc}"

@@ -24,7 +24,7 @@ import os
 from typing import Iterable, Sequence
 
 from arraysel.errors import ParameterError
-from arraysel.io.atomic import check_writable
+from arraysel.io.atomic import check_writable, file_kind
 
 __all__ = ["check_outputs", "folder_files", "check_result_folder", "same_file", "scene_input"]
 
@@ -59,7 +59,11 @@ def _folder_ok(option: str, folder: str) -> None:
     if not folder:
         raise ParameterError(f"{option}: empty path")
     if os.path.lexists(folder) and not os.path.isdir(folder):
-        raise ParameterError(f"{option}: {folder!r} is a file, not a folder")
+        try:
+            kind = file_kind(os.stat(folder).st_mode) or "a file"
+        except OSError:
+            kind = "a broken link"
+        raise ParameterError(f"{option}: {folder!r} is {kind}, not a folder")
 
 
 def check_outputs(outputs: Named, inputs: Named = (), folders: Named = ()) -> None:

@@ -60,7 +60,7 @@ def check_state(model, state: dict) -> None:
         raise ValueError(f"V has shape {list(V.shape)} for rank {rank}")
     U = state.get("U")
     if U is None and rank != pairs:
-        raise ValueError(f"U is missing for a basis of rank {rank} < {pairs} pairs")
+        raise ValueError(f"tensor 'U' is missing for a basis of rank {rank} < {pairs} pairs")
     if U is not None and list(U.shape) != [pairs, rank]:
         raise ValueError(f"U has shape {list(U.shape)}, expected [{pairs}, {rank}]")
     if state[WINDOW_KEY].numel() != 1 or int(state[WINDOW_KEY]) <= 0:
