@@ -387,6 +387,14 @@ def load_state(path: str, verify: str | None = None, only=None) -> dict:
     import numpy as np
     import torch
 
+    arrays = _arrays(path, verify, only)
+    return {k: torch.from_numpy(a) if a.ndim else torch.from_numpy(np.array(a)) for k, a in arrays.items()}
+
+
+def _arrays(path: str, verify: str | None = None, only=None) -> dict:
+    """The numpy arrays of :func:`load_state` (memory maps), checked the same way."""
+    import numpy as np
+
     verify = verify_mode() if verify is None else verify
     manifest = _read_manifest(path)
     block = int(manifest.get("block", BLOCK))
@@ -420,8 +428,11 @@ def load_state(path: str, verify: str | None = None, only=None) -> dict:
                                f"needs {arr.nbytes}")
         arrays[key] = arr
     if verify == "full":
-        _verify_blocks(path, items, block)
-    return {k: torch.from_numpy(a) if a.ndim else torch.from_numpy(np.array(a)) for k, a in arrays.items()}
+        try:
+            _verify_blocks(path, items, block)
+        except OSError as exc:
+            raise DamagedEntry(f"cannot read the entry's files ({exc.strerror})") from None
+    return arrays
 
 
 # ---------------------------------------------------------------------------- load or build
@@ -744,7 +755,7 @@ def classify(folder: str, name: str) -> dict:
             return info
         info.update(kind="entry", owner="cache", entry=name)
         try:
-            load_state(p, verify="size")  # the manifest, file sizes and headers (no block is read)
+            _arrays(p, verify="size")  # the manifest, file sizes and headers (no block is read)
             info["status"] = "ok"
         except DamagedEntry as exc:
             info["status"] = f"damaged: {exc}"
