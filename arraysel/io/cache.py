@@ -821,7 +821,6 @@ def list_entries(folder: str | None = None) -> list[dict]:
         if info["kind"] == "entry" and info["status"] == "ok":
             m = _read_manifest(p)
             info["created"] = m.get("created", "") if isinstance(m.get("created"), str) else ""
-            info["kind_of_content"] = m.get("kind", "")
         out.append(info)
     return out
 
@@ -830,7 +829,11 @@ def clear(folder: str | None = None) -> tuple[int, int]:
     """Remove what the cache wrote in its folder: its entries (each under its lock: an entry a
     live process is building is left), their lock files, the leftovers of killed writers and
     files of the older format. Foreign files and folders, and a live writer's temporary folder,
-    are left alone. Returns (items removed, bytes freed)."""
+    are left alone. Returns (items removed, bytes freed).
+
+    An entry's lock file is removed while this call holds it; a process that opened that lock
+    file just before may then hold a lock on the removed file while another creates a new one,
+    and both build the entry: the second save replaces the first's identical entry."""
     from filelock import FileLock, Timeout
 
     from arraysel.io.atomic import file_mode
