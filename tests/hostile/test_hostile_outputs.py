@@ -278,3 +278,24 @@ def test_a_symlink_target_is_replaced_not_followed(tmp_path):
     os.symlink(real, link)
     atomic.atomic_write_text(link, "new\n")
     assert not link.is_symlink() and link.read_text() == "new\n" and real.read_text() == "old\n"
+
+
+def test_train_force_replaces_the_old_training(tmp_path, monkeypatch):
+    """``force`` removes the old run's files (and only those) before training again."""
+    from arraysel.e2e import pipeline
+
+    monkeypatch.undo()  # this one trains for real (two steps of a 16-element scene)
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    folder = tmp_path / "run"
+    files = _finished_training(folder)
+    (folder / "my_notes.txt").write_text("kept\n")
+    scene = {"base": "paper-e2e", "name": "tiny-e2e", "probe": {"n_elements": 16}, "selection": {"k": 8},
+             "grid": {"n_x": 64, "n_z": 64, "window": 32}, "simulator": {"fast_margin": 4}}
+    kw = dict(out_dir=str(folder), steps=2, batch_size=2, image_size=16, base_channels=4, finetune_steps=0,
+              n_test=2, figures=False, log=None, ista_layers=2, recon_steps=0)
+    res = pipeline.run_training(scene, force=True, **kw)
+    assert res["steps"] == 2 and (folder / "my_notes.txt").read_text() == "kept\n"
+    assert (folder / "checkpoint.pt").read_bytes() != files["checkpoint.pt"]
+    assert [int(v) for v in (folder / "mask.txt").read_text().splitlines()[-1].split(",")] == res["learned"]
+    with pytest.raises(ParameterError, match="already holds a training"):
+        pipeline.run_training(scene, **kw)
