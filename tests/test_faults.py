@@ -265,8 +265,9 @@ def test_cache_command_path_info_clear(cache_folder):
     from arraysel.cli.main import main
 
     cache.load_or_build("t", ("k",), _counting_builder()[0])
-    (cache_folder / ".t-stale.1.abc.tmp").mkdir()
-    (cache_folder / "psf-basis-0123.pt").write_bytes(b"old format")
+    stale = cache.entry_name("t", ("stale",))
+    (cache_folder / f".{stale}.999999999.0123abcd.tmp").mkdir()  # a writer that is gone
+    (cache_folder / f"{cache.entry_name('psf-basis', ('old',))}.pt").write_bytes(b"old format")
     out = subprocess.run([sys.executable, "-m", "arraysel.cli.main", "cache", "info"], capture_output=True,
                          text=True, env=os.environ.copy())
     assert out.returncode == 0, out.stderr

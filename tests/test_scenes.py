@@ -310,10 +310,16 @@ def test_a_grid_over_the_memory_cap_is_refused_up_front(monkeypatch):
 
     monkeypatch.setenv("ARRAYSEL_MEMORY_GIB", "1")
     t0 = time.perf_counter()
-    with pytest.raises(ParameterError, match=r"needs about .* GiB for one mask .*grid 8192 x 8192 pixels.* "
+    # from the sizes alone, when the scene's setups are made (scenes.schema, settings.grid_bytes)
+    with pytest.raises(ParameterError, match=r"grid\.n_x x grid\.n_z = 8192 x 8192 pixels needs about .* GiB .*"
+                                             r"more than the 1\.0 GiB allowed by ARRAYSEL_MEMORY_GIB.*"
+                                             r"reduce grid\.n_x / grid\.n_z"):
+        Objective(load_scene({"base": "paper", "grid": {"n_x": 8192, "n_z": 8192}}))
+    # a grid within that bound still meets the exact path's own guard (its plan cache and image)
+    with pytest.raises(ParameterError, match=r"needs about .* GiB for one mask .*grid 3000 x 3000 pixels.* "
                                              r"memory cap of 1\.0 GiB: reduce grid\.n_x / grid\.n_z .* "
                                              r"ARRAYSEL_MEMORY_GIB"):
-        Objective(load_scene({"base": "paper", "grid": {"n_x": 8192, "n_z": 8192}}))
+        Objective(load_scene({"base": "paper", "grid": {"n_x": 3000, "n_z": 3000}}))
     assert time.perf_counter() - t0 < 30
     monkeypatch.setenv("ARRAYSEL_MEMORY_GIB", "lots")
     with pytest.raises(ParameterError, match=r"ARRAYSEL_MEMORY_GIB = 'lots' must be a number of GiB"):

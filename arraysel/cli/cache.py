@@ -8,10 +8,11 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "cache", help="show or clear the on-disk cache of precomputed PSF bases",
         description="The PSF fast path precomputes a basis per scene (about 1 GB for the paper scene, "
-                    "about 100 s on two cores) and keeps it in a cache folder: $ARRAYSEL_CACHE when set "
+                    "about 30 s on two cores) and keeps it in a cache folder: $ARRAYSEL_CACHE when set "
                     "('off' disables the cache), else the platform's user cache folder. "
-                    "'path' prints the folder, 'info' lists its entries with their sizes and state, "
-                    "'clear' removes everything in it (entries are rebuilt when next needed).")
+                    "'path' prints the folder, 'info' lists what it holds with sizes and state, "
+                    "'clear' removes what the cache wrote there (entries are rebuilt when next needed). "
+                    "Files and folders the cache did not write are listed as foreign and never removed.")
     p.add_argument("action", choices=("path", "info", "clear"), help="what to do")
     p.set_defaults(func=run)
 
@@ -29,13 +30,20 @@ def run(args) -> int:
         print(folder)
     elif args.action == "info":
         entries = list_entries(folder)
-        total = sum(e["bytes"] for e in entries)
+        ours = [e for e in entries if e["owner"] == "cache"]
+        foreign = len(entries) - len(ours)
         print(f"cache folder: {folder}")
-        print(f"{len(entries)} item(s), {_fmt_bytes(total)} in all")
+        print(f"{len(ours)} cache item(s), {_fmt_bytes(sum(e['bytes'] for e in ours))} in all"
+              + (f"; {foreign} foreign item(s) the cache did not write (never removed)" if foreign else ""))
         for e in entries:
             when = f", created {e['created']}" if e["created"] else ""
             print(f"  {e['name']}  {_fmt_bytes(e['bytes'])}  {e['status']}{when}")
     else:
         n, freed = clear(folder)
-        print(f"removed {n} item(s), {_fmt_bytes(freed)}, from {folder}")
+        left = list_entries(folder)
+        foreign = sum(e["owner"] != "cache" for e in left)
+        busy = len(left) - foreign
+        print(f"removed {n} item(s), {_fmt_bytes(freed)}, from {folder}"
+              + (f"; left {foreign} foreign item(s) the cache did not write" if foreign else "")
+              + (f"; left {busy} item(s) in use by a running build" if busy else ""))
     return 0

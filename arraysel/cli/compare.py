@@ -143,7 +143,12 @@ def run(args) -> int:
     from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
     from arraysel.selectors.registry import get_registry, load_plugin
+    from arraysel.io.outputs import check_outputs, folder_files, scene_input
+    from arraysel.run.outdir import RESULT_FILES
 
+    check_outputs(folder_files("--out", args.out, [n for n in RESULT_FILES if n != "ioh"]),
+                  folders=[("--out", args.out), ("--out (ioh)", f"{args.out}/ioh")],
+                  inputs=[("--scene", scene_input(args.scene)), *(("--plugin", p) for p in args.plugin)])
     for spec in args.plugin:
         load_plugin(spec)
     registry = get_registry()

@@ -41,17 +41,17 @@ def run(args) -> int:
     import numpy as np
     from tqdm.auto import tqdm
 
-    from arraysel.io.atomic import AtomicFile, StreamingNpz, check_writable
+    from arraysel.io.atomic import AtomicFile, StreamingNpz
     from arraysel.cli.compare import build_objective
     from arraysel.io.masks import count_masks, iter_mask_chunks
+    from arraysel.io.outputs import check_outputs, scene_input
     from arraysel.objective.psf_objective import METRIC_NAMES
 
     # every path, encoding and selection problem before any heavy work
     if args.psf_out is not None and not args.psf_out.endswith(".npz"):
         raise ParameterError(f"--psf-out must end with .npz, got {args.psf_out!r}")
-    check_writable(args.out, "--out")
-    if args.psf_out is not None:
-        check_writable(args.psf_out, "--psf-out")
+    check_outputs([("--out", args.out), ("--psf-out", args.psf_out)],
+                  inputs=[("--masks", args.masks), ("--scene", scene_input(args.scene))])
     if args.scene == "toy":
         if args.psf_out is not None:
             raise ParameterError("--psf-out needs a physics scene; the toy objective has no kernels")

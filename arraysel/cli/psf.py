@@ -27,14 +27,13 @@ def run(args) -> int:
     from arraysel.objective.psf_objective import build_objective, masks_from_indices
     from arraysel.scenes.schema import load_scene
 
-    from arraysel.io.atomic import check_writable
+    from arraysel.io.outputs import check_outputs, scene_input
     from arraysel.report.plots import psf_figure, save_figure
 
     if not args.out.endswith(".npz"):
         raise ParameterError(f"--out must end with .npz, got {args.out!r}")
-    check_writable(args.out, "--out")
-    if args.plot:
-        check_writable(args.out[:-4] + ".png", "--plot")
+    check_outputs([("--out", args.out), ("--plot", args.out[:-4] + ".png" if args.plot else None)],
+                  inputs=[("--scene", scene_input(args.scene))])
     scene = load_scene(args.scene)
     ne = scene.probe().n_elements
     if args.elements is None:

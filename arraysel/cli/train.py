@@ -54,6 +54,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
     p.add_argument("--seed", type=int, default=None, metavar="S", help="random seed (default 0)")
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace the training already in --out (without it, or --resume, a folder holding "
+                        "a checkpoint, mask or tables of a training is refused)")
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (default: 1 in the quick profile, torch's default with --full)")
     p.add_argument("--no-figures", action="store_true", help="write tables only")
@@ -63,12 +66,19 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import torch
 
-    from arraysel.e2e.pipeline import run_training
+    from arraysel.e2e.pipeline import OUTPUT_FILES, check_out_folder, run_training
     from arraysel.errors import ParameterError
+    from arraysel.io.outputs import check_outputs, folder_files, scene_input
 
+    # every output problem before any work: the folder, its files, a scene file among them,
+    # a finished training without --resume / --force
+    check_outputs(folder_files("--out", args.out, OUTPUT_FILES), folders=[("--out", args.out)],
+                  inputs=[("--scene", scene_input(args.scene))])
+    check_out_folder(args.out, resume=args.resume, force=args.force)
     if args.device == "cuda" and not torch.cuda.is_available():
         raise ParameterError("--device cuda was given but torch sees no CUDA device")
     run_training(args.scene, out_dir=args.out, full=args.full, device=args.device, resume=args.resume,
+                 force=args.force,
                  figures=not args.no_figures, dataset=args.dataset, source=args.source,
                  epochs=args.epochs, steps=args.steps, batch_size=args.batch_size,
                  image_size=args.image_size, base_channels=args.channels,

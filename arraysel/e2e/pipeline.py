@@ -59,13 +59,28 @@ from arraysel.scenes.schema import Scene, load_scene
 from arraysel.scenes.schema import training_default as _T
 
 __all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
-           "format_comparison", "OUTPUT_FILES"]
+           "format_comparison", "OUTPUT_FILES", "HELD_FILES", "check_out_folder"]
 
 #: the files a finished run leaves in its output folder
 OUTPUT_FILES = ("mask.txt", "mask.json", "table1.csv", "reconstruction.csv", "comparison.csv",
                 "history.csv",
                 "settings.json", "checkpoint.pt", "fig_mask.png", "fig_psf.png", "fig_images.png",
                 "fig_loss.png")
+
+#: files that show a folder holds a training (refused without resume or force)
+HELD_FILES = ("checkpoint.pt", "mask.txt", "mask.json", "table1.csv", "comparison.csv")
+
+
+def check_out_folder(out_dir: str, *, resume: bool = False, force: bool = False) -> None:
+    """Refuse, before any work, an output folder that cannot take a training's files (a file in its
+    place, an output that is a device, FIFO or folder) or that holds a training (:data:`HELD_FILES`)
+    without ``resume`` (needs its ``checkpoint.pt``) or ``force``."""
+    from arraysel.io.outputs import check_outputs, check_result_folder, folder_files
+
+    check_outputs(folder_files("--out", out_dir, OUTPUT_FILES), folders=[("--out", out_dir)])
+    check_result_folder(out_dir, "--out", held=HELD_FILES, what="a training", resume=resume, force=force,
+                        resume_needs="checkpoint.pt")
+
 
 #: scene weight name -> trainer term name
 _TERM_OF_WEIGHT = {"L_PSF": "psf", "L_conv": "conv", "L_rec": "rec", "L_contrast": "contrast",
@@ -290,7 +305,8 @@ def _print(msg: str) -> None:
 
 def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "results/train",
                  full: bool = False, device: str = "cpu", dtype: torch.dtype = torch.float32,
-                 resume: bool = False, figures: bool = True, log: Callable[[str], None] | None = _print,
+                 resume: bool = False, force: bool = False, figures: bool = True,
+                 log: Callable[[str], None] | None = _print,
                  log_every: int | None = None, threads: int | None = None,
                  extra_masks: dict[str, list[int]] | None = None, **overrides: Any) -> dict[str, Any]:
     """Train an end-to-end selection on ``scene`` and write the outputs to ``out_dir``.
@@ -299,6 +315,10 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
     ``steps``, ``seed``, ``image_size``, ...; ``None`` means "not given").
     With ``resume=True`` a checkpoint in ``out_dir`` written with the same
     settings is continued (a different setting raises ``ParameterError``).
+    A folder that already holds a training (:data:`HELD_FILES`: a checkpoint,
+    a learned mask or its tables) is refused unless ``resume`` or ``force``
+    (which replaces it: its old output files are removed first), as
+    ``arraysel compare`` does with its folder.
     ``threads``: torch intra-op threads for the run (restored afterwards);
     default 1 for the quick profile on a CPU (its tensors are small, and
     thread synchronisation then costs more than it gains: about 10x on a
@@ -316,13 +336,13 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
         torch.set_num_threads(check_number("threads", threads, lo=1, integer=True))
     try:
         return _run(scene, out_dir=out_dir, full=full, device=device, dtype=dtype, resume=resume,
-                    figures=figures, log=log, log_every=log_every, extra_masks=extra_masks,
+                    force=force, figures=figures, log=log, log_every=log_every, extra_masks=extra_masks,
                     overrides=overrides)
     finally:
         torch.set_num_threads(old_threads)
 
 
-def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every, extra_masks,
+def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, log_every, extra_masks,
          overrides):
     from arraysel.e2e.data import SceneMaker, load_dataset
     from arraysel.e2e.recon import Reconstructor
@@ -336,6 +356,13 @@ def _run(scene, *, out_dir, full, device, dtype, resume, figures, log, log_every
                              "train end to end (use `arraysel compare` for PSF-only selection, or a "
                              "scene based on 'paper-e2e')")
     settings = resolve_settings(sc, full=full, **overrides)
+    check_out_folder(out_dir, resume=resume, force=force)
+    if force:
+        for name in OUTPUT_FILES:  # the old run's files, nothing else
+            try:
+                os.unlink(os.path.join(out_dir, name))
+            except FileNotFoundError:
+                pass
     os.makedirs(out_dir, exist_ok=True)
     ckpt_path = os.path.join(out_dir, "checkpoint.pt")
     record = {"scene": sc.to_dict(), "settings": _jsonable(settings), "dtype": str(dtype)}

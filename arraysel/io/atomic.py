@@ -3,9 +3,18 @@
 A file is written to a temporary name in its target folder and renamed over the
 target with ``os.replace``, so a reader sees the old complete file or the new
 complete one, never a part. A failure (disk full, ``KeyboardInterrupt``) removes
-the temporary file and leaves the old file untouched. The temporary names start
-with ``.`` and end with ``.tmp`` (:data:`TMP_SUFFIX`) so that a leftover from a
-killed process is recognisable (:func:`remove_stale_temporaries`).
+the temporary file and leaves the old file untouched.
+
+Temporary names are ``.<target name>.<pid>-<host>.<random>.tmp``: the writer's
+process id and a tag of its host (:func:`writer_tag`). A process killed by
+``SIGKILL`` cannot remove its temporary file; the next writer to the same target
+removes the leftovers whose writer is no longer running on this host
+(:func:`remove_stale_temporaries`), never those of a live writer.
+
+Only regular files are replaced: an existing target that is a device node, a
+FIFO, a socket or a folder is refused (:class:`~arraysel.errors.ParameterError`)
+before anything is written, so ``/dev/null`` stays a device. A symbolic link
+target is replaced by the new file (the file it pointed to is left as it was).
 
 Files get the mode of a file created with ``open()``: ``0o666`` less the
 process umask (``0o644`` under the usual umask 022), not the ``0o600`` of
@@ -18,12 +27,16 @@ from __future__ import annotations
 
 import io
 import os
+import re
+import socket
+import stat
 import tempfile
 import threading
-import time
+import zlib
 
 __all__ = ["TMP_SUFFIX", "file_mode", "atomic_write_bytes", "atomic_write_text", "atomic_savez",
-           "AtomicFile", "StreamingNpz", "remove_stale_temporaries", "check_writable"]
+           "AtomicFile", "StreamingNpz", "remove_stale_temporaries", "check_writable", "writer_tag",
+           "pid_alive", "stale_writer", "check_replaceable", "file_kind"]
 
 TMP_SUFFIX = ".tmp"
 
@@ -51,10 +64,85 @@ def file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+def _host_tag() -> str:
+    """Six hex digits naming this host (a CRC-32 of its name): a leftover written on another
+    host sharing the folder is never taken for a dead writer's."""
+    return f"{zlib.crc32(socket.gethostname().encode()) & 0xFFFFFF:06x}"
+
+
+def writer_tag(pid: int | None = None) -> str:
+    """``<pid>-<host tag>``: the part of a temporary name that identifies its writer."""
+    return f"{os.getpid() if pid is None else pid}-{_host_tag()}"
+
+
+_TAG_RE = re.compile(r"^(\d+)-([0-9a-f]{6})$")
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this host (signal 0; a process of another user counts as alive)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OSError:  # pragma: no cover - unknown: keep the file
+        return True
+    return True
+
+
+def stale_writer(tag: str) -> bool:
+    """Whether the writer named by ``tag`` (:func:`writer_tag`) has ended: its host is this one and
+    its process is gone. Anything else (a live process, another host, a tag this function does not
+    know) is not stale."""
+    m = _TAG_RE.match(tag)
+    if m is None or m.group(2) != _host_tag():
+        return False
+    pid = int(m.group(1))
+    return pid != os.getpid() and not pid_alive(pid)
+
+
+def file_kind(mode: int) -> str | None:
+    """What a non-regular file is, in words (None for a regular file)."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISREG, None)):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_replaceable(path: str | os.PathLike, what: str | None = None, follow: bool = False) -> None:
+    """Raise :class:`~arraysel.errors.ParameterError` when ``path`` exists and is not a regular file
+    (a device, FIFO, socket or folder), which a rename would replace. ``follow``: judge the file a
+    symbolic link points to (the command-line check) instead of the link itself (the writer, which
+    replaces a link, not its target). ``what`` names the option in the message."""
+    from arraysel.errors import ParameterError
+
+    path = os.fspath(path)
+    try:
+        st = os.stat(path) if follow else os.lstat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    except OSError as exc:
+        raise ParameterError(f"{what + ': ' if what else ''}cannot examine {path!r} ({exc.strerror})") from None
+    if stat.S_ISLNK(st.st_mode):
+        return
+    kind = file_kind(st.st_mode)
+    if kind is not None:
+        raise ParameterError(f"{what + ': ' if what else ''}{path!r} is {kind}, not a regular file; "
+                             f"give the path of a file to write")
+
+
 def _temporary(path: str) -> tuple[int, str]:
     folder = os.path.dirname(os.path.abspath(path)) or "."
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=TMP_SUFFIX, dir=folder)
+    check_replaceable(path)
+    base = os.path.basename(path)
+    remove_stale_temporaries(folder, base)
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.{writer_tag()}.", suffix=TMP_SUFFIX, dir=folder)
     try:
         os.fchmod(fd, file_mode())
     except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod
@@ -76,6 +164,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        check_replaceable(path)
         os.replace(tmp, path)
     except BaseException:
         _discard(tmp)
@@ -118,6 +207,11 @@ class AtomicFile:
 
     def commit(self) -> None:
         self.fh.close()
+        try:
+            check_replaceable(self.path)  # a target made a device or FIFO while we wrote
+        except BaseException:
+            _discard(self.tmp)
+            raise
         os.replace(self.tmp, self.path)
         self.committed = True
 
@@ -213,22 +307,27 @@ class StreamingNpz:
         return False
 
 
-def remove_stale_temporaries(folder: str | os.PathLike, prefix: str = ".", older_than_s: float = 0.0) -> int:
-    """Remove files ``<prefix>*.tmp`` in ``folder`` last modified more than ``older_than_s`` ago;
-    return how many were removed (missing folder: 0)."""
+def remove_stale_temporaries(folder: str | os.PathLike, target: str) -> int:
+    """Remove the temporary files ``.<target>.<pid>-<host>.<random>.tmp`` in ``folder`` whose writer
+    has ended (:func:`stale_writer`: same host, process gone); return how many were removed. A live
+    writer's file, another host's and anything not named that way are left alone."""
     folder = os.fspath(folder)
     try:
         names = os.listdir(folder)
     except OSError:
         return 0
-    now = time.time()
+    head = f".{target}."
     removed = 0
     for name in names:
-        if not (name.startswith(prefix) and name.endswith(TMP_SUFFIX)):
+        if not (name.startswith(head) and name.endswith(TMP_SUFFIX)):
+            continue
+        middle = name[len(head):-len(TMP_SUFFIX)]
+        tag, dot, rand = middle.rpartition(".")
+        if not dot or len(rand) != 8 or not stale_writer(tag):
             continue
         p = os.path.join(folder, name)
         try:
-            if os.path.isfile(p) and now - os.path.getmtime(p) >= older_than_s:
+            if stat.S_ISREG(os.lstat(p).st_mode):
                 os.unlink(p)
                 removed += 1
         except OSError:
@@ -238,8 +337,10 @@ def remove_stale_temporaries(folder: str | os.PathLike, prefix: str = ".", older
 
 def check_writable(path: str | os.PathLike, what: str) -> str:
     """Check, before any heavy work, that a file can be created at ``path`` (its folder exists or
-    can be made, is writable, and ``path`` is not a folder). Returns ``path`` as a string; raises
-    :class:`~arraysel.errors.ParameterError` naming ``what`` (the option) otherwise."""
+    can be made, is writable, and ``path`` is not a folder, device, FIFO or socket, even through a
+    symbolic link). Returns ``path`` as a string; raises :class:`~arraysel.errors.ParameterError`
+    naming ``what`` (the option) otherwise. :func:`arraysel.io.outputs.check_outputs` calls it for
+    every output of a command, and also refuses outputs that are inputs or each other."""
     from arraysel.errors import ParameterError
 
     path = os.fspath(path)
@@ -247,6 +348,7 @@ def check_writable(path: str | os.PathLike, what: str) -> str:
         raise ParameterError(f"{what}: empty path")
     if os.path.isdir(path):
         raise ParameterError(f"{what}: {path!r} is a folder, not a file")
+    check_replaceable(path, what, follow=True)
     folder = os.path.dirname(os.path.abspath(path))
     probe = folder
     while not os.path.exists(probe):  # the nearest existing ancestor must let us create the rest

@@ -8,16 +8,28 @@ Location
     shows and clears it.
 
 Format (``FORMAT`` 1)
-    One folder per entry, ``<kind>-<key>/`` (the key hashes everything the
-    content depends on), holding one ``<name>.npy`` file per named tensor and
-    ``manifest.json``: for each tensor its file, dtype, shape, size in bytes
-    and the CRC-32 of every :data:`BLOCK` bytes of the file (entries written
-    by earlier versions carry SHA-256 digests instead, and are verified with them). An entry is
-    written into a temporary folder ``.<kind>-<key>.<pid>.<random>.tmp`` and
-    renamed into place once complete (``manifest.json`` last), so a reader
-    never sees a partial entry; a temporary folder left by a killed writer is
-    removed by the next builder of that entry (under the lock) or by
-    ``arraysel cache clear``.
+    One folder per entry, ``<kind>-<key>/`` (the key: 24 hex digits hashing
+    everything the content depends on), holding one ``<name>.npy`` file per
+    named tensor and ``manifest.json``: for each tensor its file, dtype, shape,
+    size in bytes and the CRC-32 of every :data:`BLOCK` bytes of the file
+    (entries written by earlier versions carry SHA-256 digests instead, and are
+    verified with them). An entry is written into a temporary folder
+    ``.<kind>-<key>.<pid>-<host>.<random>.tmp`` and renamed into place once
+    complete (``manifest.json`` last), so a reader never sees a partial entry; a
+    temporary folder left by a killed writer is removed by the next builder of
+    that entry (under the lock) or by ``arraysel cache clear`` (which leaves a
+    live writer's alone).
+
+What the cache owns
+    The folder may hold other things (it may be a folder the user chose, with a
+    ``.git`` or notes in it). The cache touches only names it writes
+    (:func:`classify`): entries (``<kind>-<key>`` folders holding only ``.npy``
+    files and ``manifest.json``), their lock files ``<kind>-<key>.lock``, their
+    temporary folders, and files of the older single-file format
+    (``<kind>-<key>.pt``). Anything else is *foreign*: listed as such by
+    ``arraysel cache info``, never removed or replaced, neither by ``clear`` nor
+    by a build (a build whose entry's name is taken by a foreign file builds
+    without the cache).
 
 Loading
     Tensors are memory-mapped (``numpy.load(mmap_mode="c")`` then
@@ -36,14 +48,23 @@ Loading
     headers (a truncated or partial file is still caught, a flipped bit is
     not), for a cold start that must read only the pages it uses.
 
-    A damaged entry (missing or unparsable manifest, a missing, short or
-    long file, a header that disagrees, a checksum mismatch) is reported in
-    one warning line naming the entry and the first fault, and rebuilt.
+    A damaged entry (missing or unparsable manifest, a manifest that parses but
+    is inconsistent: wrong types, a block size that is not a positive integer,
+    a checksum count or byte count that does not fit the shape; a missing,
+    short or long file, a header that disagrees, a checksum mismatch, a tensor
+    the caller needs that is missing: ``check``) is reported in one warning line
+    naming the entry and the first fault, and rebuilt.
 
 Concurrency
     Builders of the same entry serialise on a lock file ``<kind>-<key>.lock``
     (``filelock``): the second waits (saying so on stderr), then loads what the
     first saved instead of building it again.
+
+A folder that cannot be used
+    A cache folder that cannot be created or written, a lock file that cannot be
+    opened (another user's, or a folder in its place), a file where the folder
+    should be: the content is built without the cache, after one warning line
+    saying why. Never a traceback.
 
 File modes follow the umask, like any file the user creates.
 """
@@ -53,7 +74,9 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
+import stat
 import sys
 import threading
 import time
@@ -66,7 +89,7 @@ from arraysel.errors import ArrayselError, ParameterError
 _log = logging.getLogger(__name__)
 
 __all__ = ["FORMAT", "BLOCK", "cache_dir", "entry_name", "save_state", "load_state", "load_or_build", "peek",
-           "list_entries", "clear", "DamagedEntry"]
+           "list_entries", "clear", "classify", "DamagedEntry"]
 
 FORMAT = 1
 #: bytes per checksum block
@@ -121,8 +144,23 @@ def verify_mode() -> str:
     return mode
 
 
+#: the names the cache writes: an entry ``<kind>-<24 hex>``; its lock; its temporary folders
+#: ``.<entry>.<pid>-<host>.<8 random>.tmp`` (a writer) and ``.<entry>.<8 hex>.tmp`` (an entry
+#: renamed aside to be removed); an entry of the older single-file format ``<entry>.pt``
+_KIND = r"[a-z][a-z0-9]*(?:-[a-z0-9]+)*"
+_ENTRY_RE = re.compile(rf"^{_KIND}-[0-9a-f]{{24}}$")
+_LOCK_RE = re.compile(rf"^({_KIND}-[0-9a-f]{{24}})\.lock$")
+_WRITER_TMP_RE = re.compile(rf"^\.({_KIND}-[0-9a-f]{{24}})\.(\d+(?:-[0-9a-f]{{6}})?)\.[0-9a-f]{{8}}\.tmp$")
+_ASIDE_TMP_RE = re.compile(rf"^\.({_KIND}-[0-9a-f]{{24}})\.[0-9a-f]{{8}}\.tmp$")
+_OLD_RE = re.compile(rf"^{_KIND}-[0-9a-f]{{24}}\.pt$")
+
+
 def entry_name(kind: str, key_parts) -> str:
-    """``<kind>-<24 hex digits of SHA-256(repr(key_parts))>``."""
+    """``<kind>-<24 hex digits of SHA-256(repr(key_parts))>``; ``kind``: lower-case letters and
+    digits, words joined by ``-`` (``psf-basis``)."""
+    if not isinstance(kind, str) or not re.fullmatch(_KIND, kind):
+        raise ParameterError(f"cache kind {kind!r} is not allowed; use lower-case letters and digits, "
+                             f"words joined by '-'")
     return f"{kind}-{hashlib.sha256(repr(key_parts).encode()).hexdigest()[:24]}"
 
 
@@ -190,7 +228,9 @@ def save_state(folder: str, name: str, state: Mapping, meta: dict | None = None)
         raise ParameterError(f"save_state: tensor names {bad} cannot be file names")
     os.makedirs(folder, exist_ok=True)
     final = os.path.join(folder, name)
-    tmp = os.path.join(folder, f".{name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    from arraysel.io.atomic import writer_tag
+
+    tmp = os.path.join(folder, f".{name}.{writer_tag()}.{uuid.uuid4().hex[:8]}.tmp")
     os.mkdir(tmp)
     try:
         os.chmod(tmp, _dir_mode())
@@ -215,6 +255,8 @@ def save_state(folder: str, name: str, state: Mapping, meta: dict | None = None)
             fh.flush()
             os.fsync(fh.fileno())
         if os.path.lexists(final):
+            if classify(folder, name)["owner"] != "cache":
+                raise OSError(f"{final} is taken by something the cache did not write")
             _remove(final)
         os.rename(tmp, final)
     except BaseException:
@@ -224,24 +266,65 @@ def save_state(folder: str, name: str, state: Mapping, meta: dict | None = None)
 
 
 # ---------------------------------------------------------------------------- reading
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def _read_manifest(path: str) -> dict:
+    """The manifest of the entry at ``path``, checked for consistency (types, a positive block
+    size, safe and distinct file names, a dtype numpy knows, non-negative shapes, byte counts
+    that hold the shape's data, one digest per block); :class:`DamagedEntry` otherwise."""
+    import numpy as np
+
     mpath = os.path.join(path, MANIFEST)
     try:
         with open(mpath, "rb") as fh:
             manifest = json.loads(fh.read().decode("utf-8"))
     except FileNotFoundError:
         raise DamagedEntry("manifest.json is missing (an incomplete entry)") from None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise DamagedEntry(f"manifest.json is unreadable ({type(exc).__name__}: {exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(
             manifest.get("tensors"), dict):
         raise DamagedEntry(f"manifest.json is not a format-{FORMAT} manifest")
+    block = manifest.get("block", BLOCK)
+    if not _is_int(block) or not 0 < block <= 2 ** 40:
+        raise DamagedEntry(f"manifest.json: block = {block!r} is not a positive whole number of bytes")
+    if not manifest["tensors"]:
+        raise DamagedEntry("manifest.json lists no tensor")
+    files = set()
     for key, info in manifest["tensors"].items():
-        ok = (isinstance(info, dict) and isinstance(info.get("file"), str) and "/" not in info["file"]
-              and isinstance(info.get("bytes"), int) and isinstance(info.get("dtype"), str)
-              and isinstance(info.get("shape"), list) and _checksum(info) is not None)
-        if not ok:
-            raise DamagedEntry(f"manifest.json: the entry of tensor {key!r} is incomplete")
+        def bad(why: str):
+            return DamagedEntry(f"manifest.json: the entry of tensor {key!r} is inconsistent ({why})")
+
+        if not isinstance(info, dict):
+            raise bad("not an object")
+        fname = info.get("file")
+        if not isinstance(fname, str) or not fname.endswith(".npy") or fname.startswith(".") or any(
+                c in fname for c in "/\\\0") or fname == MANIFEST:
+            raise bad(f"file {fname!r} is not the name of a .npy file in the entry")
+        if fname in files:
+            raise bad(f"file {fname!r} is listed twice")
+        files.add(fname)
+        try:
+            dtype = np.dtype(info.get("dtype")) if isinstance(info.get("dtype"), str) else None
+        except (TypeError, ValueError):
+            dtype = None
+        if dtype is None or dtype.hasobject:
+            raise bad(f"dtype {info.get('dtype')!r} is not a numeric dtype")
+        shape = info.get("shape")
+        if not isinstance(shape, list) or not all(_is_int(d) and d >= 0 for d in shape):
+            raise bad(f"shape {shape!r} is not a list of whole numbers >= 0")
+        size = info.get("bytes")
+        data = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        if not _is_int(size) or size < data + 10:  # a .npy file: magic, header, then the data
+            raise bad(f"bytes = {size!r} cannot hold a {dtype.str} {shape} array ({data} bytes and a header)")
+        algo = _checksum(info)
+        if algo is None:
+            raise bad("no block checksums")
+        want = max(1, -(-size // block))
+        if len(algo[1]) != want or not all(isinstance(d, str) for d in algo[1]):
+            raise bad(f"{len(algo[1])} {algo[0]} digests for {want} blocks of {block} bytes")
     return manifest
 
 
@@ -304,6 +387,14 @@ def load_state(path: str, verify: str | None = None, only=None) -> dict:
     import numpy as np
     import torch
 
+    arrays = _arrays(path, verify, only)
+    return {k: torch.from_numpy(a) if a.ndim else torch.from_numpy(np.array(a)) for k, a in arrays.items()}
+
+
+def _arrays(path: str, verify: str | None = None, only=None) -> dict:
+    """The numpy arrays of :func:`load_state` (memory maps), checked the same way."""
+    import numpy as np
+
     verify = verify_mode() if verify is None else verify
     manifest = _read_manifest(path)
     block = int(manifest.get("block", BLOCK))
@@ -331,42 +422,53 @@ def load_state(path: str, verify: str | None = None, only=None) -> dict:
         if arr.dtype.str != info["dtype"] or list(arr.shape) != list(info["shape"]):
             raise DamagedEntry(f"tensor {key!r}: {info['file']} holds {arr.dtype.str} {list(arr.shape)}, the "
                                f"manifest says {info['dtype']} {info['shape']}")
+        offset = getattr(arr, "offset", None)
+        if offset is not None and offset + arr.nbytes != size:
+            raise DamagedEntry(f"tensor {key!r}: {info['file']} holds {size - offset} bytes of data, its shape "
+                               f"needs {arr.nbytes}")
         arrays[key] = arr
     if verify == "full":
-        _verify_blocks(path, items, block)
-    return {k: torch.from_numpy(a) if a.ndim else torch.from_numpy(np.array(a)) for k, a in arrays.items()}
+        try:
+            _verify_blocks(path, items, block)
+        except OSError as exc:
+            raise DamagedEntry(f"cannot read the entry's files ({exc.strerror})") from None
+    return arrays
 
 
 # ---------------------------------------------------------------------------- load or build
 def _remove(path: str) -> None:
-    """Remove an entry folder (renamed aside first, so nobody sees it half-deleted)."""
-    aside = f"{path}.{uuid.uuid4().hex[:8]}.tmp"
-    aside = os.path.join(os.path.dirname(aside), "." + os.path.basename(aside))
+    """Remove an entry folder (renamed aside first, so nobody sees it half-deleted). Call only on a
+    name :func:`classify` says the cache owns."""
+    aside = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         os.rename(path, aside)
     except FileNotFoundError:
         return
-    if os.path.isdir(aside):
+    if os.path.isdir(aside) and not os.path.islink(aside):
         shutil.rmtree(aside, ignore_errors=True)
     else:
         os.unlink(aside)
 
 
 def _remove_stale(folder: str, name: str) -> int:
-    """Remove the temporary folders of entry ``name`` (call with its lock held: nobody else writes them)."""
+    """Remove the temporary folders of entry ``name`` that the cache wrote (call with its lock held:
+    nobody else writes them)."""
     n = 0
-    for f in os.listdir(folder):
-        if f.startswith(f".{name}.") and f.endswith(".tmp"):
-            p = os.path.join(folder, f)
-            if os.path.isdir(p):
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                try:
-                    os.unlink(p)
-                except OSError:
-                    pass
+    for item in _items(folder):
+        if item["entry"] == name and item["kind"] in ("leftover", "aside") and item["owner"] == "cache":
+            _delete(os.path.join(folder, item["name"]))
             n += 1
     return n
+
+
+def _delete(p: str) -> None:
+    try:
+        if os.path.isdir(p) and not os.path.islink(p):
+            shutil.rmtree(p)
+        else:
+            os.unlink(p)
+    except FileNotFoundError:
+        pass
 
 
 class _BuildProgress:
@@ -417,45 +519,55 @@ def _fmt_bytes(n: float) -> str:
 
 def load_or_build(kind: str, key_parts, build: Callable[[], Mapping], *, what: str = "cache entry",
                   size_hint: int | None = None, seconds_hint: float | None = None,
-                  progress: bool | None = None) -> dict:
+                  progress: bool | None = None, check: Callable[[dict], None] | None = None) -> dict:
     """The state (name -> tensor) cached under ``(kind, key_parts)``, built by ``build()`` and
-    saved when absent or damaged. With the cache off, ``build()`` is simply called.
+    saved when absent or damaged. With the cache off, ``build()`` is simply called; with a cache
+    folder that cannot be used (see the module), too, after one warning line.
 
     ``what`` names the content in messages; ``size_hint`` (bytes) and ``seconds_hint`` are the
     estimates announced before a build (and the length of its progress bar); ``progress``: show
-    the bar (default: when stderr is a terminal)."""
+    the bar (default: when stderr is a terminal). ``check(state)`` is called on a loaded state
+    before it is returned: any exception it raises (a tensor the caller needs is missing, shapes
+    that do not fit together) makes the entry damaged, reported and rebuilt."""
     folder = cache_dir()
     if folder is None:
         return dict(build())
     name = entry_name(kind, key_parts)
     path = os.path.join(folder, name)
-    state, why = _try_load(path)
+    state, why = _try_load(path, check)
     if state is not None:
         return state
+    problem = _unusable(folder, name)
+    if problem:
+        return _without_cache(folder, problem, what, build)
     if why:
         _report(path, what, why)
-    try:
-        os.makedirs(folder, exist_ok=True)
-        lock = _lock(folder, name)
-    except OSError as exc:
-        _log.warning("cache folder %s is not usable (%s); building %s without caching it", folder, exc, what)
-        return dict(build())
     from filelock import Timeout
 
+    lock = _lock(folder, name)
     try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        print(f"arraysel: waiting for another process that is building {what} ({path})", file=sys.stderr)
-        lock.acquire()
+        try:
+            lock.acquire(timeout=0)
+        except Timeout:
+            print(f"arraysel: waiting for another process that is building {what} ({path})", file=sys.stderr)
+            lock.acquire()
+    except OSError as exc:
+        return _without_cache(folder, f"its lock file {name}.lock cannot be opened: {_oserror(exc)}", what, build)
     try:
-        _remove_stale(folder, name)
-        if os.path.lexists(path):
-            state, why2 = _try_load(path)  # built while we waited
-            if state is not None:
-                return state
-            if why2 and not why:
-                _report(path, what, why2)
-            _remove(path)
+        try:
+            _remove_stale(folder, name)
+            if os.path.lexists(path):
+                state, why2 = _try_load(path, check)  # built while we waited
+                if state is not None:
+                    return state
+                if why2 and not why:
+                    _report(path, what, why2)
+                if classify(folder, name)["owner"] != "cache":
+                    return _without_cache(folder, f"{name} is taken by something the cache did not write",
+                                          what, build)
+                _remove(path)
+        except OSError as exc:
+            return _without_cache(folder, _oserror(exc), what, build)
         size = f" (about {_fmt_bytes(size_hint)})" if size_hint else ""
         eta = f", about {seconds_hint:.0f} s" if seconds_hint else ""
         print(f"arraysel: building {what} (first run with these settings{eta}); it will be cached in "
@@ -466,10 +578,49 @@ def load_or_build(kind: str, key_parts, build: Callable[[], Mapping], *, what: s
             save_state(folder, name, state, meta={"kind": kind, "what": what})
         except OSError as exc:
             _log.warning("could not save %s to the cache %s (%s); it will be built again next time",
-                         what, folder, exc)
+                         what, folder, _oserror(exc))
         return state
     finally:
         lock.release()
+
+
+def _oserror(exc: OSError) -> str:
+    return f"{exc.strerror}: {exc.filename}" if exc.strerror and exc.filename else str(exc)
+
+
+def _without_cache(folder: str, problem: str, what: str, build: Callable[[], Mapping]) -> dict:
+    _log.warning("cache folder %s cannot be used (%s); building %s without the cache", folder, problem, what)
+    return dict(build())
+
+
+def _unusable(folder: str, name: str) -> str | None:
+    """Why the cache folder cannot take entry ``name`` (None when it can): a file in the folder's
+    place, a folder that cannot be created or written, the entry's name or its lock's taken by
+    something else, a lock file this process cannot open."""
+    if os.path.lexists(folder) and not os.path.isdir(folder):
+        return "it is a file, not a folder"
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        return f"it cannot be created: {exc.strerror or exc}"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return "it is not writable"
+    path = os.path.join(folder, name)
+    if os.path.lexists(path) and classify(folder, name)["owner"] != "cache":
+        return f"{name} is taken by something the cache did not write"
+    lock = os.path.join(folder, f"{name}.lock")
+    try:
+        st = os.lstat(lock)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"its lock file {name}.lock cannot be examined: {exc.strerror}"
+    if not stat.S_ISREG(st.st_mode):
+        return f"its lock file {name}.lock is not a file"
+    if not os.access(lock, os.R_OK | os.W_OK):
+        owner = "" if st.st_uid == os.geteuid() else f", it belongs to user id {st.st_uid}"
+        return f"its lock file {name}.lock cannot be opened for writing{owner}"
+    return None
 
 
 class _Null:
@@ -497,16 +648,26 @@ def _lock(folder: str, name: str):
     return FileLock(os.path.join(folder, f"{name}.lock"), mode=file_mode())
 
 
-def _try_load(path: str) -> tuple[dict | None, str]:
+def _try_load(path: str, check: Callable[[dict], None] | None = None) -> tuple[dict | None, str]:
     """(state, "") or (None, why it cannot be used; "" when there is no entry)."""
     if not os.path.lexists(path):
         return None, ""
-    if not os.path.isdir(path):
+    if os.path.islink(path) or not os.path.isdir(path):
         return None, "not a folder"
     try:
-        return load_state(path), ""
+        state = load_state(path)
     except DamagedEntry as exc:
         return None, str(exc)
+    if check is not None:
+        try:
+            check(state)
+        except MemoryError:
+            raise
+        except Exception as exc:  # the caller's view: anything that does not fit is damage
+            from arraysel.errors import error_text
+
+            return None, f"its tensors do not fit together ({error_text(exc)})"
+    return state, ""
 
 
 def peek(kind: str, key_parts, names) -> dict | None:
@@ -517,7 +678,7 @@ def peek(kind: str, key_parts, names) -> dict | None:
     if folder is None:
         return None
     path = os.path.join(folder, entry_name(kind, key_parts))
-    if not os.path.isdir(path):
+    if os.path.islink(path) or not os.path.isdir(path):
         return None
     try:
         return load_state(path, only=list(names))
@@ -531,57 +692,190 @@ def _report(path: str, what: str, why: str) -> None:
 
 # ---------------------------------------------------------------------------- inspection
 def _du(path: str) -> int:
-    if os.path.isfile(path):
-        return os.path.getsize(path)
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return 0
+    if not stat.S_ISDIR(st.st_mode):
+        return st.st_size
     total = 0
     for root, _dirs, files in os.walk(path):
         for f in files:
             try:
-                total += os.path.getsize(os.path.join(root, f))
+                total += os.lstat(os.path.join(root, f)).st_size
             except OSError:
                 pass
     return total
 
 
+def _entry_files_only(path: str) -> str | None:
+    """None when ``path`` is a real folder holding only regular files named ``*.npy`` or
+    ``manifest.json`` (what the cache writes into an entry), else what is wrong (in words)."""
+    try:
+        st = os.lstat(path)
+    except OSError as exc:
+        return f"cannot be examined ({exc.strerror})"
+    if stat.S_ISLNK(st.st_mode):
+        return "it is a symbolic link"
+    if not stat.S_ISDIR(st.st_mode):
+        return "it is a file, not a folder"
+    try:
+        names = os.listdir(path)
+    except OSError as exc:
+        return f"cannot be listed ({exc.strerror})"
+    for f in names:
+        ok_name = f == MANIFEST or (f.endswith(".npy") and not f.startswith("."))
+        try:
+            regular = stat.S_ISREG(os.lstat(os.path.join(path, f)).st_mode)
+        except OSError:
+            regular = False
+        if not (ok_name and regular):
+            return f"it holds {f!r}, which the cache does not write"
+    return None
+
+
+def classify(folder: str, name: str) -> dict:
+    """What ``folder/name`` is to the cache: ``{"name", "kind", "owner", "entry", "status"}``.
+
+    ``owner`` is ``"cache"`` for the names the cache writes (see the module) and ``"foreign"``
+    for anything else; ``kind``: ``entry``, ``lock``, ``leftover`` (a writer's temporary folder),
+    ``aside`` (an entry being removed), ``old`` (the older single-file format) or ``foreign``;
+    ``entry``: the entry a lock or temporary folder belongs to; ``status``: in words, for
+    ``arraysel cache info``. A temporary folder of a writer that still runs is ``owner`` cache
+    but ``kind`` ``"writing"`` (nobody removes it)."""
+    from arraysel.io.atomic import pid_alive, stale_writer
+
+    p = os.path.join(folder, name)
+    info = {"name": name, "kind": "foreign", "owner": "foreign", "entry": None,
+            "status": "foreign: not written by the arraysel cache (left alone)"}
+    if _ENTRY_RE.match(name):
+        wrong = _entry_files_only(p)
+        if wrong is not None:
+            info["status"] = f"foreign: named like a cache entry, but {wrong} (left alone)"
+            return info
+        info.update(kind="entry", owner="cache", entry=name)
+        try:
+            _arrays(p, verify="size")  # the manifest, file sizes and headers (no block is read)
+            info["status"] = "ok"
+        except DamagedEntry as exc:
+            info["status"] = f"damaged: {exc}"
+        return info
+    m = _LOCK_RE.match(name)
+    if m:
+        try:
+            regular = stat.S_ISREG(os.lstat(p).st_mode)
+        except OSError:
+            regular = False
+        if regular:
+            info.update(kind="lock", owner="cache", entry=m.group(1), status="lock file")
+        else:
+            info["status"] = "foreign: named like a lock file, but not a file (left alone)"
+        return info
+    m = _WRITER_TMP_RE.match(name) or _ASIDE_TMP_RE.match(name)
+    if m:
+        wrong = _entry_files_only(p)
+        if wrong is not None:
+            info["status"] = f"foreign: named like a cache leftover, but {wrong} (left alone)"
+            return info
+        info.update(owner="cache", entry=m.group(1))
+        if m.re is _ASIDE_TMP_RE:
+            info.update(kind="aside", status="leftover of a removal")
+            return info
+        tag = m.group(2)
+        pid = int(tag.split("-")[0])
+        live = (not stale_writer(tag)) if "-" in tag else (pid == os.getpid() or pid_alive(pid))
+        if live:
+            info.update(kind="writing", status=f"being written by process {pid} (left alone)")
+        else:
+            info.update(kind="leftover", status="leftover of an interrupted write")
+        return info
+    if _OLD_RE.match(name):
+        try:
+            regular = stat.S_ISREG(os.lstat(p).st_mode)
+        except OSError:
+            regular = False
+        if regular:
+            info.update(kind="old", owner="cache", status="file of an older cache format (unused)")
+    return info
+
+
+def _items(folder: str) -> list[dict]:
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return []
+    return [classify(folder, f) for f in names]
+
+
 def list_entries(folder: str | None = None) -> list[dict]:
-    """Everything in the cache folder: entries, leftovers of killed writers (``.tmp``), lock
-    files and files of older formats, each ``{"name", "kind", "bytes", "created", "status"}``."""
+    """Everything in the cache folder, each ``{"name", "kind", "owner", "entry", "bytes",
+    "created", "status"}`` (see :func:`classify`): entries, their lock files, leftovers of killed
+    writers, files of the older format, and foreign files (listed, never touched)."""
     folder = cache_dir() if folder is None else folder
     if folder is None or not os.path.isdir(folder):
         return []
     out = []
-    for f in sorted(os.listdir(folder)):
-        p = os.path.join(folder, f)
-        info = {"name": f, "bytes": _du(p), "created": "", "kind": "", "status": ""}
-        if f.endswith(".tmp"):
-            info["status"] = "leftover of an interrupted write"
-        elif f.endswith(".lock"):
-            info["status"] = "lock file"
-        elif os.path.isdir(p):
-            try:
-                m = _read_manifest(p)
-                info.update(kind=m.get("kind", ""), created=m.get("created", ""), status="ok")
-            except DamagedEntry as exc:
-                info["status"] = f"damaged: {exc}"
-        else:
-            info["status"] = "file of an older cache format (unused)"
+    for info in _items(folder):
+        p = os.path.join(folder, info["name"])
+        info.update(bytes=_du(p), created="")
+        if info["kind"] == "entry" and info["status"] == "ok":
+            m = _read_manifest(p)
+            info["created"] = m.get("created", "") if isinstance(m.get("created"), str) else ""
         out.append(info)
     return out
 
 
 def clear(folder: str | None = None) -> tuple[int, int]:
-    """Remove everything in the cache folder; returns (items removed, bytes freed)."""
+    """Remove what the cache wrote in its folder: its entries (each under its lock: an entry a
+    live process is building is left), their lock files, the leftovers of killed writers and
+    files of the older format. Foreign files and folders, and a live writer's temporary folder,
+    are left alone. Returns (items removed, bytes freed).
+
+    An entry's lock file is removed while this call holds it; a process that opened that lock
+    file just before may then hold a lock on the removed file while another creates a new one,
+    and both build the entry: the second save replaces the first's identical entry."""
+    from filelock import FileLock, Timeout
+
+    from arraysel.io.atomic import file_mode
+
     folder = cache_dir() if folder is None else folder
+    if folder is None or not os.path.isdir(folder):
+        return 0, 0
     n = freed = 0
-    for info in list_entries(folder):
-        p = os.path.join(folder, info["name"])
-        try:
-            if os.path.isdir(p) and not os.path.islink(p):
-                shutil.rmtree(p)
-            else:
-                os.unlink(p)
-        except FileNotFoundError:
+    items = list_entries(folder)
+    busy = set()
+    for info in items:
+        if info["owner"] != "cache" or info["kind"] not in ("entry", "lock"):
             continue
-        n += 1
-        freed += info["bytes"]
+        name = info["entry"]
+        if name in busy or info["kind"] == "lock" and any(
+                i["kind"] == "entry" and i["entry"] == name for i in items):
+            continue  # a lock goes with its entry
+        lock = FileLock(os.path.join(folder, f"{name}.lock"), mode=file_mode())
+        try:
+            lock.acquire(timeout=0)
+        except (Timeout, OSError):
+            busy.add(name)  # being built (or a lock this process cannot take): left as it is
+            continue
+        try:
+            p = os.path.join(folder, name)
+            if os.path.lexists(p) and classify(folder, name)["owner"] == "cache":
+                size = _du(p)
+                _remove(p)
+                n += 1
+                freed += size
+            # the lock file goes too (counted when it was there before this call took it)
+            n += any(i["kind"] == "lock" and i["entry"] == name for i in items)
+            os.unlink(os.path.join(folder, f"{name}.lock"))
+        except FileNotFoundError:
+            pass
+        finally:
+            lock.release()
+    for info in items:
+        if info["owner"] == "cache" and info["kind"] in ("leftover", "aside", "old"):
+            p = os.path.join(folder, info["name"])
+            if classify(folder, info["name"])["kind"] == info["kind"]:  # still what it was
+                _delete(p)
+                n += 1
+                freed += info["bytes"]
     return n, freed

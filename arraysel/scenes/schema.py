@@ -492,6 +492,7 @@ class Scene:
         from arraysel.physics.simus import SimOptions
 
         probe = self.probe()
+        _memory_check(self, probe.n_elements)
         acq = self.acquisition()
         n_tx = int(self.value("transmit", "n_tx"))
         tilt = float(self.value("transmit", "max_tilt_deg"))
@@ -601,6 +602,27 @@ def _region_checks(scene: Scene) -> None:
     _log.warning("scene %r: %s (L_contrast and L_SLR are then 0 or partial)", scene.name, problem)
 
 
+def _memory_check(scene: Scene, n_elements: int) -> None:
+    """Refuse, from the sizes alone (nothing allocated), a grid whose setting up needs more memory
+    than the cap ``ARRAYSEL_MEMORY_GIB`` (:func:`arraysel.physics.psf.settings.grid_bytes`):
+    the message names the keys, the memory needed and allowed, and the largest grid allowed."""
+    from arraysel.physics.psf.settings import MEMORY_GIB, grid_bytes, largest_grid_pixels, memory_limit_bytes
+
+    n_x, n_z = int(scene.length("grid", "n_x")), int(scene.length("grid", "n_z"))
+    win = int(scene.length("grid", "window"))
+    need, step = grid_bytes(n_x, n_z, win, n_elements)
+    limit = memory_limit_bytes()
+    if need <= limit:
+        return
+    most = largest_grid_pixels(n_elements, limit)
+    side = int(math.isqrt(most))
+    raise ParameterError(
+        f"grid.n_x x grid.n_z = {n_x} x {n_z} pixels needs about {need / 2 ** 30:.1f} GiB ({step}, "
+        f"{n_elements} elements), more than the {limit / 2 ** 30:.1f} GiB allowed by {MEMORY_GIB}; allowed: "
+        f"grid.n_x * grid.n_z up to about {most / 1e6:.3g} million pixels (e.g. {side} x {side}): reduce "
+        f"grid.n_x / grid.n_z (or coarsen grid.pixel), or raise {MEMORY_GIB}")
+
+
 def _finish(name: str, tree: dict) -> Scene:
     scene = Scene(name=tree.get("name", name), tree=tree)
     probe = scene.probe()
@@ -653,8 +675,10 @@ def load_scene(name_or_path: "str | Scene | dict", overrides: dict | None = None
         tree = name_or_path
         name = tree.get("name", "custom")
     elif isinstance(name_or_path, (str, os.PathLike)):
+        from arraysel.io.outputs import scene_input
+
         s = str(name_or_path)
-        if s.endswith(".toml") or os.path.sep in s:
+        if scene_input(s) is not None:
             tree = _read_file(s)
             name = tree.get("name", os.path.splitext(os.path.basename(s))[0])
         else:

@@ -18,11 +18,23 @@ registered each selector (its *origin*) and raises
 ``--plugin MODULE_OR_PATH`` on the command line calls :func:`load_plugin`,
 which imports a module by name or a ``.py`` file by path and registers it
 without installing anything.
+
+A plugin that fails while it is loaded (raises, or calls ``sys.exit``, at
+import or in its ``arraysel_register_selectors`` hook; has hooks pluggy
+refuses):
+
+* given with ``--plugin`` (or a built-in one): :class:`PluginLoadError`, one
+  line naming the plugin and what it raised (the command exits with code 2);
+* installed (an entry point): skipped, with one warning line naming the entry
+  point, its distribution and what it raised, so that one broken installed
+  plugin does not stop every command; the other plugins load as usual.
+  ``ARRAYSEL_DISABLE_PLUGINS`` silences it.
 """
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import logging
 import os
 import re
 import sys
@@ -34,8 +46,10 @@ from typing import Iterable, Iterator
 import pluggy
 
 from arraysel.selectors import hookspecs
-from arraysel.errors import ArrayselError, ParameterError
+from arraysel.errors import ArrayselError, ParameterError, error_text
 from arraysel.selectors.contract import Option, Selector
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "BUILTIN_PLUGINS", "DISABLE_ENV", "ENTRY_POINT_GROUP", "DuplicateSelectorError",
@@ -99,9 +113,42 @@ def build_plugin_manager(*, load_entrypoints: bool = True, builtins: bool = True
                 continue
             pm.register(importlib.import_module(modname), name=name)
     if load_entrypoints:
-        pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
+        _load_entrypoints(pm)
     pm.check_pending()
     return pm
+
+
+def _failure(exc: BaseException) -> str:
+    """What a plugin did wrong, on one line."""
+    if isinstance(exc, SystemExit):
+        return f"it called sys.exit({exc.code!r})"
+    return f"it raised {error_text(exc)}"
+
+
+def _load_entrypoints(pm: pluggy.PluginManager) -> None:
+    """``pm.load_setuptools_entrypoints`` after trying each entry point of the group alone: one
+    that fails to import or to register (on a throwaway manager) is blocked with a warning line."""
+    import importlib.metadata as md
+
+    for dist in list(md.distributions()):
+        for ep in dist.entry_points:
+            if ep.group != ENTRY_POINT_GROUP or pm.get_plugin(ep.name) or pm.is_blocked(ep.name):
+                continue
+            try:
+                plugin = ep.load()
+                probe = pluggy.PluginManager(hookspecs.PROJECT_NAME)
+                probe.add_hookspecs(hookspecs)
+                probe.register(plugin, name=ep.name)
+                probe.check_pending()
+            except KeyboardInterrupt:
+                raise
+            except (Exception, SystemExit) as exc:
+                dist_name = (dist.metadata["Name"] if dist.metadata else None) or "?"
+                _log.warning("arraysel: skipping the installed plugin %r (entry point %s of %s %s): loading it "
+                             "failed, %s; %s=%s silences this", ep.name, ep.value, dist_name, dist.version,
+                             _failure(exc), DISABLE_ENV, ep.name)
+                pm.set_blocked(ep.name)
+    pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
 
 
 _PM: pluggy.PluginManager | None = None
@@ -149,9 +196,12 @@ def _import_path(path: Path) -> ModuleType:
     sys.modules[modname] = module
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:
-        del sys.modules[modname]
-        raise PluginLoadError(f"importing plugin file {path} failed: {type(exc).__name__}: {exc}") from exc
+    except KeyboardInterrupt:
+        sys.modules.pop(modname, None)
+        raise
+    except (Exception, SystemExit) as exc:
+        sys.modules.pop(modname, None)
+        raise PluginLoadError(f"importing plugin file {path} failed: {_failure(exc)}") from None
     return module
 
 
@@ -174,8 +224,15 @@ def load_plugin(spec: str, pm: pluggy.PluginManager | None = None) -> str:
         try:
             module = importlib.import_module(spec)
         except ImportError as exc:
-            raise PluginLoadError(f"cannot import plugin module {spec!r}: {exc}. "
-                                  f"Give an importable module name or a path to a .py file") from exc
+            missing = getattr(exc, "name", None)
+            if missing and (spec == missing or spec.startswith(missing + ".")):
+                raise PluginLoadError(f"cannot import plugin module {spec!r}: {exc}. "
+                                      f"Give an importable module name or a path to a .py file") from None
+            raise PluginLoadError(f"importing plugin module {spec!r} failed: {_failure(exc)}") from None
+        except KeyboardInterrupt:
+            raise
+        except (Exception, SystemExit) as exc:
+            raise PluginLoadError(f"importing plugin module {spec!r} failed: {_failure(exc)}") from None
         name = spec
     if not hasattr(module, "arraysel_register_selectors"):
         raise PluginLoadError(f"plugin {spec!r} defines no arraysel_register_selectors hook "
@@ -218,17 +275,30 @@ class SelectorRegistry:
     def from_plugin_manager(cls, pm: pluggy.PluginManager) -> "SelectorRegistry":
         reg = cls()
         caller = pm.hook.arraysel_register_selectors
+        installed = {id(p) for p, _dist in pm.list_plugin_distinfo()}
         # hook implementations in registration order (built-ins first), so a
         # duplicate name is blamed on the later plugin
         for impl in caller.get_hookimpls():
             if getattr(impl, "hookwrapper", False) or getattr(impl, "wrapper", False):
                 continue
             origin = plugin_origin(pm, impl.plugin, impl.plugin_name)
-
-            def register(selector_cls, _origin=origin):
-                reg.register(selector_cls, origin=_origin)
-
-            impl.function(register=register)
+            classes: list = []
+            try:
+                impl.function(register=classes.append)
+            except KeyboardInterrupt:
+                raise
+            except (Exception, SystemExit) as exc:
+                if isinstance(exc, ArrayselError):
+                    raise
+                if id(impl.plugin) in installed:  # an installed plugin: skipped (module docstring)
+                    _log.warning("arraysel: skipping the installed plugin %s: its arraysel_register_selectors "
+                                 "failed, %s; %s=%s silences this", origin, _failure(exc), DISABLE_ENV,
+                                 impl.plugin_name)
+                    continue
+                raise PluginLoadError(f"plugin {origin}: arraysel_register_selectors failed, "
+                                      f"{_failure(exc)}") from None
+            for selector_cls in classes:  # all or nothing: a hook that fails half-way adds none
+                reg.register(selector_cls, origin=origin)
         return reg
 
     def register(self, selector_cls: type[Selector], origin: str = "<direct>") -> None:

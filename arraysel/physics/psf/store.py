@@ -22,13 +22,49 @@ def _key(model) -> tuple:
 
 
 def stored_window_estimate(model) -> int | None:
-    """The window estimate stored with ``model``'s basis (None when it is not cached): the same
+    """The window estimate stored with ``model``'s basis (None when it is not cached, or not a
+    positive whole number: the entry is then reported and rebuilt by the full load): the same
     number :meth:`~arraysel.physics.psf.operator.PSFModel.window_estimate` computes, without its
     delay-and-sum plans."""
     from arraysel.io import cache
 
     got = cache.peek("psf-basis", _key(model), [WINDOW_KEY])
-    return None if got is None else int(got[WINDOW_KEY])
+    if got is None:
+        return None
+    value = got[WINDOW_KEY]
+    if value.numel() != 1 or value.is_complex() or value.is_floating_point() or int(value) <= 0:
+        return None
+    return int(value)
+
+
+#: tensors every stored basis has (besides ``U``, present when V holds singular vectors)
+_REQUIRED = (tuple(PairBasis._DENSE) + tuple(f"{k}_{part}" for k in PairBasis._SPARSE
+                                              for part in ("crow", "col", "val", "shape"))
+             + ("err", "core_pix", "Snext", "meta", "rank_tail", "off", "row_energy", "missed", WINDOW_KEY))
+
+
+def check_state(model, state: dict) -> None:
+    """Raise ``ValueError`` naming the first fault when a stored state cannot be ``model``'s basis:
+    a tensor missing, or sizes that do not fit together (the pair count, the rank of V and U,
+    the window estimate)."""
+    missing = [k for k in _REQUIRED if k not in state]
+    if missing:
+        raise ValueError(f"tensor {missing[0]!r} is missing")
+    ne = model.n_elements
+    pairs = ne * (ne + 1) // 2
+    meta, V = state["meta"], state["V"]
+    if meta.dim() != 1 or meta.numel() != 5 or meta.is_floating_point():
+        raise ValueError(f"meta holds {list(meta.shape)} {meta.dtype}, not 5 whole numbers")
+    rank = int(meta[2])
+    if V.dim() != 2 or V.shape[0] != rank or rank < 1:
+        raise ValueError(f"V has shape {list(V.shape)} for rank {rank}")
+    U = state.get("U")
+    if U is None and rank != pairs:
+        raise ValueError(f"tensor 'U' is missing for a basis of rank {rank} < {pairs} pairs")
+    if U is not None and list(U.shape) != [pairs, rank]:
+        raise ValueError(f"U has shape {list(U.shape)}, expected [{pairs}, {rank}]")
+    if state[WINDOW_KEY].numel() != 1 or int(state[WINDOW_KEY]) <= 0:
+        raise ValueError("the window estimate is not a positive number")
 
 
 def load_or_build_basis(model) -> PairBasis:
@@ -48,8 +84,14 @@ def load_or_build_basis(model) -> PairBasis:
             built.append(PairBasis(model, rank_tol=BUILD_RANK_TOL))
         return {**built[0].state(), WINDOW_KEY: torch.tensor(model.window_estimate())}
 
-    state = cache.load_or_build(
+    restored = []
+
+    def check(state: dict) -> None:  # a loaded state that is not a basis is damage: rebuilt
+        check_state(model, state)
+        restored.append(PairBasis.from_state(model, state))
+
+    cache.load_or_build(
         "psf-basis", _key(model),
         build, what="the PSF fast-path basis",
-        size_hint=model.basis_stored_bytes(), seconds_hint=model.basis_build_seconds())
-    return built[0] if built else PairBasis.from_state(model, state)
+        size_hint=model.basis_stored_bytes(), seconds_hint=model.basis_build_seconds(), check=check)
+    return built[0] if built else restored[-1]
