@@ -1,8 +1,11 @@
 """``arraysel compare``: run selectors on a scene and write Table 1, traces and figures."""
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
 import sys
+import threading
 
 from arraysel.errors import ParameterError, check_number
 from arraysel.selectors.registry import get_registry, load_plugin
@@ -139,9 +142,37 @@ def _exact_run_notice(objective, budget, runs: int) -> str | None:
             f"{budget.seconds:g} s budget after about {int(budget.seconds / per)} evaluation(s)")
 
 
-def run(args) -> int:
-    from arraysel.run.compare import compare
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: ``compare`` handles it as Ctrl-C (its children and
+    pool workers are stopped, run.json says ``interrupted``, temporary files are removed)."""
 
+
+def _raise_terminated(signum, frame):
+    raise Terminated(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def run(args) -> int:
+    try:
+        with _sigterm_as_interrupt():
+            return _run(args)
+    except Terminated:
+        print("arraysel compare: terminated (SIGTERM)", file=sys.stderr)
+        return 128 + signal.SIGTERM
+
+
+def _run(args) -> int:
     for spec in args.plugin:
         load_plugin(spec)
     registry = get_registry()
@@ -153,9 +184,16 @@ def run(args) -> int:
                              f"got {args.budget_s}")
     budget_s = None if args.budget_s is None else check_number("--budget-s", args.budget_s, lo=0)
     grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
-    from arraysel.run.compare import DEFAULT_SEEDS
-    from arraysel.run.outdir import check_out_dir
-    previous = check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
+    from arraysel.run.outdir import check_out_dir, lock_out_dir
+    check_out_dir(args.out, resume=args.resume, force=args.force)  # a file named --out: before the lock
+    with lock_out_dir(args.out):  # held until the end; compare() takes it again (re-entrant)
+        return _run_locked(args, registry, names, options, seeds, budget_s, grace_s,
+                           check_out_dir(args.out, resume=args.resume, force=args.force))
+
+
+def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previous) -> int:
+    from arraysel.run.compare import DEFAULT_SEEDS, compare
+
     n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
     if budget_s is None and args.resume and isinstance((previous or {}).get("budget"), dict):
         budget_s = float(previous["budget"].get("seconds") or 0)     # the runs being resumed
