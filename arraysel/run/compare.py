@@ -28,7 +28,7 @@ from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
-from arraysel.run.experiment import Experiment, _failed_row, _lost_row, config_label, full_row
+from arraysel.run.experiment import Experiment, _failed_row, _final_metrics, _lost_row, config_label, full_row
 from arraysel.run.isolation import DEFAULT_GRACE_S, IsolatedWorker
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir, remove_results
 from arraysel.run.workers import TaskFailed, objective_factory_for
@@ -72,6 +72,26 @@ def _task_failed_row(objective, lab, cls, opts, seed, res: TaskFailed, budget, g
     return _failed_row(objective, lab, cls.name, opts, seed, f"run failed: {msg}")
 
 
+def _checked(objective, row: dict, trace: list) -> tuple[dict, list]:
+    """A row made in another process, checked here: its selection is scored again on this
+    process's objective, which no plugin has touched. A Mean that differs (a selector that
+    patched ``evaluate`` in its own process, say) is replaced by the true one, the row gets an
+    error naming both, and its trace, recorded in that process, is left out."""
+    selection = parse_element_text(str(row.get("elements") or ""))
+    if not selection or str(row.get("error") or "").strip():
+        return row, trace
+    try:
+        true = _final_metrics(objective, selection)
+    except Exception as exc:  # its selection cannot be scored here: the row cannot be trusted
+        return {**row, "error": f"its selection could not be scored again: {_error_text(exc)}"}, []
+    got, want = float(row.get("Mean", math.nan)), float(true.get("Mean", math.nan))
+    if got == want or abs(got - want) <= 1e-5 * abs(want):
+        return row, trace
+    return {**row, **true, "error": f"the run reported Mean {got:.6g} for its selection, which scores {want:.6g}: "
+                                    f"the selector changed the objective in its own process (its trace is "
+                                    f"left out)"}, []
+
+
 def _run_isolated(isolator, objective, lab, cls, opts, budget, seed, grace) -> tuple[dict, list]:
     item = compare_item(lab, cls, opts, budget, seed)
     res = isolator.run(compare_task, item, _timeout(budget, grace))
@@ -81,24 +101,56 @@ def _run_isolated(isolator, objective, lab, cls, opts, budget, seed, grace) -> t
         raise res.exception
     if isinstance(res, TaskFailed):
         return _task_failed_row(objective, lab, cls, opts, seed, res, budget, grace, lost=False), []
-    return res["row"], res["trace"]
+    return _checked(objective, res["row"], res["trace"])
 
 
-def _objective_changed(objective, full: dict) -> str:
-    """After a run in this process: score the full array again; a Mean other than the ``full``
-    row's means the run changed the objective (its attributes, or its ``evaluate``). Returns what
-    changed ('' when nothing did, or when the full row has no Mean to compare with)."""
-    want = float(full.get("Mean", math.nan))
-    if not math.isfinite(want):
-        return ""
-    try:
-        out = objective.evaluate(indices_to_mask(list(range(int(objective.n_elements))), int(objective.n_elements))[None])
-        got = float(np.asarray(out["Mean"], dtype=np.float64).reshape(-1)[0])
-    except Exception as exc:
-        return f"scoring the full array now fails ({_error_text(exc)})"
-    if got == want or abs(got - want) <= 1e-9 * abs(want):
-        return ""
-    return f"the full array's Mean was {want:.6g} before it and is {got:.6g} after it"
+#: the objective's counters (they change with every call)
+_COUNTERS = ("evaluations", "gradient_steps", "seconds")
+
+
+class _Fingerprint:
+    """What a run in this process must leave as it found it: the objective's attributes and the
+    methods of its class and of :class:`~arraysel.selectors.contract.BudgetedObjective` (by
+    identity: a replaced or wrapped ``evaluate`` shows), and the full array's Mean (an attribute
+    edited in place, such as ``metric_kw["r_main"]``, shows there)."""
+
+    def __init__(self, objective, full: dict):
+        self.objective = objective
+        self.full_mean = float(full.get("Mean", math.nan))
+        self.ids = self._ids()
+
+    def _ids(self) -> dict:
+        from arraysel.selectors.contract import BudgetedObjective
+
+        out = {}
+        for where, mapping in (("objective", vars(self.objective)), ("its class", vars(type(self.objective))),
+                               ("BudgetedObjective", vars(BudgetedObjective))):
+            for key, value in mapping.items():
+                if where == "objective" and key in _COUNTERS:
+                    continue
+                scalar = value is None or isinstance(value, (bool, int, float, str))
+                out[(where, key)] = ("value", value) if scalar else ("id", id(value))
+        return out
+
+    def changed(self) -> str:
+        """'' when nothing changed, else what did (one phrase)."""
+        now = self._ids()
+        keys = sorted(k for k in set(now) | set(self.ids) if now.get(k) != self.ids.get(k))
+        if keys:
+            where, key = keys[0]
+            return f"{key!r} of {where} was replaced, added or removed"
+        want = self.full_mean
+        if not math.isfinite(want):
+            return ""
+        n = int(self.objective.n_elements)
+        try:
+            out = self.objective.evaluate(indices_to_mask(list(range(n)), n)[None])
+            got = float(np.asarray(out["Mean"], dtype=np.float64).reshape(-1)[0])
+        except Exception as exc:
+            return f"scoring the full array now fails ({_error_text(exc)})"
+        if got == want or abs(got - want) <= 1e-9 * abs(want):
+            return ""
+        return f"the full array's Mean was {want:.6g} before it and is {got:.6g} after it"
 
 
 def _versions() -> dict:
@@ -300,6 +352,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
     reporting.write_json(out / "run.json", meta)
 
     full = full_row(objective)
+    fingerprint = _Fingerprint(objective, full)  # checked after each run made in this process
 
     def save():
         reporting.write_runs(out, [full] + rows, traces, budget, problem=scene_name or "arraysel")
@@ -333,7 +386,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                     except BudgetExceededError as exc:
                         row, trace = _failed_row(objective, lab, classes[name].name, opts, seed,
                                                  _error_text(exc)), []
-                    changed = _objective_changed(objective, full)
+                    changed = fingerprint.changed()
                     if changed:  # its numbers, and those of every later run here, cannot be trusted
                         why = (f"the selector changed the objective it was given ({changed}); run it "
                                f"isolated (without --in-process)")
@@ -366,7 +419,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                                                lost=True)
                         trace = []
                     else:
-                        row, trace = res["row"], res["trace"]
+                        row, trace = _checked(objective, res["row"], res["trace"])
                     results[i] = (row, [{"config": lab, "seed": seed, **t} for t in trace])
                     rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
                     traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]

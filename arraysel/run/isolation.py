@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.util
 import os
 import threading
 import time
@@ -62,7 +63,7 @@ def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeo
         objective = factory()
     except Exception as exc:
         conn.send(("failed", f"the objective could not be built: {_error_text(exc)}"))
-        os._exit(0)
+        _end()
     limit[0] = None if timeout is None else time.monotonic() + timeout + _SELF_STOP_MARGIN_S
     conn.send(("ready", None))
     try:
@@ -74,7 +75,15 @@ def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeo
     except Exception as exc:  # a result that does not pickle
         conn.send(("failed", f"its result could not be sent back: {_error_text(exc)}"))
     conn.close()
-    os._exit(0)
+    _end()
+
+
+def _end(code: int = 0) -> None:
+    """End the child now, without waiting for threads the task left running; release what
+    multiprocessing registered for cleanup (semaphores: else the resource tracker warns)."""
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
+    os._exit(code)
 
 
 @contextlib.contextmanager
