@@ -51,9 +51,13 @@ def _watch(parent_pid: int, limit: list) -> None:
             os._exit(124)
 
 
-def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeout, verify) -> None:
+def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeout, verify, env) -> None:
     """Child side of :class:`OneShot`: build the objective, say ``ready``, run ``fn(objective,
-    item)`` once, send the result and end (stray threads of the task end with the process)."""
+    item)`` once, send the result and end (stray threads of the task end with the process).
+    ``env``: the supervisor's environment now (a forkserver's children would otherwise get the
+    environment of the moment the server started)."""
+    os.environ.clear()
+    os.environ.update(env)
     limit = [time.monotonic() + BUILD_LIMIT_S + _SELF_STOP_MARGIN_S]
     threading.Thread(target=_watch, args=(parent_pid, limit), daemon=True, name="arraysel-watchdog").start()
     _process_init(None, None, threads)
@@ -130,7 +134,7 @@ class OneShot:
         parent, child = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=_one_shot_main, name="arraysel-run", daemon=True,
                                 args=(child, self.factory, self.fn, self.item, self.threads, os.getpid(),
-                                      self.timeout, self.verify))
+                                      self.timeout, self.verify, dict(os.environ)))
         with _children_allowed():
             self.proc.start()
         child.close()
