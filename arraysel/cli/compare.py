@@ -185,7 +185,8 @@ def _run(args) -> int:
     budget_s = None if args.budget_s is None else check_number("--budget-s", args.budget_s, lo=0)
     grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
     from arraysel.run.outdir import check_out_dir, lock_out_dir
-    check_out_dir(args.out, resume=args.resume, force=args.force)  # a file named --out: before the lock
+    if args.resume and args.force:
+        check_out_dir(args.out, resume=True, force=True)  # refused before a folder is made
     with lock_out_dir(args.out):  # held until the end; compare() takes it again (re-entrant)
         return _run_locked(args, registry, names, options, seeds, budget_s, grace_s,
                            check_out_dir(args.out, resume=args.resume, force=args.force))

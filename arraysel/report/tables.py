@@ -124,9 +124,10 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
             best_y = math.inf
             for t in rows_t:
                 ev = max(1, int(t["evaluations"]))
-                lines.append(f"{ev} {float(t['best_Mean']):.10e} {float(t['seconds']):.6f}")
-                if float(t["best_Mean"]) < best_y:
-                    best_y, best_evals = float(t["best_Mean"]), ev
+                y = f"{float(t['best_Mean']):.10e}"
+                lines.append(f"{ev} {y} {float(t['seconds']):.6f}")
+                if float(y) < best_y:  # the value as the .dat holds it
+                    best_y, best_evals = float(y), ev
             # the json's best is the .dat's best (the same trace rows); its x is the run's selection
             # when that selection scored this best, else left out
             best = {"evals": int(best_evals or r["evaluations"]), "y": best_y}

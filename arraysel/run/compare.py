@@ -274,7 +274,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     grace = DEFAULT_GRACE_S if grace_s is None else float(check_number("grace_s", grace_s, lo=0, hi=1e6))
 
     out = Path(out_dir)
-    check_out_dir(out, resume=resume, force=force)  # a file named --out is refused before the lock
+    if resume and force:
+        check_out_dir(out, resume=resume, force=force)  # refused before a folder is made
     with lock_out_dir(out):  # one compare at a time in a folder, for the whole run
         return _compare_locked(objective, out, registry, budget, sels, seeds, classes, labels, grace,
                                resume=resume, force=force, progress=progress, figures=figures,

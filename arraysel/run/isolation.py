@@ -36,22 +36,19 @@ BUILD_LIMIT_S = 1800.0
 _SELF_STOP_MARGIN_S = 10.0
 
 
-def _watch(parent_pid: int, limit: list) -> None:
-    """Child-side watchdog thread: end the process when its supervisor is gone, or when
-    ``limit[0]`` (a ``time.monotonic`` deadline, ``None``: none) has passed."""
+def _watch(alive, limit: list) -> None:
+    """Child-side watchdog thread: end the process when its supervisor is gone (``alive``, the
+    read end of a pipe whose only write end the supervisor holds, reads end-of-file: this holds
+    for a killed supervisor not yet reaped, whose pid still exists), or when ``limit[0]`` (a
+    ``time.monotonic`` deadline, ``None``: none) has passed."""
     while True:
-        time.sleep(0.5)
-        try:
-            os.kill(parent_pid, 0)
-        except ProcessLookupError:
+        if alive.poll(0.5):  # the supervisor never writes: readable means it is gone
             os._exit(70)
-        except OSError:  # exists but not ours to signal: still alive
-            pass
         if limit[0] is not None and time.monotonic() > limit[0]:
             os._exit(124)
 
 
-def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeout, verify, env) -> None:
+def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify, env) -> None:
     """Child side of :class:`OneShot`: build the objective, say ``ready``, run ``fn(objective,
     item)`` once, send the result and end (stray threads of the task end with the process).
     ``env``: the supervisor's environment now (a forkserver's children would otherwise get the
@@ -59,7 +56,7 @@ def _one_shot_main(conn, factory, fn, item, threads: int, parent_pid: int, timeo
     os.environ.clear()
     os.environ.update(env)
     limit = [time.monotonic() + BUILD_LIMIT_S + _SELF_STOP_MARGIN_S]
-    threading.Thread(target=_watch, args=(parent_pid, limit), daemon=True, name="arraysel-watchdog").start()
+    threading.Thread(target=_watch, args=(alive, limit), daemon=True, name="arraysel-watchdog").start()
     _process_init(None, None, threads)
     if verify:
         os.environ["ARRAYSEL_CACHE_VERIFY"] = verify
@@ -125,6 +122,7 @@ class OneShot:
         self.verify = verify
         self.proc = None
         self.conn = None
+        self.alive = None
         self.ready_at: float | None = None
         self.started_at: float | None = None
         self.result = None
@@ -132,13 +130,16 @@ class OneShot:
     def start(self) -> "OneShot":
         ctx = _mp_context()
         parent, child = ctx.Pipe(duplex=False)
+        alive_r, alive_w = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=_one_shot_main, name="arraysel-run", daemon=True,
-                                args=(child, self.factory, self.fn, self.item, self.threads, os.getpid(),
+                                args=(child, self.factory, self.fn, self.item, self.threads, alive_r,
                                       self.timeout, self.verify, dict(os.environ)))
         with _children_allowed():
             self.proc.start()
         child.close()
+        alive_r.close()
         self.conn = parent
+        self.alive = alive_w
         self.started_at = time.monotonic()
         return self
 
@@ -208,9 +209,10 @@ class OneShot:
             with contextlib.suppress(Exception):
                 proc.close()
             self.proc = None
-        if self.conn is not None:
-            self.conn.close()
-            self.conn = None
+        for end in (self.conn, self.alive):
+            if end is not None:
+                end.close()
+        self.conn = self.alive = None
 
 
 def run_one_shot(factory, fn: Callable, item, timeout: float | None = None, threads: int = 0,

@@ -162,7 +162,12 @@ def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
     process's pid. The lock is an ``flock`` on :data:`LOCK_NAME`, so the kernel releases it when
     its holder dies (a lock file left by a killed run is simply taken over). Re-entrant within a
     process."""
+    from arraysel.errors import ParameterError
+
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{what} {str(out)!r} is a file, not a folder")
+    check_writable(out / LOCK_NAME, what)
     out.mkdir(parents=True, exist_ok=True)
     path = os.path.join(os.path.realpath(out), LOCK_NAME)
     with _HELD_LOCK:
