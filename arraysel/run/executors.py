@@ -384,8 +384,10 @@ class DaskExecutor(Executor):
             # scheduler blames (and counts a failure against) that task alone
             with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
                 self.cluster = distributed.LocalCluster(
+                    # the scheduler's HTTP server (dashboard, metrics) on a free loopback port: a
+                    # fixed one (8787) may be taken by another cluster on the machine
                     n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                    dashboard_address=None, silence_logs=logging.ERROR,
+                    dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
                     scheduler_kwargs={"allowed_failures": self.retries})
             self.client = distributed.Client(self.cluster, set_as_default=False)
 
