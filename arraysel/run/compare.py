@@ -123,7 +123,8 @@ class _Fingerprint:
         from arraysel.selectors.contract import BudgetedObjective
 
         out = {}
-        for where, mapping in (("objective", vars(self.objective)), ("its class", vars(type(self.objective))),
+        for where, mapping in (("objective", getattr(self.objective, "__dict__", {})),
+                               ("its class", vars(type(self.objective))),
                                ("BudgetedObjective", vars(BudgetedObjective))):
             for key, value in mapping.items():
                 if where == "objective" and key in _COUNTERS:
