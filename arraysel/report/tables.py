@@ -124,7 +124,7 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
             best_y = math.inf
             for t in rows_t:
                 ev = max(1, int(t["evaluations"]))
-                y = f"{float(t['best_Mean']):.10e}"
+                y = repr(float(t["best_Mean"]))  # the shortest text that reads back as the same float
                 lines.append(f"{ev} {y} {float(t['seconds']):.6f}")
                 if float(y) < best_y:  # the value as the .dat holds it
                     best_y, best_evals = float(y), ev
