@@ -168,6 +168,11 @@ def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
     if out.exists() and not out.is_dir():
         raise ParameterError(f"{what} {str(out)!r} is a file, not a folder")
     check_writable(out / LOCK_NAME, what)
+    created = []  # the folders made here, deepest first: removed again if nothing was written
+    probe = out.absolute()
+    while not probe.exists() and probe != probe.parent:
+        created.append(probe)
+        probe = probe.parent
     out.mkdir(parents=True, exist_ok=True)
     path = os.path.join(os.path.realpath(out), LOCK_NAME)
     with _HELD_LOCK:
@@ -175,7 +180,11 @@ def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
         if held is not None:
             held[1] += 1
         else:
-            _HELD[path] = [_acquire(path, what), 1]
+            try:
+                _HELD[path] = [_acquire(path, what), 1, created]
+            except BaseException:
+                _remove_empty(created)
+                raise
     try:
         yield
     finally:
@@ -187,3 +196,12 @@ def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
                 with contextlib.suppress(OSError):
                     os.unlink(path)  # while still held: a waiter re-checks the file it locked
                 os.close(held[0])
+                _remove_empty(held[2])  # folders made for a command that wrote nothing (refused options)
+
+
+def _remove_empty(folders) -> None:
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty: a result is in it
+            return
