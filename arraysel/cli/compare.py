@@ -71,8 +71,9 @@ def add_parser(subparsers) -> None:
                    help="seconds a run may go past --budget-s before its process is stopped and it gets "
                         "an error row (default 30)")
     p.add_argument("--in-process", action="store_true",
-                   help="run the selectors in this process instead of one child process per compare "
-                        "(faster start; a selector that hangs or exits then stops the whole compare)")
+                   help="run the selectors in this process instead of a fresh child process per run "
+                        "(faster start, not isolated: a selector that hangs or exits then stops the whole "
+                        "compare, one that changes the objective stops it with an error)")
     g = p.add_argument_group("parallel runs (see docs/distributed.md)")
     g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
                    help="where the (selector, seed) runs are computed: local (default: this process, "

@@ -126,23 +126,28 @@ def _holder(fd: int) -> str:
     return "unknown"
 
 
-def _acquire(path: str, what: str) -> int:
-    import fcntl
-
+def _acquire(path: str, what: str, shown: str) -> int:
     from arraysel.errors import ParameterError
     from arraysel.io.atomic import file_mode
+
+    try:
+        import fcntl
+    except ImportError:  # no flock on this platform (Windows): the folder is not locked
+        return os.open(path, os.O_RDWR | os.O_CREAT, file_mode())
 
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, file_mode())
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                os.close(fd)
-                raise
+            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):  # a file system without locks
+                import sys
+                print(f"arraysel: cannot lock {what} {shown!r} ({exc.strerror}); going on without the lock",
+                      file=sys.stderr)
+                return fd
             pid = _holder(fd)
             os.close(fd)
-            raise ParameterError(f"{what} {os.path.dirname(path)!r} is in use by another arraysel compare "
+            raise ParameterError(f"{what} {shown!r} is in use by another arraysel compare "
                                  f"(pid {pid}); wait for it to end, or choose another {what}") from None
         try:  # the file may have been removed by a holder that just ended: lock the one in place
             same = os.path.samestat(os.fstat(fd), os.stat(path))
@@ -181,7 +186,7 @@ def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
             held[1] += 1
         else:
             try:
-                _HELD[path] = [_acquire(path, what), 1, created]
+                _HELD[path] = [_acquire(path, what, str(out)), 1, created]
             except BaseException:
                 _remove_empty(created)
                 raise
