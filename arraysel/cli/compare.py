@@ -1,8 +1,11 @@
 """``arraysel compare``: run selectors on a scene and write Table 1, traces and figures."""
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
 import sys
+import threading
 
 from arraysel.errors import ParameterError, check_number
 from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it (loads no torch)
@@ -67,8 +70,9 @@ def add_parser(subparsers) -> None:
                    help="seconds a run may go past --budget-s before its process is stopped and it gets "
                         "an error row (default 30)")
     p.add_argument("--in-process", action="store_true",
-                   help="run the selectors in this process instead of one child process per compare "
-                        "(faster start; a selector that hangs or exits then stops the whole compare)")
+                   help="run the selectors in this process instead of a fresh child process per run "
+                        "(faster start, not isolated: a selector that hangs or exits then stops the whole "
+                        "compare, one that changes the objective stops it with an error)")
     g = p.add_argument_group("parallel runs (see docs/distributed.md)")
     g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
                    help="where the (selector, seed) runs are computed: local (default: this process, "
@@ -138,7 +142,37 @@ def _exact_run_notice(objective, budget, runs: int) -> str | None:
             f"{budget.seconds:g} s budget after about {int(budget.seconds / per)} evaluation(s)")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: ``compare`` handles it as Ctrl-C (its children and
+    pool workers are stopped, run.json says ``interrupted``, temporary files are removed)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def run(args) -> int:
+    try:
+        with _sigterm_as_interrupt():
+            return _run(args)
+    except Terminated:
+        print("arraysel compare: terminated (SIGTERM)", file=sys.stderr)
+        return 128 + signal.SIGTERM
+
+
+def _run(args) -> int:
     # imported here, not at the top: building the parser (``arraysel --help``) loads no torch
     from arraysel.run.compare import compare
     from arraysel.selectors.contract import Budget
@@ -160,9 +194,17 @@ def run(args) -> int:
                              f"got {args.budget_s}")
     budget_s = None if args.budget_s is None else check_number("--budget-s", args.budget_s, lo=0)
     grace_s = None if args.grace_s is None else check_number("--grace-s", args.grace_s, lo=0, hi=86400)
-    from arraysel.run.compare import DEFAULT_SEEDS
-    from arraysel.run.outdir import check_out_dir
-    previous = check_out_dir(args.out, resume=args.resume, force=args.force)  # before the objective is built
+    from arraysel.run.outdir import check_out_dir, lock_out_dir
+    if args.resume and args.force:
+        check_out_dir(args.out, resume=True, force=True)  # refused before a folder is made
+    with lock_out_dir(args.out):  # held until the end; compare() takes it again (re-entrant)
+        return _run_locked(args, registry, names, options, seeds, budget_s, grace_s,
+                           check_out_dir(args.out, resume=args.resume, force=args.force))
+
+
+def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previous) -> int:
+    from arraysel.run.compare import DEFAULT_SEEDS, compare
+
     n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
     if budget_s is None and args.resume and isinstance((previous or {}).get("budget"), dict):
         budget_s = float(previous["budget"].get("seconds") or 0)     # the runs being resumed

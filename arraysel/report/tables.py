@@ -88,10 +88,12 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
     # a several-point scene's per-point columns ("L_PSF@p0", ..., "Mean@worst") follow ROW_COLUMNS
     extra = list(dict.fromkeys(k for r in rows for k in r if k not in ROW_COLUMNS))
     runs = pd.DataFrame(rows, columns=list(ROW_COLUMNS) + extra)
-    write_csv(out / "runs.csv", runs)
-    write_tables(out, runs)
+    # traces first: a run named in runs.csv always has its trace on disk (a kill between two of
+    # these writes leaves a run traced but not listed, which --resume runs again)
     write_csv(out / "trace.csv", pd.DataFrame(trace, columns=list(TRACE_COLUMNS)))
     write_ioh(out / "ioh", rows, trace, problem or "arraysel")
+    write_csv(out / "runs.csv", runs)
+    write_tables(out, runs)
 
 
 # ---------------------------------------------------------------------------
@@ -109,7 +111,8 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
 
     One algorithm per config: ``folder/<config>/IOHprofiler_f<id>_<problem>.json``
     lists one run per seed (``instance`` 1, ``evals`` = the run's evaluations
-    in ``runs.csv``, ``best.y`` = its ``Mean``, ``best.x`` = its 0/1 mask),
+    in ``runs.csv``; ``best.y`` and ``best.evals`` = the best row of its ``.dat`` lines, so the two
+    agree by construction; ``best.x`` = its 0/1 mask when its ``Mean`` is that best),
     and ``data_f<id>_<problem>/IOHprofiler_f<id>_DIM<Ne>.dat`` holds, per run,
     a header line ``evaluations raw_y seconds`` and one row per improvement of
     the trace, then the trace's ``end`` row. IOHprofiler readers split runs at
@@ -152,16 +155,20 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
             best_y = math.inf
             for t in rows_t:
                 ev = max(1, int(t["evaluations"]))
-                lines.append(f"{ev} {float(t['best_Mean']):.10e} {float(t['seconds']):.6f}")
-                if float(t["best_Mean"]) < best_y:
-                    best_y, best_evals = float(t["best_Mean"]), ev
-            x = [0] * dim
-            for i in parse_element_text(str(r.get("elements") or "")):
-                x[i] = 1
-            jruns.append({"instance": 1, "evals": int(r["evaluations"]),
-                          "best": {"evals": int(best_evals or r["evaluations"]), "y": pd_float(r["Mean"]),
-                                   "x": x},
-                          "seed": int(r["seed"])})
+                y = repr(float(t["best_Mean"]))  # the shortest text that reads back as the same float
+                lines.append(f"{ev} {y} {float(t['seconds']):.6f}")
+                if float(y) < best_y:  # the value as the .dat holds it
+                    best_y, best_evals = float(y), ev
+            # the json's best is the .dat's best (the same trace rows); its x is the run's selection
+            # when that selection scored this best, else left out
+            best = {"evals": int(best_evals or r["evaluations"]), "y": best_y}
+            mean = pd_float(r["Mean"])
+            if abs(mean - best_y) <= 1e-6 * abs(best_y):
+                x = [0] * dim
+                for i in parse_element_text(str(r.get("elements") or "")):
+                    x[i] = 1
+                best["x"] = x
+            jruns.append({"instance": 1, "evals": int(r["evaluations"]), "best": best, "seed": int(r["seed"])})
         atomic_write_text(adir / rel, "\n".join(lines) + "\n")
         meta = {
             "version": "0.3.22", "suite": "arraysel", "function_id": function_id, "function_name": pname,

@@ -3,8 +3,12 @@
 It adds the ``full`` reference row and writes, atomically and after each finished run, the
 files described in ``docs/selectors.md`` (``runs.csv``, ``table1.csv``, ``stats.csv``, ``trace.csv``, the
 IOHprofiler files under ``ioh/``, ``run.json``, then the figures). The runs go one after
-another in this process, each in an isolated child process (:mod:`arraysel.run.isolation`),
-or on an executor's workers (:mod:`arraysel.run.executors`, :mod:`arraysel.run.compare_task`).
+another in this process, each in a fresh child process (:mod:`arraysel.run.isolation`), or
+on an executor, each again in a fresh child process (:mod:`arraysel.run.executors`,
+:mod:`arraysel.run.compare_task`), so a plugin cannot change another run's numbers. The folder
+is locked for the whole run (:func:`arraysel.run.outdir.lock_out_dir`); each save writes the
+traces before the rows that name them, so a run killed at any point and resumed lists every run
+in ``runs.csv`` with its trace.
 """
 from __future__ import annotations
 
@@ -19,14 +23,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from arraysel.errors import ParameterError, check_number, error_text as _error_text
+from arraysel.errors import ArrayselError, ParameterError, check_number, error_text as _error_text
 from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
-from arraysel.run.experiment import Experiment, _failed_row, _lost_row, config_label, full_row
+from arraysel.run.experiment import Experiment, _failed_row, _final_metrics, _lost_row, config_label, full_row
 from arraysel.run.isolation import DEFAULT_GRACE_S, IsolatedWorker
-from arraysel.run.outdir import check_out_dir, check_resume, remove_results
+from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir, remove_results
 from arraysel.run.workers import TaskFailed, objective_factory_for
 from arraysel.selection import indices_to_mask, parse_element_text
 from arraysel.selectors.contract import Budget, BudgetExceededError
@@ -39,30 +43,115 @@ def _make_isolator(objective, objective_factory, todo, classes):
     selector class cannot be sent to it (they run in this process)."""
     factory = objective_factory if objective_factory is not None else objective_factory_for(objective)
     in_process = set()
+    # the children load the cache entries this process has just loaded and checked: sizes suffice
+    verify = "size" if objective_factory is None else None
     for lab, name, opts, _seed in todo:
         try:
             compare_item(lab, classes[name], opts, Budget(evaluations=1), 0)
         except ParameterError as exc:
             print(f"arraysel compare: {lab} runs in this process, not isolated: {exc}", file=sys.stderr)
             in_process.add(lab)
-    return IsolatedWorker(factory), in_process
+    return IsolatedWorker(factory, verify=verify), in_process
+
+
+def _timeout(budget: Budget, grace: float) -> float | None:
+    """Seconds a run's process may take: its time budget plus the grace period."""
+    return None if budget.seconds is None else budget.seconds + grace
+
+
+def _task_failed_row(objective, lab, cls, opts, seed, res: TaskFailed, budget, grace, lost: bool) -> dict:
+    """The error row of a run whose process was stopped at its deadline (``run failed:
+    BudgetExceededError: ...``), died or failed (``run failed:``, or ``run lost:`` on an executor)."""
+    msg = res.message
+    if res.kind == "timeout":
+        return _failed_row(objective, lab, cls.name, opts, seed,
+                           f"run failed: BudgetExceededError: {msg}; the budget was {budget.seconds:g} s and "
+                           f"the grace period {grace:g} s")
+    if lost:
+        return _lost_row(objective, lab, cls.name, opts, seed, msg)
+    return _failed_row(objective, lab, cls.name, opts, seed, f"run failed: {msg}")
+
+
+def _checked(objective, row: dict, trace: list) -> tuple[dict, list]:
+    """A row made in another process, checked here: its selection is scored again on this
+    process's objective, which no plugin has touched. A Mean that differs (a selector that
+    patched ``evaluate`` in its own process, say) is replaced by the true one, the row gets an
+    error naming both, and its trace, recorded in that process, is left out."""
+    selection = parse_element_text(str(row.get("elements") or ""))
+    if not selection or str(row.get("error") or "").strip():
+        return row, trace
+    try:
+        true = _final_metrics(objective, selection)
+    except Exception as exc:  # its selection cannot be scored here: the row cannot be trusted
+        return {**row, "error": f"its selection could not be scored again: {_error_text(exc)}"}, []
+    got, want = float(row.get("Mean", math.nan)), float(true.get("Mean", math.nan))
+    if got == want or abs(got - want) <= 1e-5 * abs(want):
+        return row, trace
+    return {**row, **true, "error": f"the run reported Mean {got:.6g} for its selection, which scores {want:.6g}: "
+                                    f"the selector changed the objective in its own process (its trace is "
+                                    f"left out)"}, []
 
 
 def _run_isolated(isolator, objective, lab, cls, opts, budget, seed, grace) -> tuple[dict, list]:
     item = compare_item(lab, cls, opts, budget, seed)
-    timeout = None if budget.seconds is None else budget.seconds + grace
-    res = isolator.run(compare_task, item, timeout)
+    res = isolator.run(compare_task, item, _timeout(budget, grace))
     if isinstance(res, _Raise):
         if isinstance(res.exception, BudgetExceededError):
             return _failed_row(objective, lab, cls.name, opts, seed, _error_text(res.exception)), []
         raise res.exception
     if isinstance(res, TaskFailed):
-        msg = res.message
-        if msg.startswith("stopped after"):
-            msg = (f"BudgetExceededError: {msg}; the budget was {budget.seconds:g} s and the grace "
-                   f"period {grace:g} s")
-        return _failed_row(objective, lab, cls.name, opts, seed, f"run failed: {msg}"), []
-    return res["row"], res["trace"]
+        return _task_failed_row(objective, lab, cls, opts, seed, res, budget, grace, lost=False), []
+    return _checked(objective, res["row"], res["trace"])
+
+
+#: the objective's counters (they change with every call)
+_COUNTERS = ("evaluations", "gradient_steps", "seconds")
+
+
+class _Fingerprint:
+    """What a run in this process must leave as it found it: the objective's attributes and the
+    methods of its class and of :class:`~arraysel.selectors.contract.BudgetedObjective` (by
+    identity: a replaced or wrapped ``evaluate`` shows), and the full array's Mean (an attribute
+    edited in place, such as ``metric_kw["r_main"]``, shows there)."""
+
+    def __init__(self, objective, full: dict):
+        self.objective = objective
+        self.full_mean = float(full.get("Mean", math.nan))
+        self.ids = self._ids()
+
+    def _ids(self) -> dict:
+        from arraysel.selectors.contract import BudgetedObjective
+
+        out = {}
+        for where, mapping in (("objective", getattr(self.objective, "__dict__", {})),
+                               ("its class", vars(type(self.objective))),
+                               ("BudgetedObjective", vars(BudgetedObjective))):
+            for key, value in mapping.items():
+                if where == "objective" and key in _COUNTERS:
+                    continue
+                scalar = value is None or isinstance(value, (bool, int, float, str))
+                out[(where, key)] = ("value", value) if scalar else ("id", id(value))
+        return out
+
+    def changed(self) -> str:
+        """'' when nothing changed, else what did (one phrase)."""
+        now = self._ids()
+        keys = sorted(k for k in set(now) | set(self.ids) if now.get(k) != self.ids.get(k))
+        if keys:
+            where, key = keys[0]
+            return f"{key!r} of {where} was replaced, added or removed"
+        want = self.full_mean
+        if not math.isfinite(want):
+            return ""
+        n = int(self.objective.n_elements)
+        try:
+            out = self.objective.evaluate(indices_to_mask(list(range(n)), n)[None])
+            got = float(np.asarray(out["Mean"], dtype=np.float64).reshape(-1)[0])
+        except Exception as exc:
+            return f"scoring the full array now fails ({_error_text(exc)})"
+        if got == want or abs(got - want) <= 1e-9 * abs(want):
+            return ""
+        return f"the full array's Mean was {want:.6g} before it and is {got:.6g} after it"
 
 
 def _versions() -> dict:
@@ -187,6 +276,21 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     grace = DEFAULT_GRACE_S if grace_s is None else float(check_number("grace_s", grace_s, lo=0, hi=1e6))
 
     out = Path(out_dir)
+    if resume and force:
+        check_out_dir(out, resume=resume, force=force)  # refused before a folder is made
+    with lock_out_dir(out):  # one compare at a time in a folder, for the whole run
+        return _compare_locked(objective, out, registry, budget, sels, seeds, classes, labels, grace,
+                               resume=resume, force=force, progress=progress, figures=figures,
+                               command_line=command_line, info=info, executor=executor,
+                               objective_factory=objective_factory, isolate=isolate)
+
+
+def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes, labels, grace, *, resume,
+                    force, progress, figures, command_line, info, executor, objective_factory, isolate):
+    """The body of :func:`compare`, once ``out`` is locked."""
+    import pandas as pd
+    from tqdm.auto import tqdm
+
     old_meta = check_out_dir(out, resume=resume, force=force)
     scene_name, scene_dict = _scene_info(objective)
     if old_meta is not None:
@@ -251,6 +355,7 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     reporting.write_json(out / "run.json", meta)
 
     full = full_row(objective)
+    fingerprint = _Fingerprint(objective, full)  # checked after each run made in this process
 
     def save():
         reporting.write_runs(out, [full] + rows, traces, budget, problem=scene_name or "arraysel")
@@ -284,6 +389,15 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
                     except BudgetExceededError as exc:
                         row, trace = _failed_row(objective, lab, classes[name].name, opts, seed,
                                                  _error_text(exc)), []
+                    changed = fingerprint.changed()
+                    if changed:  # its numbers, and those of every later run here, cannot be trusted
+                        why = (f"the selector changed the objective it was given ({changed}); run it "
+                               f"isolated (without --in-process)")
+                        row = {**row, "error": "; ".join(e for e in (str(row.get("error") or ""), why) if e)}
+                        rows.append(row)
+                        traces.extend({"config": lab, "seed": seed, **t} for t in trace)
+                        save()
+                        raise ArrayselError(f"{lab} seed {seed}: {why}")
                 rows.append(row)
                 traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                 save()
@@ -293,7 +407,10 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
             # results arrive in any order; rows and traces are kept in the order of `todo`
             kept_rows, kept_traces = list(rows), list(traces)
             results: dict[int, tuple[dict, list]] = {}
-            with contextlib.closing(executor.run_tasks(factory, compare_task, items)) as tasks:
+            verify = "size" if objective_factory is None else None  # as in _make_isolator
+            tasks = executor.run_tasks(factory, compare_task, items, fresh=True, timeout=_timeout(budget, grace),
+                                       verify=verify)  # each run in a fresh process, killed at its deadline
+            with contextlib.closing(tasks):
                 for i, res in tasks:  # closing the generator cancels the rest on an exception
                     lab, name, opts, seed = todo[i]
                     if isinstance(res, _Raise) and isinstance(res.exception, BudgetExceededError):
@@ -301,9 +418,11 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
                     if isinstance(res, _Raise):
                         raise res.exception
                     if isinstance(res, TaskFailed):
-                        row, trace = _lost_row(objective, lab, classes[name].name, opts, seed, res.message), []
+                        row = _task_failed_row(objective, lab, classes[name], opts, seed, res, budget, grace,
+                                               lost=True)
+                        trace = []
                     else:
-                        row, trace = res["row"], res["trace"]
+                        row, trace = _checked(objective, res["row"], res["trace"])
                     results[i] = (row, [{"config": lab, "seed": seed, **t} for t in trace])
                     rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
                     traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]

@@ -23,13 +23,22 @@ Executors
 A worker that dies loses only the task it was running: the task is run again
 (at most ``retries`` more times); a task that still fails yields a
 :class:`TaskFailed` instead of a result, and the other tasks go on.
+
+``run_tasks(..., fresh=True, timeout=S)`` (what ``compare`` asks for, since its tasks run
+plugins) runs each task in a fresh child process (:class:`~arraysel.run.isolation.OneShot`):
+started by this process for :class:`ProcessExecutor` (at most ``workers`` at a time), by the
+worker for :class:`DaskExecutor`. Nothing a task does reaches another, and a task still running
+``S`` seconds after its objective was built is killed and yields a :class:`TaskFailed` of kind
+``"timeout"`` (not retried).
 """
 from __future__ import annotations
 
 import collections
 import concurrent.futures as cf
 import logging
+import multiprocessing.connection
 import os
+import time
 import uuid
 from typing import Any, Callable, Iterator, Sequence
 
@@ -60,10 +69,13 @@ class Executor:
     def workers(self) -> int:
         return 1
 
-    def run_tasks(self, factory, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
+    def run_tasks(self, factory, fn: Callable, items: Sequence, *, fresh: bool = False,
+                  timeout: float | None = None, verify: str | None = None) -> Iterator[tuple[int, Any]]:
         """Yield ``(index, result)`` for each item as it finishes (any order); ``result`` is a
         :class:`TaskFailed` for a task whose worker died (or that raised) more than
-        ``retries`` times."""
+        ``retries`` times. ``fresh``: each task in a fresh child process, killed ``timeout``
+        seconds after its objective was built (see the module docstring; ``verify`` is the
+        child's cache check, :class:`~arraysel.run.isolation.OneShot`)."""
         raise NotImplementedError
 
     def describe(self) -> dict:
@@ -101,7 +113,12 @@ class LocalExecutor(Executor):
             self._built[key] = factory()
         return self._built[key]
 
-    def run_tasks(self, factory, fn, items):
+    def run_tasks(self, factory, fn, items, *, fresh=False, timeout=None, verify=None):
+        if fresh:
+            from arraysel.run.isolation import default_threads, run_one_shot
+            for i, item in enumerate(items):
+                yield i, run_one_shot(factory, fn, item, timeout, default_threads(), self.retries, verify)
+            return
         obj = self._objective(factory)
         for i, item in enumerate(items):
             attempts = 0
@@ -156,13 +173,57 @@ class ProcessExecutor(Executor):
             self._pool_token = token
         return self._pool
 
-    def _shutdown(self) -> None:
+    def _shutdown(self, kill: bool = False) -> None:
+        """Shut the pool down; ``kill``: stop its processes first (an interrupted run must not
+        wait for the tasks they are running)."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if kill:
+                for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+                    if proc.is_alive():
+                        proc.kill()
+            self._pool.shutdown(wait=not kill, cancel_futures=True)
             self._pool = None
             self._pool_token = None
 
-    def run_tasks(self, factory, fn, items):
+    def _run_fresh(self, factory, fn, items, timeout, verify):
+        """Each task in a fresh child started here, at most ``workers`` at a time."""
+        from arraysel.run.isolation import OneShot
+
+        items = list(items)
+        pending = collections.deque(range(len(items)))
+        attempts = [0] * len(items)
+        running: dict[OneShot, int] = {}
+        try:
+            while pending or running:
+                while pending and len(running) < self._workers:
+                    i = pending.popleft()
+                    attempts[i] += 1
+                    running[OneShot(factory, fn, items[i], timeout, self.threads, verify).start()] = i
+                left = min(s.deadline for s in running) - time.monotonic()
+                multiprocessing.connection.wait([w for s in running for w in s.waitables()],
+                                                timeout=min(max(0.0, left), 3600.0))
+                for shot in list(running):
+                    res = shot.poll()
+                    if res is None:
+                        continue
+                    i = running.pop(shot)
+                    if isinstance(res, TaskFailed):
+                        res.attempts = attempts[i]
+                        if res.kind == "died":
+                            if attempts[i] <= self.retries:
+                                self.restarts += 1
+                                pending.appendleft(i)
+                                continue
+                            res.message = f"worker process died ({attempts[i]} attempt(s)): {res.message}"
+                    yield i, res
+        finally:
+            for shot in running:
+                shot.kill()
+
+    def run_tasks(self, factory, fn, items, *, fresh=False, timeout=None, verify=None):
+        if fresh:
+            yield from self._run_fresh(factory, fn, items, timeout, verify)
+            return
         items = list(items)
         token = factory.key()
         pending = collections.deque(range(len(items)))
@@ -220,6 +281,11 @@ class ProcessExecutor(Executor):
                             yield i, res
                     else:
                         suspects.extend(i for i, _ in victims)
+        except BaseException:
+            for f in inflight:
+                f.cancel()
+            self._shutdown(kill=True)  # the tasks still running are not waited for
+            raise
         finally:
             for f in inflight:
                 f.cancel()
@@ -318,8 +384,10 @@ class DaskExecutor(Executor):
             # scheduler blames (and counts a failure against) that task alone
             with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
                 self.cluster = distributed.LocalCluster(
+                    # the scheduler's HTTP server (dashboard, metrics) on a free loopback port: a
+                    # fixed one (8787) may be taken by another cluster on the machine
                     n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                    dashboard_address=None, silence_logs=logging.ERROR,
+                    dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
                     scheduler_kwargs={"allowed_failures": self.retries})
             self.client = distributed.Client(self.cluster, set_as_default=False)
 
@@ -338,13 +406,18 @@ class DaskExecutor(Executor):
             self._plugins.add(token)
         return token
 
-    def run_tasks(self, factory, fn, items):
+    def run_tasks(self, factory, fn, items, *, fresh=False, timeout=None, verify=None):
         distributed = _import_distributed()
         token = self._install(factory)
         run = uuid.uuid4().hex[:8]
-        futures = [self.client.submit(_run_on_worker, token, fn, item, key=f"arraysel-{run}-{i}",
-                                      retries=self.retries, pure=False)
-                   for i, item in enumerate(items)]
+        if fresh:  # the worker runs each task in a child of its own, killed at the deadline
+            futures = [self.client.submit(_run_fresh_on_worker, token, fn, item, timeout, self.retries,
+                                          key=f"arraysel-{run}-{i}", retries=self.retries, pure=False)
+                       for i, item in enumerate(items)]
+        else:
+            futures = [self.client.submit(_run_on_worker, token, fn, item, key=f"arraysel-{run}-{i}",
+                                          retries=self.retries, pure=False)
+                       for i, item in enumerate(items)]
         index = {f.key: i for i, f in enumerate(futures)}
         try:
             for f in distributed.as_completed(futures, loop=self.client.loop):
@@ -375,6 +448,20 @@ class DaskExecutor(Executor):
             self.client.close()
             if self.cluster is not None:
                 self.cluster.close()
+
+
+def _run_fresh_on_worker(token: str, fn, item, timeout, retries: int):
+    """On a Dask worker: ``fn(objective, item)`` in a fresh child of the worker, built from the
+    factory the worker plugin installed (:func:`arraysel.run.isolation.run_one_shot`)."""
+    from arraysel.errors import ArrayselError
+    from arraysel.run.isolation import default_threads, run_one_shot
+    from arraysel.run.workers import _FACTORIES
+
+    factory = _FACTORIES.get(token)
+    if factory is None:
+        raise ArrayselError(f"worker process {os.getpid()} has no objective factory {token} "
+                            f"(the executor did not install it)")
+    return run_one_shot(factory, fn, item, timeout, default_threads(), retries)
 
 
 def make_executor(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None,

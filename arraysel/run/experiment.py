@@ -189,6 +189,8 @@ def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Re
         return selector.select(view, k, seed)
     except BudgetExhausted:
         return _best_or_first(recorder)
+    finally:
+        view.close()  # a thread the selector left running can no longer count or record
 
 
 def _best_or_first(recorder: Recorder) -> list[int]:
@@ -222,6 +224,8 @@ def _polish(obj, k: int, budget: Budget, seed: int, recorder: Recorder, start: l
         search.run(start)
     except BudgetExhausted:
         pass
+    finally:
+        view.close()
     best = recorder.best
     return list(best) if best is not None else start
 

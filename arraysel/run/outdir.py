@@ -1,19 +1,28 @@
 """The output folder of ``arraysel compare``: which files are results, whether a folder may be
-written (``--resume`` / ``--force``), and whether a resumed run matches the one on disk."""
+written (``--resume`` / ``--force``), whether a resumed run matches the one on disk, and the lock
+that keeps one compare at a time in a folder (:func:`lock_out_dir`)."""
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
+import threading
+import time
 from pathlib import Path
 
 from arraysel.errors import ParameterError, error_text as _error_text
 from arraysel.io.atomic import check_writable
 
-__all__ = ["RESULT_FILES", "RESUME_FIELDS", "check_out_dir", "check_resume", "remove_results"]
+__all__ = ["RESULT_FILES", "RESUME_FIELDS", "LOCK_NAME", "check_out_dir", "check_resume", "remove_results",
+           "lock_out_dir"]
 
 #: files ``compare`` writes in its folder (``--force`` removes these and nothing else)
 RESULT_FILES = ("runs.csv", "table1.csv", "stats.csv", "trace.csv", "trace_nevergrad.csv", "ioh", "run.json",
                 "masks.png", "psfs.png", "profiles.png", "trace.png", "anytime.png")
+#: the lock file of a folder a compare is writing (held with ``flock`` for the whole run; it holds
+#: the pid of the holder, and goes when the run ends)
+LOCK_NAME = ".arraysel-compare.lock"
 #: fields of ``run.json`` that a resumed run must share with the new one
 RESUME_FIELDS = ("scene", "n_elements", "k", "dtype", "budget")
 
@@ -94,3 +103,110 @@ def remove_results(out: str | os.PathLike) -> None:
             path.unlink()
         except FileNotFoundError:
             pass
+
+
+# ---------------------------------------------------------------------------
+# the lock of a folder
+# ---------------------------------------------------------------------------
+
+_HELD: dict[str, list] = {}   # real path of a locked folder -> [fd, depth] (this process's locks)
+_HELD_LOCK = threading.Lock()
+
+
+def _holder(fd: int) -> str:
+    """The pid written in a lock file (``"unknown"`` while its holder has not written it yet)."""
+    for _ in range(20):
+        try:
+            text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
+        except OSError:
+            text = ""
+        if text.isdigit():
+            return text
+        time.sleep(0.05)
+    return "unknown"
+
+
+def _acquire(path: str, what: str, shown: str) -> int:
+    from arraysel.errors import ParameterError
+    from arraysel.io.atomic import file_mode
+
+    try:
+        import fcntl
+    except ImportError:  # no flock on this platform (Windows): the folder is not locked
+        return os.open(path, os.O_RDWR | os.O_CREAT, file_mode())
+
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, file_mode())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):  # a file system without locks
+                import sys
+                print(f"arraysel: cannot lock {what} {shown!r} ({exc.strerror}); going on without the lock",
+                      file=sys.stderr)
+                return fd
+            pid = _holder(fd)
+            os.close(fd)
+            raise ParameterError(f"{what} {shown!r} is in use by another arraysel compare "
+                                 f"(pid {pid}); wait for it to end, or choose another {what}") from None
+        try:  # the file may have been removed by a holder that just ended: lock the one in place
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def lock_out_dir(out: str | os.PathLike, what: str = "--out"):
+    """Hold the folder ``out`` (created) for the ``with`` block: another process that asks for it
+    meanwhile is refused with :class:`~arraysel.errors.ParameterError` naming the folder and this
+    process's pid. The lock is an ``flock`` on :data:`LOCK_NAME`, so the kernel releases it when
+    its holder dies (a lock file left by a killed run is simply taken over). Re-entrant within a
+    process."""
+    from arraysel.errors import ParameterError
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{what} {str(out)!r} is a file, not a folder")
+    check_writable(out / LOCK_NAME, what)
+    created = []  # the folders made here, deepest first: removed again if nothing was written
+    probe = out.absolute()
+    while not probe.exists() and probe != probe.parent:
+        created.append(probe)
+        probe = probe.parent
+    out.mkdir(parents=True, exist_ok=True)
+    path = os.path.join(os.path.realpath(out), LOCK_NAME)
+    with _HELD_LOCK:
+        held = _HELD.get(path)
+        if held is not None:
+            held[1] += 1
+        else:
+            try:
+                _HELD[path] = [_acquire(path, what, str(out)), 1, created]
+            except BaseException:
+                _remove_empty(created)
+                raise
+    try:
+        yield
+    finally:
+        with _HELD_LOCK:
+            held = _HELD[path]
+            held[1] -= 1
+            if held[1] == 0:
+                del _HELD[path]
+                with contextlib.suppress(OSError):
+                    os.unlink(path)  # while still held: a waiter re-checks the file it locked
+                os.close(held[0])
+                _remove_empty(held[2])  # folders made for a command that wrote nothing (refused options)
+
+
+def _remove_empty(folders) -> None:
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty: a result is in it
+            return

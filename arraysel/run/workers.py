@@ -42,6 +42,9 @@ class TaskFailed:
     message: str
     attempts: int = 1
     exception: BaseException | None = None
+    #: "failed" (the task raised), "died" (its process ended without a result) or "timeout"
+    #: (its process was stopped at its deadline)
+    kind: str = "failed"
 
     def __str__(self) -> str:
         return self.message
@@ -94,7 +97,7 @@ def _run_on_worker(token: str, fn: Callable, item):
         return fn(obj, item)
 
 
-def _process_init(token: str, factory, threads: int) -> None:
+def _process_init(token: str | None, factory, threads: int) -> None:
     from arraysel.io.allocator import tune_malloc
 
     tune_malloc()
@@ -104,7 +107,8 @@ def _process_init(token: str, factory, threads: int) -> None:
             torch.set_num_threads(threads)
         except Exception:  # torch missing or already initialised: keep its default
             pass
-    _install_factory(token, factory)
+    if token is not None:
+        _install_factory(token, factory)
 
 
 # ---------------------------------------------------------------------------

@@ -361,7 +361,9 @@ class Recorder:
 class BudgetedObjective:
     """The objective as a selector sees it: the runner's bookkeeping around the real one.
 
-    * ``evaluate(masks)`` scores the masks in pieces (at most ``piece`` masks,
+    * ``evaluate(masks)`` scores hard masks (booleans, or numbers that are all 0 or 1; other
+      weights are refused with a :class:`ParameterError` naming ``masks``: soft weights go to
+      ``mask_loss``) in pieces (at most ``piece`` masks,
       and under a time limit no more than the time left allows at the measured
       cost per mask; the budget is checked before each piece, so a time limit
       stops a large batch early);
@@ -374,7 +376,10 @@ class BudgetedObjective:
       budget does not allow the call (soft weights are counted, not recorded);
     * every other attribute (``n_elements``, ``device``, ``dtype``, ``scene``,
       ``kernels``, the counters ``evaluations``/``gradient_steps``/``seconds``)
-      is the wrapped objective's.
+      is the wrapped objective's;
+    * once the run has ended (:meth:`close`, called by the runner), every call raises
+      :class:`~arraysel.errors.ArrayselError`: a thread the selector left running cannot score,
+      count or record anything for the runs that follow.
 
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
     :meth:`score_indices`, ``best`` / ``best_mean`` (best recorded so far),
@@ -391,11 +396,24 @@ class BudgetedObjective:
         default = int(getattr(objective, "chunk", 256) or 256)
         self.piece = max(1, int(piece if piece is not None else min(default, 256)))
         self._per_mask = 0.0  # running estimate of the seconds one mask costs
+        self._closed = False
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
-        if name.startswith("__"):
+        if name.startswith("__") or name in ("_inner", "_closed"):
             raise AttributeError(name)
+        self._check_open()
         return getattr(self._inner, name)
+
+    def close(self) -> None:
+        """End the run: later calls (from a thread the selector left running) raise instead of
+        counting against, or recording in, a run that is over. The runner calls it."""
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ArrayselError("this run has ended: its objective can no longer be used (a thread the "
+                                "selector started is still calling it; stop such threads before select "
+                                "returns)")
 
     # -- bookkeeping -----------------------------------------------------------
     @property
@@ -430,12 +448,13 @@ class BudgetedObjective:
 
     # -- the Objective contract -----------------------------------------------
     def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
+        self._check_open()
         if isinstance(masks, torch.Tensor):
             masks = masks.detach().cpu().numpy()
         masks = np.asarray(masks)
         if masks.ndim == 1:
             masks = masks[None, :]
-        hard = masks > 0.5
+        hard = _hard_masks(masks)
         total = int(masks.shape[0])
         parts: list[dict] = []
         done = 0
@@ -451,7 +470,7 @@ class BudgetedObjective:
                 raise self._exhausted(f"{done} of {total} masks of this call scored")
             before = self.budget.used_evaluations()
             t0 = time.perf_counter()
-            out = self._inner.evaluate(masks[done:done + allowed], **kwargs)
+            out = self._inner.evaluate(hard[done:done + allowed], **kwargs)
             per_mask = (time.perf_counter() - t0) / allowed
             self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
             self._record(hard[done:done + allowed], np.asarray(out["Mean"], dtype=np.float64), before)
@@ -476,15 +495,32 @@ class BudgetedObjective:
         return self.score(masks)
 
     def mask_loss(self, weights, *args, **kwargs):
+        self._check_open()
         b = int(weights.shape[0]) if getattr(weights, "ndim", 1) == 2 else 1
         if self.budget.allowed(b) < b:
             raise self._exhausted(f"mask_loss of {b} weight vectors")
         return self._inner.mask_loss(weights, *args, **kwargs)
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
+        self._check_open()
         if self.budget.allowed(1) < 1:
             raise self._exhausted("selection_loss")
         return self._inner.selection_loss(P, P_soft, *args, **kwargs)
+
+
+def _hard_masks(masks: np.ndarray) -> np.ndarray:
+    """``masks`` as booleans; refuses weights other than 0 and 1 (what ``evaluate`` scores and
+    records must be the selection it names: soft weights go through ``mask_loss``)."""
+    if masks.dtype == bool:
+        return masks
+    if masks.dtype.kind not in "biuf":
+        raise ParameterError(f"masks must be boolean or 0/1 numbers, got dtype {masks.dtype}")
+    hard = masks != 0
+    if not np.array_equal(hard, masks == 1):
+        bad = masks[(masks != 0) & (masks != 1)].reshape(-1)[0]
+        raise ParameterError(f"masks must hold only 0 and 1 (hard selections), got the weight {bad!r}; "
+                             f"score soft weights with objective.mask_loss(weights)")
+    return hard
 
 
 def _looks_like_mask(elements, n_elements) -> bool:
