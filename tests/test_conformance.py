@@ -30,5 +30,5 @@ for _name in REGISTRY.names():
 
 def test_every_builtin_is_covered():
     for name in ("uniform", "random", "ste", "gumbel", "nlopt", "greedy", "centre", "random-swap", "swap",
-                 "anneal", "genetic", "nevergrad"):
+                 "anneal", "genetic", "nevergrad", "spiral"):
         assert "TestConformance_" + name.replace("-", "_") in globals()
