@@ -113,7 +113,7 @@ def uniform_layout(n_elements: int, k: int, grid=None) -> list[int]:
 # density-tapered Fermat spiral
 # --------------------------------------------------------------------------
 
-def taper_density(rho, taper: str = "blackman") -> np.ndarray:
+def taper_density(rho, taper: str = "cosine") -> np.ndarray:
     """The element density (relative to the centre) at the normalised radius ``rho`` in [0, 1].
 
     * ``none``: 1 (the plain sunflower: uniform density);
@@ -142,19 +142,19 @@ def _inverse_cumulative(u: np.ndarray, taper: str, dim: int) -> np.ndarray:
     return np.interp(u, g[keep], rho[keep])
 
 
-def fermat_spiral_points(k: int, taper: str = "blackman", rotation_deg: float = 0.0) -> np.ndarray:
+def fermat_spiral_points(k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> np.ndarray:
     """``k`` points of a density-tapered Fermat (sunflower) spiral in the unit disc, ``(k, 2)``.
 
     Point ``n = 0 .. k-1`` is at angle ``n * GOLDEN_ANGLE_DEG + rotation_deg`` and radius
-    ``rho_n = G^{-1}((n + 1/2) / k)``, where ``G(rho) = int_0^rho w(s) s ds / int_0^1 w(s) s ds``
+    ``rho_n = G^{-1}(n / k)``, where ``G(rho) = int_0^rho w(s) s ds / int_0^1 w(s) s ds``
     is the fraction of the tapered density ``w`` (:func:`taper_density`) inside ``rho``: each point
     owns an equal share of the tapered area, so the local density of points follows ``w``. Without
-    a taper, ``rho_n = sqrt((n + 1/2) / k)`` (Vogel's sunflower).
+    a taper, ``rho_n = sqrt(n / k)`` (Vogel's sunflower); point 0 is the centre.
     """
     k = int(check_number("k", k, lo=1, integer=True))
     rot = check_number("rotation_deg", rotation_deg)
     n = np.arange(k, dtype=np.float64)
-    rho = _inverse_cumulative((n + 0.5) / k, taper, dim=2)
+    rho = _inverse_cumulative(n / k, taper, dim=2)
     theta = np.deg2rad(n * GOLDEN_ANGLE_DEG + rot)
     return np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=1)
 
@@ -204,7 +204,7 @@ def _half_extent(v: np.ndarray) -> float:
     return 0.5 * float(u[-1] - u[0]) + 0.5 * step
 
 
-def fermat_spiral_layout(layout, k: int, taper: str = "blackman", rotation_deg: float = 0.0) -> list[int]:
+def fermat_spiral_layout(layout, k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> list[int]:
     """``k`` elements of a matrix array along a density-tapered Fermat spiral, sorted.
 
     ``layout`` is a grid ``(ny, nx)`` (element index ``iy * nx + ix``, unit steps) or the elements'
@@ -225,7 +225,7 @@ def fermat_spiral_layout(layout, k: int, taper: str = "blackman", rotation_deg: 
     return sorted(snap_to_elements(centre + pts * half, pos))
 
 
-def tapered_line_layout(n_elements: int, k: int, taper: str = "blackman") -> list[int]:
+def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[int]:
     """The 1-D analogue of the density-tapered spiral: ``k`` of ``Ne`` elements on a line, sorted.
 
     Points ``t_n = H^{-1}((n + 1/2) / k)`` in [-1, 1], ``H`` the normalised cumulative of the
