@@ -10,7 +10,8 @@ array) is a plane set of the same names and windows whose leading shape broadcas
 The definitions follow the 1-D ones of :mod:`arraysel.objective.metrics` (SPEC section 2) with the
 pixels of every plane taken together (``docs/metrics.md``, section "3-D PSF (matrix probes)"):
 
-* the plane set is normalised jointly by its L2 norm (every metric is invariant to that scale);
+* the plane set is normalised jointly by its L2 norm (:func:`normalise_planes`; every metric is
+  invariant to that scale, so the metrics need not apply it);
 * the peak is the pixel of largest ``|kappa|`` over all planes (the first in plane order, then
   row-major order, on ties) and ``r`` is the 3-D distance in metres of each pixel from it;
 * ``L_PSF`` is the SI-MSE over all planes jointly; ``L_contrast``, ``L_SLR_q``, ``L_SLR_i``,
@@ -457,22 +458,23 @@ def psf3d_metrics(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
 
     lobe = need & {"L_contrast", "L_SLR_q", "L_SLR_i", "PSL_dB"}
     if lobe:
-        # |kappa|^2 of the set divided by its detached joint L2 norm (sum over all planes = 1):
-        # every ratio below is invariant to that scale, so no gradient is lost
+        # |kappa|^2 of the set up to a detached per-item scale (every ratio below is invariant to
+        # the scale of the set, its joint L2 normalisation included, so no gradient is lost)
         k2 = _scaled_abs2(flat[:, None, :])                              # (B, N)
-        k2 = k2 / torch.where(k2.detach().sum(-1) > 0, k2.detach().sum(-1), torch.ones_like(k2[:, 0]))[:, None]
         peak = _peak_index(k2)
-        shared = b > 1 and bool((peak == peak[0]).all())
-        rows = 1 if shared else b
-        main, side = _region_masks(ps.coords, peak[:rows], rm, rg, k2.dtype)
+        # the regions of each distinct peak pixel once (the masks of a batch share a few peaks)
+        uniq, inv = torch.unique(peak, return_inverse=True)
+        main, side = _region_masks(ps.coords, uniq, rm, rg, k2.dtype)   # (U, N)
+        n_main, n_side = main.sum(-1)[inv], side.sum(-1)[inv]            # (B,)
+        if len(uniq) > 1:
+            main, side = main[inv], side[inv]
         if {"L_contrast", "L_SLR_i"} & lobe:
             s_main = _rowdot(k2, main.expand(b, -1))
             s_side = _rowdot(k2, side.expand(b, -1))
             if "L_SLR_i" in lobe:
                 out["L_SLR_i"] = _safe_div(s_side, s_main).reshape(lead)
             if "L_contrast" in lobe:
-                out["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1).expand(b)),
-                                              _safe_div(s_main, main.sum(-1).expand(b))).reshape(lead)
+                out["L_contrast"] = _safe_div(_safe_div(s_side, n_side), _safe_div(s_main, n_main)).reshape(lead)
         k2_peak = k2.gather(-1, peak[:, None]).squeeze(-1)
         if "L_SLR_q" in lobe:
             q_side = _masked_quantile(k2, side.expand(b, -1).contiguous(), q, transform=_safe_sqrt)
