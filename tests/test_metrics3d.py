@@ -223,6 +223,7 @@ def test_batch_equals_items_and_float32_matches_float64():
     c = three_planes(25)
     base = sample(gaussian(0.2e-3, 0.3e-3, 0.1e-3), c)
     planes = {k: v + 0.05 * torch.randn(3, *v.shape[-2:], dtype=v.dtype, generator=g) for k, v in base.items()}
+    planes["xz"][2, 5, 7] += 3.0       # the third item peaks elsewhere: per-item regions
     kw = dict(wavelength=LAM, r_main=0.5, r_guard=1.0, planes_ref=base)
     full = psf3d_metrics(planes, c, **kw)
     assert set(full) == set(PSF3D_TERMS)
@@ -271,6 +272,7 @@ def test_gradcheck_of_the_differentiable_terms():
     ref = {k: torch.randn(1, 7, 7, dtype=torch.complex128, generator=g) for k in names}
     x0 = [torch.randn(2, 7, 7, dtype=torch.complex128, generator=g) for _ in names]
     x0[0][:, 3, 3] += 6.0          # one clear peak
+    x0[1][1, 2, 2] += 9.0          # ... elsewhere for the second item (per-item regions)
 
     def f(*xs):
         out = psf3d_metrics(dict(zip(names, xs)), c, wavelength=LAM, planes_ref=ref, r_main=0.2, r_guard=0.35,

@@ -254,14 +254,14 @@ def _radii(wavelength, r_main, r_guard) -> tuple[float, float]:
     return rm * lam, rg * lam
 
 
-def _distance2(coords: Tensor, peak: Tensor) -> Tensor:
-    """Squared 3-D distance ``(B, N)`` of every pixel from the peak pixel ``peak`` (B,)."""
-    p = coords[peak]                                   # (B, 3)
-    return (coords[None, :, :] - p[:, None, :]).square().sum(-1)
+def _distance2(coords: Tensor, position: Tensor) -> Tensor:
+    """Squared 3-D distance ``(U, N)`` of every pixel from each of the points ``position`` (U, 3)."""
+    return (coords[None, :, :] - position[:, None, :]).square().sum(-1)
 
 
-def _region_masks(coords: Tensor, peak: Tensor, rm: float, rg: float, dtype) -> tuple[Tensor, Tensor]:
-    d2 = _distance2(coords, peak)
+def _region_masks(coords: Tensor, position: Tensor, rm: float, rg: float, dtype) -> tuple[Tensor, Tensor]:
+    """0/1 masks ``(U, N)`` of ``r <= rm`` and ``r >= rg`` around each peak position (U, 3)."""
+    d2 = _distance2(coords, position)
     main = (d2 <= rm * rm * (1 + _BOUNDARY_RTOL)).to(dtype)
     side = (d2 >= rg * rg * (1 - _BOUNDARY_RTOL)).to(dtype)
     return main, side
@@ -280,7 +280,7 @@ def psf3d_regions(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
     with torch.no_grad():
         k2 = _scaled_abs2(ps.flat[:, None, :])
         peak = _peak_index(k2)
-        d2 = _distance2(ps.coords, peak)
+        d2 = _distance2(ps.coords, ps.coords[peak])
     lead = tuple(ps.lead)
 
     def per_plane(values: Tensor) -> dict:
@@ -412,6 +412,30 @@ def _parse_terms(terms: Iterable[str] | None, have_ref: bool, have_c: bool) -> t
     return tuple(out)
 
 
+def _lobe_terms(k2: Tensor, peak: Tensor, main: Tensor, side: Tensor, lobe: set, q: float) -> dict[str, Tensor]:
+    """The lobe terms of items ``k2`` (B, N) (``|kappa|^2`` up to a per-item constant) with peaks
+    ``peak`` (B,) and 0/1 region masks ``main``, ``side``, (B, N) or shared (1, N)."""
+    b = k2.shape[0]
+    res: dict[str, Tensor] = {}
+    if {"L_contrast", "L_SLR_i"} & lobe:
+        s_main = _rowdot(k2, main.expand(b, -1))
+        s_side = _rowdot(k2, side.expand(b, -1))
+        if "L_SLR_i" in lobe:
+            res["L_SLR_i"] = _safe_div(s_side, s_main)
+        if "L_contrast" in lobe:
+            res["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1).expand(b)),
+                                          _safe_div(s_main, main.sum(-1).expand(b)))
+    k2_peak = k2.gather(-1, peak[:, None]).squeeze(-1)
+    if "L_SLR_q" in lobe:
+        q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
+        res["L_SLR_q"] = _safe_div(q_side, _safe_sqrt(k2_peak))
+    if "PSL_dB" in lobe:
+        side_max = (k2 * side).amax(-1)                                  # k2 >= 0: 0 outside the side region
+        ratio = _safe_div(side_max, k2_peak)
+        res["PSL_dB"] = 10.0 * torch.log10(torch.clamp(ratio, min=10.0 ** (PSL_FLOOR_DB / 10.0)))
+    return res
+
+
 def psf3d_metrics(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, wavelength: float,
                   planes_ref: Mapping[str, Tensor] | None = None, r_main: float = 1.5, r_guard: float = 2.5,
                   quantile: float = 0.99, terms: Iterable[str] | None = None,
@@ -462,28 +486,14 @@ def psf3d_metrics(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
         # the scale of the set, its joint L2 normalisation included, so no gradient is lost)
         k2 = _scaled_abs2(flat[:, None, :])                              # (B, N)
         peak = _peak_index(k2)
-        # the regions of each distinct peak pixel once (the masks of a batch share a few peaks)
-        uniq, inv = torch.unique(peak, return_inverse=True)
+        # the regions of each distinct peak position once: the masks of a batch share a few peaks
+        # (the scatterer's point lies on every plane, so its copies count as one)
+        uniq, inv = torch.unique(ps.coords[peak], dim=0, return_inverse=True)
         main, side = _region_masks(ps.coords, uniq, rm, rg, k2.dtype)   # (U, N)
-        n_main, n_side = main.sum(-1)[inv], side.sum(-1)[inv]            # (B,)
-        if len(uniq) > 1:
+        if len(uniq) > 1:       # one (B, N) copy of each mask beats a loop over the groups
             main, side = main[inv], side[inv]
-        if {"L_contrast", "L_SLR_i"} & lobe:
-            s_main = _rowdot(k2, main.expand(b, -1))
-            s_side = _rowdot(k2, side.expand(b, -1))
-            if "L_SLR_i" in lobe:
-                out["L_SLR_i"] = _safe_div(s_side, s_main).reshape(lead)
-            if "L_contrast" in lobe:
-                out["L_contrast"] = _safe_div(_safe_div(s_side, n_side), _safe_div(s_main, n_main)).reshape(lead)
-        k2_peak = k2.gather(-1, peak[:, None]).squeeze(-1)
-        if "L_SLR_q" in lobe:
-            q_side = _masked_quantile(k2, side.expand(b, -1).contiguous(), q, transform=_safe_sqrt)
-            out["L_SLR_q"] = _safe_div(q_side, _safe_sqrt(k2_peak)).reshape(lead)
-        if "PSL_dB" in lobe:
-            side_max = (k2 * side).amax(-1)                              # k2 >= 0: 0 outside the side region
-            floor = 10.0 ** (PSL_FLOOR_DB / 10.0)
-            ratio = _safe_div(side_max, k2_peak)
-            out["PSL_dB"] = (10.0 * torch.log10(torch.clamp(ratio, min=floor))).reshape(lead)
+        res = _lobe_terms(k2, peak, main, side, lobe, q)
+        out.update({name: v.reshape(lead) for name, v in res.items()})
     if "L_SLR" in need:
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])
     if "Mean" in need:
