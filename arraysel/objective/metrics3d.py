@@ -60,8 +60,6 @@ PSL_FLOOR_DB = -240.0
 #: the default name of the C-plane (the plane at the scatterer's depth, spanned by x and y)
 C_PLANE = "xy"
 
-_AXES = "xyz"
-
 
 # --------------------------------------------------------------------------
 # the plane set
@@ -166,8 +164,8 @@ def _reference(ps: PlaneSet, planes_ref: Mapping[str, Tensor], coords) -> Tensor
         x = _check_tensor(f"planes_ref[{name!r}]", ordered[name])
         _check_kernel_shape(f"planes_ref[{name!r}]", x)
         if tuple(x.shape[-2:]) != ps.shapes[name]:
-            raise ParameterError(f"planes_ref[{name!r}] has the window {tuple(x.shape[-2:])}, the plane "
-                                 f"{ps.shapes[name]}")
+            raise ParameterError(f"planes_ref[{name!r}] has the window {tuple(x.shape[-2:])} but the plane "
+                                 f"has {ps.shapes[name]}")
     ref = plane_set(ordered, coords, what="planes_ref")
     try:
         shape = _broadcast_shapes(tuple(ps.lead) + (1,), tuple(ref.lead) + (1,))
