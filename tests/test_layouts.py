@@ -274,3 +274,12 @@ def test_spiral_selector_on_a_matrix_and_on_a_line():
     assert sel == fermat_spiral_layout((8, 8), 16, "none", 30.0)
     sel, _ = _run("spiral", ToyObjective(64, 16), 16, taper="blackman")
     assert sel == tapered_line_layout(64, 16, "blackman")
+
+
+def test_the_psf_objective_declares_a_1d_layout(paper_objective):
+    grid, pos = element_layout(paper_objective)
+    assert grid is None and isinstance(paper_objective, HasLayout)
+    # P4-2v: 64 elements, 0.3 mm pitch, on the x axis centred on 0
+    assert pos.shape == (64, 3)
+    np.testing.assert_allclose(np.diff(pos[:, 0]), paper_objective.setup.probe.pitch, rtol=1e-12)
+    assert pos[:, 0].mean() == pytest.approx(0.0, abs=1e-15) and not pos[:, 1:].any()
