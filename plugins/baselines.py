@@ -5,15 +5,22 @@ import time
 
 import numpy as np
 
+from arraysel.objective.contract import element_layout
 from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
 
 
 class UniformSelector(Selector):
-    """k evenly spaced elements: ``floor(i Ne / k)``, i = 0..k-1 (every second one for k = Ne/2)."""
+    """k evenly spaced elements (:func:`arraysel.selectors.layouts.uniform_layout`).
+
+    On a 1-D array ``floor(i Ne / k)``, i = 0..k-1 (every second one for k = Ne/2); on a matrix
+    array (``objective.element_grid``) the same rule in both directions on a sub-grid of about
+    ``k`` elements, made exactly ``k`` by the fewest documented changes.
+    """
 
     name = "uniform"
-    description = "k evenly spaced elements (every second element for k = Ne/2)"
+    description = "k evenly spaced elements (every second element for k = Ne/2; both directions on a matrix)"
     options = {}
     deterministic = True
 
@@ -22,7 +29,8 @@ class UniformSelector(Selector):
 
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
-        chosen = [(i * n) // k for i in range(k)]
+        grid, _ = element_layout(objective)
+        chosen = uniform_layout(n, k, grid)
         objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
         return chosen
 

@@ -8,6 +8,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from arraysel.objective.toy import ToyObjective
+from arraysel.run.experiment import Experiment
+from arraysel.selectors.contract import Budget
 from arraysel.selectors.registry import build_plugin_manager, get_registry, load_plugin
 from arraysel.testing import SelectorConformance
 
@@ -30,5 +35,21 @@ for _name in REGISTRY.names():
 
 def test_every_builtin_is_covered():
     for name in ("uniform", "random", "ste", "gumbel", "nlopt", "greedy", "centre", "random-swap", "swap",
-                 "anneal", "genetic", "nevergrad"):
+                 "anneal", "genetic", "nevergrad", "spiral"):
         assert "TestConformance_" + name.replace("-", "_") in globals()
+
+
+
+@pytest.mark.parametrize("name", REGISTRY.names())
+def test_every_selector_runs_on_a_toy_matrix(name):
+    # every selector of the suite on a 4 x 4 matrix (a toy objective with an element_grid): exactly
+    # k distinct elements, no error, the evaluation budget respected (up to one batch, as in the suite)
+    cls = REGISTRY[name]
+    for k in (1, 5, 16):
+        obj = ToyObjective(16, k, grid=(4, 4))
+        exp = Experiment(obj, cls, options={}, budget=Budget(evaluations=60), seed=0, k=k)
+        row = exp.run()
+        assert row["error"] == "", f"k={k}: {row['error']}"
+        sel = [int(i) for i in row["elements"].split()]
+        assert len(sel) == k and len(set(sel)) == k and all(0 <= i < 16 for i in sel), f"k={k}: {sel}"
+        assert row["evaluations"] <= 60 + cls().batch_size(16, k)

@@ -68,3 +68,88 @@ def test_save_figure_is_atomic_png_and_collected(tmp_path):
     assert (tmp_path / "masks.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert got == {"masks": fig}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["masks.png"]
+
+
+# ---------------------------------------------------------------- matrix probes
+
+
+def _three_planes(n=21, pitch=1e-4, z0=0.03):
+    a = (np.arange(n) - n // 2) * pitch
+    out = {}
+    yy, xx = np.meshgrid(a, a, indexing="ij")
+    out["xy"] = np.stack([xx, yy, np.full_like(xx, z0)], -1)
+    zz, xx = np.meshgrid(z0 + a, a, indexing="ij")
+    out["xz"] = np.stack([xx, np.zeros_like(xx), zz], -1)
+    zz, yy = np.meshgrid(z0 + a, a, indexing="ij")
+    out["yz"] = np.stack([np.zeros_like(yy), yy, zz], -1)
+    return out
+
+
+def _psf(coords, sx, sy, sz=2e-4, z0=0.03):
+    return np.exp(-0.5 * ((coords[..., 0] / sx) ** 2 + (coords[..., 1] / sy) ** 2
+                          + ((coords[..., 2] - z0) / sz) ** 2)).astype(np.complex64)
+
+
+def test_matrix_masks_figure_is_one_grid_image_per_selection():
+    from matplotlib.figure import Figure
+
+    masks = np.zeros((3, 12), dtype=bool)
+    masks[0, [0, 5, 11]] = True
+    masks[1, :6] = True
+    masks[2, ::2] = True
+    fig = plots.matrix_masks_figure(["a", "b", "c"], masks, (3, 4))
+    assert isinstance(fig, Figure)
+    axes = [ax for ax in fig.axes if ax.get_images()]
+    assert len(axes) == 3
+    img = axes[0].get_images()[0].get_array()
+    assert img.shape == (3, 4)
+    # element index iy * nx + ix: element 5 is row 1, column 1; element 11 is row 2, column 3
+    assert img[1, 1] == 1 and img[2, 3] == 1 and img[0, 0] == 1 and img.sum() == 3
+    assert axes[0].get_xlabel() == "element column ix" and axes[0].get_ylabel() == "element row iy"
+    assert "3 of 12" in axes[0].get_title() and "6 of 12" in axes[1].get_title()
+
+
+def test_planes_figure_in_mm_at_the_shared_db_range():
+    from matplotlib.figure import Figure
+
+    c = _three_planes()
+    ref = {k: _psf(v, 2e-4, 3e-4) for k, v in c.items()}
+    planes = {k: np.stack([_psf(v, 3e-4, 3e-4), 0.5 * _psf(v, 2e-4, 4e-4)]) for k, v in c.items()}
+    fig = plots.planes_figure(["sparse", "spiral"], planes, c, ref)
+    assert isinstance(fig, Figure)
+    axes = [ax for ax in fig.axes if ax.get_images()]
+    assert len(axes) == 9                               # (full + 2 selections) x 3 planes
+    labels = [(ax.get_xlabel(), ax.get_ylabel()) for ax in axes[:3]]
+    assert labels == [("x (mm)", "y (mm)"), ("x (mm)", "z (mm)"), ("y (mm)", "z (mm)")]
+    for ax in axes:
+        assert ax.get_images()[0].get_clim() == (-plots.DYN_RANGE_DB, 0)
+    left, right, bottom, top = axes[1].get_images()[0].get_extent()
+    assert (left, right) == pytest.approx((-1.05, 1.05))          # 21 pixels of 0.1 mm around x = 0
+    assert (top, bottom) == pytest.approx((28.95, 31.05))         # depth grows downwards
+    assert "full array" in axes[0].get_title() and "spiral: yz" in axes[8].get_title()
+    # in dB of the full array's peak: the half-amplitude selection peaks at -6 dB
+    data = axes[6].get_images()[0].get_array()
+    assert float(data.max()) == pytest.approx(-6.02, abs=0.01)
+    # without a reference each row has its own peak
+    fig = plots.planes_figure(["spiral"], {k: v[1:] for k, v in planes.items()}, c)
+    assert float([ax for ax in fig.axes if ax.get_images()][0].get_images()[0].get_array().max()) == pytest.approx(0)
+
+
+def test_lateral_profiles_figure_against_the_full_array():
+    from matplotlib.figure import Figure
+
+    c = _three_planes(41)
+    ref = _psf(c["xy"], 2e-4, 3e-4)
+    sel = np.stack([_psf(c["xy"], 4e-4, 3e-4)])
+    fig = plots.lateral_profiles_figure(["spiral"], sel, c["xy"], ref)
+    assert isinstance(fig, Figure)
+    ax_x, ax_y = fig.axes[:2]
+    assert ax_x.get_xlabel() == "x (mm)" and ax_y.get_xlabel() == "y (mm)"
+    assert ax_x.get_ylim()[0] == plots.PROFILE_FLOOR_DB
+    lines = [ln for ln in ax_x.get_lines() if ln.get_label().startswith(("full", "spiral"))]
+    assert [ln.get_label().split(" ")[0] for ln in lines] == ["full", "spiral"]
+    assert lines[0].get_color() == "k"
+    np.testing.assert_allclose(lines[0].get_xdata(), (np.arange(41) - 20) * 0.1)
+    # the -6 dB widths in the legend: 2 sigma sqrt(2 ln 2) about, 0.47 mm and 0.94 mm along x
+    assert "0.47 mm" in lines[0].get_label() and "0.94 mm" in lines[1].get_label()
+    assert max(lines[0].get_ydata()) == pytest.approx(0.0)

@@ -8,6 +8,12 @@ Capability: an objective that can be rebuilt in another process has a ``worker_f
 method returning a picklable zero-argument callable that builds an equal objective (a
 :class:`WorkerFactory`), or ``None`` when it cannot. Executors and isolated runs use it
 (:func:`arraysel.run.workers.objective_factory_for`); they never look at the objective's class.
+
+Capability: an objective may say how its elements are laid out (:class:`HasLayout`):
+``element_grid`` is ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``) or ``None`` for a
+1-D array, and ``element_positions`` the element centres, a numpy ``(Ne, 3)`` array of (x, y, z) in
+metres. Selectors read them through :func:`element_layout`, which treats an objective without them
+as a 1-D array.
 """
 from __future__ import annotations
 
@@ -16,7 +22,12 @@ import hashlib
 import json
 from typing import Any, Callable, Protocol, runtime_checkable
 
-__all__ = ["ObjectiveContract", "Rebuildable", "WorkerFactory", "dtype_name"]
+import numpy as np
+
+from arraysel.errors import ParameterError, check_number
+
+__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "WorkerFactory", "dtype_name", "check_element_grid",
+           "element_layout"]
 
 
 @runtime_checkable
@@ -45,6 +56,46 @@ class Rebuildable(Protocol):
 
     def worker_factory(self) -> Callable[[], Any] | None:
         ...
+
+
+@runtime_checkable
+class HasLayout(Protocol):
+    """An objective that says how its elements are laid out (optional capability)."""
+
+    #: ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``), ``None`` for a 1-D array
+    element_grid: tuple[int, int] | None
+    #: element centres, numpy ``(Ne, 3)``: (x, y, z) in metres, in element-index order
+    element_positions: Any
+
+
+def check_element_grid(grid, n_elements: int | None = None) -> tuple[int, int]:
+    """``grid`` as ``(ny, nx)`` of positive ints; with ``n_elements``, ``ny * nx`` must equal it
+    (:class:`~arraysel.errors.ParameterError` naming the key otherwise)."""
+    try:
+        ny, nx = grid
+    except (TypeError, ValueError):
+        raise ParameterError(f"element_grid must be (ny, nx), got {grid!r}") from None
+    ny = int(check_number("element_grid[0] (ny)", ny, lo=1, integer=True))
+    nx = int(check_number("element_grid[1] (nx)", nx, lo=1, integer=True))
+    if n_elements is not None and ny * nx != int(n_elements):
+        raise ParameterError(f"element_grid = ({ny}, {nx}) holds {ny * nx} elements, but n_elements = {n_elements}")
+    return ny, nx
+
+
+def element_layout(objective) -> tuple[tuple[int, int] | None, np.ndarray | None]:
+    """``(element_grid, element_positions)`` of an objective, validated; ``(None, None)`` when it
+    does not declare them (a 1-D array). The grid must hold ``n_elements`` elements and the
+    positions be ``(Ne, 3)`` and finite."""
+    n = int(objective.n_elements)
+    grid = getattr(objective, "element_grid", None)
+    grid = None if grid is None else check_element_grid(grid, n)
+    pos = getattr(objective, "element_positions", None)
+    if pos is not None:
+        pos = np.asarray(pos, dtype=np.float64)
+        if pos.shape != (n, 3) or not np.isfinite(pos).all():
+            raise ParameterError(f"element_positions must be a finite ({n}, 3) array of (x, y, z) in metres, "
+                                 f"got shape {pos.shape}")
+    return grid, pos
 
 
 def dtype_name(dtype) -> str:

@@ -114,6 +114,11 @@ class Objective:
         self.setup = setup
         self.n_elements = setup.probe.n_elements
         self.k = self.scene.k
+        #: the layout (ObjectiveContract's optional capability): a 1-D probe has no grid; its element
+        #: centres (Ne, 3) as (x, y, z) in metres
+        self.element_grid = None
+        xe, ze, _, _ = setup.probe.element_positions()
+        self.element_positions = np.stack([xe, np.zeros_like(xe), ze], axis=1)
         #: field points (x, z) in metres, one PSF model each (``self.psfs``; ``self.psf`` is the first)
         self.points = self.scene.points()
         self.n_points = len(self.setups)

@@ -16,11 +16,14 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.objective.contract import WorkerFactory, dtype_name
+from arraysel.objective.contract import WorkerFactory, check_element_grid, dtype_name
 from arraysel.objective.losses import DEFAULT_WEIGHTS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.objective.metrics import METRIC_NAMES
 
-__all__ = ["ToyScene", "ToyFailure", "ToyObjective", "ToyObjectiveFactory"]
+__all__ = ["ToyScene", "ToyFailure", "ToyObjective", "ToyObjectiveFactory", "TOY_PITCH"]
+
+#: element pitch (m) of the toy array's ``element_positions`` (both directions for a grid)
+TOY_PITCH = 3e-4
 
 
 
@@ -57,13 +60,19 @@ class ToyObjective:
     nan_element : masks that use this element give NaN metrics
     always_nan : every metric is NaN
     delay : seconds slept in each call (to test time budgets)
+    grid : ``(ny, nx)`` with ``ny * nx = n_elements``: a toy matrix array (element index
+        ``iy * nx + ix``, ``element_grid``); ``None`` (default): a 1-D array
+
+    Layout: ``element_grid`` (the grid or None) and ``element_positions`` ``(Ne, 3)``, the element
+    centres on a :data:`TOY_PITCH` grid centred on the origin (on the x axis for a 1-D array).
 
     Metrics, for weights ``w`` in [0, 1]^Ne and target indicator ``t``:
 
     * ``L_PSF = ||w - t||^2 / (2k)`` (1 - overlap/k for hard masks);
     * from the array factor ``A(u) = sum_n w_n exp(-2i pi n u)`` on
       ``4 Ne`` points, normalised to ``A(0) = 1``: main lobe ``|u| < 1/Ne``,
-      side lobes elsewhere; ``L_contrast = 0.01 mean(side)/mean(main)``,
+      side lobes elsewhere (with a grid: the 2-D array factor of the ``(ny, nx)`` weights on
+      ``4 ny x 4 nx`` points, main lobe ``|u| < 1/nx`` and ``|v| < 1/ny``); ``L_contrast = 0.01 mean(side)/mean(main)``,
       ``L_SLR_q = 0.1 softmax-level of |A| on the side lobes``,
       ``L_SLR_i = 0.1 sum(side |A|^2)/sum(main |A|^2)``;
     * ``L_SLR = (L_SLR_q + L_SLR_i)/2``, ``Mean`` the mean of the four.
@@ -76,7 +85,7 @@ class ToyObjective:
     def __init__(self, n_elements: int = 16, k: int = 8, *, device: str | torch.device = "cpu",
                  dtype: torch.dtype = torch.float32, seed: int = 0, chunk: int = 4096,
                  fail_after: int | None = None, nan_element: int | None = None,
-                 always_nan: bool = False, delay: float = 0.0):
+                 always_nan: bool = False, delay: float = 0.0, grid: tuple[int, int] | None = None):
         self.n_elements = int(check_number("n_elements", n_elements, lo=1, integer=True))
         self.k = int(check_number("k", k, lo=1, hi=self.n_elements, integer=True))
         if dtype not in (torch.float32, torch.float64):
@@ -95,9 +104,21 @@ class ToyObjective:
         t = torch.zeros(self.n_elements, dtype=dtype, device=self.device)
         t[self.target] = 1.0
         self._t = t
-        nfft = 4 * self.n_elements
-        u = torch.fft.fftfreq(nfft, dtype=torch.float64).to(self.device)
-        self._main = (u.abs() < 1.0 / self.n_elements)
+        self.element_grid = None if grid is None else check_element_grid(grid, self.n_elements)
+        if self.element_grid is None:
+            nfft = 4 * self.n_elements
+            u = torch.fft.fftfreq(nfft, dtype=torch.float64).to(self.device)
+            self._main = (u.abs() < 1.0 / self.n_elements)
+            ix, iy = np.arange(self.n_elements) - (self.n_elements - 1) / 2, np.zeros(self.n_elements)
+        else:
+            ny, nx = self.element_grid
+            nfft = (4 * ny, 4 * nx)
+            v = torch.fft.fftfreq(nfft[0], dtype=torch.float64).to(self.device)
+            u = torch.fft.fftfreq(nfft[1], dtype=torch.float64).to(self.device)
+            self._main = ((v.abs() < 1.0 / ny)[:, None] & (u.abs() < 1.0 / nx)[None, :]).reshape(-1)
+            iy, ix = np.divmod(np.arange(self.n_elements), nx)
+            ix, iy = ix - (nx - 1) / 2, iy - (ny - 1) / 2
+        self.element_positions = np.stack([ix * TOY_PITCH, iy * TOY_PITCH, np.zeros(self.n_elements)], axis=1)
         self._nfft = nfft
         self.evaluations = 0
         self.gradient_steps = 0
@@ -126,7 +147,10 @@ class ToyObjective:
     def _terms(self, w: torch.Tensor) -> dict[str, torch.Tensor]:
         d = w - self._t
         l_psf = (d * d).sum(dim=1) / (2.0 * self.k)
-        spec = torch.fft.fft(w, n=self._nfft, dim=1)
+        if self.element_grid is None:
+            spec = torch.fft.fft(w, n=self._nfft, dim=1)
+        else:
+            spec = torch.fft.fft2(w.reshape((w.shape[0],) + self.element_grid), s=self._nfft).reshape(w.shape[0], -1)
         power = spec.real ** 2 + spec.imag ** 2
         total = w.sum(dim=1, keepdim=True)
         power = power / (total * total)
@@ -215,7 +239,8 @@ class ToyObjective:
         """A picklable recipe that rebuilds this objective (with its failure settings) on a worker."""
         return ToyObjectiveFactory(self.n_elements, self.k, device=str(self.device), dtype=dtype_name(self.dtype),
                                    seed=int(self.scene.seed), chunk=self.chunk, fail_after=self.fail_after,
-                                   nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
+                                   nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay,
+                                   grid=self.element_grid)
 
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel ``(128, 128)``."""
@@ -236,8 +261,10 @@ class ToyObjectiveFactory(WorkerFactory):
     nan_element: int | None = None
     always_nan: bool = False
     delay: float = 0.0
+    grid: tuple[int, int] | None = None
 
     def __call__(self):
         return ToyObjective(self.n_elements, self.k, device=self.device, dtype=getattr(torch, self.dtype),
                             seed=self.seed, chunk=self.chunk, fail_after=self.fail_after,
-                            nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay)
+                            nan_element=self.nan_element, always_nan=self.always_nan, delay=self.delay,
+                            grid=self.grid)

@@ -29,7 +29,8 @@ import numpy as np
 
 __all__ = ["DYN_RANGE_DB", "PROFILE_FLOOR_DB", "DPI", "IMAGE_CMAP", "MASK_CMAP", "STYLE", "figure_style", "styled",
            "figure", "db", "extent_mm", "psf_image", "profile_lines", "mask_strip", "masks_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
-           "ecdf_targets", "save_figure", "collect_figures"]
+           "ecdf_targets", "save_figure", "collect_figures",
+           "matrix_masks_figure", "plane_extent_mm", "plane_image", "planes_figure", "lateral_profiles_figure"]
 
 #: dynamic range (dB) of every PSF image
 DYN_RANGE_DB = 40.0
@@ -380,4 +381,145 @@ def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | No
     ax_c.set_ylabel("fraction of (run, target) pairs reached")
     ax_c.set_title(f"ECDF, {len(targets)} targets in [{targets.min():.3g}, {targets.max():.3g}]")
     fig.tight_layout()
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# matrix probes: masks on the grid, the planes of a 3-D PSF, lateral profiles
+# ---------------------------------------------------------------------------
+
+def _as_numpy(x) -> np.ndarray:
+    """A numpy array of ``x`` (numpy, list or a torch tensor on any device, detached)."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _panels(n: int, cols: int = 4, size: float = 3.0, extra_width: float = 0.0):
+    """A figure with ``n`` axes in rows of at most ``cols``; the unused axes switched off."""
+    cols = max(1, min(cols, n))
+    rows = max(1, math.ceil(n / cols))
+    fig = _figure(figsize=(size * cols + extra_width, size * rows))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax in axes[n:]:
+        ax.axis("off")
+    return fig, axes[:n]
+
+
+def matrix_masks_figure(labels: Sequence[str], masks: np.ndarray, grid: tuple[int, int]):
+    """The active elements of each selection on a matrix array: one ``ny x nx`` image per label
+    (element index ``iy * nx + ix``; black = active), columns ``ix`` across, rows ``iy`` up."""
+    ny, nx = (int(v) for v in grid)
+    masks = _as_numpy(masks).astype(float).reshape(len(labels), ny * nx)
+    fig, axes = _panels(len(labels), size=2.6)
+    for ax, lab, m in zip(axes, labels, masks):
+        ax.imshow(m.reshape(ny, nx), cmap="Greys", vmin=0, vmax=1, origin="lower", interpolation="nearest",
+                  extent=(-0.5, nx - 0.5, -0.5, ny - 0.5))
+        ax.set_title(f"{lab} ({int(m.sum())} of {ny * nx})", fontsize=8)
+        ax.set_xlabel("element column ix")
+        ax.set_ylabel("element row iy")
+    return fig
+
+
+def _plane_axes(coords: np.ndarray) -> tuple[int, int]:
+    """The coordinate (0 x, 1 y, 2 z) that varies along the columns and along the rows of a plane."""
+    from arraysel.errors import ParameterError
+
+    h, w = coords.shape[:2]
+    if h < 2 or w < 2 or coords.shape[-1] != 3:
+        raise ParameterError(f"a plane's coords must be (H, W, 3) with H, W >= 2, got {coords.shape}")
+    hc = int(np.argmax(np.abs(coords[0, 1] - coords[0, 0])))
+    vc = int(np.argmax(np.abs(coords[1, 0] - coords[0, 0])))
+    return hc, vc
+
+
+def plane_extent_mm(coords) -> tuple[list[float], str, str]:
+    """``imshow`` extent (left, right, bottom, top) in mm of a plane with pixel positions ``coords``
+    ``(H, W, 3)`` (metres; row 0 on top), and the labels of its horizontal and vertical axes."""
+    c = _as_numpy(coords).astype(float) * 1e3
+    hc, vc = _plane_axes(c)
+    hv, vv = c[0, :, hc], c[:, 0, vc]
+    dh = hv[1] - hv[0] if len(hv) > 1 else 1.0
+    dv = vv[1] - vv[0] if len(vv) > 1 else 1.0
+    extent = [hv[0] - dh / 2, hv[-1] + dh / 2, vv[-1] + dv / 2, vv[0] - dv / 2]
+    names = "xyz"
+    return [float(e) for e in extent], f"{names[hc]} (mm)", f"{names[vc]} (mm)"
+
+
+def plane_image(ax, plane, coords, *, ref_peak: float | None = None, title: str | None = None, labels: bool = True):
+    """Draw ``|plane|`` in dB (:data:`DYN_RANGE_DB`, relative to ``ref_peak`` or its own peak) on
+    ``ax`` with axes in mm from the pixel positions ``coords`` ``(H, W, 3)``; returns the image."""
+    extent, xlabel, ylabel = plane_extent_mm(coords)
+    im = ax.imshow(db(_as_numpy(plane), ref_peak), vmin=-DYN_RANGE_DB, vmax=0, cmap="gray", extent=extent)
+    if title is not None:
+        ax.set_title(title, fontsize=8)
+    if labels:
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+    return im
+
+
+def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict | None = None):
+    """The planes of 3-D PSFs at :data:`DYN_RANGE_DB`, axes in mm: one row per selection (the full
+    array's first when ``ref`` is given), one column per plane (the C-plane ``xy``, ``xz``, ``yz``).
+
+    ``planes`` maps each plane name to an array ``(B, H, W)``, B = ``len(labels)``; ``coords`` to
+    its ``(H, W, 3)`` pixel positions (metres); ``ref`` to the full array's ``(H, W)`` (or
+    ``(1, H, W)``). Every row is in dB of the full array's peak over all planes when ``ref`` is
+    given, of its own peak otherwise.
+    """
+    names = list(planes)
+    rows = [(lab, {n: _as_numpy(planes[n])[i] for n in names}) for i, lab in enumerate(labels)]
+    peak = None
+    if ref is not None:
+        ref = {n: _as_numpy(ref[n]).reshape(_as_numpy(ref[n]).shape[-2:]) for n in names}
+        rows.insert(0, ("full array", ref))
+        peak = max(float(np.abs(v).max()) for v in ref.values())
+    fig = _figure(figsize=(3.2 * len(names) + 1.0, 3.0 * len(rows)))
+    axes = np.array(fig.subplots(len(rows), len(names), squeeze=False))
+    im = None
+    for r, (lab, row) in enumerate(rows):
+        own = peak if peak is not None else max(float(np.abs(v).max()) for v in row.values())
+        for c, name in enumerate(names):
+            im = plane_image(axes[r, c], row[name], coords[name], ref_peak=own, title=f"{lab}: {name}")
+    fig.colorbar(im, ax=list(axes.ravel()), label="dB", shrink=0.8)
+    return fig
+
+
+def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
+    """Lateral profiles of the C-plane through its peak, along x and along y, in dB of the full
+    array's peak (each selection's own peak without ``ref``), the full array in black; the legend
+    gives each -6 dB width (:func:`arraysel.objective.metrics3d.main_lobe_widths`).
+
+    ``c_planes`` ``(B, H, W)`` (B = ``len(labels)``), ``coords`` ``(H, W, 3)`` metres, ``ref``
+    ``(H, W)`` or ``(1, H, W)``.
+    """
+    from arraysel.objective.metrics3d import c_plane_profiles, main_lobe_widths
+
+    c = _as_numpy(coords)
+    items = [(lab, _as_numpy(c_planes)[i]) for i, lab in enumerate(labels)]
+    peak = None
+    if ref is not None:
+        ref = _as_numpy(ref).reshape(_as_numpy(ref).shape[-2:])
+        items.insert(0, ("full", ref))
+        peak = float(np.abs(ref).max())
+    fig = _figure(figsize=(10, 4))
+    ax_x, ax_y = fig.subplots(1, 2)
+    for lab, plane in items:
+        prof = c_plane_profiles(plane, c)
+        widths = main_lobe_widths(plane, c)
+        style = dict(color="k", lw=2) if (ref is not None and lab == "full") else dict(lw=1)
+        own = peak if peak is not None else float(np.abs(plane).max())
+        for ax, letter in ((ax_x, "x"), (ax_y, "y")):
+            s, a = prof[letter]
+            w = float(widths[letter][0])
+            text = f"{w * 1e3:.2f} mm" if np.isfinite(w) else "> window"
+            ax.plot(s[0] * 1e3, db(a[0], own), label=f"{lab} (-6 dB: {text})", **style)
+    for ax, letter in ((ax_x, "x"), (ax_y, "y")):
+        ax.set_ylim(PROFILE_FLOOR_DB, 3)
+        ax.axhline(-6.0, color="0.6", lw=0.8, ls=":")
+        ax.set_xlabel(f"{letter} (mm)")
+        ax.set_ylabel("dB")
+        ax.set_title(f"C-plane profile along {letter} through the peak")
+        ax.legend(fontsize=7)
     return fig

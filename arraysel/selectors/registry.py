@@ -68,6 +68,7 @@ BUILTIN_PLUGINS: dict[str, str] = {
     "arraysel.anneal": "arraysel_plugins.anneal",
     "arraysel.genetic": "arraysel_plugins.genetic",
     "arraysel.nevergrad": "arraysel_plugins.nevergrad_bridge",
+    "arraysel.spiral": "arraysel_plugins.spiral",
 }
 #: environment variable listing plugin names not to load
 DISABLE_ENV = "ARRAYSEL_DISABLE_PLUGINS"

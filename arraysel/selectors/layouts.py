@@ -1,0 +1,247 @@
+"""Deterministic element layouts: evenly thinned arrays and density-tapered Fermat spirals.
+
+One home for the layouts the deterministic baselines use (``uniform`` and ``spiral`` in
+``plugins/``): each function returns a sorted list of exactly ``k`` distinct element indices.
+
+Conventions (``docs/selectors.md``, "Layouts"):
+
+* a 1-D array is indexed ``0 .. Ne - 1`` along the array;
+* a matrix array is a grid ``(ny, nx)`` with element index ``iy * nx + ix``;
+  ``positions`` (when given) are the elements' centres, an ``(Ne, 2)`` or ``(Ne, 3)`` array in
+  metres in that order (only x and y are used).
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from arraysel.errors import ParameterError, check_choice, check_number
+from arraysel.objective.contract import check_element_grid
+
+__all__ = ["GOLDEN_ANGLE_DEG", "TAPERS", "uniform_layout", "uniform_subgrid", "taper_density",
+           "fermat_spiral_points", "fermat_spiral_layout", "tapered_line_layout", "snap_to_elements"]
+
+#: the golden angle, 180 (3 - sqrt 5) degrees = 137.5078 degrees, between successive spiral points
+GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))
+#: the density tapers of :func:`taper_density`
+TAPERS = ("none", "cosine", "blackman")
+
+
+def _check_k(k, n: int) -> int:
+    return int(check_number("k", k, lo=1, hi=n, integer=True))
+
+
+# --------------------------------------------------------------------------
+# uniform thinning
+# --------------------------------------------------------------------------
+
+def uniform_subgrid(grid, k: int) -> tuple[int, int]:
+    """The sub-grid ``(ky, kx)`` of :func:`uniform_layout` on a ``(ny, nx)`` grid.
+
+    The thinning factors ``ny / ky`` and ``nx / kx`` as equal as the grid allows (a square sub-array
+    spacing for equal pitches) and ``ky * kx`` as close to ``k`` as possible: ``ky0 = sqrt(k ny /
+    nx)`` (equal factors with ``ky kx = k``), candidates ``ky`` in ``{floor ky0, ceil ky0}`` and
+    ``kx`` in ``{floor(k / ky), ceil(k / ky)}``, each clipped to the grid; the candidate with the
+    smallest ``|ky kx - k|`` wins, then the one with the smallest ``|log((ny/ky) / (nx/kx))|``,
+    then the smaller ``ky``.
+    """
+    ny, nx = check_element_grid(grid)
+    k = _check_k(k, ny * nx)
+    ky0 = math.sqrt(k * ny / nx)
+    best = None
+    for ky in {min(max(math.floor(ky0), 1), ny), min(max(math.ceil(ky0), 1), ny)}:
+        for kx in {min(max(k // ky, 1), nx), min(max(-(-k // ky), 1), nx)}:
+            key = (abs(ky * kx - k), abs(math.log((ny / ky) / (nx / kx))), ky)
+            if best is None or key < best[0]:
+                best = (key, (ky, kx))
+    return best[1]
+
+
+def _even(n: int, m: int) -> np.ndarray:
+    """``floor(i n / m)``, i = 0 .. m-1: m evenly spaced of n (the 1-D uniform rule)."""
+    return (np.arange(m) * n) // m
+
+
+def uniform_layout(n_elements: int, k: int, grid=None) -> list[int]:
+    """``k`` evenly spaced elements.
+
+    1-D (``grid`` None): ``floor(i Ne / k)``, ``i = 0 .. k-1`` (every second element for
+    ``k = Ne / 2``).
+
+    2-D (``grid = (ny, nx)``, ``ny nx = Ne``): the same rule on each axis of the sub-grid
+    ``(ky, kx)`` of :func:`uniform_subgrid` (rows ``floor(j ny / ky)``, columns
+    ``floor(i nx / kx)``), then exactly ``k`` by the fewest changes:
+
+    * too many (``ky kx > k``): remove, one at a time, the active element farthest from the grid's
+      centre (in element steps; the largest index on ties), so the corners go first;
+    * too few: add, one at a time, the free element farthest from every active element (it fills
+      the largest gap; on ties the one nearest the grid's centre, then the smallest index).
+
+    A ``(1, Ne)`` grid gives the 1-D layout.
+    """
+    n = int(check_number("n_elements", n_elements, lo=1, integer=True))
+    k = _check_k(k, n)
+    if grid is None:
+        return [int(i) for i in _even(n, k)]
+    ny, nx = check_element_grid(grid, n)
+    ky, kx = uniform_subgrid((ny, nx), k)
+    iy, ix = _even(ny, ky), _even(nx, kx)
+    active = np.zeros((ny, nx), dtype=bool)
+    active[np.ix_(iy, ix)] = True
+    yy, xx = np.meshgrid(np.arange(ny, dtype=float), np.arange(nx, dtype=float), indexing="ij")
+    centre2 = ((yy - (ny - 1) / 2) ** 2 + (xx - (nx - 1) / 2) ** 2).ravel()
+    flat = active.ravel()
+    order = np.arange(n)
+    while flat.sum() > k:
+        cand = np.flatnonzero(flat)
+        # farthest from the centre first, the largest index on ties
+        i = cand[np.lexsort((-order[cand], -centre2[cand]))[0]]
+        flat[i] = False
+    while flat.sum() < k:
+        act = np.flatnonzero(flat)
+        free = np.flatnonzero(~flat)
+        d2 = ((yy.ravel()[free, None] - yy.ravel()[None, act]) ** 2
+              + (xx.ravel()[free, None] - xx.ravel()[None, act]) ** 2).min(axis=1)
+        i = free[np.lexsort((order[free], centre2[free], -d2))[0]]
+        flat[i] = True
+    return [int(i) for i in np.flatnonzero(flat)]
+
+
+# --------------------------------------------------------------------------
+# density-tapered Fermat spiral
+# --------------------------------------------------------------------------
+
+def taper_density(rho, taper: str = "cosine") -> np.ndarray:
+    """The element density (relative to the centre) at the normalised radius ``rho`` in [0, 1].
+
+    * ``none``: 1 (the plain sunflower: uniform density);
+    * ``cosine``: ``cos(pi rho / 2)``;
+    * ``blackman``: ``0.42 + 0.5 cos(pi rho) + 0.08 cos(2 pi rho)`` (the centred Blackman window).
+
+    Each is 1 at the centre; ``cosine`` and ``blackman`` fall to 0 at the rim.
+    """
+    check_choice("taper", taper, TAPERS)
+    rho = np.clip(np.asarray(rho, dtype=np.float64), 0.0, 1.0)
+    if taper == "none":
+        return np.ones_like(rho)
+    if taper == "cosine":
+        return np.cos(0.5 * np.pi * rho)
+    return 0.42 + 0.5 * np.cos(np.pi * rho) + 0.08 * np.cos(2 * np.pi * rho)
+
+
+def _inverse_cumulative(u: np.ndarray, taper: str, dim: int) -> np.ndarray:
+    """``G^{-1}(u)`` with ``G(rho) = int_0^rho w(s) s^(dim-1) ds / int_0^1 w(s) s^(dim-1) ds``."""
+    rho = np.linspace(0.0, 1.0, 8193)
+    f = taper_density(rho, taper) * rho ** (dim - 1)
+    g = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(rho))])
+    g /= g[-1]
+    # g is strictly increasing on [0, 1) (w > 0 there); drop the flat tail a zero rim density may leave
+    keep = np.concatenate([[True], np.diff(g) > 0])
+    return np.interp(u, g[keep], rho[keep])
+
+
+def fermat_spiral_points(k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> np.ndarray:
+    """``k`` points of a density-tapered Fermat (sunflower) spiral in the unit disc, ``(k, 2)``.
+
+    Point ``n = 0 .. k-1`` is at angle ``n * GOLDEN_ANGLE_DEG + rotation_deg`` and radius
+    ``rho_n = G^{-1}(n / k)``, where ``G(rho) = int_0^rho w(s) s ds / int_0^1 w(s) s ds``
+    is the fraction of the tapered density ``w`` (:func:`taper_density`) inside ``rho``: each point
+    owns an equal share of the tapered area, so the local density of points follows ``w``. Without
+    a taper, ``rho_n = sqrt(n / k)`` (Vogel's sunflower); point 0 is the centre.
+    """
+    k = int(check_number("k", k, lo=1, integer=True))
+    rot = check_number("rotation_deg", rotation_deg)
+    n = np.arange(k, dtype=np.float64)
+    rho = _inverse_cumulative(n / k, taper, dim=2)
+    theta = np.deg2rad(n * GOLDEN_ANGLE_DEG + rot)
+    return np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=1)
+
+
+def snap_to_elements(points: np.ndarray, positions: np.ndarray) -> list[int]:
+    """Each point (in order) takes the nearest element not taken yet (the smallest index on ties):
+    ``len(points)`` distinct element indices, in the order of the points."""
+    points = np.asarray(points, dtype=np.float64)
+    positions = np.asarray(positions, dtype=np.float64)
+    if len(points) > len(positions):
+        raise ParameterError(f"{len(points)} points cannot take distinct elements of {len(positions)}")
+    free = np.ones(len(positions), dtype=bool)
+    out = []
+    for p in points:
+        d2 = ((positions - p) ** 2).sum(axis=1)
+        d2[~free] = np.inf
+        i = int(np.argmin(d2))       # first minimum: the smallest index on ties
+        free[i] = False
+        out.append(i)
+    return out
+
+
+def _grid_positions(ny: int, nx: int) -> np.ndarray:
+    iy, ix = np.divmod(np.arange(ny * nx), nx)
+    return np.stack([ix.astype(float), iy.astype(float)], axis=1)
+
+
+def _positions_xy(layout) -> np.ndarray:
+    """(Ne, 2) x, y positions of a grid ``(ny, nx)`` (element steps) or of an ``(Ne, 2|3)`` array."""
+    if isinstance(layout, tuple) or (isinstance(layout, Sequence) and len(layout) == 2
+                                     and all(np.ndim(v) == 0 for v in layout)):
+        ny, nx = check_element_grid(layout)
+        return _grid_positions(ny, nx)
+    pos = np.asarray(layout, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] not in (2, 3) or pos.shape[0] < 1:
+        raise ParameterError(f"positions must be an (Ne, 2) or (Ne, 3) array of element centres, "
+                             f"got shape {pos.shape}")
+    if not np.isfinite(pos).all():
+        raise ParameterError("positions holds non-finite values")
+    return pos[:, :2]
+
+
+def _half_extent(v: np.ndarray) -> float:
+    """Half the aperture along one axis: half the span of the centres plus half an element step."""
+    u = np.unique(v)
+    step = float(np.min(np.diff(u))) if len(u) > 1 else 0.0
+    return 0.5 * float(u[-1] - u[0]) + 0.5 * step
+
+
+def fermat_spiral_layout(layout, k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> list[int]:
+    """``k`` elements of a matrix array along a density-tapered Fermat spiral, sorted.
+
+    ``layout`` is a grid ``(ny, nx)`` (element index ``iy * nx + ix``, unit steps) or the elements'
+    centres ``(Ne, 2|3)`` in metres. The points of :func:`fermat_spiral_points` are scaled to the
+    ellipse inscribed in the aperture (centred on the middle of the centres' bounding box, half-axes
+    half the span of the centres plus half an element step; a circle on a square grid) and snapped
+    in order (centre outwards) to the nearest free element (:func:`snap_to_elements`): exactly
+    ``k`` distinct elements, the same for the same arguments.
+    """
+    pos = _positions_xy(layout)
+    n = len(pos)
+    k = _check_k(k, n)
+    check_choice("taper", taper, TAPERS)
+    pts = fermat_spiral_points(k, taper, rotation_deg)
+    centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
+    half = np.array([_half_extent(pos[:, 0]), _half_extent(pos[:, 1])])
+    half = np.where(half > 0, half, 1.0)
+    return sorted(snap_to_elements(centre + pts * half, pos))
+
+
+def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[int]:
+    """The 1-D analogue of the density-tapered spiral: ``k`` of ``Ne`` elements on a line, sorted.
+
+    Points ``t_n = H^{-1}((n + 1/2) / k)`` in [-1, 1], ``H`` the normalised cumulative of the
+    density ``w(|t|)`` of :func:`taper_density` over [-1, 1] (the points follow the tapered
+    density; without a taper they are evenly spaced), mapped to the array
+    (``(Ne - 1) / 2 + t Ne / 2``, element steps) and snapped, the points nearest the centre first,
+    to the nearest free element.
+    """
+    n = int(check_number("n_elements", n_elements, lo=1, integer=True))
+    k = _check_k(k, n)
+    check_choice("taper", taper, TAPERS)
+    u = (np.arange(k, dtype=np.float64) + 0.5) / k
+    # symmetric density on [-1, 1]: H(t) = 1/2 + sign(t) G(|t|) / 2 with G the 1-D cumulative
+    a = _inverse_cumulative(np.abs(2 * u - 1), taper, dim=1)
+    t = np.sign(2 * u - 1) * a
+    pts = (n - 1) / 2 + t * n / 2
+    order = np.argsort(np.abs(t), kind="stable")
+    chosen = snap_to_elements(pts[order, None], np.arange(n, dtype=np.float64)[:, None])
+    return sorted(chosen)

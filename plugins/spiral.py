@@ -1,0 +1,51 @@
+"""The ``spiral`` baseline: a density-tapered Fermat spiral snapped to the array's elements.
+
+On a matrix array (``objective.element_grid`` set) the ``k`` points of a sunflower spiral (golden
+angle 137.508 degrees) whose density follows a radial taper are scaled to the aperture and each
+takes the nearest free element (:func:`arraysel.selectors.layouts.fermat_spiral_layout`, on the
+element centres when the objective gives them). On a 1-D array it takes the 1-D analogue, ``k``
+points following the same taper along the line
+(:func:`arraysel.selectors.layouts.tapered_line_layout`). Deterministic; one evaluation.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from arraysel.objective.contract import element_layout
+from arraysel.selectors.contract import Option, Selector
+from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.layouts import TAPERS, fermat_spiral_layout, tapered_line_layout
+
+
+class SpiralSelector(Selector):
+    """k elements along a density-tapered Fermat spiral (matrix arrays) or a tapered line (1-D)."""
+
+    name = "spiral"
+    description = "density-tapered Fermat spiral snapped to the grid (a tapered line on a 1-D array)"
+    options = {
+        "taper": Option(str, "cosine", "radial density taper: none (plain sunflower), cosine "
+                        "(cos(pi rho / 2)) or blackman", choices=TAPERS),
+        "rotation_deg": Option(float, 0.0, "angle of the spiral's first point (degrees; matrix arrays)",
+                               lo=-360.0, hi=360.0),
+    }
+    deterministic = True
+
+    def batch_size(self, n_elements, k):
+        return 1
+
+    def select(self, objective, k, seed):
+        n = int(objective.n_elements)
+        grid, positions = element_layout(objective)
+        taper = self.options["taper"]
+        if grid is None:
+            chosen = tapered_line_layout(n, k, taper)
+        else:
+            layout = positions if positions is not None else grid
+            chosen = fermat_spiral_layout(layout, k, taper, self.options["rotation_deg"])
+        objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
+        return chosen
+
+
+@hookimpl
+def arraysel_register_selectors(register):
+    register(SpiralSelector)
