@@ -319,9 +319,23 @@ class MatrixProbe:
         """``(ix, iy)`` of element indices (checked against ``[0, Ne - 1]``)."""
         e = np.asarray(index)
         if e.size and (not np.issubdtype(e.dtype, np.integer) or e.min() < 0 or e.max() >= self.n_elements):
-            raise ParameterError(f"element index must be integers in [0, {self.n_elements - 1}] "
+            raise ParameterError(f"elements: an element index must be an integer in [0, {self.n_elements - 1}] "
                                  f"(nx * ny - 1 = {self.nx} * {self.ny} - 1), got {e!r}")
         return e % self.nx, e // self.nx
+
+    def mask(self, indices: Any) -> np.ndarray:
+        """0/1 float64 mask (Ne,) with ones at the element ``indices`` (``iy * nx + ix``), checked:
+        integers in ``[0, nx * ny - 1]``, no repeats, at most Ne of them."""
+        idx = np.asarray(indices).reshape(-1)
+        if idx.size > self.n_elements:
+            raise ParameterError(f"k = {idx.size} elements is out of range for probe {self.name!r}; allowed: "
+                                 f"[1, {self.n_elements}] (nx * ny = {self.nx} * {self.ny})")
+        self.element_grid(idx)
+        if np.unique(idx).size != idx.size:
+            raise ParameterError(f"elements repeat an index: {sorted(idx.tolist())[:8]}")
+        m = np.zeros(self.n_elements, dtype=np.float64)
+        m[idx] = 1.0
+        return m
 
     def element_positions(self) -> np.ndarray:
         """Element centres, float64 (Ne, 3) in metres: columns x, y, z (z = 0), row ``iy * nx + ix``."""

@@ -43,19 +43,24 @@ def transmit_distance3(points, delays, probe: MatrixProbe, c: float) -> torch.Te
     pos = torch.as_tensor(probe.element_positions()[active], dtype=p.dtype, device=p.device)
     dl = torch.as_tensor(delays[active] * c, dtype=p.dtype, device=p.device)
     out = torch.empty(p.shape[0], dtype=p.dtype, device=p.device)
-    step = max(1, 2 ** 22 // pos.shape[0])
+    step = max(1, 2 ** 20 // pos.shape[0])
     for i in range(0, p.shape[0], step):
-        q = p[i:i + step]
-        d = torch.sqrt(((q[:, None, :] - pos[None]) ** 2).sum(-1))
-        out[i:i + step] = (d + dl).min(dim=1).values
+        out[i:i + step] = (_distances(p[i:i + step], pos) + dl).min(dim=1).values
     return out
+
+
+def _distances(p: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+    """|p_i - r_j| (N, Ne), component by component (exact to rounding, unlike a matrix-product form)."""
+    dx = p[:, 0, None] - pos[None, :, 0]
+    dy = p[:, 1, None] - pos[None, :, 1]
+    dz = p[:, 2, None] - pos[None, :, 2]
+    return torch.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 def receive_distance3(points, probe: MatrixProbe) -> torch.Tensor:
     """Distances (N, Ne) in metres from ``points`` (..., 3) (flattened) to every element."""
     p = _pts(points)
-    pos = torch.as_tensor(probe.element_positions(), dtype=p.dtype, device=p.device)
-    return torch.sqrt(((p[:, None, :] - pos[None]) ** 2).sum(-1))
+    return _distances(p, torch.as_tensor(probe.element_positions(), dtype=p.dtype, device=p.device))
 
 
 def das_plan3(points, delays, probe: MatrixProbe, fs: float, c: float, n_t: int, fc: float,
