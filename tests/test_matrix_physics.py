@@ -319,3 +319,27 @@ def test_matrix_1024_planes_match_pymust():
                 refs[name] = ref
             for plane in PLANES:
                 assert si_mse(planes[plane][i].to(torch.complex128).numpy(), ref[plane]) <= 1e-4, (dtype, name, plane)
+
+
+# --------------------------------------------------------------------------- scenes
+def test_matrix_probe_in_a_scene_file(tmp_path):
+    from arraysel.scenes.schema import load_scene
+
+    f = tmp_path / "m.toml"
+    f.write_text('base = "paper"\n[probe]\nname = "MATRIX-32x32"\nnx = 8\nny = 4\npitch_y = 4e-4\n'
+                 'fc = 3e6\n[selection]\nk = 16\n', encoding="utf-8")
+    scene = load_scene(str(f))
+    p = scene.matrix_probe()
+    assert isinstance(p, MatrixProbe) and (p.nx, p.ny, p.pitch_y, p.n_elements) == (8, 4, 4e-4, 32)
+    with pytest.raises(ParameterError, match="probe.name"):
+        scene.psf_setup()  # the 2-D (xz) scene of a 1-D probe
+    with pytest.raises(ParameterError, match="probe.name = 'P4-2v'"):
+        load_scene("paper").matrix_probe()
+    with pytest.raises(ParameterError, match="probe.radius"):
+        load_scene(str(f), {"probe": {"radius": 0.05}})
+    with pytest.raises(ParameterError, match="probe.nx"):
+        load_scene("paper", {"probe": {"nx": 8}})
+    with pytest.raises(ParameterError, match="selection.k"):
+        load_scene(str(f), {"selection": {"k": 33}})
+    with pytest.raises(ParameterError, match="height"):
+        load_scene(str(f), {"probe": {"height": 5e-4}})

@@ -43,6 +43,8 @@ __all__ = [
     "Probe",
     "MatrixProbe",
     "MATRIX_CATALOGUE",
+    "LINEAR_ONLY_FIELDS",
+    "MATRIX_ONLY_FIELDS",
     "Acquisition",
     "get_probe",
     "list_probes",
@@ -362,6 +364,9 @@ class MatrixProbe:
 
 _FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Probe))
 _MATRIX_FIELD_NAMES = tuple(f.name for f in dataclasses.fields(MatrixProbe))
+#: fields of one kind of probe only (a scene refuses them for the other kind, naming the key)
+LINEAR_ONLY_FIELDS = tuple(f for f in _FIELD_NAMES if f not in _MATRIX_FIELD_NAMES)
+MATRIX_ONLY_FIELDS = tuple(f for f in _MATRIX_FIELD_NAMES if f not in _FIELD_NAMES)
 
 
 def _check_field_names(changes: dict[str, Any], names: tuple = _FIELD_NAMES) -> None:
