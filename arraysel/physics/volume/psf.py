@@ -38,6 +38,11 @@ from arraysel.physics.volume.simus import element_responses3, grid_for_points3
 
 __all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise"]
 
+#: a batch without gradient on the CPU whose delay-and-sum reads at least this many (pixel,
+#: element, transmit) entries goes to the compiled kernel (:mod:`.kernels`): below it, loading
+#: the compiled code costs more than torch's passes
+COMPILED_MIN_ENTRIES = 1 << 21
+
 #: the planes, in this order: the C-plane at the scatterer's depth, then the xz and yz planes
 PLANES = ("xy", "xz", "yz")
 
@@ -191,6 +196,9 @@ class MatrixPSF:
             self._tx_rot.append(torch.polar(torch.ones_like(dtx), 2 * math.pi * fc / c * dtx).to(self.device, self.cdtype))
             self._samples.append((s0, s1))
             self._maps.append(t.iq_map(slice(s0, s1)).to(self.device, self.dtype))
+        if self.device.type == "cpu":  # the compiled path's copies, (n_tx, Npix)
+            self._tx_pos_np = torch.stack(self._tx_pos).numpy()
+            self._tx_rot_np = torch.stack(self._tx_rot).numpy()
 
     def _build_transmits(self):
         s = self.setup
@@ -261,6 +269,9 @@ class MatrixPSF:
         rx_rot = self._rx_rot if elements is None else self._rx_rot[:, elements]
         iqs = [self.iq(w, n, elements) for n in range(len(self.transmits))]
         npix = rx_pos.shape[0]
+        if (not w.requires_grad and self.device.type == "cpu"
+                and npix * rx_pos.shape[1] * len(iqs) >= COMPILED_MIN_ENTRIES):
+            return self._image_compiled(iqs, rx_pos, rx_rot)
         out = []
         for p0 in range(0, npix, self.pixel_chunk):
             sl = slice(p0, min(npix, p0 + self.pixel_chunk))
@@ -275,6 +286,21 @@ class MatrixPSF:
                 acc = acc + das_apply(iqs[n], i0.to(torch.long), (pos - i0).to(self.dtype), rot)
             out.append(acc)
         return torch.cat(out, dim=1) if len(out) > 1 else out[0]
+
+    def _image_compiled(self, iqs, rx_pos, rx_rot) -> torch.Tensor:
+        from arraysel.physics.volume.kernels import das3
+
+        B, ne = iqs[0].shape[:2]
+        T = max(int(q.shape[-1]) for q in iqs)
+        iq = torch.zeros(len(iqs), ne, T, B, dtype=self.cdtype)
+        for n, q in enumerate(iqs):
+            iq[n, :, :q.shape[-1]] = q.permute(1, 2, 0)
+        out = np.zeros((rx_pos.shape[0], B), dtype=iq.numpy().dtype)
+        s0 = np.array([s[0] for s in self._samples], dtype=np.int64)
+        n_time = np.array([t.grid.n_time for t in self.transmits], dtype=np.int64)
+        das3(iq.numpy(), self._tx_pos_np, np.ascontiguousarray(rx_pos.numpy()), self._tx_rot_np,
+             np.ascontiguousarray(rx_rot.numpy()), s0, n_time, out)
+        return torch.from_numpy(out.T.copy())
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """The compound image on each plane: ``{name: complex (B, H, W)}`` (:attr:`coords` order
