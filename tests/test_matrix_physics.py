@@ -245,7 +245,11 @@ def test_planes_geometry_and_peak(small_psf):
         assert abs(i // w - h // 2) <= 1 and abs(i % w - w // 2) <= 1
 
 
-def test_batch_equals_single_and_zero_weights_are_skipped_exactly():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_batch_equals_single_and_zero_weights_are_skipped_exactly(monkeypatch, compiled):
+    import arraysel.physics.volume.psf as vpsf
+
+    monkeypatch.setattr(vpsf, "COMPILED_MIN_ENTRIES", 0 if compiled else 1 << 60)
     setup = _psf_setup(nx=5, ny=4, tilts=(2, 1), halves=(1e-3, 1e-3, 1e-3), pixel_wl=1.0)
     model = MatrixPSF(setup, dtype=torch.float64, pixel_chunk=7)
     w = torch.tensor(np.random.default_rng(2).uniform(0, 1, (3, 20)))
@@ -259,7 +263,25 @@ def test_batch_equals_single_and_zero_weights_are_skipped_exactly():
         assert torch.allclose(model.image(wg)[0].detach(), batch[0], rtol=1e-12, atol=1e-12 * float(batch.abs().max()))
 
 
-def test_gradcheck_soft_weights():
+def test_compiled_and_torch_paths_agree(monkeypatch, small_psf):
+    import arraysel.physics.volume.psf as vpsf
+
+    setup, masks, _ = small_psf
+    w = torch.tensor(np.random.default_rng(4).uniform(0, 1, (2, 64)))
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+        model = MatrixPSF(setup, dtype=dtype)
+        monkeypatch.setattr(vpsf, "COMPILED_MIN_ENTRIES", 0)
+        a = model.image(w)
+        monkeypatch.setattr(vpsf, "COMPILED_MIN_ENTRIES", 1 << 60)
+        b = model.image(w)
+        assert float((a - b).abs().max() / b.abs().max()) <= tol
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_gradcheck_soft_weights(monkeypatch, compiled):
+    import arraysel.physics.volume.psf as vpsf
+
+    monkeypatch.setattr(vpsf, "COMPILED_MIN_ENTRIES", 0 if compiled else 1 << 60)
     setup = _psf_setup(nx=3, ny=2, tilts=(2, 1), halves=(0.5e-3, 0.5e-3, 0.5e-3), pixel_wl=1.0)
     model = MatrixPSF(setup, dtype=torch.float64, pixel_chunk=5)
     w0 = torch.linspace(0.3, 0.9, 6, dtype=torch.float64)[None].requires_grad_(True)

@@ -35,3 +35,28 @@ def das3(iq, tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time, out):
                 for b in range(n_b):
                     a = iq[t, e, i0, b]
                     out[p, b] += r * (a + w * (iq[t, e, i0 + 1, b] - a))
+
+
+@numba.njit(parallel=True, cache=True, fastmath=False)
+def das3_adjoint(g, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, giq):
+    """The adjoint of :func:`das3` (the gradient with respect to the I/Q samples, torch's
+    conjugate convention): g (P, B) complex; rx_pos_t, rx_rot_t (E, P) (transposed);
+    giq (n_tx, E, T, B) complex, accumulated into. Parallel over elements (each writes its rows)."""
+    n_tx, n_e, _, n_b = giq.shape
+    n_p = g.shape[0]
+    for e in numba.prange(n_e):
+        for t in range(n_tx):
+            hi = n_time[t] - 2
+            st = s0[t]
+            for p in range(n_p):
+                pos = tx_pos[t, p] + rx_pos_t[e, p]
+                if pos < 0 or pos > hi:
+                    continue
+                x = pos - st
+                i0 = int(np.floor(x))
+                w = x - i0
+                r = np.conj(tx_rot[t, p] * rx_rot_t[e, p])
+                for b in range(n_b):
+                    v = r * g[p, b]
+                    giq[t, e, i0, b] += v * (1.0 - w)
+                    giq[t, e, i0 + 1, b] += v * w

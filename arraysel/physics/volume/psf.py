@@ -38,10 +38,38 @@ from arraysel.physics.volume.simus import element_responses3, grid_for_points3
 
 __all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise"]
 
-#: a batch without gradient on the CPU whose delay-and-sum reads at least this many (pixel,
-#: element, transmit) entries goes to the compiled kernel (:mod:`.kernels`): below it, loading
-#: the compiled code costs more than torch's passes
+#: a batch on the CPU whose delay-and-sum reads at least this many (pixel, element, transmit)
+#: entries goes to the compiled kernels (:mod:`.kernels`, with their adjoint for the gradient):
+#: below it, loading the compiled code costs more than torch's passes
 COMPILED_MIN_ENTRIES = 1 << 21
+
+
+class _CompiledDAS(torch.autograd.Function):
+    """The delay-and-sum of :meth:`MatrixPSF.image` by the compiled kernels: forward
+    :func:`~arraysel.physics.volume.kernels.das3`, backward its adjoint; memory O(I/Q), not
+    O(pixels x elements) as torch's graph would keep."""
+
+    @staticmethod
+    def forward(ctx, iq, geo):
+        from arraysel.physics.volume.kernels import das3
+
+        tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time = geo
+        out = np.zeros((rx_pos.shape[0], iq.shape[-1]), dtype=tx_rot.dtype)
+        das3(iq.detach().resolve_conj().numpy(), tx_pos, np.ascontiguousarray(rx_pos), tx_rot, np.ascontiguousarray(rx_rot),
+             s0, n_time, out)
+        ctx.geo = geo
+        ctx.iq_shape = tuple(iq.shape)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad):
+        from arraysel.physics.volume.kernels import das3_adjoint
+
+        tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time = ctx.geo
+        giq = np.zeros(ctx.iq_shape, dtype=tx_rot.dtype)
+        das3_adjoint(np.ascontiguousarray(grad.resolve_conj().numpy()), tx_pos, np.ascontiguousarray(rx_pos.T), tx_rot,
+                     np.ascontiguousarray(rx_rot.T), s0, n_time, giq)
+        return torch.from_numpy(giq), None
 
 #: the planes, in this order: the C-plane at the scatterer's depth, then the xz and yz planes
 PLANES = ("xy", "xz", "yz")
@@ -269,8 +297,7 @@ class MatrixPSF:
         rx_rot = self._rx_rot if elements is None else self._rx_rot[:, elements]
         iqs = [self.iq(w, n, elements) for n in range(len(self.transmits))]
         npix = rx_pos.shape[0]
-        if (not w.requires_grad and self.device.type == "cpu"
-                and npix * rx_pos.shape[1] * len(iqs) >= COMPILED_MIN_ENTRIES):
+        if self.device.type == "cpu" and npix * rx_pos.shape[1] * len(iqs) >= COMPILED_MIN_ENTRIES:
             return self._image_compiled(iqs, rx_pos, rx_rot)
         out = []
         for p0 in range(0, npix, self.pixel_chunk):
@@ -288,19 +315,13 @@ class MatrixPSF:
         return torch.cat(out, dim=1) if len(out) > 1 else out[0]
 
     def _image_compiled(self, iqs, rx_pos, rx_rot) -> torch.Tensor:
-        from arraysel.physics.volume.kernels import das3
-
-        B, ne = iqs[0].shape[:2]
         T = max(int(q.shape[-1]) for q in iqs)
-        iq = torch.zeros(len(iqs), ne, T, B, dtype=self.cdtype)
-        for n, q in enumerate(iqs):
-            iq[n, :, :q.shape[-1]] = q.permute(1, 2, 0)
-        out = np.zeros((rx_pos.shape[0], B), dtype=iq.numpy().dtype)
-        s0 = np.array([s[0] for s in self._samples], dtype=np.int64)
-        n_time = np.array([t.grid.n_time for t in self.transmits], dtype=np.int64)
-        das3(iq.numpy(), self._tx_pos_np, np.ascontiguousarray(rx_pos.numpy()), self._tx_rot_np,
-             np.ascontiguousarray(rx_rot.numpy()), s0, n_time, out)
-        return torch.from_numpy(out.T.copy())
+        # (n_tx, E, T, B): the batch innermost; padding samples are never read
+        iq = torch.stack([torch.nn.functional.pad(q, (0, T - q.shape[-1])) for q in iqs]).permute(0, 2, 3, 1)
+        geo = (self._tx_pos_np, rx_pos.numpy(), self._tx_rot_np, rx_rot.numpy(),
+               np.array([s[0] for s in self._samples], dtype=np.int64),
+               np.array([t.grid.n_time for t in self.transmits], dtype=np.int64))
+        return _CompiledDAS.apply(iq.contiguous(), geo).T
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """The compound image on each plane: ``{name: complex (B, H, W)}`` (:attr:`coords` order
