@@ -12,29 +12,37 @@ import numba
 import numpy as np
 
 
+#: pixels a thread accumulates together: for each (transmit, element) it reads that element's
+#: I/Q row once (it stays in the first-level cache) for all of them
+PIXEL_BLOCK = 64
+
+
 @numba.njit(parallel=True, cache=True, fastmath=False)
-def das3(iq, tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time, out):
-    """iq (n_tx, E, T, B) complex; tx_pos, tx_rot (n_tx, P); rx_pos, rx_rot (P, E);
-    s0, n_time (n_tx,) int64; out (P, B) complex, accumulated into."""
+def das3(iq, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out):
+    """iq (n_tx, E, T, B) complex; tx_pos, tx_rot (n_tx, P); rx_pos_t, rx_rot_t (E, P);
+    s0, n_time (n_tx,) int64; out (P, B) complex, accumulated into. Parallel over blocks of
+    :data:`PIXEL_BLOCK` pixels; within a block, transmit by transmit and element by element."""
     n_tx, n_e, _, n_b = iq.shape
-    n_p = rx_pos.shape[0]
-    for p in numba.prange(n_p):
+    n_p = rx_pos_t.shape[1]
+    n_blocks = (n_p + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for blk in numba.prange(n_blocks):
+        p0 = blk * PIXEL_BLOCK
+        p1 = min(n_p, p0 + PIXEL_BLOCK)
         for t in range(n_tx):
-            tp = tx_pos[t, p]
-            tr = tx_rot[t, p]
             hi = n_time[t] - 2
             st = s0[t]
             for e in range(n_e):
-                pos = tp + rx_pos[p, e]
-                if pos < 0 or pos > hi:
-                    continue
-                x = pos - st
-                i0 = int(np.floor(x))
-                w = x - i0
-                r = tr * rx_rot[p, e]
-                for b in range(n_b):
-                    a = iq[t, e, i0, b]
-                    out[p, b] += r * (a + w * (iq[t, e, i0 + 1, b] - a))
+                for p in range(p0, p1):
+                    pos = tx_pos[t, p] + rx_pos_t[e, p]
+                    if pos < 0 or pos > hi:
+                        continue
+                    x = pos - st
+                    i0 = int(np.floor(x))
+                    w = x - i0
+                    r = tx_rot[t, p] * rx_rot_t[e, p]
+                    for b in range(n_b):
+                        a = iq[t, e, i0, b]
+                        out[p, b] += r * (a + w * (iq[t, e, i0 + 1, b] - a))
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)

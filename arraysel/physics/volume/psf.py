@@ -53,10 +53,9 @@ class _CompiledDAS(torch.autograd.Function):
     def forward(ctx, iq, geo):
         from arraysel.physics.volume.kernels import das3
 
-        tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time = geo
-        out = np.zeros((rx_pos.shape[0], iq.shape[-1]), dtype=tx_rot.dtype)
-        das3(iq.detach().resolve_conj().numpy(), tx_pos, np.ascontiguousarray(rx_pos), tx_rot, np.ascontiguousarray(rx_rot),
-             s0, n_time, out)
+        tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = geo
+        out = np.zeros((rx_pos_t.shape[1], iq.shape[-1]), dtype=tx_rot.dtype)
+        das3(iq.detach().resolve_conj().numpy(), tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out)
         ctx.geo = geo
         ctx.iq_shape = tuple(iq.shape)
         return torch.from_numpy(out)
@@ -65,10 +64,10 @@ class _CompiledDAS(torch.autograd.Function):
     def backward(ctx, grad):
         from arraysel.physics.volume.kernels import das3_adjoint
 
-        tx_pos, rx_pos, tx_rot, rx_rot, s0, n_time = ctx.geo
+        tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = ctx.geo
         giq = np.zeros(ctx.iq_shape, dtype=tx_rot.dtype)
-        das3_adjoint(np.ascontiguousarray(grad.resolve_conj().numpy()), tx_pos, np.ascontiguousarray(rx_pos.T), tx_rot,
-                     np.ascontiguousarray(rx_rot.T), s0, n_time, giq)
+        das3_adjoint(np.ascontiguousarray(grad.resolve_conj().numpy()), tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0,
+                     n_time, giq)
         return torch.from_numpy(giq), None
 
 #: the planes, in this order: the C-plane at the scatterer's depth, then the xz and yz planes
@@ -224,6 +223,7 @@ class MatrixPSF:
             self._tx_rot.append(torch.polar(torch.ones_like(dtx), 2 * math.pi * fc / c * dtx).to(self.device, self.cdtype))
             self._samples.append((s0, s1))
             self._maps.append(t.iq_map(slice(s0, s1)).to(self.device, self.dtype))
+        self._rx_pos_t = self._rx_rot_t = None
         if self.device.type == "cpu":  # the compiled path's copies, (n_tx, Npix)
             self._tx_pos_np = torch.stack(self._tx_pos).numpy()
             self._tx_rot_np = torch.stack(self._tx_rot).numpy()
@@ -293,12 +293,12 @@ class MatrixPSF:
                 raise SelectionError("every selection is empty (all weights zero)")
             if used.numel() < self.n_elements:
                 elements = used  # an element of weight 0 everywhere receives nothing
+        iqs = [self.iq(w, n, elements) for n in range(len(self.transmits))]
+        npix, ne = self._rx_pos.shape[0], (self.n_elements if elements is None else elements.numel())
+        if self.device.type == "cpu" and npix * ne * len(iqs) >= COMPILED_MIN_ENTRIES:
+            return self._image_compiled(iqs, elements)
         rx_pos = self._rx_pos if elements is None else self._rx_pos[:, elements]
         rx_rot = self._rx_rot if elements is None else self._rx_rot[:, elements]
-        iqs = [self.iq(w, n, elements) for n in range(len(self.transmits))]
-        npix = rx_pos.shape[0]
-        if self.device.type == "cpu" and npix * rx_pos.shape[1] * len(iqs) >= COMPILED_MIN_ENTRIES:
-            return self._image_compiled(iqs, rx_pos, rx_rot)
         out = []
         for p0 in range(0, npix, self.pixel_chunk):
             sl = slice(p0, min(npix, p0 + self.pixel_chunk))
@@ -314,11 +314,16 @@ class MatrixPSF:
             out.append(acc)
         return torch.cat(out, dim=1) if len(out) > 1 else out[0]
 
-    def _image_compiled(self, iqs, rx_pos, rx_rot) -> torch.Tensor:
+    def _image_compiled(self, iqs, elements) -> torch.Tensor:
         T = max(int(q.shape[-1]) for q in iqs)
         # (n_tx, E, T, B): the batch innermost; padding samples are never read
         iq = torch.stack([torch.nn.functional.pad(q, (0, T - q.shape[-1])) for q in iqs]).permute(0, 2, 3, 1)
-        geo = (self._tx_pos_np, rx_pos.numpy(), self._tx_rot_np, rx_rot.numpy(),
+        if self._rx_pos_t is None:  # (E, P) copies, made on first use
+            self._rx_pos_t = self._rx_pos.T.contiguous().numpy()
+            self._rx_rot_t = self._rx_rot.T.contiguous().numpy()
+        rows = slice(None) if elements is None else elements.numpy()
+        geo = (self._tx_pos_np, np.ascontiguousarray(self._rx_pos_t[rows]), self._tx_rot_np,
+               np.ascontiguousarray(self._rx_rot_t[rows]),
                np.array([s[0] for s in self._samples], dtype=np.int64),
                np.array([t.grid.n_time for t in self.transmits], dtype=np.int64))
         return _CompiledDAS.apply(iq.contiguous(), geo).T
