@@ -18,9 +18,10 @@ PIXEL_BLOCK = 64
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
-def das3(iq, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out):
-    """iq (n_tx, E, T, B) complex; tx_pos, tx_rot (n_tx, P); rx_pos_t, rx_rot_t (E, P);
-    s0, n_time (n_tx,) int64; out (P, B) complex, accumulated into. Parallel over blocks of
+def das3(iq, rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out):
+    """iq (n_tx, E, T, B) complex; rows (E,) int64: the rows of the receive geometry of those E
+    elements; tx_pos, tx_rot (n_tx, P); rx_pos_t, rx_rot_t (Ne, P); s0, n_time (n_tx,) int64;
+    out (P, B) complex, accumulated into. Parallel over blocks of
     :data:`PIXEL_BLOCK` pixels; within a block, transmit by transmit and element by element."""
     n_tx, n_e, _, n_b = iq.shape
     n_p = rx_pos_t.shape[1]
@@ -32,38 +33,40 @@ def das3(iq, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out):
             hi = n_time[t] - 2
             st = s0[t]
             for e in range(n_e):
+                row = rows[e]
                 for p in range(p0, p1):
-                    pos = tx_pos[t, p] + rx_pos_t[e, p]
+                    pos = tx_pos[t, p] + rx_pos_t[row, p]
                     if pos < 0 or pos > hi:
                         continue
                     x = pos - st
                     i0 = int(np.floor(x))
                     w = x - i0
-                    r = tx_rot[t, p] * rx_rot_t[e, p]
+                    r = tx_rot[t, p] * rx_rot_t[row, p]
                     for b in range(n_b):
                         a = iq[t, e, i0, b]
                         out[p, b] += r * (a + w * (iq[t, e, i0 + 1, b] - a))
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
-def das3_adjoint(g, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, giq):
+def das3_adjoint(g, rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, giq):
     """The adjoint of :func:`das3` (the gradient with respect to the I/Q samples, torch's
-    conjugate convention): g (P, B) complex; rx_pos_t, rx_rot_t (E, P) (transposed);
+    conjugate convention): g (P, B) complex, the other arguments as for :func:`das3`;
     giq (n_tx, E, T, B) complex, accumulated into. Parallel over elements (each writes its rows)."""
     n_tx, n_e, _, n_b = giq.shape
     n_p = g.shape[0]
     for e in numba.prange(n_e):
+        row = rows[e]
         for t in range(n_tx):
             hi = n_time[t] - 2
             st = s0[t]
             for p in range(n_p):
-                pos = tx_pos[t, p] + rx_pos_t[e, p]
+                pos = tx_pos[t, p] + rx_pos_t[row, p]
                 if pos < 0 or pos > hi:
                     continue
                 x = pos - st
                 i0 = int(np.floor(x))
                 w = x - i0
-                r = np.conj(tx_rot[t, p] * rx_rot_t[e, p])
+                r = np.conj(tx_rot[t, p] * rx_rot_t[row, p])
                 for b in range(n_b):
                     v = r * g[p, b]
                     giq[t, e, i0, b] += v * (1.0 - w)

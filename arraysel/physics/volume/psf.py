@@ -53,9 +53,9 @@ class _CompiledDAS(torch.autograd.Function):
     def forward(ctx, iq, geo):
         from arraysel.physics.volume.kernels import das3
 
-        tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = geo
+        rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = geo
         out = np.zeros((rx_pos_t.shape[1], iq.shape[-1]), dtype=tx_rot.dtype)
-        das3(iq.detach().resolve_conj().numpy(), tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out)
+        das3(iq.detach().resolve_conj().numpy(), rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time, out)
         ctx.geo = geo
         ctx.iq_shape = tuple(iq.shape)
         return torch.from_numpy(out)
@@ -64,10 +64,10 @@ class _CompiledDAS(torch.autograd.Function):
     def backward(ctx, grad):
         from arraysel.physics.volume.kernels import das3_adjoint
 
-        tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = ctx.geo
+        rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0, n_time = ctx.geo
         giq = np.zeros(ctx.iq_shape, dtype=tx_rot.dtype)
-        das3_adjoint(np.ascontiguousarray(grad.resolve_conj().numpy()), tx_pos, rx_pos_t, tx_rot, rx_rot_t, s0,
-                     n_time, giq)
+        das3_adjoint(np.ascontiguousarray(grad.resolve_conj().numpy()), rows, tx_pos, rx_pos_t, tx_rot, rx_rot_t,
+                     s0, n_time, giq)
         return torch.from_numpy(giq), None
 
 #: the planes, in this order: the C-plane at the scatterer's depth, then the xz and yz planes
@@ -321,9 +321,8 @@ class MatrixPSF:
         if self._rx_pos_t is None:  # (E, P) copies, made on first use
             self._rx_pos_t = self._rx_pos.T.contiguous().numpy()
             self._rx_rot_t = self._rx_rot.T.contiguous().numpy()
-        rows = slice(None) if elements is None else elements.numpy()
-        geo = (self._tx_pos_np, np.ascontiguousarray(self._rx_pos_t[rows]), self._tx_rot_np,
-               np.ascontiguousarray(self._rx_rot_t[rows]),
+        rows = np.arange(self.n_elements) if elements is None else elements.numpy()
+        geo = (rows.astype(np.int64), self._tx_pos_np, self._rx_pos_t, self._tx_rot_np, self._rx_rot_t,
                np.array([s[0] for s in self._samples], dtype=np.int64),
                np.array([t.grid.n_time for t in self.transmits], dtype=np.int64))
         return _CompiledDAS.apply(iq.contiguous(), geo).T
