@@ -126,7 +126,8 @@ def main(argv=None) -> dict:
             got = m.planes(torch.tensor(np.stack(list(named.values()))))
         for i, name in enumerate(named):
             for plane in PLANES:
-                fid[f"{label}/{name}/{plane}"] = mod.si_mse(got[plane][i].to(torch.complex128).numpy(), refs[name][plane])
+                ours = got[plane][i].to(torch.complex128).numpy()
+                fid[f"{label}/{name}/{plane}"] = mod.si_mse(ours, refs[name][plane])
     rec["si_mse"] = {k: float(f"{v:.3g}") for k, v in fid.items()}
     print("SI-MSE per plane against PyMUST:")
     for k, v in rec["si_mse"].items():

@@ -220,7 +220,8 @@ class MatrixPSF:
             s0 = int(min(max(0, math.floor(lo)), n_t - 2))
             s1 = int(max(min(n_t - 2, math.floor(hi)) + 2, s0 + 2))
             self._tx_pos.append(tp.to(self.device))
-            self._tx_rot.append(torch.polar(torch.ones_like(dtx), 2 * math.pi * fc / c * dtx).to(self.device, self.cdtype))
+            rot = torch.polar(torch.ones_like(dtx), 2 * math.pi * fc / c * dtx)
+            self._tx_rot.append(rot.to(self.device, self.cdtype))
             self._samples.append((s0, s1))
             self._maps.append(t.iq_map(slice(s0, s1)).to(self.device, self.dtype))
         self._rx_pos_t = self._rx_rot_t = None
