@@ -32,6 +32,7 @@ from arraysel.errors import NumericalError, ParameterError, SelectionError, chec
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.probes import Acquisition, MatrixProbe, check_sampling
 from arraysel.physics.psf.operator import Transmit
+from arraysel.physics.psf.window import scale_complex
 from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
 from arraysel.physics.volume.beamform import receive_distance3, transmit_distance3
 from arraysel.physics.volume.simus import element_responses3, grid_for_points3
@@ -178,7 +179,7 @@ def peak_normalise(planes: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     peak = torch.stack([v.detach().abs().flatten(1).amax(1) for v in planes.values()]).amax(0)
     if bool((peak == 0).any()) or not bool(torch.isfinite(peak).all()):
         raise NumericalError("a 3-D PSF is all zero or not finite (is the selection empty?)")
-    return {k: v / peak.to(v.real.dtype)[:, None, None] for k, v in planes.items()}
+    return {k: scale_complex(v, peak.to(v.real.dtype)) for k, v in planes.items()}
 
 
 class MatrixPSF:
