@@ -18,7 +18,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("arraysel", "arraysel.errors",                         # version, error types,
      "arraysel.selection"),                                 # a selection's representations and checks
     ("arraysel.io",),                                       # atomic writes, cache folder, mask files
-    ("arraysel.physics",),                                  # probes, delays, SIMUS, beamforming, PSF
+    ("arraysel.physics", "arraysel.physics.volume"),        # probes, delays, SIMUS, beamforming, PSF; 3-D
     ("arraysel.scenes",),                                   # the scene schema and built-in scenes
     ("arraysel.objective",),                                # metrics, losses, contract, objectives
     ("arraysel.selectors",),                                # selector contract, hooks, registry, relaxations

@@ -12,6 +12,16 @@ Conventions (see ``docs/probes.md``):
   straight lines; the centre of curvature lies at (0, -h) where h is the
   apothem, so the middle of the arc bulges into the medium (z > 0).
 
+Matrix (2-D) probes, :class:`MatrixProbe`: a planar grid of ``nx`` x ``ny``
+identical rectangular elements on the plane z = 0, centred on (0, 0); x runs
+along the rows (``width`` and ``pitch_x`` are along x), y along the columns
+(``height`` and ``pitch_y``), z is depth, and (x, y, z) is right-handed as in
+MUST's 3-D functions. **Element index = iy * nx + ix** (x fastest): element
+``e`` sits at ``x = (e % nx - (nx - 1) / 2) pitch_x``,
+``y = (e // nx - (ny - 1) / 2) pitch_y``. Masks, weights, figures and files of
+a matrix probe use this index everywhere; ``mask.reshape(ny, nx)`` is the
+probe seen from the medium with x to the right and y down the rows.
+
 The catalogue holds the probes of MUST/PyMUST's ``getparam`` (numbers are
 physical facts carried over as literal data) plus a few others. Fields that
 ``getparam`` leaves out are filled with MUST's own defaults: width = pitch -
@@ -31,6 +41,10 @@ from arraysel.errors import ParameterError, check_number
 
 __all__ = [
     "Probe",
+    "MatrixProbe",
+    "MATRIX_CATALOGUE",
+    "LINEAR_ONLY_FIELDS",
+    "MATRIX_ONLY_FIELDS",
     "Acquisition",
     "get_probe",
     "list_probes",
@@ -158,6 +172,11 @@ class Probe:
         return math.isinf(self.radius)
 
     @property
+    def is_matrix(self) -> bool:
+        """False: a 1-D array (see :class:`MatrixProbe`)."""
+        return False
+
+    @property
     def aperture(self) -> float:
         """Distance between the centres of the first and last elements along x (m)."""
         xe = self.element_positions()[0]
@@ -213,15 +232,149 @@ class Probe:
         }
 
 
+
+
+@dataclass(frozen=True)
+class MatrixProbe:
+    """Geometry and pulse band of a planar matrix (2-D) array of rectangular elements.
+
+    Element ``e = iy * nx + ix`` (x fastest) is centred at
+    ``((ix - (nx - 1) / 2) pitch_x, (iy - (ny - 1) / 2) pitch_y, 0)``; see the module docstring.
+
+    Attributes:
+        name: label of the probe.
+        nx, ny: elements along x and along y (integers >= 1).
+        pitch_x, pitch_y: centre-to-centre distances along x and y (m, > 0).
+        width: element size along x (m, 0 < width <= pitch_x).
+        height: element size along y (m, 0 < height <= pitch_y).
+        fc: centre frequency (Hz, > 0).
+        bandwidth: pulse-echo -6 dB fractional bandwidth (%, in (0, 200)).
+        baffle: 'soft', 'rigid' or a positive impedance ratio, as for :class:`Probe`.
+    """
+
+    name: str
+    nx: int
+    ny: int
+    pitch_x: float
+    pitch_y: float
+    width: float
+    height: float
+    fc: float
+    bandwidth: float = 75.0
+    baffle: Baffle = "soft"
+
+    def __post_init__(self) -> None:
+        set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ParameterError(f"name = {self.name!r} must be a non-empty string")
+        set_("nx", check_number("nx", self.nx, lo=1, hi=4096, integer=True))
+        set_("ny", check_number("ny", self.ny, lo=1, hi=4096, integer=True))
+        for pitch, size in (("pitch_x", "width"), ("pitch_y", "height")):
+            p = _positive(pitch, getattr(self, pitch))
+            set_(pitch, p)
+            v = _positive(size, getattr(self, size))
+            if v > p:
+                raise ParameterError(
+                    f"{size} = {getattr(self, size)!r} is out of range; allowed: (0, {pitch}] = (0, {p!r}] "
+                    "(an element cannot be larger than the pitch)")
+            set_(size, v)
+        set_("fc", _positive("fc", self.fc))
+        set_("bandwidth", check_number("bandwidth", self.bandwidth, lo=0.0, hi=200.0,
+                                       lo_open=True, hi_open=True))
+        set_("baffle", _check_baffle(self.baffle))
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def n_elements(self) -> int:
+        """Number of elements Ne = nx * ny."""
+        return self.nx * self.ny
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """``(ny, nx)``: the shape a (Ne,) mask takes with ``reshape`` (rows along y)."""
+        return self.ny, self.nx
+
+    @property
+    def is_matrix(self) -> bool:
+        """True: a 2-D array."""
+        return True
+
+    @property
+    def aperture(self) -> tuple[float, float]:
+        """Distances between the outermost element centres along x and along y (m)."""
+        return (self.nx - 1) * self.pitch_x, (self.ny - 1) * self.pitch_y
+
+    def wavelength(self, c: float = 1540.0) -> float:
+        """Wavelength c / fc at the centre frequency (m)."""
+        return check_sound_speed(c) / self.fc
+
+    def element_index(self, ix: Any, iy: Any) -> np.ndarray:
+        """Element index ``iy * nx + ix`` of grid column ``ix`` and row ``iy`` (checked)."""
+        ix = np.asarray(ix)
+        iy = np.asarray(iy)
+        for name, v, n in (("ix", ix, self.nx), ("iy", iy, self.ny)):
+            if v.size and (not np.issubdtype(v.dtype, np.integer) or v.min() < 0 or v.max() >= n):
+                raise ParameterError(f"{name} must be integers in [0, {n - 1}], got {v!r}")
+        return iy * self.nx + ix
+
+    def element_grid(self, index: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(ix, iy)`` of element indices (checked against ``[0, Ne - 1]``)."""
+        e = np.asarray(index)
+        if e.size and (not np.issubdtype(e.dtype, np.integer) or e.min() < 0 or e.max() >= self.n_elements):
+            raise ParameterError(f"elements: an element index must be an integer in [0, {self.n_elements - 1}] "
+                                 f"(nx * ny - 1 = {self.nx} * {self.ny} - 1), got {e!r}")
+        return e % self.nx, e // self.nx
+
+    def mask(self, indices: Any) -> np.ndarray:
+        """0/1 float64 mask (Ne,) with ones at the element ``indices`` (``iy * nx + ix``), checked:
+        integers in ``[0, nx * ny - 1]``, no repeats, at most Ne of them."""
+        idx = np.asarray(indices).reshape(-1)
+        if idx.size > self.n_elements:
+            raise ParameterError(f"k = {idx.size} elements is out of range for probe {self.name!r}; allowed: "
+                                 f"[1, {self.n_elements}] (nx * ny = {self.nx} * {self.ny})")
+        self.element_grid(idx)
+        if np.unique(idx).size != idx.size:
+            raise ParameterError(f"elements repeat an index: {sorted(idx.tolist())[:8]}")
+        m = np.zeros(self.n_elements, dtype=np.float64)
+        m[idx] = 1.0
+        return m
+
+    def element_positions(self) -> np.ndarray:
+        """Element centres, float64 (Ne, 3) in metres: columns x, y, z (z = 0), row ``iy * nx + ix``."""
+        x = (np.arange(self.nx, dtype=np.float64) - (self.nx - 1) / 2.0) * self.pitch_x
+        y = (np.arange(self.ny, dtype=np.float64) - (self.ny - 1) / 2.0) * self.pitch_y
+        X, Y = np.meshgrid(x, y)  # (ny, nx): row iy, column ix
+        return np.stack([X.ravel(), Y.ravel(), np.zeros(self.n_elements)], axis=1)
+
+    # ------------------------------------------------------------------ copies
+    def replace(self, **changes: Any) -> "MatrixProbe":
+        """A validated copy with some fields changed; unknown names raise :class:`ParameterError`."""
+        _check_field_names(changes, _MATRIX_FIELD_NAMES)
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_must_dict(self) -> dict[str, Any]:
+        """The geometry under the PARAM field names of MUST's 3-D functions (``elements`` 2 x Ne)."""
+        pos = self.element_positions()
+        return {"elements": pos[:, :2].T.copy(), "Nelements": self.n_elements, "width": self.width,
+                "height": self.height, "fc": self.fc, "bandwidth": self.bandwidth, "baffle": self.baffle}
+
+
 _FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Probe))
+_MATRIX_FIELD_NAMES = tuple(f.name for f in dataclasses.fields(MatrixProbe))
+#: fields of one kind of probe only (a scene refuses them for the other kind, naming the key)
+LINEAR_ONLY_FIELDS = tuple(f for f in _FIELD_NAMES if f not in _MATRIX_FIELD_NAMES)
+MATRIX_ONLY_FIELDS = tuple(f for f in _MATRIX_FIELD_NAMES if f not in _FIELD_NAMES)
 
 
-def _check_field_names(changes: dict[str, Any]) -> None:
-    unknown = [k for k in changes if k not in _FIELD_NAMES]
+def _check_field_names(changes: dict[str, Any], names: tuple = _FIELD_NAMES) -> None:
+    unknown = [k for k in changes if k not in names]
     if unknown:
         raise ParameterError(
             f"unknown probe field(s) {', '.join(map(repr, unknown))}; "
-            f"allowed: {', '.join(_FIELD_NAMES)}")
+            f"allowed: {', '.join(names)}")
 
 
 # ---------------------------------------------------------------------- catalogue
@@ -263,25 +416,44 @@ PROBE_CATALOGUE: dict[str, dict[str, Any]] = {
                  elevation_focus=25e-3, radius=_INF, fc=5.208e6, bandwidth=57.6),
 }
 
+#: Matrix probes (:class:`MatrixProbe`). ``MATRIX-32x32``: the 3-MHz 32 x 32 array of MUST's
+#: 3-D examples (``txdelay3``, ``pfield3``, ``simus3``): 300 um pitch, 250 um square elements,
+#: 70 % bandwidth (PyMUST's ``getparam`` has no matrix probe; these are the numbers of its
+#: examples). Its pulse-echo spectrum (1-cycle pulse times the squared response) peaks near
+#: 2.7 MHz.
+MATRIX_CATALOGUE: dict[str, dict[str, Any]] = {
+    "MATRIX-32x32": dict(nx=32, ny=32, pitch_x=0.300e-3, pitch_y=0.300e-3, width=0.250e-3,
+                         height=0.250e-3, fc=3e6, bandwidth=70.0),
+}
+
 _LOOKUP = {name.lower(): name for name in PROBE_CATALOGUE}
+_MATRIX_LOOKUP = {name.lower(): name for name in MATRIX_CATALOGUE}
 
 
 def list_probes() -> list[str]:
-    """Names of the catalogue probes, in catalogue order."""
-    return list(PROBE_CATALOGUE)
+    """Names of the catalogue probes, in catalogue order: the 1-D probes, then the matrix probes."""
+    return list(PROBE_CATALOGUE) + list(MATRIX_CATALOGUE)
 
 
-def get_probe(name: str, /, **overrides: Any) -> Probe:
+def get_probe(name: str, /, **overrides: Any) -> "Probe | MatrixProbe":
     """Return the catalogue probe ``name`` (case-insensitive), with optional field overrides.
 
-    ``overrides`` are any :class:`Probe` fields (e.g. ``fc=3.5e6``) and are
-    validated. Unknown probe names or override keys raise :class:`ParameterError`.
+    ``overrides`` are any fields of the probe's class (:class:`Probe`, e.g. ``fc=3.5e6``, or
+    :class:`MatrixProbe` for a matrix probe, e.g. ``nx=8, ny=8``) and are validated. Unknown
+    probe names or override keys raise :class:`ParameterError`.
     """
     if not isinstance(name, str):
         raise ParameterError(f"probe name = {name!r} must be a string; known probes: {list_probes()}")
-    key = _LOOKUP.get(name.strip().lower())
+    low = name.strip().lower()
+    key = _LOOKUP.get(low)
     if key is None:
-        raise ParameterError(f"probe name = {name!r} is unknown; known probes: {list_probes()}")
+        mkey = _MATRIX_LOOKUP.get(low)
+        if mkey is None:
+            raise ParameterError(f"probe name = {name!r} is unknown; known probes: {list_probes()}")
+        _check_field_names(overrides, _MATRIX_FIELD_NAMES)
+        fields = dict(MATRIX_CATALOGUE[mkey], name=mkey)
+        fields.update(overrides)
+        return MatrixProbe(**fields)
     _check_field_names(overrides)
     fields = dict(PROBE_CATALOGUE[key], name=key)
     fields.update(overrides)
@@ -316,9 +488,9 @@ class Acquisition:
         set_("tx_cycles", _positive("tx_cycles", self.tx_cycles))
 
     @classmethod
-    def for_probe(cls, probe: Probe, fs: float | None = None, **kw: Any) -> "Acquisition":
+    def for_probe(cls, probe: "Probe | MatrixProbe", fs: float | None = None, **kw: Any) -> "Acquisition":
         """Settings for ``probe``: ``fs`` defaults to 4 * probe.fc; ``kw`` sets the other fields."""
-        if not isinstance(probe, Probe):
+        if not isinstance(probe, (Probe, MatrixProbe)):
             raise ParameterError(f"probe must be a Probe, got {type(probe).__name__}")
         allowed = ("c", "attenuation", "tx_cycles")
         unknown = [k for k in kw if k not in allowed]

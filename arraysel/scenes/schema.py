@@ -73,10 +73,14 @@ _W = (0, 1e9, False)
 SCHEMA: dict[str, dict[str, Key]] = {
     "probe": {
         "name": Key("str", None, "P4-2v", "catalogue probe (arraysel.physics.probes.list_probes())"),
-        "n_elements": Key("int", (1, 4096), None, "number of elements (default: the probe's)"),
-        "pitch": Key("float", (0, 1, True), None, "element pitch, m (default: the probe's)"),
-        "width": Key("float", (0, 1, True), None, "element width, m (default: the probe's)"),
-        "height": Key("float", (0, _INF, True), None, "element height, m (default: the probe's)"),
+        "n_elements": Key("int", (1, 4096), None, "number of elements (default: the probe's; 1-D probes)"),
+        "pitch": Key("float", (0, 1, True), None, "element pitch, m (default: the probe's; 1-D probes)"),
+        "nx": Key("int", (1, 4096), None, "elements along x (default: the probe's; matrix probes)"),
+        "ny": Key("int", (1, 4096), None, "elements along y (default: the probe's; matrix probes)"),
+        "pitch_x": Key("float", (0, 1, True), None, "pitch along x, m (default: the probe's; matrix probes)"),
+        "pitch_y": Key("float", (0, 1, True), None, "pitch along y, m (default: the probe's; matrix probes)"),
+        "width": Key("float", (0, 1, True), None, "element width (along x), m (default: the probe's)"),
+        "height": Key("float", (0, _INF, True), None, "element height (along y), m (default: the probe's)"),
         "elevation_focus": Key("float", (0, _INF, True), None, "elevation focus, m (default: the probe's)"),
         "radius": Key("float", (0, _INF, True), None, "radius of curvature, m; inf = linear (default: the probe's)"),
         "fc": Key("float", (1e3, 1e9, False), None, "centre frequency, Hz (default: the probe's)"),
@@ -437,11 +441,28 @@ class Scene:
 
     # physics -------------------------------------------------------------------
     def probe(self):
-        from arraysel.physics.probes import get_probe
+        """The scene's probe: a :class:`~arraysel.physics.probes.Probe` or, for a matrix
+        catalogue probe, a :class:`~arraysel.physics.probes.MatrixProbe` (keys of the other
+        kind of probe are refused, naming the key)."""
+        from arraysel.physics.probes import MATRIX_ONLY_FIELDS, LINEAR_ONLY_FIELDS, get_probe
 
         p = self.section("probe")
         name = p.pop("name", SCHEMA["probe"]["name"].default)
+        matrix = get_probe(name).is_matrix
+        wrong = [k for k in p if k in (LINEAR_ONLY_FIELDS if matrix else MATRIX_ONLY_FIELDS)]
+        if wrong:
+            kind, other = ("a matrix", "1-D") if matrix else ("a 1-D", "matrix")
+            raise ParameterError(f"probe.{wrong[0]} applies to {other} probes only; probe.name = {name!r} is "
+                                 f"{kind} probe")
         return get_probe(name, **p)
+
+    def matrix_probe(self):
+        """The scene's probe for a 3-D scene: refused, naming ``probe.name``, unless it is a matrix probe."""
+        probe = self.probe()
+        if not probe.is_matrix:
+            raise ParameterError(f"probe.name = {probe.name!r} is a 1-D probe: a 3-D scene needs a matrix probe "
+                                 "(e.g. 'MATRIX-32x32')")
+        return probe
 
     def acquisition(self):
         from arraysel.physics.probes import Acquisition
@@ -492,6 +513,9 @@ class Scene:
         from arraysel.physics.simus import SimOptions
 
         probe = self.probe()
+        if probe.is_matrix:
+            raise ParameterError(f"probe.name = {probe.name!r} is a matrix probe: this scene images the xz plane "
+                                 "of a 1-D probe; a matrix probe needs a 3-D scene")
         _memory_check(self, probe.n_elements)
         acq = self.acquisition()
         n_tx = int(self.value("transmit", "n_tx"))
