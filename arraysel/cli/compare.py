@@ -174,8 +174,6 @@ def run(args) -> int:
 
 def _run(args) -> int:
     # imported here, not at the top: building the parser (``arraysel --help``) loads no torch
-    from arraysel.run.compare import compare
-    from arraysel.selectors.contract import Budget
     from arraysel.selectors.registry import get_registry, load_plugin
     from arraysel.io.outputs import check_outputs, folder_files, scene_input
     from arraysel.run.outdir import RESULT_FILES
@@ -204,6 +202,7 @@ def _run(args) -> int:
 
 def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previous) -> int:
     from arraysel.run.compare import DEFAULT_SEEDS, compare
+    from arraysel.selectors.contract import Budget
 
     n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
     if budget_s is None and args.resume and isinstance((previous or {}).get("budget"), dict):
@@ -231,7 +230,7 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
         table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
                         budget=budget, registry=registry, resume=args.resume,
                         progress=not args.no_progress, figures=not args.no_figures,
-                        command_line=list(sys.argv), executor=executor, force=args.force,
+                        command_line=["arraysel", *sys.argv[1:]], executor=executor, force=args.force,
                         isolate=not args.in_process, grace_s=grace_s)
     finally:
         if executor is not None:
