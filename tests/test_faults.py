@@ -633,7 +633,8 @@ def test_evaluate_streams_kernels_and_rows_in_chunks(tmp_path, tiny_scene, monke
     assert list(df["elements"]) == [" ".join(map(str, s)) for s in sels]
     d = np.load(psf)
     assert d["psf"].shape == (30, 16, 16) and d["psf_ref"].shape == (16, 16)
-    from arraysel.objective.psf_objective import build_objective, masks_from_indices
+    from arraysel.objective.psf_objective import build_objective
+    from arraysel.selection import masks_from_indices
     obj = build_objective(tiny_scene)
     want = obj.evaluate(masks_from_indices(sels, 8, 4), return_kernels=True)
     assert np.allclose(d["psf"], want["kernels"], atol=1e-6)

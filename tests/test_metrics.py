@@ -8,18 +8,13 @@ import pytest
 import torch
 
 from arraysel.errors import NumericalError, ParameterError
+from arraysel.objective.losses import DEFAULT_WEIGHTS, composite_loss, l_conv, l_ent, l_rec, l_row
 from arraysel.objective.metrics import (
-    DEFAULT_WEIGHTS,
     PSF_TERMS,
     check_finite,
     check_kernels,
     check_regions,
     circular_convolve,
-    composite_loss,
-    l_conv,
-    l_ent,
-    l_rec,
-    l_row,
     psf_metrics,
     psf_regions,
     safe_abs,

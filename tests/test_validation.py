@@ -144,14 +144,14 @@ def test_scene_probe_name_is_checked():
     ([[]], None, r"selection 0: empty selection"),
 ])
 def test_masks_from_indices_rejects_bad_selections(sel, k, pattern):
-    from arraysel.objective.psf_objective import masks_from_indices
+    from arraysel.selection import masks_from_indices
 
     with pytest.raises(SelectionError, match=pattern):
         masks_from_indices(sel, 8, k)
 
 
 def test_masks_from_indices_accepts_valid():
-    from arraysel.objective.psf_objective import masks_from_indices
+    from arraysel.selection import masks_from_indices
 
     m = masks_from_indices([[0, 7, 3, 4], np.array([1, 2, 5, 6])], 8, 4)
     assert m.shape == (2, 8) and (m.sum(1) == 4).all()

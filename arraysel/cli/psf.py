@@ -24,7 +24,8 @@ def run(args) -> int:
     import torch
 
     from arraysel.io.masks import atomic_savez, parse_elements
-    from arraysel.objective.psf_objective import build_objective, masks_from_indices
+    from arraysel.objective.psf_objective import build_objective
+    from arraysel.selection import masks_from_indices
     from arraysel.scenes.schema import load_scene
 
     from arraysel.io.outputs import check_outputs, scene_input

@@ -35,8 +35,8 @@ here:
   averaged over the batch (``n^2`` times larger).
 * ``L_rec = mean((I_hat - I_ref)^2)`` over pixels and batch.
 * ``L_ent``: mean over columns of the entropy ``-sum_i p_ij log p_ij`` of
-  ``P_soft`` (:func:`arraysel.objective.metrics.l_ent`).
-* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2`` (:func:`arraysel.objective.metrics.l_row`).
+  ``P_soft`` (:func:`arraysel.objective.losses.l_ent`).
+* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2`` (:func:`arraysel.objective.losses.l_row`).
   It is computed on ``P_soft``: the hard ``P`` drawn without replacement never
   repeats an element, so the penalty on it would be identically zero.
 
@@ -86,9 +86,9 @@ BALANCED_TERMS = ("psf", "contrast", "slr", "conv", "rec")
 CHECKPOINT_FORMAT = "arraysel-e2e-1"
 
 
-#: ``L_ent`` (mean column entropy of ``P_soft``): :func:`arraysel.objective.metrics.l_ent`
+#: ``L_ent`` (mean column entropy of ``P_soft``): :func:`arraysel.objective.losses.l_ent`
 entropy_loss = l_ent
-#: ``L_row`` (``sum_i relu(sum_j p_ij - 1)^2``): :func:`arraysel.objective.metrics.l_row`
+#: ``L_row`` (``sum_i relu(sum_j p_ij - 1)^2``): :func:`arraysel.objective.losses.l_row`
 row_loss = l_row
 
 

@@ -1,7 +1,6 @@
 """PSF metrics (SPEC section 2) and the circular convolution of the image model.
 
-The training loss terms (SPEC section 3) live in :mod:`arraysel.objective.losses`; their names
-are re-exported here for 0.1 callers.
+The training loss terms (SPEC section 3) live in :mod:`arraysel.objective.losses`.
 
 Everything here is written with torch, works on any device, accepts
 float32/float64 and complex64/complex128 tensors, is batched over leading
@@ -38,16 +37,11 @@ from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
 from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
-# the training loss terms and their weights have one home, arraysel.objective.losses; these names stay
-# importable from here (tests, plugins and notebooks use them)
-from arraysel.objective.losses import (DEFAULT_WEIGHTS, composite_loss, l_conv, l_ent,  # noqa: F401
-                                       l_rec, l_row)
 from arraysel.physics import compiled as physics_compiled
 
 __all__ = [
     "METRIC_NAMES",
     "PSF_TERMS",
-    "DEFAULT_WEIGHTS",
     "PSFRegions",
     "safe_abs",
     "si_mse",
@@ -55,11 +49,6 @@ __all__ = [
     "psf_metrics",
     "circular_convolve",
     "kernel_spectrum",
-    "l_conv",
-    "l_rec",
-    "l_ent",
-    "l_row",
-    "composite_loss",
     "check_finite",
     "check_kernels",
     "check_regions",

@@ -42,7 +42,7 @@ from arraysel.objective import metrics as M
 from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, psf_weighted_sum, selection_terms, weighted_sum
 from arraysel.errors import NumericalError, ParameterError, SelectionError
-from arraysel.selection import masks_from_indices  # noqa: F401  (one home; imported from here by older code)
+from arraysel.selection import masks_from_indices
 from arraysel.physics.psf import PSFModel
 from arraysel.scenes.schema import Scene, load_scene
 

@@ -399,13 +399,14 @@ def _panels(n: int, cols: int = 4, size: float = 3.0, extra_width: float = 0.0):
     """A figure with ``n`` axes in rows of at most ``cols``; the unused axes switched off."""
     cols = max(1, min(cols, n))
     rows = max(1, math.ceil(n / cols))
-    fig = _figure(figsize=(size * cols + extra_width, size * rows))
+    fig = figure((size * cols + extra_width, size * rows))
     axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for ax in axes[n:]:
         ax.axis("off")
     return fig, axes[:n]
 
 
+@styled
 def matrix_masks_figure(labels: Sequence[str], masks: np.ndarray, grid: tuple[int, int]):
     """The active elements of each selection on a matrix array: one ``ny x nx`` image per label
     (element index ``iy * nx + ix``; black = active), columns ``ix`` across, rows ``iy`` up."""
@@ -459,6 +460,7 @@ def plane_image(ax, plane, coords, *, ref_peak: float | None = None, title: str 
     return im
 
 
+@styled
 def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict | None = None):
     """The planes of 3-D PSFs at :data:`DYN_RANGE_DB`, axes in mm: one row per selection (the full
     array's first when ``ref`` is given), one column per plane (the C-plane ``xy``, ``xz``, ``yz``).
@@ -475,7 +477,7 @@ def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict |
         ref = {n: _as_numpy(ref[n]).reshape(_as_numpy(ref[n]).shape[-2:]) for n in names}
         rows.insert(0, ("full array", ref))
         peak = max(float(np.abs(v).max()) for v in ref.values())
-    fig = _figure(figsize=(3.2 * len(names) + 1.0, 3.0 * len(rows)))
+    fig = figure((3.2 * len(names) + 1.0, 3.0 * len(rows)))
     axes = np.array(fig.subplots(len(rows), len(names), squeeze=False))
     im = None
     for r, (lab, row) in enumerate(rows):
@@ -486,6 +488,7 @@ def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict |
     return fig
 
 
+@styled
 def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
     """Lateral profiles of the C-plane through its peak, along x and along y, in dB of the full
     array's peak (each selection's own peak without ``ref``), the full array in black; the legend
@@ -503,7 +506,7 @@ def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
         ref = _as_numpy(ref).reshape(_as_numpy(ref).shape[-2:])
         items.insert(0, ("full", ref))
         peak = float(np.abs(ref).max())
-    fig = _figure(figsize=(10, 4))
+    fig = figure((10, 4))
     ax_x, ax_y = fig.subplots(1, 2)
     for lab, plane in items:
         prof = c_plane_profiles(plane, c)

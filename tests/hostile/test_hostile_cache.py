@@ -418,7 +418,7 @@ def test_psf_basis_with_a_tensor_missing_from_its_manifest_is_rebuilt(cache_fold
     """The real consumer: a basis whose manifest lost a tensor entry (U, a stored basis's singular
     vectors) is damage, not a traceback and not a different basis."""
     from arraysel.objective import psf_objective
-    from arraysel.objective.psf_objective import masks_from_indices
+    from arraysel.selection import masks_from_indices
 
     def build_objective(scene):  # a new objective each time (the process keeps built ones)
         monkeypatch.setattr(psf_objective, "_CACHE", {})
