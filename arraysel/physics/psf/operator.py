@@ -82,6 +82,23 @@ class Transmit:
         return torch.cat([m.real, m.imag], dim=1)
 
 
+def normalised_transmits(parts) -> tuple[float, list[Transmit]]:
+    """The transmits of ``parts`` (``(delays, grid, G, RC, iq_band)`` each: ``G`` the transmit
+    field and ``RC`` the receive factor at the scatterer, ``(Ne, F)`` complex) with ``G`` and
+    ``RC`` divided by their largest magnitude over all transmits, and the physical value of one
+    unit of what they produce (``image_scale``). A deep, attenuated or weak echo can lie below
+    float32's normal range at its physical scale; the kernels are normalised, so only the unit
+    changes. Raises :class:`NumericalError` when the echo is zero or not finite."""
+    g_max = max(float(G.abs().max()) for _, _, G, _, _ in parts)
+    rc_max = max(float(RC.abs().max()) for _, _, _, RC, _ in parts)
+    if not (g_max > 0 and rc_max > 0 and math.isfinite(g_max) and math.isfinite(rc_max)):
+        raise NumericalError(f"the echo of the scatterer is zero or not finite (|G| max {g_max:.3g}, "
+                             f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
+    return g_max * rc_max, [Transmit(delays=d, grid=g, tx_field=G / g_max, rx_factor=RC / rc_max, iq_band=b)
+                            for d, g, G, RC, b in parts]
+
+
+
 class PSFModel:
     """Batched, differentiable PSF synthesis for one scene.
 
@@ -397,7 +414,6 @@ class PSFModel:
         xt = torch.tensor([xs], dtype=torch.float64)
         zt = torch.tensor([zs], dtype=torch.float64)
         delays_all = plane_wave_delays(probe, list(s.tilts), acq.c)
-        self.transmits = []
         parts = []
         for delays in delays_all:
             grid = grid_for_points(xt, zt, delays, probe, acq, s.options)
@@ -411,20 +427,9 @@ class PSFModel:
             C = P * H * H * (grid.df * probe.width * s.reflectivity)
             band = (acq.fs, probe.fc, probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
             parts.append((delays, grid, G, R * C[None, :], band))
-        # A deep, attenuated or weak echo can lie below float32's normal range at its physical
-        # scale; G and RC are divided by their largest magnitude over all transmits (the kernel is
-        # normalised, so only the unit changes): spectra, RF, I/Q and images are in units of
-        # ``image_scale``.
-        g_max = max(float(G.abs().max()) for _, _, G, _, _ in parts)
-        rc_max = max(float(RC.abs().max()) for _, _, _, RC, _ in parts)
-        if not (g_max > 0 and rc_max > 0 and math.isfinite(g_max) and math.isfinite(rc_max)):
-            raise NumericalError(f"the echo of the scatterer is zero or not finite (|G| max {g_max:.3g}, "
-                                 f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
+        # spectra, RF, I/Q and images are in units of ``image_scale`` (see normalised_transmits)
         #: physical value of one unit of :meth:`spectra`, :meth:`rf`, :meth:`iq` and :meth:`image`
-        self.image_scale = g_max * rc_max
-        for delays, grid, G, RC, band in parts:
-            self.transmits.append(Transmit(delays=delays, grid=grid, tx_field=G / g_max, rx_factor=RC / rc_max,
-                                           iq_band=band))
+        self.image_scale, self.transmits = normalised_transmits(parts)
 
     def _weights(self, weights) -> torch.Tensor:
         w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))

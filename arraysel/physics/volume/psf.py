@@ -31,7 +31,7 @@ import torch
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.probes import Acquisition, MatrixProbe, check_sampling
-from arraysel.physics.psf.operator import Transmit
+from arraysel.physics.psf.operator import normalised_transmits
 from arraysel.physics.psf.window import scale_complex
 from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
 from arraysel.physics.volume.beamform import receive_distance3, transmit_distance3
@@ -246,15 +246,8 @@ class MatrixPSF:
             C = pulse_spectrum(f, probe.fc, acq.tx_cycles) * H * H * s.reflectivity
             band = (acq.fs, probe.fc, probe.bandwidth if s.iq_bandwidth is None else s.iq_bandwidth)
             parts.append((delays, grid, G, R * C[None, :], band))
-        g_max = max(float(G.abs().max()) for _, _, G, _, _ in parts)
-        rc_max = max(float(RC.abs().max()) for _, _, _, RC, _ in parts)
-        if not (g_max > 0 and rc_max > 0 and math.isfinite(g_max) and math.isfinite(rc_max)):
-            raise NumericalError(f"the echo of the scatterer is zero or not finite (|G| max {g_max:.3g}, "
-                                 f"|RC| max {rc_max:.3g}): check depth, attenuation and reflectivity")
         #: physical value (SIMUS3's RF amplitude) of one unit of :meth:`iq` and :meth:`planes`
-        self.image_scale = g_max * rc_max
-        self.transmits = [Transmit(delays=d, grid=g, tx_field=G / g_max, rx_factor=RC / rc_max, iq_band=b)
-                          for d, g, G, RC, b in parts]
+        self.image_scale, self.transmits = normalised_transmits(parts)
 
     # ------------------------------------------------------------------ pieces
     def _weights(self, weights) -> torch.Tensor:
