@@ -41,6 +41,11 @@ MACHINE_PATHS: tuple[tuple[str, re.Pattern[str]], ...] = (
 ALLOWED: tuple[re.Pattern[str], ...] = (
     # the set-up command activates the venv it creates in the checkout (relative path)
     re.compile(r"(?:^|[\s;&(])(?:\.|source) \.venv/bin/activate\b"),
+    # CI's wheel check: a venv it makes in a fresh temporary folder ($work), and the check that the
+    # package imported is the installed one (in site-packages), not the checkout
+    re.compile(r'"\$work/venv/bin/'),
+    re.compile(r'"site-packages" in where\.parts'),
+    re.compile(r"in site-packages\b"),
 )
 
 #: files that may name the patterns themselves
