@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from arraysel.objective import metrics as M
+from arraysel.objective import losses as L
 from arraysel.objective.psf_objective import Objective
 from arraysel.scenes.schema import load_scene
 
@@ -28,8 +28,8 @@ def test_row_term_acts_on_p_soft_not_on_the_straight_through_p(tiny):
     P_soft = torch.full((n, k), 0.05)
     P_soft[0, :] = 0.65                      # element 0 carries most of every column's mass
     P_soft = P_soft / P_soft.sum(0, keepdim=True)
-    assert float(M.l_row(P)) == 0.0 and float(M.l_row(P_soft)) > 0.1
+    assert float(L.l_row(P)) == 0.0 and float(L.l_row(P_soft)) > 0.1
     P_st = (P - P_soft).detach() + P_soft.clone().requires_grad_(True)
     total, terms = tiny.selection_loss(P_st, P_soft, 0)
-    assert float(terms["L_row"]) == pytest.approx(float(M.l_row(P_soft)), rel=1e-6)
+    assert float(terms["L_row"]) == pytest.approx(float(L.l_row(P_soft)), rel=1e-6)
     assert float(terms["L_row"]) > 0.1       # the old code (L_row of P) gave exactly 0 here

@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 import torch
 
+from arraysel.objective import losses as L
 from arraysel.objective import metrics as M
 from arraysel.errors import NumericalError, ParameterError
 from arraysel.physics.probes import Acquisition, get_probe
@@ -183,7 +184,7 @@ def test_relaxation_extreme_temperatures_and_logits(variant, tau):
                     assert torch.allclose(rel.P.detach(), rel.P_hard), where
                 # gradients through P (straight-through) and P_soft, with the loss terms
                 target = torch.randn(ne, k, generator=gen, dtype=torch.float64).to(dtype)
-                loss = (rel.P * target).sum() + M.l_ent(rel.P_soft) + M.l_row(rel.P_soft)
+                loss = (rel.P * target).sum() + L.l_ent(rel.P_soft) + L.l_row(rel.P_soft)
                 (g,) = torch.autograd.grad(loss, logits)
                 assert torch.isfinite(g).all(), where
 
@@ -572,7 +573,7 @@ def test_reconstructor_with_ill_conditioned_kernel_has_finite_gradients():
     x = torch.rand(2, 1, 16, 16)
     y = ConvolutionOperator(kappa.detach()).A(x)
     out = net(y, kappa)
-    loss = M.l_rec(out, x) + M.l_conv(M.circular_convolve(kappa, x.to(kappa.dtype)), y)
+    loss = L.l_rec(out, x) + L.l_conv(M.circular_convolve(kappa, x.to(kappa.dtype)), y)
     assert torch.isfinite(loss)
     loss.backward()
     assert torch.isfinite(torch.view_as_real(kappa.grad)).all()
@@ -600,21 +601,21 @@ def test_composite_loss_with_terms_1e4_apart(dtype):
     y_ref = M.circular_convolve(m.reference_kernel(), img).detach()
     y = M.circular_convolve(kappa[0], img)
     terms = dict(met)
-    terms["L_conv"] = M.l_conv(y * 1e4, y_ref * 1e4)           # ~1e4 larger than usual
-    terms["L_rec"] = M.l_rec(y.real * 1e-2, y_ref.real * 1e-2)  # ~1e4 smaller than usual
+    terms["L_conv"] = L.l_conv(y * 1e4, y_ref * 1e4)           # ~1e4 larger than usual
+    terms["L_rec"] = L.l_rec(y.real * 1e-2, y_ref.real * 1e-2)  # ~1e4 smaller than usual
     P_soft = torch.softmax(torch.randn(16, 4, dtype=dtype) * 1e3, dim=0)
-    terms["L_ent"] = M.l_ent(P_soft)
-    terms["L_row"] = M.l_row(P_soft)
+    terms["L_ent"] = L.l_ent(P_soft)
+    terms["L_row"] = L.l_row(P_soft)
     for name, v in terms.items():
         assert torch.isfinite(v).all(), name
-    total = M.composite_loss(terms)
+    total = L.composite_loss(terms)
     assert torch.isfinite(total)
     (g,) = torch.autograd.grad(total, w)
     assert torch.isfinite(g).all() and float(g.abs().max()) > 0
     # weights 1e4 apart, on scalars: the small term's gradient is not absorbed
     a = torch.tensor(1.0, dtype=dtype, requires_grad=True)
     b = torch.tensor(1.0, dtype=dtype, requires_grad=True)
-    tot = M.composite_loss({"big": a * 1e4, "small": b * 1e-4}, {"big": 1e4, "small": 1.0})
+    tot = L.composite_loss({"big": a * 1e4, "small": b * 1e-4}, {"big": 1e4, "small": 1.0})
     ga, gb = torch.autograd.grad(tot, (a, b))
     assert torch.isfinite(tot) and float(ga) == pytest.approx(1e8) and float(gb) == pytest.approx(1e-4)
 
