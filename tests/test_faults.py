@@ -23,6 +23,7 @@ import torch
 from arraysel.io import atomic
 
 from arraysel.io import cache
+from scene_texts import TINY_SCENE
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -577,26 +578,6 @@ def test_compare_unwritable_out_fails_before_the_objective_is_built(tmp_path, ca
 # evaluate: streaming, long lines, encodings, paths, unwritable outputs
 # ---------------------------------------------------------------------------
 
-TINY_SCENE = """
-name = "tiny"
-base = "paper"
-[probe]
-n_elements = 8
-[transmit]
-n_tx = 1
-[grid]
-n_x = 32
-n_z = 32
-window = 16
-[selection]
-k = 4
-[metrics]
-r_main = 0.25
-r_guard = 0.5
-[simulator]
-fast_margin = 2
-fast_block = 4
-"""
 
 
 @pytest.fixture

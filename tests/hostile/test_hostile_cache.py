@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from arraysel.io import cache
+from scene_texts import TINY_SCENE
 
 ROOT = Path(__file__).resolve().parents[2]
 AS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
@@ -212,26 +213,6 @@ def test_unusable_cache_folder_builds_without_the_cache_in_one_line(tmp_path, mo
     assert all("\n" not in m for m in msgs)
 
 
-TINY_SCENE = """
-name = "tiny"
-base = "paper"
-[probe]
-n_elements = 8
-[transmit]
-n_tx = 1
-[grid]
-n_x = 32
-n_z = 32
-window = 16
-[selection]
-k = 4
-[metrics]
-r_main = 0.25
-r_guard = 0.5
-[simulator]
-fast_margin = 2
-fast_block = 4
-"""
 
 
 def _psf_command(base: Path, env: dict, user=None, name="psf.npz"):

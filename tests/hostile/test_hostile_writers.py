@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from arraysel.io import atomic
+from scene_texts import TINY_SCENE
 
 _WRITER = textwrap.dedent("""
     import sys, time
@@ -76,26 +77,6 @@ def test_next_writer_removes_a_killed_writers_leftover_but_not_a_live_ones(tmp_p
     assert not live_tmp.exists() and other_host.is_file() and foreign.is_file()
 
 
-TINY_SCENE = """
-name = "tiny"
-base = "paper"
-[probe]
-n_elements = 8
-[transmit]
-n_tx = 1
-[grid]
-n_x = 32
-n_z = 32
-window = 16
-[selection]
-k = 4
-[metrics]
-r_main = 0.25
-r_guard = 0.5
-[simulator]
-fast_margin = 2
-fast_block = 4
-"""
 
 
 @pytest.mark.slow
