@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import pickle
-import signal
 import sys
 
 import numpy as np
@@ -25,6 +24,7 @@ from arraysel.report.columns import ROW_COLUMNS
 from arraysel.run.compare import compare
 from arraysel.selectors.contract import Budget, Option, Selector, numpy_rng
 from arraysel.testing import ToyObjective
+from support import time_limit
 
 TEST_LIMIT_S = 60
 # the pytest process; workers inherit the variable and must not overwrite it
@@ -71,16 +71,7 @@ class AlwaysCrash(Selector):
         _die()
 
 
-@pytest.fixture(autouse=True)
-def _bounded():
-    """Fail, instead of hanging, a test that runs longer than TEST_LIMIT_S."""
-    def stop(signum, frame):
-        raise TimeoutError(f"test took more than {TEST_LIMIT_S} s")
-    old = signal.signal(signal.SIGALRM, stop)
-    signal.alarm(TEST_LIMIT_S)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
+_bounded = time_limit(TEST_LIMIT_S)  # fails, instead of hanging, a test longer than this
 
 
 @pytest.fixture(scope="module")

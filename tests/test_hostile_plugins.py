@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
 import time
 from pathlib import Path
 
@@ -21,35 +20,15 @@ import pytest
 from arraysel.errors import ArrayselError, ParameterError
 from arraysel.objective.toy import ToyObjective
 from arraysel.selectors.contract import Budget, BudgetedObjective, Recorder, indices_to_mask
+from support import own_plugin_manager, time_limit  # noqa: F401  (autouse fixtures)
 
 PLUGIN = str(Path(__file__).with_name("hostile_plugin.py"))
 TEST_LIMIT_S = 120
 
 
-@pytest.fixture(autouse=True)
-def _bounded():
-    """Fail, instead of hanging, a test that runs longer than TEST_LIMIT_S."""
-    def stop(signum, frame):
-        raise TimeoutError(f"test took more than {TEST_LIMIT_S} s")
-    old = signal.signal(signal.SIGALRM, stop)
-    signal.alarm(TEST_LIMIT_S)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
+_bounded = time_limit(TEST_LIMIT_S)  # fails, instead of hanging, a test longer than this
 
 
-@pytest.fixture(autouse=True)
-def _own_plugin_manager(monkeypatch):
-    """A process-wide plugin manager of the built-ins only, restored afterwards."""
-    from arraysel.selectors import registry
-
-    monkeypatch.delenv(registry.DISABLE_ENV, raising=False)
-    registry.reset()
-    registry._PM = registry.build_plugin_manager(load_entrypoints=False)
-    try:
-        yield
-    finally:
-        registry.reset()
 
 
 def _compare(out, selectors, *extra, budget_s="5", evals="50", scene="toy"):

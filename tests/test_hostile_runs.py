@@ -21,6 +21,7 @@ import pandas as pd
 import pytest
 
 from arraysel.run.outdir import LOCK_NAME
+from support import own_plugin_manager, time_limit  # noqa: F401  (autouse fixtures)
 
 PLUGIN = str(Path(__file__).with_name("hostile_plugin.py"))
 TEST_LIMIT_S = 150
@@ -49,28 +50,9 @@ sys.exit(main(sys.argv[3:]))
 """
 
 
-@pytest.fixture(autouse=True)
-def _bounded():
-    def stop(signum, frame):
-        raise TimeoutError(f"test took more than {TEST_LIMIT_S} s")
-    old = signal.signal(signal.SIGALRM, stop)
-    signal.alarm(TEST_LIMIT_S)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
+_bounded = time_limit(TEST_LIMIT_S)  # fails, instead of hanging, a test longer than this
 
 
-@pytest.fixture(autouse=True)
-def _own_plugin_manager(monkeypatch):
-    from arraysel.selectors import registry
-
-    monkeypatch.delenv(registry.DISABLE_ENV, raising=False)
-    registry.reset()
-    registry._PM = registry.build_plugin_manager(load_entrypoints=False)
-    try:
-        yield
-    finally:
-        registry.reset()
 
 
 def _main(*argv) -> int:
