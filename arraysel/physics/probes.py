@@ -94,6 +94,20 @@ def _check_baffle(value: Any) -> Baffle:
     return v
 
 
+def _check_name(name: Any) -> None:
+    """A probe's name: a non-empty string."""
+    if not isinstance(name, str) or not name.strip():
+        raise ParameterError(f"name = {name!r} must be a non-empty string")
+
+
+def _check_transducer(probe, set_) -> None:
+    """Check and set the fields every probe kind shares: ``fc``, ``bandwidth`` and ``baffle``."""
+    set_("fc", _positive("fc", probe.fc))
+    set_("bandwidth", check_number("bandwidth", probe.bandwidth, lo=0.0, hi=200.0,
+                                   lo_open=True, hi_open=True))
+    set_("baffle", _check_baffle(probe.baffle))
+
+
 @dataclass(frozen=True)
 class Probe:
     """Geometry and pulse band of a 1-D (linear or convex) ultrasound array.
@@ -128,8 +142,7 @@ class Probe:
 
     def __post_init__(self) -> None:
         set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
-        if not isinstance(self.name, str) or not self.name.strip():
-            raise ParameterError(f"name = {self.name!r} must be a non-empty string")
+        _check_name(self.name)
         set_("n_elements", check_number("n_elements", self.n_elements, lo=1, hi=None, integer=True))
         pitch = _positive("pitch", self.pitch)
         set_("pitch", pitch)
@@ -155,10 +168,7 @@ class Probe:
                     f"radius = {self.radius!r} is too small for n_elements = {self.n_elements} and "
                     f"pitch = {pitch!r}: the arc would span {total!r} rad; a convex array needs "
                     f"(n_elements - 1) * 2 asin(pitch / (2 radius)) < pi")
-        set_("fc", _positive("fc", self.fc))
-        set_("bandwidth", check_number("bandwidth", self.bandwidth, lo=0.0, hi=200.0,
-                                       lo_open=True, hi_open=True))
-        set_("baffle", _check_baffle(self.baffle))
+        _check_transducer(self, set_)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -265,8 +275,7 @@ class MatrixProbe:
 
     def __post_init__(self) -> None:
         set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
-        if not isinstance(self.name, str) or not self.name.strip():
-            raise ParameterError(f"name = {self.name!r} must be a non-empty string")
+        _check_name(self.name)
         set_("nx", check_number("nx", self.nx, lo=1, hi=4096, integer=True))
         set_("ny", check_number("ny", self.ny, lo=1, hi=4096, integer=True))
         for pitch, size in (("pitch_x", "width"), ("pitch_y", "height")):
@@ -278,10 +287,7 @@ class MatrixProbe:
                     f"{size} = {getattr(self, size)!r} is out of range; allowed: (0, {pitch}] = (0, {p!r}] "
                     "(an element cannot be larger than the pitch)")
             set_(size, v)
-        set_("fc", _positive("fc", self.fc))
-        set_("bandwidth", check_number("bandwidth", self.bandwidth, lo=0.0, hi=200.0,
-                                       lo_open=True, hi_open=True))
-        set_("baffle", _check_baffle(self.baffle))
+        _check_transducer(self, set_)
 
     # ------------------------------------------------------------------ derived
     @property
