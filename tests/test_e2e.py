@@ -51,13 +51,14 @@ def make_trainer(objective, images, image_size=16, **cfg):
         return objective.psf.kernels(w[None])[0]
 
     def psf_terms(kappa):
-        return {"psf": objective.metrics_of_kernels(kappa[None], terms=["L_PSF"])["L_PSF"][0]}
+        return {"L_PSF": objective.metrics_of_kernels(kappa[None], terms=["L_PSF"])["L_PSF"][0]}
 
-    config = dict(batch_size=4, max_steps=1, progress=False, seed=0, checkpoint_every=0)
+    config = dict(batch_size=4, max_steps=1, progress=False, seed=0, checkpoint_every=0,
+                  weights=dict(L_contrast=0, L_SLR=0))
     config.update(cfg)
     return E2ETrainer(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0)), kernel_fn,
                       objective.reference_kernel(), images, psf_terms_fn=psf_terms,
-                      weights=dict(contrast=0, slr=0), config=config, n_layers=2, base_channels=4,
+                      config=config, n_layers=2, base_channels=4,
                       scene_fn=SceneMaker(n=image_size, mode="image"), image_size=image_size)
 
 
@@ -77,7 +78,7 @@ def test_gradients_reach_selection_logits_through_the_simulator(tiny, images):
     assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) > 0
     # the physics part alone (L_PSF through the PSF model) also reaches the logits
     t.selection.logits.grad = None
-    t.loss_terms(images[:4], tau=3.0)["psf"].backward()
+    t.loss_terms(images[:4], tau=3.0)["L_PSF"].backward()
     assert float(t.selection.logits.grad.abs().sum()) > 0
 
 
@@ -218,8 +219,8 @@ def test_figure_functions_return_figures_and_leave_the_backend_alone(tmp_path):
     fig = figures.fig_mask(masks, 8)
     assert isinstance(fig, Figure)
     assert fig.axes[0].get_yticklabels()[0].get_text().startswith("learned")
-    assert isinstance(figures.fig_loss([{"total": 1.0, "psf": 0.5, "tau": 6.0},
-                                        {"total": 0.5, "rec": 0.1, "tau": 5.0}]), Figure)
+    assert isinstance(figures.fig_loss([{"total": 1.0, "L_PSF": 0.5, "tau": 6.0},
+                                        {"total": 0.5, "L_rec": 0.1, "tau": 5.0}]), Figure)
     figures.save_figure(fig, str(tmp_path / "m.png"))
     assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert matplotlib.get_backend() == backend

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from arraysel.errors import ParameterError
 from arraysel.objective import losses as L
 from arraysel.objective import metrics as M
 from arraysel.objective.toy import ToyObjective
@@ -54,7 +55,8 @@ def test_toy_selection_loss_uses_the_shared_terms():
     assert float(total) == pytest.approx(float(expect), rel=1e-6)
     # the mask loss is the weighted PSF part only
     mtotal, mterms = obj.mask_loss(rel.P.sum(1).detach().float()[None])
-    assert float(mtotal[0]) == pytest.approx(float(L.psf_weighted_sum(mterms, w)[0]), rel=1e-6)
+    assert float(mtotal[0]) == pytest.approx(float(L.training_loss(mterms, {k: w[k] for k in L.PSF_WEIGHT_KEYS})[0][0]),
+                                             rel=1e-6)
 
 
 def test_entropy_matches_the_former_relax_formula():
@@ -73,3 +75,36 @@ def test_weighted_sum_order_zeros_and_shape():
     assert L.weighted_sum(terms, {}) == 0
     assert L.weighted_sum(terms, {"a": 1.0, "b": 1.0}, keys=("b",)).tolist() == [3.0, 4.0]
     assert L.PSF_WEIGHT_KEYS == ("L_PSF", "L_contrast", "L_SLR")
+
+
+def test_training_loss_is_the_one_weighted_sum_of_every_caller():
+    """training_loss sums LOSS_KEYS in order, adds L_ent / L_row of P_soft, divides by scales,
+    skips unweighted and extra terms, and keeps the terms' shape."""
+    rel = _straight_through()
+    terms = {"L_PSF": torch.tensor([1.0, 2.0]), "L_SLR": torch.tensor([0.5, 0.25]),
+             "L_SLR_q": torch.tensor([math.nan, math.nan]), "L_conv": torch.tensor([4.0, 8.0])}
+    w = {"L_PSF": 2.0, "L_SLR": 4.0, "L_conv": 0.0, "L_ent": 1.0, "L_row": 3.0}
+    total, out = L.training_loss(terms, w, P_soft=rel.P_soft, scales={"L_PSF": 2.0})
+    reg = float(L.l_ent(rel.P_soft)) + 3.0 * float(L.l_row(rel.P_soft))
+    assert total.tolist() == pytest.approx([1.0 + 2.0 + reg, 2.0 + 1.0 + reg])
+    assert set(out) == set(terms) | {"L_ent", "L_row"}
+    zero, _ = L.training_loss({"L_PSF": torch.ones(2, dtype=torch.float64)}, {"L_PSF": 0.0})
+    assert zero.dtype == torch.float64 and float(zero) == 0.0
+    assert L.LOSS_KEYS == ("L_PSF", "L_contrast", "L_SLR", "L_conv", "L_rec", "L_ent", "L_row")
+    assert set(L.LOSS_KEYS) == set(L.DEFAULT_WEIGHTS)
+
+
+def test_weights_take_the_scene_names_only():
+    from arraysel.e2e.config import TrainConfig
+
+    assert L.check_weights(None) == dict(L.DEFAULT_WEIGHTS)
+    assert L.check_weights({"L_rec": 0})["L_rec"] == 0.0 and L.check_weights({})["L_PSF"] == 10.0
+    with pytest.raises(ParameterError, match="'L_PSF'"):
+        L.check_weights({"psf": 1.0})
+    with pytest.raises(ParameterError, match="unknown loss term"):
+        L.check_weights({"L_nope": 1.0})
+    with pytest.raises(ParameterError, match="L_row"):
+        L.check_weights({"L_row": -1.0})
+    assert TrainConfig(weights={"L_conv": 0}).weights["L_conv"] == 0.0
+    with pytest.raises(ParameterError, match="'L_conv'"):
+        TrainConfig(weights={"conv": 0})

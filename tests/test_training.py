@@ -9,7 +9,7 @@ import torch
 
 from arraysel.e2e.data import load_dataset
 from arraysel.errors import ParameterError, SelectionError
-from arraysel.e2e.trainer import (E2ETrainer, HardSTESelection, LossWeights, TrainConfig,
+from arraysel.e2e.trainer import (E2ETrainer, HardSTESelection, TrainConfig,
                                entropy_loss, mask_to_weights, row_loss, tau_schedule, train_e2e)
 
 NE, K, N = 16, 6, 32
@@ -47,7 +47,7 @@ def toy_psf_terms(kappa_ref: torch.Tensor):
         psf = (torch.linalg.vector_norm(a * kappa - kappa_ref) / torch.linalg.vector_norm(kappa_ref)) ** 2
         m2 = kappa.abs() ** 2
         ratio = m2[~main].mean() / m2[main].mean()
-        return {"psf": psf, "contrast": ratio, "slr_q": ratio.sqrt(), "slr_i": ratio}
+        return {"L_PSF": psf, "L_contrast": ratio, "L_SLR_q": ratio.sqrt(), "L_SLR_i": ratio}
 
     return fn
 
@@ -70,11 +70,11 @@ def separated_selection(gen_seed: int = 0, **kw) -> HardSTESelection:
 def make_trainer(images, tmp_path=None, selection=None, weights=None, **cfg):
     kfn = toy_kernel_fn()
     kref = kfn(torch.ones(NE))
-    config = dict(batch_size=4, epochs=1, progress=False, seed=0, checkpoint_every=0)
+    config = dict(batch_size=4, epochs=1, progress=False, seed=0, checkpoint_every=0, weights=weights)
     config.update(cfg)
     return E2ETrainer(selection if selection is not None else HardSTESelection(
                           NE, K, generator=torch.Generator().manual_seed(1)),
-                      kfn, kref, images, psf_terms_fn=toy_psf_terms(kref), weights=weights,
+                      kfn, kref, images, psf_terms_fn=toy_psf_terms(kref),
                       config=config, base_channels=4, n_layers=4,
                       checkpoint_path=None if tmp_path is None else tmp_path / "ckpt.pt")
 
@@ -179,9 +179,9 @@ def test_one_step_decreases_loss_on_fixed_batch(images):
             return t.loss_terms(batch, t.tau())
 
     before = loss()
-    expected = sum(getattr(t.weights, k) * v for k, v in before.items() if k != "total")
+    expected = sum(t.weights[k] * v for k, v in before.items() if k != "total")
     torch.testing.assert_close(before["total"], expected)
-    assert set(before) == {"psf", "contrast", "slr", "conv", "rec", "ent", "row", "total"}
+    assert set(before) == {"L_PSF", "L_contrast", "L_SLR", "L_conv", "L_rec", "L_ent", "L_row", "total"}
     rec = t.train_step()
     assert rec["total"] == pytest.approx(float(before["total"]), rel=1e-5)
     after = loss()
@@ -191,10 +191,10 @@ def test_one_step_decreases_loss_on_fixed_batch(images):
 
 def test_gradients_reach_logits_through_reconstruction(images):
     # only L_rec: the gradient must flow image -> head -> ISTA -> kappa -> kernel_fn -> P -> logits
-    w = dict(psf=0, conv=0, contrast=0, slr=0, ent=0, row=0, rec=1)
+    w = dict(L_PSF=0, L_conv=0, L_contrast=0, L_SLR=0, L_ent=0, L_row=0, L_rec=1)
     t = make_trainer(images, weights=w)
     terms = t.loss_terms(images[:4], 2.0)
-    assert set(terms) == {"rec", "total"}
+    assert set(terms) == {"L_rec", "total"}
     terms["total"].backward()
     g = t.selection.logits.grad
     assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) > 0
@@ -209,27 +209,28 @@ def test_zero_weight_terms_are_not_computed(images):
         raise AssertionError("psf_terms_fn called although its weights are 0")
 
     t = E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images,
-                   psf_terms_fn=forbidden, weights=dict(psf=0, contrast=0, slr=0, conv=0),
-                   config=dict(batch_size=4, progress=False), base_channels=4, n_layers=2)
+                   psf_terms_fn=forbidden,
+                   config=dict(batch_size=4, progress=False, weights=dict(L_PSF=0, L_contrast=0, L_SLR=0, L_conv=0)),
+                   base_channels=4, n_layers=2)
     terms = t.loss_terms(images[:4], 1.0)
-    assert set(terms) == {"rec", "ent", "row", "total"}
+    assert set(terms) == {"L_rec", "L_ent", "L_row", "total"}
     with pytest.raises(ParameterError, match="psf_terms_fn"):
         E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images)
-    with pytest.raises(ParameterError, match="'slr'"):
+    with pytest.raises(ParameterError, match="'L_SLR'"):
         E2ETrainer(HardSTESelection(NE, K), kfn, kfn(torch.ones(NE)), images,
-                   psf_terms_fn=lambda k: {"psf": k.abs().sum(), "contrast": k.abs().sum()},
+                   psf_terms_fn=lambda k: {"L_PSF": k.abs().sum(), "L_contrast": k.abs().sum()},
                    config=dict(progress=False), base_channels=4, n_layers=2
                    ).loss_terms(images[:2], 1.0)
 
 
 def test_conv_reduction(images):
-    t_mean = make_trainer(images, weights=dict(psf=0, contrast=0, slr=0, rec=0, ent=0, row=0))
-    t_sum = make_trainer(images, weights=dict(psf=0, contrast=0, slr=0, rec=0, ent=0, row=0),
-                         conv_reduction="sum")
+    only_conv = dict(L_PSF=0, L_contrast=0, L_SLR=0, L_rec=0, L_ent=0, L_row=0)
+    t_mean = make_trainer(images, weights=only_conv)
+    t_sum = make_trainer(images, weights=only_conv, conv_reduction="sum")
     for t in (t_mean, t_sum):
         t.selection.eval()
-    a = t_mean.loss_terms(images[:4], 1.0)["conv"]
-    b = t_sum.loss_terms(images[:4], 1.0)["conv"]
+    a = t_mean.loss_terms(images[:4], 1.0)["L_conv"]
+    b = t_sum.loss_terms(images[:4], 1.0)["L_conv"]
     torch.testing.assert_close(b, a * N * N)
 
 
@@ -316,8 +317,8 @@ def test_train_e2e_wrapper(images):
     kfn = toy_kernel_fn()
     t = train_e2e(HardSTESelection(NE, K, generator=torch.Generator().manual_seed(0)), kfn,
                   kfn(torch.ones(NE)), (images, None), max_steps=2,
-                  weights=LossWeights(psf=0, contrast=0, slr=0),
-                  config=TrainConfig(batch_size=4, progress=False), base_channels=4, n_layers=2)
+                  config=TrainConfig(batch_size=4, progress=False, weights=dict(L_PSF=0, L_contrast=0, L_SLR=0)),
+                  base_channels=4, n_layers=2)
     assert t.step == 2
 
 
@@ -347,9 +348,10 @@ def test_balance_initial_pins_every_term_near_its_weight_at_step_0(images):
     terms = t.loss_terms(images[4:8], t.tau(0), torch.Generator().manual_seed(5))
     normalised = {k: float(terms[k].detach()) / scales[k] for k in BALANCED_TERMS}
     assert all(0.2 < v < 5 for v in normalised.values()), normalised
-    weighted = {k: getattr(t.weights, k) * v for k, v in normalised.items()}
+    weighted = {k: t.weights[k] * v for k, v in normalised.items()}
     assert float(terms["total"].detach()) == pytest.approx(
-        sum(weighted.values()) + t.weights.ent * float(terms["ent"].detach()) + t.weights.row * float(terms["row"].detach()),
+        sum(weighted.values()) + t.weights["L_ent"] * float(terms["L_ent"].detach())
+        + t.weights["L_row"] * float(terms["L_row"].detach()),
         rel=1e-5)
     # without balance the same terms span more than an order of magnitude (the reason for it)
     raw = {k: float(terms[k].detach()) for k in BALANCED_TERMS}
@@ -368,7 +370,7 @@ def test_balance_scales_are_calibrated_once_and_kept_in_checkpoints(images, tmp_
 
 def _psf_of(trainer, fn):
     with torch.no_grad():
-        return float(fn(trainer._kernel(trainer.learned_weights()))["psf"])
+        return float(fn(trainer._kernel(trainer.learned_weights()))["L_PSF"])
 
 
 def test_no_drift_after_psf_warmup_on_the_toy_objective(images):
@@ -386,12 +388,12 @@ def test_no_drift_after_psf_warmup_on_the_toy_objective(images):
     after_warmup = _psf_of(t, psf_fn)
     sel_warm = t.learned_indices().tolist()
     assert after_warmup < start  # the warm-up optimised the PSF
-    assert all("rec" not in h for h in t.history)  # data terms off in the warm-up
+    assert all("L_rec" not in h for h in t.history)  # data terms off in the warm-up
     visited = []
     for step in range(warm + 10, warm + 121, 10):
         t.train(step)
         visited.append(t.learned_indices().tolist())
-    assert all("rec" in h for h in t.history[warm:])
+    assert all("L_rec" in h for h in t.history[warm:])
     end = _psf_of(t, psf_fn)
     # the toy's arg-max STE oscillates by ~15 % between neighbouring selections even when the
     # PSF-only training simply goes on; drift would take it back towards the random start

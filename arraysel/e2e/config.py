@@ -1,37 +1,27 @@
-"""Settings of end-to-end training: loss weights and optimisation (defaults: the SPEC and the scene
-schema's ``[training]`` section, their one home)."""
+"""Settings of end-to-end training, one set: loss weights and optimisation (defaults: the SPEC, the
+scene schema's ``[training]`` section and :data:`arraysel.objective.losses.DEFAULT_WEIGHTS`,
+their homes)."""
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
+from typing import Mapping
 
 from arraysel.errors import check_choice, check_number
+from arraysel.objective.losses import check_weights
 from arraysel.scenes.schema import training_default as _T
 
-__all__ = ["LossWeights", "TrainConfig"]
-
-
-@dataclass
-class LossWeights:
-    """Weights of the loss terms (SPEC section 3 defaults); 0 switches a term off."""
-
-    psf: float = 10.0
-    conv: float = 1.0
-    rec: float = 10.0
-    contrast: float = 10.0
-    slr: float = 10.0
-    ent: float = 1.0
-    row: float = 10.0
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            check_number(f"weights.{f.name}", getattr(self, f.name), lo=0)
+__all__ = ["TrainConfig"]
 
 
 @dataclass
 class TrainConfig:
-    """Optimisation settings (SPEC section 3 defaults; the batch size, epochs, learning rates and
+    """The training settings (SPEC section 3 defaults; the batch size, epochs, learning rates and
     temperature schedule default to the scene schema's ``[training]`` section, their one home).
+
+    ``weights``: the loss weights under the scene's ``[weights]`` names (``L_PSF``, ``L_conv``,
+    ``L_rec``, ``L_contrast``, ``L_SLR``, ``L_ent``, ``L_row``); a name left out takes its SPEC
+    default (:data:`arraysel.objective.losses.DEFAULT_WEIGHTS`), 0 switches a term off. After
+    construction it is the complete, checked mapping (:func:`arraysel.objective.losses.check_weights`).
 
     ``max_steps`` (when set) overrides ``epochs``; an epoch is
     ``N // batch_size`` steps (the last partial batch is dropped, unless the
@@ -102,8 +92,10 @@ class TrainConfig:
     psf_warmup: int = 0
     joint_lr_mask: float | None = None
     warm_start_margin: float = 0.0
+    weights: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
+        self.weights = check_weights(self.weights, name="weights")
         check_number("batch_size", self.batch_size, lo=1, integer=True)
         check_number("epochs", self.epochs, lo=0, integer=True)
         if self.max_steps is not None:

@@ -51,7 +51,7 @@ import torch
 
 from arraysel.errors import ParameterError, SelectionError, check_choice, check_number
 from arraysel.io.atomic import atomic_write_bytes
-from arraysel.objective.losses import PSF_WEIGHT_KEYS
+from arraysel.objective.losses import LOSS_KEYS, PSF_WEIGHT_KEYS
 from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.objective.psf_objective import build_objective
 from arraysel.selection import masks_from_indices
@@ -80,11 +80,6 @@ def check_out_folder(out_dir: str, *, resume: bool = False, force: bool = False)
     check_outputs(folder_files("--out", out_dir, OUTPUT_FILES), folders=[("--out", out_dir)])
     check_result_folder(out_dir, "--out", held=HELD_FILES, what="a training", resume=resume, force=force,
                         resume_needs="checkpoint.pt")
-
-
-#: scene weight name -> trainer term name
-_TERM_OF_WEIGHT = {"L_PSF": "psf", "L_conv": "conv", "L_rec": "rec", "L_contrast": "contrast",
-                   "L_SLR": "slr", "L_ent": "ent", "L_row": "row"}
 
 
 @dataclass
@@ -346,7 +341,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
          overrides):
     from arraysel.e2e.data import SceneMaker, load_dataset
     from arraysel.e2e.recon import Reconstructor
-    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection, LossWeights, TrainConfig
+    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection, TrainConfig
 
     say = log or (lambda _msg: None)
     t_start = time.perf_counter()
@@ -391,9 +386,9 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
 
     def psf_terms(kappa: torch.Tensor) -> dict[str, torch.Tensor]:
         m = objective.metrics_of_kernels(kappa[None], terms=psf_needed)
-        return {_TERM_OF_WEIGHT[n]: m[n][0] for n in psf_needed}
+        return {n: m[n][0] for n in psf_needed}
 
-    weights = LossWeights(**{term: wts.get(name, 0.0) for name, term in _TERM_OF_WEIGHT.items()})
+    weights = {name: wts.get(name, 0.0) for name in LOSS_KEYS}
 
     # data ---------------------------------------------------------------------
     s = settings
@@ -418,7 +413,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
                          convolution=s.convolution, kernel_stride=s.kernel_stride, target=s.target,
                          noise_std=s.noise_std, balance=s.balance, reblur=s.reblur,
                          psf_warmup=psf_warmup, joint_lr_mask=s.joint_lr_mask,
-                         warm_start_margin=s.warm_start_margin if psf_warmup else 0.0)
+                         warm_start_margin=s.warm_start_margin if psf_warmup else 0.0, weights=weights)
     selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed),
                                  sample=s.sample_selection)
 
@@ -435,7 +430,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
         return model
 
     trainer = E2ETrainer(selection, kernel_fn, kappa_ref, x_train, psf_terms_fn=psf_terms,
-                         weights=weights, config=config, n_layers=s.ista_layers,
+                         config=config, n_layers=s.ista_layers,
                          reconstructor=fresh_reconstructor(),
                          base_channels=s.base_channels, scene_fn=scene_fn, checkpoint_path=ckpt_path,
                          device=device, image_size=n)
@@ -460,7 +455,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
         trainer.train(stop)  # saves the checkpoint at ``stop``
         rec = trainer.history[-1]
         rate = (time.perf_counter() - t_train) / max(1, trainer.step - step0)
-        terms = " ".join(f"{key}={rec[key]:.4g}" for key in ("total", *_TERM_OF_WEIGHT.values())
+        terms = " ".join(f"{key}={rec[key]:.4g}" for key in ("total", *LOSS_KEYS)
                          if key in rec)
         say(f"step {trainer.step:>6d}/{total}  tau={rec['tau']:.3f}  {terms}  ({rate:.2f} s/step)")
     train_seconds = time.perf_counter() - t_train

@@ -20,25 +20,23 @@ this module keeps the trainer and re-exports those names.
 
 Loss (SPEC section 3)
 ---------------------
-``total = w_psf L_PSF + w_conv L_conv + w_rec L_rec + w_contrast L_contrast
-+ w_slr L_SLR + w_ent L_ent + w_row L_row`` with default weights
-10, 1, 10, 10, 10, 1, 10 (:class:`LossWeights`). A term whose weight is 0 is
-not computed. ``L_PSF``, ``L_contrast``, ``L_SLR`` come from
-``psf_terms_fn(kappa) -> dict`` (keys ``'psf'``, ``'contrast'`` and ``'slr'``,
-or ``'slr_q'`` and ``'slr_i'`` whose mean is taken); the others are computed
-here:
+``total = w L_PSF + w L_conv + w L_rec + w L_contrast + w L_SLR + w L_ent + w L_row`` with the
+weights of ``config.weights`` (the scene's names; default 10, 1, 10, 10, 10, 1, 10), assembled by
+:func:`arraysel.objective.losses.training_loss`, the function every objective uses. A term whose
+weight is 0 is not computed. ``L_PSF``, ``L_contrast``, ``L_SLR`` come from
+``psf_terms_fn(kappa) -> dict`` (keys ``'L_PSF'``, ``'L_contrast'`` and ``'L_SLR'``, or
+``'L_SLR_q'`` and ``'L_SLR_i'`` whose mean is taken); the others come from
+:mod:`arraysel.objective.losses`:
 
-* ``L_conv``: squared difference of ``Y_c = kappa (*) I_s`` and
-  ``Y_ref = kappa_ref (*) I_s`` (circular). ``conv_reduction='mean'``
+* ``L_conv`` (:func:`~arraysel.objective.losses.l_conv`): squared difference of
+  ``Y_c = kappa (*) I_s`` and ``Y_ref = kappa_ref (*) I_s``. ``conv_reduction='mean'``
   (default) averages ``|Y_c - Y_ref|^2`` over pixels and batch, like
   ``L_rec``; ``'sum'`` takes the per-image squared norm ``||Y_c - Y_ref||^2``
   averaged over the batch (``n^2`` times larger).
-* ``L_rec = mean((I_hat - I_ref)^2)`` over pixels and batch.
-* ``L_ent``: mean over columns of the entropy ``-sum_i p_ij log p_ij`` of
-  ``P_soft`` (:func:`arraysel.objective.losses.l_ent`).
-* ``L_row = sum_i relu(sum_j P_soft_ij - 1)^2`` (:func:`arraysel.objective.losses.l_row`).
-  It is computed on ``P_soft``: the hard ``P`` drawn without replacement never
-  repeats an element, so the penalty on it would be identically zero.
+* ``L_rec = mean((I_hat - I_ref)^2)`` over pixels and batch (:func:`~arraysel.objective.losses.l_rec`).
+* ``L_ent``, ``L_row``: on ``P_soft`` (:func:`~arraysel.objective.losses.l_ent`,
+  :func:`~arraysel.objective.losses.l_row`; the hard ``P`` drawn without replacement never
+  repeats an element, so the row penalty on it would be identically zero).
 
 Image size
 ----------
@@ -60,29 +58,29 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
-from arraysel.e2e.config import LossWeights, TrainConfig
+from arraysel.e2e.config import TrainConfig
 from arraysel.e2e.data import SceneMaker
 from arraysel.e2e.hardste import HardSTESelection, tau_schedule
 from arraysel.e2e.kernels import decimate_kernel, fit_kernel
 from arraysel.errors import (NumericalError, ParameterError, SelectionError,
                              check_number)
 from arraysel.io.atomic import AtomicFile
-from arraysel.objective.losses import l_ent, l_row, weighted_sum
+from arraysel.objective.losses import (DATA_WEIGHT_KEYS, PSF_WEIGHT_KEYS, l_conv, l_ent, l_rec, l_row,
+                                       training_loss)
 from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
                                 psnr, ssim)
 from arraysel.selection import masks_from_indices
 
-__all__ = ["tau_schedule", "HardSTESelection", "LossWeights", "TrainConfig", "E2ETrainer",
+__all__ = ["tau_schedule", "HardSTESelection", "TrainConfig", "E2ETrainer",
            "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "decimate_kernel",
            "balanced_total", "BALANCED_TERMS", "blurred_image"]
 
 log = logging.getLogger(__name__)
 
 KernelFn = Callable[[torch.Tensor], torch.Tensor]
-PSF_TERMS = ("psf", "contrast", "slr")
-#: the terms ``balance='initial'`` divides by their value at the start (``ent`` and ``row``
-#: are regularisers of the selection matrix, ``row`` is ~0 at the start: left as they are)
-BALANCED_TERMS = ("psf", "contrast", "slr", "conv", "rec")
+#: the terms ``balance='initial'`` divides by their value at the start (``L_ent`` and ``L_row``
+#: are regularisers of the selection matrix, ``L_row`` is ~0 at the start: left as they are)
+BALANCED_TERMS = PSF_WEIGHT_KEYS + DATA_WEIGHT_KEYS
 CHECKPOINT_FORMAT = "arraysel-e2e-1"
 
 
@@ -92,9 +90,10 @@ entropy_loss = l_ent
 row_loss = l_row
 
 
-def balanced_total(terms: Mapping[str, torch.Tensor], weights: "LossWeights",
+def balanced_total(terms: Mapping[str, torch.Tensor], weights: Mapping[str, float],
                    scales: Mapping[str, float] | None = None) -> torch.Tensor:
-    """``sum_t w_t L_t / s_t`` over the terms given (``s_t = 1`` for a term not in ``scales``).
+    """``sum_t w_t L_t / s_t`` over the terms given (``s_t = 1`` for a term not in ``scales``):
+    :func:`arraysel.objective.losses.training_loss` with ``scales``.
 
     With ``scales`` the values of the terms at the start of training
     (``balance='initial'``), every balanced term enters with its weight at
@@ -102,9 +101,7 @@ def balanced_total(terms: Mapping[str, torch.Tensor], weights: "LossWeights",
     ``L_contrast`` of a PSF differ by three orders of magnitude, and without
     this the larger one decides the selection alone.
     """
-    scales = scales or {}
-    scaled = {t: v / scales.get(t, 1.0) for t, v in terms.items() if t != "total"}
-    return weighted_sum(scaled, {t: getattr(weights, t) for t in scaled})
+    return training_loss({t: v for t, v in terms.items() if t != "total"}, weights, scales=scales)[0]
 
 
 def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None
@@ -150,10 +147,9 @@ class E2ETrainer:
     kernel_fn : ``weights (Ne,) -> kappa (n, n) complex``, differentiable.
     kernel_ref : ``(n, n)`` complex reference kernel (all elements active).
     train_images : ``(N, 1, H, W)`` float tensor in ``[0, 1]`` (or ``(images, labels)``).
-    psf_terms_fn : ``kappa -> {'psf', 'contrast', 'slr' (or 'slr_q', 'slr_i')}``;
+    psf_terms_fn : ``kappa -> {'L_PSF', 'L_contrast', 'L_SLR' (or 'L_SLR_q', 'L_SLR_i')}``;
         needed when any of those weights is non-zero.
-    weights : :class:`LossWeights` or a mapping of its fields.
-    config : :class:`TrainConfig` or a mapping of its fields.
+    config : :class:`TrainConfig` or a mapping of its fields (the loss weights among them).
     reconstructor : default ``Reconstructor(n_layers, base_channels=base_channels)``,
         initialised from ``config.seed`` (the global RNG is left untouched).
     scene_fn : ``(images, generator) -> (I_s, I_ref)``; default
@@ -170,17 +166,15 @@ class E2ETrainer:
 
     def __init__(self, selection: nn.Module, kernel_fn: KernelFn, kernel_ref: torch.Tensor,
                  train_images: Any, *, psf_terms_fn: Callable[[torch.Tensor], Mapping[str, torch.Tensor]] | None = None,
-                 weights: LossWeights | Mapping[str, float] | None = None,
                  config: TrainConfig | Mapping[str, Any] | None = None,
                  reconstructor: nn.Module | None = None, n_layers: int = 8, base_channels: int = 32,
                  scene_fn: Callable | None = None, checkpoint_path: str | os.PathLike | None = None,
                  device: str | torch.device = "cpu", image_size: int | None = None):
         self.device = torch.device(device)
-        self.weights = weights if isinstance(weights, LossWeights) else LossWeights(**(weights or {}))
         self.config = config if isinstance(config, TrainConfig) else TrainConfig(**(config or {}))
-        if any(getattr(self.weights, t) > 0 for t in PSF_TERMS) and psf_terms_fn is None:
-            raise ParameterError("psf_terms_fn is required while any of the weights psf, contrast, "
-                                 "slr is non-zero (set them to 0 to train without PSF terms)")
+        if any(self.weights[t] > 0 for t in PSF_WEIGHT_KEYS) and psf_terms_fn is None:
+            raise ParameterError("psf_terms_fn is required while any of the weights L_PSF, L_contrast, "
+                                 "L_SLR is non-zero (set them to 0 to train without PSF terms)")
         self.psf_terms_fn = psf_terms_fn
         self.kernel_fn = kernel_fn
         kernel_ref = torch.as_tensor(kernel_ref)
@@ -214,6 +208,11 @@ class E2ETrainer:
                 not hasattr(self.selection, "logits") or getattr(self.selection, "sample", True)):
             raise ParameterError("warm_start_margin > 0 needs a selection module with logits drawn "
                                  "by arg-max (HardSTESelection(..., sample=False))")
+
+    @property
+    def weights(self) -> Mapping[str, float]:
+        """The loss weights, ``config.weights`` (the scene's names)."""
+        return self.config.weights
 
     # -- set-up helpers -----------------------------------------------------
     def _param_groups(self) -> list[dict]:
@@ -300,10 +299,6 @@ class E2ETrainer:
             return model(y, op, reblur=self.reference_operator())
         return model(y, op)
 
-    def _total(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """The weighted sum of the terms (balanced with ``balance='initial'``)."""
-        return balanced_total(terms, self.weights, self.term_scales)
-
     @torch.no_grad()
     def calibrate_balance(self) -> dict[str, float]:
         """Set :attr:`term_scales` for ``balance='initial'``: the mean of each of
@@ -331,43 +326,42 @@ class E2ETrainer:
         return dict(self.term_scales)
 
     # -- loss ---------------------------------------------------------------
-    def loss_terms(self, images: torch.Tensor, tau: float,
-                   generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-        """All non-zero-weight terms and their weighted sum ``'total'`` for one batch."""
+    def loss_terms(self, images: torch.Tensor, tau: float, generator: torch.Generator | None = None,
+                   *, psf_only: bool = False) -> dict[str, torch.Tensor]:
+        """All non-zero-weight terms (the scene's names) and their weighted sum ``'total'``
+        (:func:`arraysel.objective.losses.training_loss`, balanced with ``balance='initial'``)
+        for one batch; ``psf_only``: without the data terms (the PSF-only warm-up)."""
         gen = self.generator if generator is None else generator
-        w = self.weights
+        w = dict(self.weights)
+        if psf_only:
+            w.update({t: 0.0 for t in DATA_WEIGHT_KEYS})
+        if not any(w.values()):
+            raise ParameterError("every loss weight is 0: nothing to train")
         i_s, i_ref = self.scenes(images, gen)
         P, p_soft = self.selection(tau, gen)
         kappa = self._kernel(P.sum(1))
         terms: dict[str, torch.Tensor] = {}
-        if any(getattr(w, t) > 0 for t in PSF_TERMS):
+        if any(w[t] > 0 for t in PSF_WEIGHT_KEYS):
             got = dict(self.psf_terms_fn(kappa))
-            if "slr" not in got and "slr_q" in got and "slr_i" in got:
-                got["slr"] = (got["slr_q"] + got["slr_i"]) / 2
-            for t in PSF_TERMS:
-                if getattr(w, t) > 0:
+            if "L_SLR" not in got and "L_SLR_q" in got and "L_SLR_i" in got:
+                got["L_SLR"] = (got["L_SLR_q"] + got["L_SLR_i"]) / 2
+            for t in PSF_WEIGHT_KEYS:
+                if w[t] > 0:
                     if t not in got:
                         raise ParameterError(f"psf_terms_fn returned keys {sorted(got)}; "
-                                             f"'{t}' is needed (weight {getattr(w, t)})")
+                                             f"'{t}' is needed (weight {w[t]})")
                     terms[t] = got[t]
-        if w.conv > 0 or w.rec > 0:
+        if w["L_conv"] > 0 or w["L_rec"] > 0:
             op = self.operator(kappa)
             y_c = op.A(i_s)
-            if w.conv > 0:
-                d = y_c - self.reference_operator().A(i_s)
-                sq = d.real ** 2 + d.imag ** 2
-                terms["conv"] = (sq.mean() if self.config.conv_reduction == "mean"
-                                 else sq.flatten(1).sum(1).mean())
-            if w.rec > 0:
+            if w["L_conv"] > 0:
+                terms["L_conv"] = l_conv(y_c, self.reference_operator().A(i_s),
+                                         reduction=self.config.conv_reduction)
+            if w["L_rec"] > 0:
                 i_hat = self.reconstruct(self.reconstructor, self._noise(y_c, gen), op)
-                terms["rec"] = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
-        if w.ent > 0:
-            terms["ent"] = entropy_loss(p_soft)
-        if w.row > 0:
-            terms["row"] = row_loss(p_soft)
-        if not terms:
-            raise ParameterError("every loss weight is 0: nothing to train")
-        terms["total"] = self._total(terms)
+                terms["L_rec"] = l_rec(i_hat, i_ref.to(i_hat.dtype))
+        total, terms = training_loss(terms, w, P_soft=p_soft, scales=self.term_scales)
+        terms["total"] = total
         return terms
 
     # -- training -----------------------------------------------------------
@@ -396,20 +390,15 @@ class E2ETrainer:
         warm = self.step < self.config.psf_warmup
         self._set_mask_lr(self.config.lr_mask if warm or self.config.joint_lr_mask is None
                           else self.config.joint_lr_mask)
-        weights = self.weights
-        if warm:  # PSF-only phase: the data terms are switched off for this step
-            self.weights = dataclasses.replace(weights, conv=0.0, rec=0.0)
-        try:
-            terms = self.loss_terms(self._next_batch(), tau)
-        finally:
-            self.weights = weights
+        # the PSF-only phase: the data terms are switched off for this step
+        terms = self.loss_terms(self._next_batch(), tau, psf_only=warm)
         total = terms["total"]
         if not torch.isfinite(total):
             raise NumericalError(f"step {self.step}: loss is {float(total)} "
                                  f"({ {k: float(v) for k, v in terms.items()} })")
         if warm and self.config.warm_start_margin > 0:
-            score = float(sum(getattr(self.weights, t) * terms[t].detach() / self.term_scales.get(t, 1.0)
-                              for t in PSF_TERMS if t in terms))
+            psf = {t: terms[t].detach() for t in PSF_WEIGHT_KEYS if t in terms}
+            score = float(training_loss(psf, self.weights, scales=self.term_scales)[0])
             if self.warm_best is None or score < self.warm_best[0]:
                 self.warm_best = (score, self.selection.indices(tau).tolist())
         self.optimizer.zero_grad(set_to_none=True)
@@ -475,7 +464,7 @@ class E2ETrainer:
             "pos": self._pos,
             "history": self.history,
             "config": dataclasses.asdict(self.config),
-            "weights": dataclasses.asdict(self.weights),
+            "weights": dict(self.weights),
             "term_scales": dict(self.term_scales),
             "warm_best": None if self.warm_best is None else [self.warm_best[0], list(self.warm_best[1])],
         }
@@ -501,9 +490,9 @@ class E2ETrainer:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise ParameterError(f"{path} is not an arraysel end-to-end checkpoint")
-        if state["weights"] != dataclasses.asdict(self.weights):
+        if state["weights"] != dict(self.weights):
             log.warning("checkpoint %s was trained with loss weights %s; now %s", path,
-                        state["weights"], dataclasses.asdict(self.weights))
+                        state["weights"], dict(self.weights))
         self.selection.load_state_dict(state["selection"])
         self.reconstructor.load_state_dict(state["reconstructor"])
         self.optimizer.load_state_dict(state["optimizer"])
@@ -575,7 +564,7 @@ class E2ETrainer:
             for _ in tqdm(range(steps), desc="finetune", disable=not self.config.progress):
                 i_s, i_ref = self.scenes(self._next_batch(), self.generator)
                 i_hat = self.reconstruct(recon, self._noise(op.A(i_s), self.generator), op)
-                loss = ((i_hat - i_ref.to(i_hat.dtype)) ** 2).mean()
+                loss = l_rec(i_hat, i_ref.to(i_hat.dtype))
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()

@@ -40,7 +40,7 @@ import torch
 
 from arraysel.objective import metrics as M
 from arraysel.objective.contract import WorkerFactory, dtype_name
-from arraysel.objective.losses import PSF_WEIGHT_KEYS, psf_weighted_sum, selection_terms, weighted_sum
+from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
 from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.selection import masks_from_indices
 from arraysel.physics.psf import PSFModel
@@ -331,8 +331,7 @@ class Objective:
         if not terms_needed:
             z = weights.sum(-1) * 0
             return z, {}
-        terms = self.psf_terms(weights, terms=terms_needed)
-        return psf_weighted_sum(terms, wts), terms
+        return training_loss(self.psf_terms(weights, terms=terms_needed), wts)
 
     def mask_loss(self, weights: torch.Tensor):
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
@@ -357,12 +356,8 @@ class Objective:
             if P.dim() != 2 or P.shape[0] != self.n_elements:
                 raise SelectionError(f"P must have shape ({self.n_elements}, k), got {tuple(P.shape)}")
             w = P.sum(1).clamp(0, 1)[None]
-            total, terms = self._psf_loss(w)
-            total = total.sum()
-            terms = {k: v.sum() for k, v in terms.items()}
-            reg = selection_terms(P_soft, {k: v for k, v in self.weights.items() if v > 0})
-            terms.update(reg)
-            total = total + weighted_sum(reg, self.weights)
+            psf = self._psf_loss(w)[1]
+            total, terms = training_loss({k: v.sum() for k, v in psf.items()}, self.weights, P_soft=P_soft)
             if self.scene.needs_data:
                 raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "
                                      "`arraysel train` (end-to-end training computes those terms)")

@@ -17,13 +17,15 @@ import torch
 
 from arraysel.errors import ParameterError, check_number
 from arraysel.objective.contract import WorkerFactory, check_element_grid, dtype_name
-from arraysel.objective.losses import DEFAULT_WEIGHTS, psf_weighted_sum, selection_terms, weighted_sum
+from arraysel.objective.losses import DEFAULT_WEIGHTS, PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.metrics import METRIC_NAMES
 
 __all__ = ["ToyScene", "ToyFailure", "ToyObjective", "ToyObjectiveFactory", "TOY_PITCH"]
 
 #: element pitch (m) of the toy array's ``element_positions`` (both directions for a grid)
 TOY_PITCH = 3e-4
+#: the weights of :meth:`ToyObjective.mask_loss`: the PSF terms' defaults
+_PSF_WEIGHTS = {key: DEFAULT_WEIGHTS[key] for key in PSF_WEIGHT_KEYS}
 
 
 
@@ -194,8 +196,7 @@ class ToyObjective:
         w = self._as_weights(weights)
         t0 = self._enter(w.shape[0])
         try:
-            terms = self._terms(w)
-            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS)
+            total, terms = training_loss(self._terms(w), _PSF_WEIGHTS)
             self.evaluations += w.shape[0]
             if w.requires_grad:
                 self.gradient_steps += 1
@@ -212,10 +213,8 @@ class ToyObjective:
         try:
             w = P.to(self.dtype).sum(dim=1)[None, :]
             terms = self._terms(w)
-            terms = {key: v[0] for key, v in terms.items()}
-            reg = selection_terms(P_soft.to(self.dtype))
-            terms.update(reg)
-            total = psf_weighted_sum(terms, DEFAULT_WEIGHTS) + weighted_sum(reg, DEFAULT_WEIGHTS)
+            total, terms = training_loss({key: v[0] for key, v in terms.items()}, DEFAULT_WEIGHTS,
+                                         P_soft=P_soft.to(self.dtype))
             self.evaluations += 1
             if P.requires_grad or P_soft.requires_grad:
                 self.gradient_steps += 1
