@@ -274,7 +274,7 @@ def test_end_to_end_scenes_take_one_point():
 # ---------------------------------------------------------------------------
 
 def test_exact_path_chunks_follow_the_memory_cap_and_agree(monkeypatch):
-    import arraysel.physics.psf.operator as psf_module
+    import arraysel.physics.psf.sizing as psf_module  # the exact path's memory model
 
     setup = load_scene(tiny()).psf_setup()
     big = PSFModel(setup, fast=False)

@@ -47,9 +47,10 @@ import numpy as np
 import torch
 
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
-from arraysel.physics.beamform import das_apply, das_plan, das_positions, iq_matrix
+from arraysel.physics.beamform import das_apply, das_plan, iq_matrix
 from arraysel.physics.delays import plane_wave_delays
 from arraysel.physics.psf.basis import PairBasis
+from arraysel.physics.psf import sizing
 from arraysel.physics.psf.settings import basis_limit_bytes, memory_limit_bytes
 from arraysel.physics.psf.setup import PSFSetup
 from arraysel.physics.psf.store import load_or_build_basis, stored_window_estimate
@@ -149,10 +150,10 @@ class PSFModel:
         self.memory_limit = memory_limit_bytes()
         #: the exact path's baseline: interpreter, torch and the model (a constant: what else the
         #: process holds is not this scene's to budget)
-        self.baseline_bytes = _BASELINE_BYTES
+        self.baseline_bytes = sizing._BASELINE_BYTES
         #: memory other models of the same objective keep (their DAS plans), set by the objective
         self.other_bytes = 0
-        self._check_exact_memory()
+        sizing.check_exact_memory(self)
         #: the certified fast path (a :class:`~arraysel.physics.psf.basis.PairBasis` truncated to
         #: ``rank_tol``), or None when it is off or over its memory cap
         self.basis: PairBasis | None = None
@@ -171,240 +172,58 @@ class PSFModel:
                 self.basis = full.truncated(full.rank_for(self.rank_tol))
         self._ref = None
 
+    # ------------------------------------------------------------------ sizing
+    # the memory and time sizing lives in arraysel.physics.psf.sizing; these are its entry points
     def basis_bytes(self) -> int:
-        """Estimated peak memory (bytes) of building the fast path's basis (see
-        :class:`PairBasis`): the windowed pair I/Q signals, the pair images of E (all of them
-        for small probes, tiles of pixels and a sketch for larger ones, kept whole between the
-        sketch's passes when they fit), the strips' pair images when they are kept, and the
-        stored tensors."""
-        return self._basis_estimate()[0]
+        """Estimated peak memory (bytes) of building the fast path's basis (:func:`sizing.basis_bytes
+        <arraysel.physics.psf.sizing.basis_bytes>`)."""
+        return sizing.basis_bytes(self)
 
     def basis_stored_bytes(self) -> int:
-        """Upper estimate (bytes) of the stored basis (the cache entry): the sketch's rank
-        bound, the pair channels, the core and strips' pair images."""
-        return self._basis_estimate()[2]
+        """Upper estimate (bytes) of the stored basis (:func:`~arraysel.physics.psf.sizing.basis_stored_bytes`)."""
+        return sizing.basis_stored_bytes(self)
 
     def basis_build_seconds(self) -> float:
-        """Estimated wall time (s) of building the fast path's basis: the delay-and-sum of the
-        pair images (``ntx Ne^2`` complex multiply-adds per pixel of E, once or twice: see
-        :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), the float64
-        products (the exact Gram matrix, or a sketched build's projection, QR and tile Gram
-        matrices), the pair I/Q signals and the write of the stored basis, at the rates measured
-        on two cores (2026-11-24, basis version 13, the host taking half the CPU: 24 s for the
-        P4-2v scene, 59 s for L11-5v, 61 s for C5-2v, 178 s for a 256-element probe), scaled by
-        the torch threads."""
-        return self._basis_estimate()[1]
-
-    def _basis_estimate(self) -> tuple[int, float, int]:
-        s = self.setup
-        ne = self.n_elements
-        ntx = len(s.tilts)
-        pairs = ne * (ne + 1) // 2
-        rows = min(s.n_z, s.window + 2 * self.margin)
-        cols = min(s.n_x, s.window + 2 * self.margin)
-        npix, npix2 = rows * cols, rows * (s.n_x - cols)
-        size = torch.finfo(self.dtype).bits // 8
-        T = self.window_estimate()
-        X = ntx * ne * T * ne * 8
-        A = 2 * ntx * ne * T * ne * size
-        sketch = PairBasis.sketch_columns
-        passes = 1  # delay-and-sums of the pair images on E
-        if pairs <= sketch:
-            work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
-            flops = 2 * pairs * pairs * 2 * npix  # the Gram matrix (float64)
-            rank = pairs
-        else:
-            tile = PairBasis.missed_tile
-            groups = -(-rows // tile) * -(-cols // tile)
-            call = max(PairBasis.build_tile_bytes // (pairs * 16), tile * tile)  # pixels a kernel call
-            work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * call * 16 * pairs + \
-                groups * (2 * tile * tile) ** 2 * 8
-            # float64: the projection B = Q^T H, the sketch's QR (counted twice: slower than a
-            # product) and the tiles' Gram matrices (symmetric updates)
-            flops = 2 * pairs * sketch * 2 * npix + 8 * pairs * sketch ** 2 + 2 * pairs * groups * (2 * tile * tile) ** 2
-            if PairBasis.keeps_images(pairs, npix, self.dtype):  # kept between the passes
-                work += pairs * 2 * npix * size
-            else:
-                passes = 2
-            rank = sketch
-        strips = size * pairs * 2 * npix2
-        if strips > PairBasis.strip_max_bytes:
-            strips = 0
-        stored = size * (pairs * rank + rank * 2 * npix + pairs * 2 * 1024) + A + strips
-        macs = ntx * ne * ne * (npix * passes + (npix2 if strips else 0))
-        iq = ntx * ne * ne * T  # the pair I/Q's products (their frequencies are not known here)
-        seconds = (4.2e-9 * macs + 2.2e-11 * flops + 3.6e-7 * iq) / max(1, torch.get_num_threads()) + 6e-9 * stored
-        return int(X + work + stored + (strips // size) * 8), seconds, int(stored)
+        """Estimated wall time (s) of building the basis (:func:`~arraysel.physics.psf.sizing.basis_build_seconds`)."""
+        return sizing.basis_build_seconds(self)
 
     def window_estimate(self) -> int:
-        """Samples per channel window (:meth:`PairBasis._sample_ranges`), estimated from the
-        DAS plans of a subsampled grid (every 8th row and column and the grid's edges); computed
-        once per model (the memory guard and the cache's size hint both ask)."""
-        if getattr(self, "_window_samples", None) is None:
-            self._window_samples = self._estimate_window()
-        return self._window_samples
+        """Samples per channel window, estimated once (:func:`~arraysel.physics.psf.sizing.window_estimate`)."""
+        return sizing.window_estimate(self)
 
     def _estimate_window(self) -> int:
-        s = self.setup
-        zi = torch.unique(torch.cat([torch.arange(0, s.n_z, 8), torch.tensor([s.n_z - 1])]))
-        xi = torch.unique(torch.cat([torch.arange(0, s.n_x, 8), torch.tensor([s.n_x - 1])]))
-        Z, X = torch.meshgrid(self.z_grid[zi], self.x_grid[xi], indexing="ij")
-        span = 2
-        for t in self.transmits:
-            # the first sample index of each (pixel, element) of the DAS plan, without the plan's
-            # weights and phase rotations
-            _, pos, valid = das_positions(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time,
-                                          fnumber=s.fnumber)
-            i0 = torch.floor(torch.where(valid, pos, torch.zeros_like(pos))).to(torch.long)
-            if bool(valid.any()):
-                hi = torch.where(valid, i0, torch.full_like(i0, -1)).amax(0)
-                lo = torch.where(valid, i0, torch.full_like(i0, 1 << 40)).amin(0)
-                ok = hi >= lo
-                if bool(ok.any()):
-                    span = max(span, int((hi - lo)[ok].max()) + 2)
-        return -(-(span + 8) // 4) * 4
-
-    # ------------------------------------------------------------------ exact path: memory
-    # The exact path's peak resident memory, in bytes, for a batch of ``batch`` masks (no autograd):
-    #   baseline: interpreter, torch and the model (``baseline_bytes``, a constant)
-    # + DAS plans kept: entries (pixel, element, transmit) x (i0 + w + rot), capped at a quarter
-    #   of ``memory_limit``; in a several-point objective also its siblings' plans and tensors
-    #   (``other_bytes``)
-    # + building one plan chunk: ~12 float64 (pixels x Ne) temporaries
-    # + per mask: I/Q of every transmit (n_tx x Ne x T complex), one transmit's spectra and RF on
-    #   the way, the whole-grid image (row chunks, their concatenation, its magnitude)
-    # + one DAS call: _DAS_TEMPS (B, pixels x Ne) complex temporaries (gathered samples, their
-    #   index, differences, products), its pixels chosen to keep this near _DAS_BYTES;
-    # all but the baseline times _HEAP_FACTOR, the heap growth (fragmentation, blocks glibc
-    # keeps) measured on top of the live tensors by ``benchmarks/exact_memory.py``.
-    # :meth:`exact_chunking` picks the batch so the total stays within ``memory_limit``.
-
-    def _sizes(self):
-        c = 8 if self.dtype == torch.float32 else 16
-        T = max(t.grid.n_time for t in self.transmits)
-        nfft = max(t.grid.n_fft for t in self.transmits)
-        F = max(int(t.grid.f.numel()) for t in self.transmits)
-        return c, T, nfft, F
-
-    def _plan_rows(self) -> int:
-        return max(1, (2 ** 21) // max(1, self.setup.n_x * self.n_elements))
+        return sizing.estimate_window(self)
 
     def plan_cache_bytes(self) -> int:
-        """Memory (bytes) of the DAS plans the exact path keeps (whole grid, every transmit, capped)."""
-        c = 8 if self.dtype == torch.float32 else 16
-        return self.plan_cache_limit() * (8 + c // 2 + c)
+        """Memory (bytes) of the DAS plans the exact path keeps (:func:`~arraysel.physics.psf.sizing.plan_cache_bytes`)."""
+        return sizing.plan_cache_bytes(self)
 
     def plan_cache_limit(self) -> int:
-        """Plan entries kept: ``plan_cache_elements``, at most a quarter of ``memory_limit``, at most all."""
-        s = self.setup
-        c = 8 if self.dtype == torch.float32 else 16
-        quarter = self.memory_limit // 4 // (8 + c // 2 + c)
-        return int(min(self.plan_cache_elements, quarter, len(self.transmits) * s.n_z * s.n_x * self.n_elements))
+        """DAS plan entries the exact path keeps (:func:`~arraysel.physics.psf.sizing.plan_cache_limit`)."""
+        return sizing.plan_cache_limit(self)
 
     def model_bytes(self) -> int:
-        """Memory (bytes) of the model's own tensors: per transmit the spectra -> I/Q map (2F x 2T in
-        the model's dtype) and the spectra factors (Ne x F complex128 twice)."""
-        size = torch.finfo(self.dtype).bits // 8
-        return sum(4 * int(t.tx_field.shape[-1]) * int(t.grid.n_time) * size + 2 * int(t.tx_field.numel()) * 16
-                   for t in self.transmits)
-
-    def _per_mask_bytes(self) -> int:
-        s = self.setup
-        c, T, nfft, F = self._sizes()
-        ne = self.n_elements
-        return len(self.transmits) * ne * T * c + 2 * ne * (F + nfft) * c + (2 * c + c // 2) * s.n_z * s.n_x
-
-    def _das_pixels(self, batch: int) -> int:
-        s = self.setup
-        c = self._sizes()[0]
-        want = _DAS_BYTES // max(1, _DAS_TEMPS * batch * self.n_elements * c)
-        return int(min(s.n_z * s.n_x, max(s.n_x, want)))
+        """Memory (bytes) of the model's own tensors (:func:`~arraysel.physics.psf.sizing.model_bytes`)."""
+        return sizing.model_bytes(self)
 
     def exact_bytes(self, batch: int, pixels: int | None = None) -> int:
-        """Estimated peak resident memory (bytes) of the process during an exact-path evaluation of
-        ``batch`` masks with DAS calls of ``pixels`` pixels (default: :meth:`exact_chunking`'s)."""
-        s = self.setup
-        c = self._sizes()[0]
-        if pixels is None:
-            pixels = self._das_pixels(batch)
-        build = 12 * self._plan_rows() * s.n_x * self.n_elements * 8
-        das = _DAS_TEMPS * batch * pixels * self.n_elements * c
-        work = self.plan_cache_bytes() + self.other_bytes + build + batch * self._per_mask_bytes() + das
-        return int(self.baseline_bytes + _HEAP_FACTOR * work)
+        """Peak resident memory (bytes) of an exact-path batch (:func:`~arraysel.physics.psf.sizing.exact_bytes`)."""
+        return sizing.exact_bytes(self, batch, pixels)
 
     def exact_chunking(self, batch: int | None = None) -> tuple[int, int]:
-        """(masks per batch, pixels per DAS call) of the exact path within ``memory_limit``.
-
-        With ``batch`` given, only the pixels per DAS call are chosen for it.
-        """
-        if batch is None:
-            batch = _EXACT_MAX_BATCH
-            while batch > 1 and self.exact_bytes(batch) > self.memory_limit:
-                batch = max(1, min(batch - 1, int(batch * 0.85)))
-        return batch, self._das_pixels(batch)
+        """(masks per batch, pixels per DAS call) of the exact path (:func:`~arraysel.physics.psf.sizing.exact_chunking`)."""
+        return sizing.exact_chunking(self, batch)
 
     #: memory (bytes) of the per-selection tensors of one fast-path batch (:meth:`masks_per_batch`)
     fast_batch_bytes = 256 << 20
 
     def masks_per_batch(self) -> int:
-        """Masks an evaluation should hand to :meth:`kernels` at once: on the fast path as many
-        as keep the batch's per-selection tensors (:meth:`PairBasis.bytes_per_selection
-        <arraysel.physics.psf.basis.PairBasis.bytes_per_selection>`) within
-        :attr:`fast_batch_bytes` (the paper scene: 256; the 128-element built-in scenes: about
-        200), at most 256; on the exact path what its memory allows."""
-        if self.basis is not None:
-            fit = self.fast_batch_bytes // max(1, self.basis.bytes_per_selection())
-            return int(max(1, min(_EXACT_MAX_BATCH, fit)))
-        return self.exact_chunking()[0]
+        """Masks an evaluation should hand to :meth:`kernels` at once (:func:`~arraysel.physics.psf.sizing.masks_per_batch`)."""
+        return sizing.masks_per_batch(self)
 
     def exact_seconds_per_mask(self, batch: int | None = None) -> float:
-        """Estimated wall time (s) of one mask on the exact path (whole-grid image), at ``batch`` masks
-        per call (default: :meth:`exact_chunking`'s).
-
-        Calibrated once by timing one DAS plan chunk (build and apply) of this grid, so the
-        estimate costs a fraction of a second and reflects the machine's current load.
-        """
-        import time
-
-        if batch is None:
-            batch = self.exact_chunking()[0]
-        if getattr(self, "_calib", None) is None:
-            s = self.setup
-            rows = slice(0, min(s.n_z, self._plan_rows()))
-            t = self.transmits[0]
-            t0 = time.perf_counter()
-            Z, X = torch.meshgrid(self.z_grid[rows], self.x_grid, indexing="ij")
-            plan = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
-                            fc=s.probe.fc)
-            plan.w, plan.rot = plan.w.to(self.device, self.dtype), plan.rot.to(self.device, self.cdtype)
-            plan.i0 = plan.i0.to(self.device)
-            t1 = time.perf_counter()
-            iq = torch.ones(2, self.n_elements, t.grid.n_time, dtype=self.cdtype, device=self.device)
-            das = []
-            for _ in range(2):  # the first call pays for allocations
-                t2 = time.perf_counter()
-                das_apply(iq, plan.i0, plan.w, plan.rot)
-                das.append((time.perf_counter() - t2) / 2)
-            self._calib = ((t1 - t0) / (rows.stop * s.n_x), min(das) / (rows.stop * s.n_x))
-        per_px_plan, per_px_das = self._calib
-        s = self.setup
-        pixels = len(self.transmits) * s.n_z * s.n_x
-        total = pixels * self.n_elements
-        cached = min(1.0, self.plan_cache_limit() / max(1, total))
-        # DAS for every mask; plans that do not fit the cache are rebuilt on every call
-        return pixels * (per_px_das + (1 - cached) * per_px_plan / max(1, batch))
-
-    def _check_exact_memory(self) -> None:
-        """Refuse, before any work, a scene whose exact path cannot fit ``memory_limit`` even one mask
-        and one grid row at a time."""
-        need = self.exact_bytes(1, pixels=self.setup.n_x)
-        if need > self.memory_limit:
-            s = self.setup
-            raise ParameterError(
-                f"this scene needs about {need / 2 ** 30:.1f} GiB for one mask on the exact PSF path (grid "
-                f"{s.n_x} x {s.n_z} pixels, {self.n_elements} elements, {len(self.transmits)} transmits), more "
-                f"than the memory cap of {self.memory_limit / 2 ** 30:.1f} GiB: reduce grid.n_x / grid.n_z "
-                f"(or coarsen grid.pixel), or raise the cap with ARRAYSEL_MEMORY_GIB")
+        """Estimated wall time (s) of one mask on the exact path (:func:`~arraysel.physics.psf.sizing.exact_seconds_per_mask`)."""
+        return sizing.exact_seconds_per_mask(self, batch)
 
     # ------------------------------------------------------------------ exact path
     def _build_transmits(self):
@@ -555,16 +374,3 @@ class PSFModel:
             with torch.no_grad():
                 self._ref = self.kernels(torch.ones(1, self.n_elements))[0]
         return self._ref
-
-
-#: resident memory of ``import arraysel`` and one model (measured: 0.28 GiB after the imports)
-_BASELINE_BYTES = 450 * 2 ** 20
-#: target size of one DAS call's temporaries, and how many (B, pixels x Ne) complex arrays they are
-_DAS_BYTES = 128 * 2 ** 20
-_DAS_TEMPS = 6
-#: resident heap per byte of live tensors (measured by benchmarks/exact_memory.py)
-_HEAP_FACTOR = 1.2
-#: largest batch the exact path hands to DAS at once
-_EXACT_MAX_BATCH = 256
-
-
