@@ -59,6 +59,7 @@ def main(argv=None):
     rows, record = [], {}
     seen = set()  # storages counted once: the run-time basis is a truncated view of the stored one
     views = ([("basis.finer", fast.finer)] if getattr(fast, "finer", None) is not None else []) + [("basis", fast)]
+    views.append(("basis.layout", fast.layout))  # the regions, pairs and blocks (a part of the basis)
     for prefix, obj_ in views:
         for name, val in sorted(vars(obj_).items()):
             if isinstance(val, torch.Tensor) and (val.numel() > 0 or val.layout != torch.strided):

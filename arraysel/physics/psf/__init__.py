@@ -4,12 +4,15 @@ The operator and its method are described in :mod:`arraysel.physics.psf.operator
 
 * :mod:`~arraysel.physics.psf.setup`: :class:`PSFSetup` (a scene's physics part) and the grid conventions;
 * :mod:`~arraysel.physics.psf.window`: the kernel convention (window on the peak, unit L2 norm);
-* :mod:`~arraysel.physics.psf.operator`: :class:`PSFModel`, the exact path, the fast/exact dispatch
-  and the exact path's memory and time estimates;
-* :mod:`~arraysel.physics.psf.basis`: the fast path's pair basis (regions, stored tensors,
-  serialisation, truncation, images on E and the band);
+* :mod:`~arraysel.physics.psf.operator`: :class:`PSFModel`, the exact path and the fast/exact dispatch;
+* :mod:`~arraysel.physics.psf.sizing`: the model's memory and time sizing (basis build, exact path);
+* :mod:`~arraysel.physics.psf.basis`: the fast path's pair basis, :class:`PairBasis`, and its entry
+  points (``PairBasis.build``, ``PairBasis.from_state``), truncation, images on E and the band;
+  it is made of the parts below;
+* :mod:`~arraysel.physics.psf.layout`: the basis's layout (regions, pairs, blocks, strip order);
 * :mod:`~arraysel.physics.psf.build`: the basis build (sample ranges, windowed pair I/Q, pair
   images, compression, strip factors);
+* :mod:`~arraysel.physics.psf.state`: the stored tensors, their error constants and serialisation;
 * :mod:`~arraysel.physics.psf.certificate`: envelopes and block bounds of ``|I|``;
 * :mod:`~arraysel.physics.psf.refinement`: the certified kernels, peak location, ties and loose blocks;
 * :mod:`~arraysel.physics.psf.store`: the basis on disk (load or build);

@@ -1,23 +1,35 @@
-"""The fast path's pair basis: its regions, the stored tensors and their serialisation, the
-truncation to a run-time rank, and the images of a batch of selections on E and the band.
+"""The fast path's pair basis, :class:`PairBasis`: its entry points (:meth:`PairBasis.build`,
+:meth:`PairBasis.from_state`), the truncation to a run-time rank, and the images of a batch of
+selections on E and the band.
 
-See :mod:`arraysel.physics.psf.operator` for the method; the build steps are in
-:mod:`~arraysel.physics.psf.build`, the peak certificates in
-:mod:`~arraysel.physics.psf.certificate`, the certified kernels and their refinement in
-:mod:`~arraysel.physics.psf.refinement`, the disk cache in :mod:`~arraysel.physics.psf.store`.
+It is built from parts, each in its own module (see :mod:`arraysel.physics.psf.operator` for the
+method):
+
+* the **layout** (:class:`~arraysel.physics.psf.layout.BasisLayout`, ``basis.layout``): regions,
+  pairs, blocks and the strips' column order, from the grid alone;
+* the **build** (:mod:`~arraysel.physics.psf.build`): sample ranges, windowed pair I/Q, pair
+  images, their compression and the strips' factors;
+* the **state** (:mod:`~arraysel.physics.psf.state`): the stored tensors, their error constants
+  and their serialisation (the disk cache is :mod:`~arraysel.physics.psf.store`);
+* the **certificates** (:mod:`~arraysel.physics.psf.certificate`): envelopes and block bounds;
+* the **refinement** (:mod:`~arraysel.physics.psf.refinement`): the certified kernels, peak
+  location, ties and loose blocks.
 """
 from __future__ import annotations
 
 import logging
 import math
-from typing import NamedTuple
 
 import torch
 
 from arraysel.errors import check_number
 from arraysel.physics.psf.build import BasisBuild, combined_tail, pixel_norms
-from arraysel.physics.psf.certificate import Certificates, sparse_csr
+from arraysel.physics.psf.certificate import Certificates
+from arraysel.physics.psf.layout import LAYOUT_FIELDS, BasisLayout, pair_index
 from arraysel.physics.psf.refinement import Refinement
+from arraysel.physics.psf.state import ErrorConstants, basis_state, restore_state
+
+__all__ = ["PairBasis", "BUILD_RANK_TOL", "ErrorConstants", "pair_index", "pair_products"]
 
 _log = logging.getLogger(__name__)
 
@@ -25,28 +37,9 @@ _log = logging.getLogger(__name__)
 BUILD_RANK_TOL = 1e-7
 
 
-def pair_index(ne: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices (e, j) with e <= j of the Ne(Ne+1)/2 element pairs."""
-    e, j = torch.triu_indices(ne, ne)
-    return e, j
-
-
 def pair_products(w: torch.Tensor, e: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
     """(B, P) products w_e w_j of the pairs (e <= j)."""
     return w[:, e] * w[:, j]
-
-
-class ErrorConstants(NamedTuple):
-    """The constants of a basis's rigorous error bounds (all >= 0)."""
-
-    #: largest residual pixel-column norm of the truncated SVD on E, ``max_p |(I - U U^T) H_p|``
-    pixel_residual: float
-    #: largest pixel-column norm of the pair images on E
-    column_e: float
-    #: largest pixel-column norm of the strips' pair images
-    column_strips: float
-    #: bound of the spectral norm of ``(I - U U^T) H`` (the largest discarded singular value)
-    spectral_tail: float
 
 
 class BuildProgress:
@@ -70,14 +63,22 @@ class BuildProgress:
         _log.info("basis built in %.1f s", self._time() - self.t0)
 
 
+def _layout_attribute(name: str) -> property:
+    return property(lambda self: getattr(self.layout, name), doc=f"``layout.{name}`` (:class:`BasisLayout`)")
+
+
 class PairBasis(BasisBuild, Certificates, Refinement):
     """Precomputed pair images and peak certificates of the fast path.
 
-    Regions (grid rows ``rows`` = the window plus a margin around the scatterer):
+    Make one with :meth:`build` (from the model's physics) or :meth:`from_state` (from the stored
+    tensors, :meth:`state`); :class:`~arraysel.physics.psf.store` does one or the other through
+    the cache.
 
-    * tier 1, ``E``: the columns of the window plus the margin;
-    * tier 2, the *strips*: the remaining columns of the same rows, so that
-      E and the strips make the full-width band ``rows x all columns``.
+    Regions: ``layout`` (:class:`~arraysel.physics.psf.layout.BasisLayout`; its fields
+    ``rows``, ``cols``, ``shape``, ``npix``, ``strip_cols``, ``npix2``, ``pairs_e``, ``pairs_j``,
+    ``blocks1``, ``blocks2``, ``h2_cols``, ``h2_inv``, ``strip_block_col``, ``core_pix``,
+    ``strips`` read as attributes of the basis): tier 1, ``E``, the window plus a margin
+    around the scatterer; tier 2, the *strips*, the rest of the same rows.
 
     Images: ``I = c @ H`` with ``c`` the (B, P) pair products and ``H`` the
     (P, 2 Npix) real pair images ([re | im]); tier 1 is stored as a truncated
@@ -90,15 +91,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     peak are settled exactly and stay below it (:meth:`refine`); at tier 2 likewise on the band;
     otherwise the exact path recomputes it.
 
-    Stored tensors (model dtype unless noted): ``U``, ``V`` (the truncated SVD on E);
-    ``strip_images`` (P, 2 Npix2) the strips' pair images in block-major column order;
-    ``strip_left``, ``strip_right``, ``strip_sigma``, ``strip_sigma_next`` their per-block
-    rank-``strip_rank`` factors; ``core_images`` the core's exact pair images;
-    ``pair_channels`` (Ne, Ne 2 ntx T) the windowed pair I/Q signals (receive element, real and
-    imaginary part, transmit, then samples segment-offset major);
-    ``window_offset`` (ntx, Ne) the first record sample of each channel's window of
-    ``window_samples`` samples; ``max_run`` the longest run of segments a block reads;
-    ``error`` the :class:`ErrorConstants`.
+    Stored tensors: :mod:`~arraysel.physics.psf.state`.
 
     From the model it reads only the interface :class:`~arraysel.physics.psf.operator.PSFModel`
     states (``setup``, ``n_elements``, ``transmits``, ``x_grid``, ``z_grid``, ``margin``,
@@ -110,33 +103,19 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     strip_max_bytes = 1 << 30
     #: bound of the relative L2 error of a kernel from a sketched basis (probes with more than
     #: about 68 elements), above which it is recomputed exactly: its bound carries a bound of
-    #: what the sketch missed, so it is looser than the actual error (random masks at the
-    #: run-time rank: L11-5v bounds 4e-3 to 1e-2, a 256-element probe 1e-2 to 3.4e-2; actual
-    #: errors about 5e-4); 5e-2 certifies SI-MSE <= 2.5e-3 (the exact Gram build of small
-    #: probes certifies 5e-3)
+    #: what the sketch missed, so it is looser than the actual error (``docs/performance.md``
+    #: gives the bounds and errors measured); 5e-2 certifies SI-MSE <= 2.5e-3 (the exact Gram
+    #: build of small probes certifies 5e-3)
     sketch_kernel_tol = 5e-2
+    #: half side (pixels) of the core around the scatterer whose exact pair images are kept
+    core = 16
 
-    def __init__(self, model, rank_tol: float = BUILD_RANK_TOL, _state: dict | None = None):
-        s = model.setup
+    def __init__(self, model, layout: BasisLayout | None = None):
+        """A basis of ``model`` on ``layout`` (default :meth:`BasisLayout.of
+        <arraysel.physics.psf.layout.BasisLayout.of>`) holding no tensors yet: :meth:`build` and
+        :meth:`from_state` fill it."""
         self.model = model
-        ne = model.n_elements
-        win = s.window
-        m = model.margin
-        iz, ix = s.scatterer_pixel
-        half = win // 2
-        z_lo = max(0, min(iz - half - m, s.n_z - win - 2 * m))
-        x_lo = max(0, min(ix - half - m, s.n_x - win - 2 * m))
-        self.rows = slice(z_lo, min(s.n_z, z_lo + win + 2 * m))
-        self.cols = slice(x_lo, min(s.n_x, x_lo + win + 2 * m))
-        self.shape = (self.rows.stop - self.rows.start, self.cols.stop - self.cols.start)
-        self.npix = self.shape[0] * self.shape[1]
-        self.strip_cols = torch.cat([torch.arange(0, self.cols.start), torch.arange(self.cols.stop, s.n_x)])
-        self.npix2 = self.shape[0] * self.strip_cols.numel()
-        self.pairs_e, self.pairs_j = pair_index(ne)
-        outside1, outside2 = self._outside_blocks()
-        self.blocks1 = torch.nonzero(outside1)  # (nQ1, 2): the tier-1 blocks (rows of block_envelopes_e) as (qz, qx)
-        self.blocks2 = torch.nonzero(outside2)  # (nQ2, 2): the tier-2 blocks (rows of block_envelopes_band)
-        self._strip_layout()
+        self.layout = layout if layout is not None else BasisLayout.of(model, self.core)
         self._block_plans: dict = {}
         self._e_plan_holder: dict = {}  # E's DAS plan (Refinement._e_plans), shared with truncated views
         self._block_dtx: dict = {}  # blocks' transmit distances (Refinement._block_transmit_distances)
@@ -149,19 +128,22 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path
         self.finer = None
-        if _state is not None:
-            self._set_state(_state)
-            return
-        self.strips = self._strip_bytes() <= self.strip_max_bytes
-        if not self.strips:
-            self._disable_strips()
+
+    @classmethod
+    def build(cls, model, rank_tol: float = BUILD_RANK_TOL) -> "PairBasis":
+        """Build ``model``'s basis: the layout, the strips kept when they fit
+        :attr:`strip_max_bytes`, the sample ranges, the windowed pair I/Q signals, the pair images
+        of E compressed to ``rank_tol``, the strips' pair images and factors, the error constants
+        and the certificates (logged step by step at INFO)."""
+        self = cls(model)
+        if self.layout.strip_bytes(torch.finfo(model.dtype).bits // 8, self.strip_rank) > self.strip_max_bytes:
+            self.layout = self.layout.without_strips()
         progress = BuildProgress(model, self)
         lo, hi = self._sample_ranges()
         progress.step("sample ranges")
         X = self._windowed_pair_iq()
         progress.step("pair I/Q signals")
         plan1 = self._local_plan(self.rows, torch.arange(self.cols.start, self.cols.stop))
-        self.core_pix = self._core_pixels()
         svd = self._compress(X, plan1, rank_tol, progress)
         del plan1
         self.U, self.V, self.rank, self.rank_tail = svd.U, svd.V, svd.rank, svd.rank_tail
@@ -184,118 +166,18 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         if self.missed > 0:
             self.kernel_tol = self.sketch_kernel_tol
         progress.close()
-
-    # ------------------------------------------------------------------ precomputation
-    def _strip_layout(self):
-        """Column order of ``strip_images`` (``H2``): block-major, so the pair images of one grid block of the strips
-        are ``2 block^2`` adjacent columns ([re | im] of its pixels, row-major), followed by the
-        pixels no whole block covers. Sets ``h2_cols`` (old [re | im] column of each new column),
-        its inverse ``h2_inv`` and ``strip_block_col`` (nQ1,): the first column of each tier-1
-        block in ``strip_images``, -1 where the block is not wholly inside the strips."""
-        s = self.model.setup
-        b = self.model.block
-        nstrip = self.strip_cols.numel()
-        qz, qx = self.blocks1[:, 0], self.blocks1[:, 1]
-        in_rows = (qz * b >= self.rows.start) & ((qz + 1) * b <= self.rows.stop)
-        in_grid = (qx + 1) * b <= s.n_x
-        in_strip = ((qx + 1) * b <= self.cols.start) | (qx * b >= self.cols.stop)
-        whole = torch.nonzero(in_rows & in_grid & in_strip).flatten()
-        ar = torch.arange(b)
-        z = qz[whole, None, None] * b + ar[None, :, None] - self.rows.start  # (nW, b, 1)
-        x = qx[whole, None, None] * b + ar[None, None, :]
-        j = torch.where(x < self.cols.start, x, x - (self.cols.stop - self.cols.start))
-        pix = (z * nstrip + j).reshape(whole.numel(), b * b)  # strip pixels of each whole block
-        covered = torch.zeros(self.npix2, dtype=torch.bool)
-        covered[pix.reshape(-1)] = True
-        rest = torch.nonzero(~covered).flatten()
-        self.h2_cols = torch.cat([torch.cat([pix, pix + self.npix2], dim=1).reshape(-1), rest, rest + self.npix2])
-        self.h2_inv = torch.argsort(self.h2_cols)
-        self.strip_block_col = torch.full((self.blocks1.shape[0],), -1, dtype=torch.long)
-        self.strip_block_col[whole] = torch.arange(whole.numel()) * 2 * b * b
-
-    #: half side (pixels) of the core around the scatterer whose exact pair images are kept
-    core = 16
-
-    def _core_pixels(self) -> torch.Tensor:
-        """Row-major E-pixel indices of the core: the (2 core) x (2 core) pixels of E centred on
-        the scatterer, where the peak of a selection's image lies (its pair images, ``core_images``,
-        settle near-ties at the peak without delay-and-sum)."""
-        s = self.model.setup
-        iz, ix = s.scatterer_pixel
-        iz, ix = iz - self.rows.start, ix - self.cols.start
-        h, w = self.shape
-        zr = torch.arange(max(0, iz - self.core), min(h, iz + self.core))
-        xr = torch.arange(max(0, ix - self.core), min(w, ix + self.core))
-        return (zr[:, None] * w + xr[None, :]).reshape(-1)
-
-    def _strip_bytes(self) -> int:
-        """Memory of the strips' pair images and block factors in the model's dtype."""
-        P = self.pairs_e.numel()
-        size = torch.finfo(self.model.dtype).bits // 8
-        nw = int((self.strip_block_col >= 0).sum())
-        return size * P * (2 * self.npix2 + nw * self.strip_rank)
-
-    def _disable_strips(self):
-        """Drop tier 2 (the strips' pair images): loose blocks outside E are beamformed exactly."""
-        self.strips = False
-        self.npix2 = 0
-        self.strip_cols = torch.zeros(0, dtype=torch.long)
-        self.h2_cols = torch.zeros(0, dtype=torch.long)
-        self.h2_inv = torch.zeros(0, dtype=torch.long)
-        self.strip_block_col = torch.full_like(self.strip_block_col, -1)
-
-    # ------------------------------------------------------------------ cache
-    #: stored key -> attribute of the dense tensors kept in the model's dtype (the keys are the
-    #: serialised format: keep them, or bump :data:`~arraysel.physics.psf.store.BASIS_VERSION`)
-    _DENSE = {"V": "V", "H2": "strip_images", "A": "pair_channels", "Hc": "core_images", "SF": "strip_left",
-              "SG": "strip_right", "SS": "strip_sigma"}
-    #: stored key prefix -> attribute of the sparse block matrices
-    _SPARSE = {"S1": "block_envelopes_e", "S2": "block_envelopes_band"}
-
-    def state(self) -> dict:
-        """The stored tensors by name (see :attr:`_DENSE` and :attr:`_SPARSE`)."""
-        st = {key: getattr(self, attr).cpu() for key, attr in self._DENSE.items()}
-        st.update({"err": torch.tensor(list(self.error), dtype=torch.float64), "core_pix": self.core_pix,
-                   "Snext": self.strip_sigma_next.cpu(),
-                   "meta": torch.tensor([self.window_samples, self.max_run, self.rank, self.segment,
-                                         int(self.strips)]),
-                   "rank_tail": torch.tensor(self.rank_tail), "off": self.window_offset.cpu(),
-                   "row_energy": self.row_energy, "missed": torch.tensor(self.missed, dtype=torch.float64)})
-        if self.U is not None:
-            st["U"] = self.U.cpu()
-        for key, attr in self._SPARSE.items():
-            S = getattr(self, attr)
-            st[key + "_crow"], st[key + "_col"], st[key + "_val"] = (
-                S.crow_indices().cpu(), S.col_indices().cpu(), S.values().cpu())
-            st[key + "_shape"] = torch.tensor(list(S.shape))
-        return st
-
-    def _set_state(self, st: dict):
-        dev, dt = self.model.device, self.model.dtype
-        self.U = st["U"].to(dev, dt) if "U" in st else None
-        for key, attr in self._DENSE.items():
-            setattr(self, attr, st[key].to(dev, dt))
-        self.strip_sigma_next = st["Snext"].double().to(dev)
-        self.core_pix = st["core_pix"].long()
-        self.window_samples, self.max_run, self.rank, self.segment, strips = (int(v) for v in st["meta"])
-        self.window_offset = st["off"].long()
-        self._row_energy = st["row_energy"].double()
-        self.strips = bool(strips)
-        if not strips:
-            self._disable_strips()
-        self.rank_tail = float(st["rank_tail"])
-        self.missed = float(st["missed"])
-        if self.missed > 0:
-            self.kernel_tol = self.sketch_kernel_tol
-        self.error = ErrorConstants(*(float(v) for v in st["err"].double()))
-        for key, attr in self._SPARSE.items():
-            shape = tuple(int(v) for v in st[key + "_shape"])
-            setattr(self, attr, sparse_csr(st[key + "_crow"], st[key + "_col"], st[key + "_val"].to(dt),
-                                           shape).to(dev))
+        return self
 
     @classmethod
-    def from_state(cls, model, state):
-        return cls(model, _state=state)
+    def from_state(cls, model, state: dict) -> "PairBasis":
+        """``model``'s basis from its stored tensors (:meth:`state`)."""
+        self = cls(model)
+        restore_state(self, state)
+        return self
+
+    def state(self) -> dict:
+        """The stored tensors by name (:func:`arraysel.physics.psf.state.basis_state`)."""
+        return basis_state(self)
 
     def truncated(self, rank: int) -> "PairBasis":
         """A view of this basis keeping the first ``rank`` singular vectors of the pair images on
@@ -438,3 +320,10 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         """The windowed pair I/Q signals (Ne tx j, ntx, Ne rx e, T) complex (sample t of the window
         of (n, e) is sample ``off[n, e] + t`` of the record)."""
         return self._complex_channels(self.pair_channels, self.model.n_elements).transpose(1, 2)
+
+
+# the layout's fields read as the basis's own attributes (the build, certificates and refinement
+# use them so)
+for _name in LAYOUT_FIELDS:
+    setattr(PairBasis, _name, _layout_attribute(_name))
+del _name

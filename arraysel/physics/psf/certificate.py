@@ -57,7 +57,7 @@ class Certificates:
         read = hi >= lo
         lo = torch.where(read, lo - off, torch.full_like(lo, T))
         hi = torch.where(read, (hi - off).clamp(max=T - 1), torch.full_like(hi, -1))
-        outside1, outside2 = self._outside_blocks()
+        outside1, outside2 = self.layout.outside1, self.layout.outside2
         has_all = hi >= lo
         runs = torch.where(has_all, hi // self.segment - lo // self.segment + 1, torch.zeros_like(lo))
         #: longest run of consecutive segments a block reads
@@ -66,18 +66,6 @@ class Certificates:
         self.block_envelopes_band = self._block_matrix(lo, hi, outside2) if self.strips else \
             sparse_csr(torch.zeros(1, dtype=torch.long), torch.zeros(0, dtype=torch.long),
                  torch.zeros(0, dtype=model.dtype), (0, self.block_envelopes_e.shape[1])).to(model.device)
-
-    def _outside_blocks(self):
-        """(nbz, nbx) bool masks of the blocks not inside E (tier 1) and not inside the band (tier 2)."""
-        s = self.model.setup
-        b = self.model.block
-        bz = torch.arange(-(-s.n_z // b))
-        bx = torch.arange(-(-s.n_x // b))
-        in_rows = (bz * b >= self.rows.start) & ((bz + 1) * b <= self.rows.stop)
-        in_cols = (bx * b >= self.cols.start) & ((bx + 1) * b <= self.cols.stop)
-        outside1 = ~(in_rows[:, None] & in_cols[None, :])
-        outside2 = ~(in_rows[:, None] & torch.ones(bx.numel(), dtype=torch.bool)[None, :])
-        return outside1, outside2
 
     def _block_matrix(self, lo, hi, outside):
         """Sparse (nQ, ntx*Ne*M*nS) matrix summing, per block, the envelope of the run of

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from arraysel.physics.psf.basis import BUILD_RANK_TOL, PairBasis
+from arraysel.physics.psf.state import DENSE, SPARSE
 
 #: version of the stored state (:meth:`PairBasis.state` plus ``window_estimate``); bump it when
 #: its keys or meaning change (11: ``window_estimate`` added; 13: sketched bases from a sparse
@@ -38,8 +39,8 @@ def stored_window_estimate(model) -> int | None:
 
 
 #: tensors every stored basis has (besides ``U``, present when V holds singular vectors)
-_REQUIRED = (tuple(PairBasis._DENSE) + tuple(f"{k}_{part}" for k in PairBasis._SPARSE
-                                              for part in ("crow", "col", "val", "shape"))
+_REQUIRED = (tuple(DENSE) + tuple(f"{k}_{part}" for k in SPARSE
+                                     for part in ("crow", "col", "val", "shape"))
              + ("err", "core_pix", "Snext", "meta", "rank_tail", "off", "row_energy", "missed", WINDOW_KEY))
 
 
@@ -81,7 +82,7 @@ def load_or_build_basis(model) -> PairBasis:
         # large temporaries reuse the heap during the build (malloc_tuned: 172 -> 151 s at 256
         # elements), and the process gives that memory back after it
         with malloc_tuned():
-            built.append(PairBasis(model, rank_tol=BUILD_RANK_TOL))
+            built.append(PairBasis.build(model, rank_tol=BUILD_RANK_TOL))
         return {**built[0].state(), WINDOW_KEY: torch.tensor(model.window_estimate())}
 
     restored = []
