@@ -103,9 +103,7 @@ class Certificates:
     #: fewest selections whose products :meth:`_receive_products` forms for each receive element's
     #: own selections: fewer selections are bound by reading ``pair_channels``, not by the
     #: arithmetic, so one product serves them all and only the elements none of them uses are
-    #: skipped (256 elements, channels of 4 selections: 16.4-18.5 ms a selection with the whole
-    #: product, 18.9-23.8 per element's selections; 128 selections: envelopes 4.7-5.0 ms a
-    #: selection with the whole product, 2.9-3.3 per element's)
+    #: skipped (measurements: ``docs/performance.md``, "Tuning constants")
     receive_subset_min = 32
 
     def _receive_products(self, w: torch.Tensor, subsets: bool | None = None):
@@ -193,7 +191,7 @@ class Certificates:
         loads no compiled code), when those rows (``sum_b nnz_b^2`` blocks, k^2 for a mask of k
         elements) are fewer than the product ``w @ pair_channels`` reads (Ne blocks per receive
         element any selection uses). Both are bound by those reads: one mask of 32 of 64
-        elements reads a quarter of the channels instead of half (1.1 against 3.2-4.9 ms)."""
+        elements reads a quarter of the channels instead of half."""
         if w.device.type != "cpu" or w.requires_grad or w.shape[0] >= compiled.MIN_BATCH:
             return False
         if not self._warm("envelopes"):
@@ -226,9 +224,8 @@ class Certificates:
     #: a batch smaller than :data:`arraysel.physics.compiled.MIN_BATCH` takes torch's
     #: operations for the first calls only (a cold single-mask run loads no compiled code): from
     #: the call after this many such batches on (a loop of gradient steps), counted per pass
-    #: (:meth:`_warm`), its block bounds are summed compiled too (one mask: 0.85 against 1.6-1.9
-    #: ms for the sparse product on the paper scene, 4.5-5.3 against 7.1-7.3 at 256 elements)
-    #: and its envelopes summed from the rows it uses (:meth:`_channels_from_rows`)
+    #: (:meth:`_warm`), its block bounds are summed compiled too (faster than the sparse product
+    #: for one mask) and its envelopes summed from the rows it uses (:meth:`_channels_from_rows`)
     compiled_bound_warm = 4
 
     def bound(self, w: torch.Tensor, tier: int = 1, per_block: bool = False, env=None) -> torch.Tensor:

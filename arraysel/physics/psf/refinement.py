@@ -153,7 +153,7 @@ class Refinement:
             plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
         if isinstance(X, RawChannels):
             # the compiled sum, a block at a time (concatenating the blocks' plans copied more
-            # than the sums read: 2.3 MB a block for a 256-element probe)
+            # than the sums read)
             return torch.cat([self._das_compiled(X, pl) for pl in plans])
         i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
                        for j in range(3))
@@ -187,10 +187,8 @@ class Refinement:
             v = torch.matmul(cf, self.strip_right[sl])
         else:
             # the factors of each run of consecutive slots read in place: gathering them copied
-            # (n, P, r) floats, 24 MB for a typical call on the paper scene (180 slots in 1 to
-            # 18 runs), more than the products: 1.8-2.0 against 4.0-4.2 ms for that call with
-            # the allocator tuned as the command line tunes it (3.7-4.0 against 8.9 without);
-            # a run costs about 0.06 ms more, hence at most 32 of them
+            # (n, P, r) floats, more than the products read; each run costs a little more, hence
+            # at most 32 of them (``docs/performance.md``, "Tuning constants")
             cfs = [torch.matmul(c[None], self.strip_left[a:b]) for a, b in runs]
             cf = torch.cat(cfs)
             v = torch.cat([torch.matmul(f, self.strip_right[a:b]) for f, (a, b) in zip(cfs, runs)])
@@ -404,7 +402,7 @@ class Refinement:
         with torch.no_grad():
             # the per-block bounds serve the peaks that the largest of them does not certify too
             # (forming them again for those selections, from a copy of their envelopes' columns,
-            # cost more than the first time: about 0.6 ms a mask on C5-2v)
+            # cost more than the first time)
             bounds = self.bound(wd, 1, per_block=True, env=env)
             passed = ok & (largest_bound(bounds) < thr)
             retry = torch.nonzero(ok & ~passed).flatten()
@@ -490,9 +488,8 @@ class Refinement:
     raw_channels = True
     #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`,
     #: for :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of
-    #: ``pair_channels`` (954 MB for a 256-element probe), so larger groups cost less per
-    #: selection (256 elements: 16 selections a group 23.0 / 24.2 ms a mask, 48 a group 20.8 /
-    #: 19.5, alternated in one process)
+    #: ``pair_channels``, so larger groups cost less per selection (``docs/performance.md``,
+    #: "Tuning constants")
     channel_group_bytes = 192 << 20
 
     @property

@@ -57,9 +57,8 @@ def basis_limit_bytes() -> int:
 
 #: float64 (pixels x elements) arrays alive at once while the window estimate
 #: (:meth:`~arraysel.physics.psf.operator.PSFModel.window_estimate`) computes the DAS sample
-#: positions of every 8th row and column of the grid (measured on the paper scene's probe: 69
-#: bytes per (pixel, element) at 2048 x 2048 pixels, 71 at 3072 x 3072, from the peak resident
-#: memory; 8192 x 8192 would need about 6 GiB)
+#: positions of every 8th row and column of the grid (measured from the peak resident memory:
+#: ``docs/performance.md``, "Tuning constants")
 WINDOW_ESTIMATE_ARRAYS = 9
 #: bytes per pixel of one mask's whole-grid image on the exact path (complex64 row chunks, their
 #: concatenation and its magnitude), and per window pixel of its kernel (complex64 and magnitude)

@@ -79,8 +79,8 @@ def load_or_build_basis(model) -> PairBasis:
     def build() -> dict:
         from arraysel.io.allocator import malloc_tuned
 
-        # large temporaries reuse the heap during the build (malloc_tuned: 172 -> 151 s at 256
-        # elements), and the process gives that memory back after it
+        # large temporaries reuse the heap during the build (faster at 256 elements,
+        # ``docs/performance.md``), and the process gives that memory back after it
         with malloc_tuned():
             built.append(PairBasis.build(model, rank_tol=BUILD_RANK_TOL))
         return {**built[0].state(), WINDOW_KEY: torch.tensor(model.window_estimate())}
