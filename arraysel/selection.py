@@ -1,25 +1,28 @@
 """One selection, its representations and their checks (one home, imported everywhere else).
 
-A selection of ``k`` of ``Ne`` elements travels as
+A selection of ``k`` of ``Ne`` elements is a :class:`Selection`: its sorted indices and the
+array's size, with its two other forms as properties,
 
-* **indices** -- a sorted ``list[int]`` (what selectors return, what rows store);
-* a **mask** -- ``bool`` array ``(Ne,)`` (or a batch ``(B, Ne)`` of 0/1 floats for the objective);
-* **text** -- ``"0 2 4"`` in ``runs.csv`` / ``table1.csv``.
+* a **mask** -- :attr:`Selection.mask`, ``bool`` array ``(Ne,)`` (a batch ``(B, Ne)`` of 0/1
+  floats for the objective: :func:`masks_from_indices`);
+* **text** -- :attr:`Selection.text`, ``"0 2 4"``, the ``elements`` column of ``runs.csv`` /
+  ``table1.csv`` (:func:`format_elements`); :meth:`Selection.from_text` is its one reader.
 
-:func:`check_selection` validates what a selector returned; :func:`masks_from_indices`
-validates a batch of index lists given by a user. Both raise
+Selectors return plain index lists; :func:`check_selection` validates what a selector returned
+and :func:`masks_from_indices` a batch of index lists given by a user. Every check raises
 :class:`~arraysel.errors.SelectionError` naming what is wrong. Numpy only (a torch tensor is
 accepted wherever a sequence is, through ``.detach()``).
 """
 from __future__ import annotations
 
-from typing import Any, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from arraysel.errors import SelectionError
 
-__all__ = ["check_selection", "indices_to_mask", "mask_to_indices", "masks_from_indices", "format_elements",
+__all__ = ["Selection", "check_selection", "indices_to_mask", "mask_to_indices", "masks_from_indices", "format_elements",
            "parse_element_text"]
 
 
@@ -95,3 +98,79 @@ def parse_element_text(text: Any) -> list[int]:
     """The indices of an ``elements`` column entry written by :func:`format_elements` (``[]`` when
     empty or missing)."""
     return [int(i) for i in text.split()] if isinstance(text, str) else []
+
+
+@dataclass(frozen=True)
+class Selection:
+    """A selection of elements: ``indices`` (sorted, distinct, in ``[0, n_elements)``) of an array
+    of ``n_elements``. The one type figures and tables take; its text and mask are properties.
+
+    >>> s = Selection.of([4, 0, 2], 8)
+    >>> s.text, s.mask.nonzero()[0].tolist(), len(s)
+    ('0 2 4', [0, 2, 4], 3)
+    >>> Selection.from_text("0 2 4", 8) == s
+    True
+    """
+
+    indices: tuple[int, ...]
+    n_elements: int
+
+    def __post_init__(self) -> None:
+        n = self.n_elements
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise SelectionError(f"n_elements must be a whole number >= 1, got {n!r}")
+        idx = tuple(self.indices)
+        if any(isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) for i in idx):
+            raise SelectionError(f"a selection's indices must be whole numbers, got {list(idx)[:8]}")
+        if any(not 0 <= i < n for i in idx):
+            raise SelectionError(f"a selection's indices must be in [0, {n - 1}], got "
+                                 f"{[int(i) for i in idx if not 0 <= i < n][:5]}")
+        if len(set(idx)) != len(idx):
+            raise SelectionError(f"a selection repeats elements: {sorted(int(i) for i in idx)}")
+        object.__setattr__(self, "indices", tuple(sorted(int(i) for i in idx)))
+        object.__setattr__(self, "n_elements", int(n))
+
+    @classmethod
+    def of(cls, indices: Any, n_elements: int, k: int | None = None) -> "Selection":
+        """The selection of element ``indices`` (a sequence, array or tensor of whole numbers),
+        checked (with ``k``: exactly ``k`` of them, :func:`check_selection`)."""
+        if k is not None:
+            return cls(tuple(check_selection(indices, n_elements, k)), n_elements)
+        indices = _plain(indices)
+        return cls(tuple(np.asarray(indices).tolist()) if isinstance(indices, np.ndarray) else tuple(indices),
+                   n_elements)
+
+    @classmethod
+    def from_mask(cls, mask: Any) -> "Selection":
+        """The active elements (``> 0.5``) of a mask ``(Ne,)``."""
+        m = np.asarray(_plain(mask))
+        if m.ndim != 1:
+            raise SelectionError(f"a mask must have shape (Ne,), got {m.shape}")
+        return cls(tuple(mask_to_indices(m)), m.shape[0])
+
+    @classmethod
+    def from_text(cls, text: str, n_elements: int) -> "Selection":
+        """The selection an ``elements`` cell holds (:attr:`text`; ``""`` is the empty selection)."""
+        try:
+            return cls(tuple(parse_element_text(text)), n_elements)
+        except ValueError:
+            raise SelectionError(f"{str(text)[:40]!r} is not a list of element indices") from None
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``bool`` mask ``(n_elements,)``."""
+        return indices_to_mask(self.indices, self.n_elements)
+
+    @property
+    def text(self) -> str:
+        """``"0 2 4"``: the ``elements`` column of the tables (:func:`format_elements`)."""
+        return format_elements(self.indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.indices)
+
+    def __str__(self) -> str:
+        return self.text

@@ -23,12 +23,14 @@ import functools
 import io
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
+from arraysel.selection import Selection
+
 __all__ = ["DYN_RANGE_DB", "PROFILE_FLOOR_DB", "DPI", "IMAGE_CMAP", "MASK_CMAP", "STYLE", "figure_style", "styled",
-           "figure", "db", "extent_mm", "psf_image", "profile_lines", "mask_strip", "masks_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
+           "figure", "db", "extent_mm", "psf_image", "profile_lines", "mask_strip", "masks_figure", "selections_figure", "psfs_figure", "profiles_figure", "trace_figure", "psf_figure", "plot_anytime",
            "ecdf_targets", "save_figure", "collect_figures",
            "matrix_masks_figure", "plane_extent_mm", "plane_image", "planes_figure", "lateral_profiles_figure"]
 
@@ -169,10 +171,18 @@ def mask_strip(ax, labels: Sequence[str], masks: np.ndarray) -> None:
 
 @styled
 def masks_figure(labels: Sequence[str], masks: np.ndarray):
-    """``masks.png``: the active elements of every configuration."""
+    """``masks.png``: the active elements of every configuration (``masks`` ``(rows, Ne)``)."""
     fig = figure((8, 0.4 * max(len(labels), 1) + 1.2))
     mask_strip(fig.subplots(), labels, masks)
     return fig
+
+
+def selections_figure(selections: Mapping[str, Selection]):
+    """``masks.png`` of named :class:`~arraysel.selection.Selection` s (the empty ones left out)."""
+    kept = {name: sel for name, sel in selections.items() if len(sel)}
+    n = max((sel.n_elements for sel in kept.values()), default=1)
+    masks = np.array([sel.mask for sel in kept.values()], dtype=bool).reshape(len(kept), n)
+    return masks_figure(list(kept), masks)
 
 
 @styled
@@ -259,8 +269,10 @@ def trace_figure(trace, full_mean: float | None = None):
 # ---------------------------------------------------------------------------
 
 @styled
-def psf_figure(kernel: np.ndarray, ref: np.ndarray, pitch: float | None, elements: Sequence[int], n_elements: int):
-    """One selection's PSF and the full array's, each in dB of its own peak, with the mask."""
+def psf_figure(kernel: np.ndarray, ref: np.ndarray, pitch: float | None, elements: Sequence[int] | Selection,
+               n_elements: int):
+    """One selection's PSF and the full array's, each in dB of its own peak, with the mask
+    (``elements``: a :class:`~arraysel.selection.Selection` or its indices)."""
     fig = figure((12, 4))
     axes = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 1, 1.2]})
     im = None

@@ -35,9 +35,9 @@ import numpy as np
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
 from arraysel.report.columns import ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
 from arraysel.report.stats import stats_table
-from arraysel.selection import parse_element_text
+from arraysel.selection import Selection
 
-__all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "stats_table",
+__all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "best_rows", "stats_table",
            "read_runs", "rebuild_tables", "TABLE1_COLUMNS"]
 
 #: text columns of ``runs.csv`` (read as text, an empty cell as "")
@@ -164,10 +164,7 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
             best = {"evals": int(best_evals or r["evaluations"]), "y": best_y}
             mean = pd_float(r["Mean"])
             if abs(mean - best_y) <= 1e-6 * abs(best_y):
-                x = [0] * dim
-                for i in parse_element_text(str(r.get("elements") or "")):
-                    x[i] = 1
-                best["x"] = x
+                best["x"] = Selection.from_text(str(r.get("elements") or ""), dim).mask.astype(int).tolist()
             jruns.append({"instance": 1, "evals": int(r["evaluations"]), "best": best, "seed": int(r["seed"])})
         atomic_write_text(adir / rel, "\n".join(lines) + "\n")
         meta = {
@@ -197,9 +194,7 @@ def table1(runs) -> "Any":
 
     out = []
     for config, g in runs.groupby("config", sort=False):
-        means = pd.to_numeric(g["Mean"], errors="coerce").to_numpy(dtype=np.float64)
-        best = int(np.argmin(np.where(np.isfinite(means), means, np.inf)))
-        row = g.iloc[best]
+        row = g.iloc[_best(pd.to_numeric(g["Mean"], errors="coerce").to_numpy(dtype=np.float64))]
         rec: dict[str, Any] = {c: row[c] for c in TABLE1_COLUMNS if c in row.index}
         rec["config"] = config
         rec["elements"] = row["elements"] if isinstance(row["elements"], str) else ""
@@ -209,3 +204,19 @@ def table1(runs) -> "Any":
         rec["error"] = "; ".join(errs)
         out.append(rec)
     return pd.DataFrame(out, columns=list(TABLE1_COLUMNS))
+
+
+def _best(means: np.ndarray) -> int:
+    """Position of the run a table keeps among one config's runs: the lowest finite ``Mean``, the
+    first run when none is finite."""
+    return int(np.argmin(np.where(np.isfinite(means), means, np.inf)))
+
+
+def best_rows(rows: list[dict]) -> dict[str, dict]:
+    """Per config (in the order of ``rows``), the run :func:`table1` keeps: the row with the
+    lowest finite ``Mean``, its first row when none has one."""
+    groups: dict[str, list[dict]] = {}
+    for row in rows:
+        groups.setdefault(str(row["config"]), []).append(row)
+    return {config: g[_best(np.array([pd_float(r.get("Mean")) for r in g], dtype=np.float64))]
+            for config, g in groups.items()}

@@ -32,7 +32,7 @@ from arraysel.run.experiment import Experiment, _failed_row, _final_metrics, _lo
 from arraysel.run.isolation import DEFAULT_GRACE_S, IsolatedWorker
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir, remove_results
 from arraysel.run.workers import TaskFailed, objective_factory_for
-from arraysel.selection import indices_to_mask, parse_element_text
+from arraysel.selection import Selection, indices_to_mask, parse_element_text
 from arraysel.selectors.contract import Budget, BudgetExceededError
 
 __all__ = ["DEFAULT_SEEDS", "compare", "write_figures"]
@@ -449,7 +449,12 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
 
     table = reporting.table1(pd.DataFrame([full] + rows, columns=list(ROW_COLUMNS)))
     if figures:
-        meta["figure_errors"] = write_figures(objective, table, pd.DataFrame(traces), out)
+        # each config's selection, from the run the table keeps (a row's ``elements`` is the text
+        # a run sends back and a resumed folder holds: read once here, not back from the table)
+        n = int(objective.n_elements)
+        selections = {config: Selection.from_text(str(row.get("elements") or ""), n)
+                      for config, row in reporting.best_rows([full] + rows).items()}
+        meta["figure_errors"] = write_figures(objective, selections, table, pd.DataFrame(traces), out)
     failed = [f"{r['config']} seed {r['seed']}" for r in [full] + rows if str(r.get("error") or "").strip()]
     meta["error_rows"] = len(failed)
     meta["failed_runs"] = failed
@@ -463,30 +468,19 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
 # figures
 # ---------------------------------------------------------------------------
 
-def _table_masks(table, n: int) -> tuple[list[str], np.ndarray]:
-    """The configurations of ``table`` that have a selection, and their boolean masks ``(rows, n)``."""
-    labels, masks = [], []
-    for config, elements in zip(table["config"], table["elements"]):
-        indices = parse_element_text(elements)
-        if indices:
-            labels.append(str(config))
-            masks.append(indices_to_mask(indices, n))
-    return labels, np.array(masks, dtype=bool).reshape(len(masks), n)
-
-
-def write_figures(objective, table, trace, out: Path) -> list[str]:
-    """Draw the figures of a comparison (:mod:`arraysel.report.plots`) and save them in ``out``:
-    ``masks.png``, ``psfs.png``, ``profiles.png``, ``trace.png``, ``anytime.png``. Returns a list of
-    problems (empty when all went well): a figure never loses the tables."""
+def write_figures(objective, selections: dict[str, Selection], table, trace, out: Path) -> list[str]:
+    """Draw the figures of a comparison (:mod:`arraysel.report.plots`) from each config's
+    :class:`~arraysel.selection.Selection` (``table``: its ``full`` row's Mean) and save them in
+    ``out``: ``masks.png``, ``psfs.png``, ``profiles.png``, ``trace.png``, ``anytime.png``. Returns a
+    list of problems (empty when all went well): a figure never loses the tables."""
     problems: list[str] = []
-    labels, masks = _table_masks(table, int(objective.n_elements))
     pitch = getattr(getattr(objective, "setup", None), "pitch", None)
     try:
-        plots.save_figure(plots.masks_figure(labels, masks), out / "masks.png")
+        plots.save_figure(plots.selections_figure(selections), out / "masks.png")
     except Exception as exc:  # a figure must never lose the tables
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
-    keep = [i for i, lab in enumerate(labels) if lab != "full"]
-    labels, masks = [labels[i] for i in keep], masks[keep]
+    labels = [config for config, sel in selections.items() if len(sel) and config != "full"]
+    masks = np.array([selections[config].mask for config in labels], dtype=bool)
     if len(labels):
         try:
             import torch
