@@ -180,3 +180,107 @@ def test_executors_do_not_know_objective_classes():
               "arraysel.run.random_search", "arraysel.run.compare_task", "arraysel.run.compare"):
         assert not {t for t in GRAPH[m] if t.startswith("arraysel.objective.")}, m
         assert "__name__ ==" not in MODULES[m].read_text(encoding="utf-8").replace("if __name__", "")
+
+
+# -- one home for the loss, parts of the PSF model, one selection type ----------------------
+
+def _tree(module: str) -> ast.Module:
+    return ast.parse(MODULES[module].read_text(encoding="utf-8"))
+
+
+def _defined_functions(module: str) -> set[str]:
+    return {n.name for n in ast.walk(_tree(module)) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+
+
+#: the loss terms and the function that assembles them: defined in arraysel.objective.losses only
+LOSS_FUNCTIONS = {"l_conv", "l_rec", "l_ent", "l_row", "training_loss", "weighted_sum", "check_weights"}
+#: the trainer's former second vocabulary of weight names
+FORMER_WEIGHT_NAMES = {"psf", "conv", "rec", "contrast", "slr", "ent", "row"}
+
+
+def test_the_loss_has_one_home():
+    """Nothing but ``objective.losses`` defines a loss term or sums the loss; the PSF objective,
+    the toy objective and the trainer assemble theirs with ``training_loss``."""
+    for m in MODULES:
+        if m != "arraysel.objective.losses":
+            assert not _defined_functions(m) & LOSS_FUNCTIONS, (m, _defined_functions(m) & LOSS_FUNCTIONS)
+    for m in ("arraysel.objective.psf_objective", "arraysel.objective.toy", "arraysel.e2e.trainer"):
+        names = {a.name for n in ast.walk(_tree(m)) if isinstance(n, ast.ImportFrom)
+                 and n.module == "arraysel.objective.losses" for a in n.names}
+        assert "training_loss" in names, m
+
+
+def test_training_settings_speak_the_scene_names():
+    """One set of training settings: no ``LossWeights``, and no module of ``e2e`` indexes a loss
+    term or weight by the former short names (``terms["conv"]``, ``weights.psf``)."""
+    for m in (m for m in MODULES if m.startswith("arraysel.e2e")):
+        for node in ast.walk(_tree(m)):
+            assert not (isinstance(node, ast.ClassDef) and node.name == "LossWeights"), m
+            if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant):
+                assert node.slice.value not in FORMER_WEIGHT_NAMES, (m, node.lineno, node.slice.value)
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute):
+                assert not (node.value.attr == "weights" and node.attr in FORMER_WEIGHT_NAMES), (m, node.lineno)
+
+
+#: largest module of ``physics.psf`` (lines) and largest class there: the operator, the sizing,
+#: the basis and each of its parts stay files a reader takes in at once
+PSF_MODULE_LINES = 600
+PSF_CLASS_LINES = 520
+
+
+def test_psf_modules_stay_readable_parts():
+    psf = [m for m in MODULES if m.startswith("arraysel.physics.psf")]
+    assert {"arraysel.physics.psf.sizing", "arraysel.physics.psf.layout", "arraysel.physics.psf.state"} <= set(psf)
+    for m in psf:
+        text = MODULES[m].read_text(encoding="utf-8")
+        assert text.count("\n") <= PSF_MODULE_LINES, (m, text.count("\n"))
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ClassDef):
+                assert node.end_lineno - node.lineno < PSF_CLASS_LINES, (m, node.name)
+
+
+def test_psf_model_delegates_its_sizing():
+    """``PSFModel``'s sizing methods are entry points into ``physics.psf.sizing``: each one statement
+    (after its docstring) that calls the function of that module."""
+    model = next(n for n in ast.walk(_tree("arraysel.physics.psf.operator"))
+                 if isinstance(n, ast.ClassDef) and n.name == "PSFModel")
+    sizing = _defined_functions("arraysel.physics.psf.sizing")
+    methods = {n.name: n for n in model.body if isinstance(n, ast.FunctionDef)}
+    for name in ("basis_bytes", "basis_stored_bytes", "basis_build_seconds", "window_estimate", "plan_cache_bytes",
+                 "plan_cache_limit", "model_bytes", "exact_bytes", "exact_chunking", "masks_per_batch",
+                 "exact_seconds_per_mask"):
+        assert name in sizing, name
+        body = [s for s in methods[name].body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
+        assert len(body) == 1 and "sizing." + name in ast.unparse(body[0]), name
+
+
+def test_pair_basis_has_its_entry_points_and_parts():
+    tree = _tree("arraysel.physics.psf.basis")
+    basis = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "PairBasis")
+    methods = {n.name for n in basis.body if isinstance(n, ast.FunctionDef)}
+    assert {"build", "from_state", "state", "truncated"} <= methods
+    assert {"arraysel.physics.psf.layout", "arraysel.physics.psf.state"} <= GRAPH["arraysel.physics.psf.basis"]
+
+
+def test_no_benchmark_history_in_psf_code():
+    """Timings and dates of measurements live in ``docs/performance.md``, not in comments."""
+    import re
+
+    timing = re.compile(r"\b\d+(\.\d+)?( ?- ?\d+(\.\d+)?)? ?ms\b|\b20\d\d-\d\d-\d\d\b")
+    for m in (m for m in MODULES if m.startswith("arraysel.physics.psf")):
+        for no, line in enumerate(MODULES[m].read_text(encoding="utf-8").splitlines(), 1):
+            assert not timing.search(line), f"{MODULES[m].name}:{no}: {line.strip()}"
+
+
+def test_selections_are_not_parsed_back_from_tables():
+    """Figures and tables take ``Selection`` s: nothing in ``report`` or ``run`` reads a selection
+    out of a table's ``elements`` column, and ``report`` reads an ``elements`` cell only through
+    ``Selection.from_text``."""
+    for m in (m for m in MODULES if m.startswith(("arraysel.report", "arraysel.run"))):
+        tree = _tree(m)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name) and node.value.id == "table":
+                assert not (isinstance(node.slice, ast.Constant) and node.slice.value == "elements"), (m, node.lineno)
+        if m.startswith("arraysel.report"):
+            assert "parse_element_text" not in ast.unparse(tree), m
+            assert ".split()" not in MODULES[m].read_text(encoding="utf-8"), m
