@@ -108,3 +108,19 @@ def test_weights_take_the_scene_names_only():
     assert TrainConfig(weights={"L_conv": 0}).weights["L_conv"] == 0.0
     with pytest.raises(ParameterError, match="'L_conv'"):
         TrainConfig(weights={"conv": 0})
+
+
+def test_training_loss_gradcheck():
+    """The assembled loss is differentiable in the terms and in P_soft (float64 gradcheck)."""
+    gen = torch.Generator().manual_seed(3)
+    psf = torch.rand(2, dtype=torch.float64, generator=gen, requires_grad=True)
+    logits = torch.randn(6, 3, dtype=torch.float64, generator=gen, requires_grad=True)
+    w = {"L_PSF": 10.0, "L_SLR": 2.0, "L_ent": 1.0, "L_row": 10.0}
+
+    def f(psf, logits):
+        p_soft = torch.softmax(logits, 0)
+        total, _ = L.training_loss({"L_PSF": psf, "L_SLR": psf ** 2}, w, P_soft=p_soft * 1.5,
+                                   scales={"L_SLR": 3.0})
+        return total
+
+    assert torch.autograd.gradcheck(f, (psf, logits), eps=1e-6, atol=1e-8, rtol=1e-6)
