@@ -1,0 +1,361 @@
+"""The fast 3-D point-spread function: transmit and receive factored in time, per pixel.
+
+For one point scatterer, transmit ``n`` and receive element ``e``, the exact path
+(:class:`~arraysel.physics.volume.psf.MatrixPSF`) beamforms the echo
+
+    S_ne(f) = w_e RC_e(f) T_n(f),       T_n(f) = sum_j w_j G_nj(f)
+
+(``T_n`` the field at the scatterer, linear in the selection ``w``; ``RC_e`` the element's
+receive factor). Its I/Q signal is, to the accuracy checked below, ``conj(S)`` times the
+demodulator's response ``L_n(f)`` at the sample's absolute index ``m``, as the tone
+``exp(i beta_f m)``, ``beta_f = 2 pi (f - fc) / fs``; delay-and-sum reads it by linear
+interpolation at ``x = xi_n(p) + eta_e(p)`` samples (transmit and receive distances times fs / c)
+and rotates it by ``exp(2i pi fc x / fs)``. Linear interpolation of a tone is the tone times a
+1-periodic function of ``x``, ``sum_q h_q(beta) exp(2i pi q x)`` (:func:`interpolation_harmonics`),
+so the image of pixel ``p`` is
+
+    img(p) = sum_n sum_e w_e sum_f sum_q conj(T_n RC_e) L_n h_q exp(i (kappa_f + 2 pi q) x_npe),
+
+``kappa_f = 2 pi f / fs``. Three structures make it cheap for many selections:
+
+* **transmit subspace**: ``conj(T_n)`` lies in the span of the rows of ``conj(G_n)``; a weighted
+  SVD keeps ``r_n`` of them (``conj T_n ~ sum_g c_ng(w) Phi_ng(f)``, ``c_n = w @ C_n``);
+* **receive delays per pixel**: ``conj(RC_e(f)) = A_e(f) exp(-i kappa_f eta_e(s))`` with ``A_e``
+  smooth in f (a polynomial in f times a shared spectrum, :func:`_receive_amplitudes`), and
+  ``delta_e(p) = eta_e(p) - eta_e(s)`` spans a short interval for each pixel, on which
+  ``exp(i (kappa_f - kappa_c) delta)`` is interpolated at Chebyshev nodes ``delta_pm``;
+* what is left per pixel is a receive sum ``gamma_pqmk(w) = sum_e w_e B_e,pqmk`` (one matrix
+  product for a batch of selections) and a transmit sum ``sum_ng c_ng(w) Psi_ng,pqmk``.
+
+So ``img(p) = sum_{q,m,k} gamma_pqmk(w) sum_{n,g} c_ng(w) Psi_ng,pqmk``: bilinear in ``w`` like the
+exact image, differentiable, and the cost of a selection does not grow with the number of
+transmits' frequencies or with the receive sum's length in time.
+
+The build checks the two assumptions it rests on (the I/Q map's tone form on the samples the
+planes read, and every read sample inside the record) and measures the truncations; then it
+compares the fast planes with the exact path on check selections (full array, random subsets)
+and records the worst relative error in :attr:`MatrixFastPSF.check` -- the certificate the
+objective reads before it trusts the fast path (``docs/matrix.md``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from arraysel.errors import ParameterError, check_number
+from arraysel.physics.volume.psf import MatrixPSF
+
+__all__ = ["FastPathUnavailable", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
+
+
+class FastPathUnavailable(RuntimeError):
+    """The fast path cannot represent this scene (the reason says why); use the exact path."""
+
+
+def interpolation_harmonics(beta: torch.Tensor, orders) -> torch.Tensor:
+    """Fourier coefficients ``h_q(beta)`` (len(orders), F) complex128 of the 1-periodic factor that
+    linear interpolation of the samples ``exp(i beta m)`` multiplies the tone ``exp(i beta x)`` by:
+    ``interp(x) = exp(i beta x) sum_q h_q exp(2i pi q x)`` (``h_q = sinc^2(beta / 2 pi + q)``)."""
+    beta = torch.as_tensor(beta, dtype=torch.float64)
+    u = beta / (2 * math.pi)
+    return torch.stack([torch.sinc(u + q) ** 2 for q in orders]).to(torch.complex128)
+
+
+def _chebyshev_nodes(n: int) -> torch.Tensor:
+    k = torch.arange(n, dtype=torch.float64)
+    return torch.cos(math.pi * (2 * k + 1) / (2 * n))
+
+
+def _lagrange(nodes: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Lagrange basis ``l_m(x)`` for the node sets ``nodes`` (..., S) at points ``x`` (..., E):
+    (..., E, S), by the barycentric formula (exact at the nodes)."""
+    s = nodes.shape[-1]
+    diff = nodes[..., :, None] - nodes[..., None, :]  # (..., S, S)
+    eye = torch.eye(s, dtype=torch.bool, device=nodes.device)
+    wts = 1.0 / torch.where(eye, torch.ones_like(diff), diff).prod(-1)  # (..., S)
+    d = x[..., :, None] - nodes[..., None, :]  # (..., E, S)
+    hit = d == 0
+    d = torch.where(hit, torch.ones_like(d), d)
+    terms = wts[..., None, :] / d
+    out = terms / terms.sum(-1, keepdim=True)
+    if bool(hit.any()):
+        exact = hit.to(out.dtype)
+        out = torch.where(hit.any(-1, keepdim=True), exact, out)
+    return out
+
+
+def fast_relative_error(fast: dict, exact: dict) -> torch.Tensor:
+    """Per selection, the largest over planes of ``||fast - exact||^2 / ||exact||^2`` (B,)."""
+    errs = [((fast[k] - exact[k]).abs() ** 2).flatten(1).sum(1) / (exact[k].abs() ** 2).flatten(1).sum(1)
+            for k in exact]
+    return torch.stack(errs).amax(0)
+
+
+@dataclass(frozen=True)
+class FastSettings:
+    """Truncation tolerances of :class:`MatrixFastPSF` (relative, on the weighted spectra).
+
+    tol: singular values / fit residuals / interpolation errors kept below this fraction;
+    replicas: interpolation harmonics ``q = -replicas .. replicas`` kept (0: the ideal delay only);
+    max_nodes: the most Chebyshev nodes a pixel may need (a larger need: the fast path is refused);
+    check_tol: the largest relative plane error (squared norm ratio) accepted on the check
+    selections; above it the fast path is refused (the objective uses the exact path).
+    """
+
+    tol: float = 1e-5
+    replicas: int = 0
+    max_nodes: int = 48
+    check_tol: float = 1e-4
+
+    def __post_init__(self):
+        check_number("tol", self.tol, lo=0, lo_open=True, hi=1e-1)
+        check_number("replicas", self.replicas, lo=0, hi=8, integer=True)
+        check_number("max_nodes", self.max_nodes, lo=2, hi=512, integer=True)
+        check_number("check_tol", self.check_tol, lo=0, lo_open=True, hi=1.0)
+
+
+def _tone_response(t, s0: int, s1: int, fc: float, fs: float, tol: float) -> torch.Tensor:
+    """``L_n(f)`` (F,) complex128 with ``iq[m] = sum_f conj(S_f) L_f exp(i beta_f m)`` on the
+    samples ``[s0, s1)``; raises FastPathUnavailable when the map departs from that form by more
+    than ``tol`` (relative, each tone weighted by the size of the echo's spectrum there)."""
+    M = t.iq_map(slice(s0, s1)).to(torch.float64)
+    F = M.shape[0] // 2
+    T = M.shape[1] // 2
+    re = torch.complex(M[:F, :T], M[:F, T:])
+    im = torch.complex(M[F:, :T], M[F:, T:])
+    anti = (re + 1j * im) / 2   # the part acting on conj(S)
+    lin = (re - 1j * im) / 2    # the part acting on S (the demodulator's image, ~0)
+    f = t.grid.f.to(torch.float64)
+    beta = 2 * math.pi * (f - fc) / fs
+    m = torch.arange(s0, s1, dtype=torch.float64)
+    tone = torch.polar(torch.ones(F, T, dtype=torch.float64), beta[:, None] * m[None])
+    L = (anti * tone.conj()).mean(1)
+    wf = (t.rx_factor.abs().amax(0) * t.tx_field.abs().amax(0)).to(torch.float64)[:, None]
+    resid = ((anti - L[:, None] * tone) * wf).norm() + (lin * wf).norm()
+    size = (anti * wf).norm()
+    if not bool(size > 0) or float(resid / size) > tol:
+        raise FastPathUnavailable(f"the I/Q map is not a tone response on the samples read (relative "
+                                  f"departure {float(resid / size):.2e} > {tol:.1e})")
+    return L
+
+
+def _receive_amplitudes(A: list[torch.Tensor], f: list[torch.Tensor], fc: float, weights: list[torch.Tensor],
+                        tol: float, max_k: int = 8):
+    """Fit ``A_e(f) = shape_n(f) sum_k a_ek ((f - fc) / fc)^k`` for every transmit's grid.
+
+    A: per transmit (Ne, F_n) complex; weights: per transmit (F_n,) relevance. The shared shape is
+    the element mean of A. Returns ``(a (Ne, K), basis list of (K, F_n))`` with the weighted
+    residual <= tol, or raises FastPathUnavailable."""
+    shapes = [a.mean(0) for a in A]
+    for K in range(1, max_k + 1):
+        rows, rhs = [], []
+        for a, s, fr, w in zip(A, shapes, f, weights):
+            nu = (fr - fc) / fc
+            basis = torch.stack([s * nu ** k for k in range(K)])  # (K, F)
+            rows.append((basis * w[None]).T)                      # (F, K)
+            rhs.append((a * w[None]).T)                           # (F, Ne)
+        Bm, R = torch.cat(rows), torch.cat(rhs)
+        coef = torch.linalg.lstsq(Bm, R).solution                 # (K, Ne)
+        resid = float((Bm @ coef - R).norm() / R.norm())
+        if resid <= tol:
+            bases = [torch.stack([s * ((fr - fc) / fc) ** k for k in range(K)]) for s, fr in zip(shapes, f)]
+            return coef.T.contiguous(), bases
+    raise FastPathUnavailable(f"the elements' receive responses are not smooth in frequency to {tol:.1e} "
+                              f"with {max_k} terms (residual {resid:.2e})")
+
+
+class MatrixFastPSF:
+    """The fast path of :class:`~arraysel.physics.volume.psf.MatrixPSF` (module docstring).
+
+    Parameters: ``exact`` the exact model (any dtype: the build runs in float64 from its setup);
+    ``settings`` (:class:`FastSettings`); ``dtype`` of the evaluation; ``check_masks`` (C, Ne)
+    selections the build compares with the exact path (default: the full array and two random
+    subsets of a quarter of the elements, seed 0).
+
+    Raises :class:`FastPathUnavailable` when the scene breaks an assumption or the check fails.
+    :attr:`check` records the measured errors; :attr:`sizes` the truncation ranks.
+    """
+
+    def __init__(self, exact: MatrixPSF, settings: FastSettings | None = None, dtype=torch.float32,
+                 check_masks=None, pixel_chunk: int = 256):
+        if dtype not in (torch.float32, torch.float64):
+            raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
+        self.settings = settings or FastSettings()
+        self.exact = exact
+        self.setup = exact.setup
+        self.coords = exact.coords
+        self._shapes = dict(exact._shapes)
+        self.n_elements = exact.n_elements
+        self.image_scale = exact.image_scale
+        self.dtype = dtype
+        self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+        self.device = exact.device
+        self._build(int(pixel_chunk))
+        self.check = self._check(check_masks)
+
+    # ---------------------------------------------------------------- build
+    def _build(self, chunk: int):
+        s, st = self.setup, self.settings
+        probe, acq = s.probe, s.acq
+        fs, c, fc = acq.fs, acq.c, probe.fc
+        tol = st.tol
+        ex = self.exact
+        rx_pos = ex._rx_pos.to("cpu", torch.float64)                       # (P, Ne) eta_e(p), samples
+        pos = torch.as_tensor(probe.element_positions(), dtype=torch.float64)
+        sc = torch.tensor(s.scatterer, dtype=torch.float64)
+        eta_s = (pos - sc).norm(dim=1) * (fs / c)                          # (Ne,) eta_e(s)
+        delta = rx_pos - eta_s[None]                                       # (P, Ne)
+        kc = 2 * math.pi * fc / fs
+        orders = list(range(-st.replicas, st.replicas + 1))
+        n_tx = len(ex.transmits)
+
+        L, fgrid, A, relevance, tx_pos = [], [], [], [], []
+        for n, t in enumerate(ex.transmits):
+            s0, s1 = ex._samples[n]
+            xi = ex._tx_pos[n].to("cpu", torch.float64)                    # (P,)
+            x = xi[:, None] + rx_pos
+            if float(x.min()) < 0 or float(x.max()) > t.grid.n_time - 2:
+                raise FastPathUnavailable("some pixel reads a sample outside the RF record (the exact "
+                                          "path skips those reads; the fast path cannot)")
+            Ln = _tone_response(t, s0, s1, fc, fs, 0.1 * math.sqrt(st.check_tol))
+            f = t.grid.f.to(torch.float64)
+            kf = 2 * math.pi * f / fs
+            RC = t.rx_factor.to(torch.complex128)                            # (Ne, F)
+            An = RC.conj() * torch.polar(torch.ones_like(eta_s[:, None] * kf), eta_s[:, None] * kf[None])
+            L.append(Ln)
+            fgrid.append(f)
+            A.append(An)
+            relevance.append(Ln.abs() * RC.abs().amax(0) * t.tx_field.abs().amax(0).to(torch.float64))
+            tx_pos.append(xi)
+        rel_max = max(float(r.max()) for r in relevance)
+        relevance = [r / rel_max for r in relevance]
+        a_ek, rx_basis = _receive_amplitudes(A, fgrid, fc, relevance, tol)
+        K = a_ek.shape[1]
+
+        # transmit subspaces (weighted SVD of conj(G_n))
+        C_list, Phi = [], []
+        for n, t in enumerate(ex.transmits):
+            G = t.tx_field.to(torch.complex128).conj()                       # (Ne, F)
+            D = L[n].abs() * t.rx_factor.abs().amax(0).to(torch.float64)
+            D = D / D.max()
+            U, S, Vh = torch.linalg.svd(G * D[None], full_matrices=False)
+            r = int((S > tol * S[0]).sum())
+            safe = torch.where(D > 0, D, torch.ones_like(D))
+            C_list.append(U[:, :r] * S[:r])                                  # (Ne, r)
+            Phi.append(torch.where(D[None] > 0, Vh[:r] / safe[None], torch.zeros_like(Vh[:r])))  # (r, F)
+        ranks = [int(cn.shape[1]) for cn in C_list]
+
+        # Chebyshev nodes per pixel on [min_e delta, max_e delta]
+        lo, hi = delta.amin(1), delta.amax(1)
+        mid, half = (lo + hi) / 2, (hi - lo) / 2
+        band = torch.cat([(2 * math.pi * f / fs - kc)[r > tol] for f, r in zip(fgrid, relevance)]).abs().max()
+        a = float(band * half.max())
+        S_nodes = None
+        for n_nodes in range(4, st.max_nodes + 1, 2):
+            th = torch.linspace(-1, 1, 401, dtype=torch.float64)
+            ell = _lagrange(_chebyshev_nodes(n_nodes), th)                   # (401, S)
+            nd = _chebyshev_nodes(n_nodes)
+            err = (ell.to(torch.complex128) @ torch.polar(torch.ones_like(nd), a * nd) - torch.polar(torch.ones_like(th), a * th)).abs().max()
+            if float(err) <= tol:
+                S_nodes = n_nodes
+                break
+        if S_nodes is None:
+            raise FastPathUnavailable(f"the receive delays of a pixel span too long a time for "
+                                      f"{st.max_nodes} interpolation nodes (phase span {2 * a:.1f} rad)")
+        nodes = _chebyshev_nodes(S_nodes)
+        dnode = mid[:, None] + half[:, None] * nodes[None]                   # (P, S) delta_pm
+        Q = len(orders)
+        P = rx_pos.shape[0]
+
+        # receive matrix B: (Ne, P, Q, S, K)
+        B = torch.empty(self.n_elements, P, Q, S_nodes, K, dtype=self.cdtype)
+        for p0 in range(0, P, chunk):
+            sl = slice(p0, min(P, p0 + chunk))
+            dl = delta[sl]                                                   # (p, Ne)
+            tnorm = torch.where(half[sl, None] > 0, (dl - mid[sl, None]) / torch.where(
+                half[sl, None] > 0, half[sl, None], torch.ones_like(half[sl, None])), torch.zeros_like(dl))
+            ell = _lagrange(nodes.expand(dl.shape[0], S_nodes), tnorm)       # (p, Ne, S)
+            ph = torch.polar(torch.ones_like(dl), kc * dl)                   # (p, Ne)
+            reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[sl]) for q in orders], 1)
+            blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)      # (p, Q, Ne, S)
+            blk = blk[..., None] * a_ek[None, None, :, None, :]               # (p, Q, Ne, S, K)
+            B[:, sl] = blk.permute(2, 0, 1, 3, 4).to(self.cdtype)
+
+        # transmit tensor Psi: (n_tx, r_max, P, Q, S, K), zero-padded in g
+        r_max = max(ranks)
+        Psi = torch.zeros(n_tx, r_max, P, Q, S_nodes, K, dtype=self.cdtype)
+        for n in range(n_tx):
+            f = fgrid[n]
+            kf = 2 * math.pi * f / fs
+            h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
+            W = (Phi[n] * L[n][None])[:, None, None, :] * h[None, :, None, :] * rx_basis[n][None, None]  # (r, Q, K, F)
+            xi = tx_pos[n]
+            for p0 in range(0, P, chunk):
+                sl = slice(p0, min(P, p0 + chunk))
+                zeta = xi[sl, None] + dnode[sl]                              # (p, S)
+                E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
+                pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[sl, None]
+                                               - kc * dnode[sl]) for q in orders], 1)  # (p, Q, S)
+                # sum_f W[g,q,k,f] E[p,s,f]  -> (g, q, k, p, s)
+                v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
+                Psi[n, :ranks[n], sl] = v.to(self.cdtype)
+        self._C = torch.zeros(n_tx, self.n_elements, r_max, dtype=self.cdtype)
+        for n, cn in enumerate(C_list):
+            self._C[n, :, :ranks[n]] = cn.to(self.cdtype)
+        self._B = torch.view_as_real(B.reshape(self.n_elements, -1)).reshape(self.n_elements, -1).contiguous()
+        self._Psi = Psi.reshape(n_tx * r_max, -1).contiguous()
+        self._inner = Q * S_nodes * K
+        self.sizes = {"transmit_ranks": ranks, "nodes": S_nodes, "harmonics": Q, "amplitude_terms": K,
+                      "pixels": P, "bytes": int(self._B.numel() * self._B.element_size()
+                                                + self._Psi.numel() * self._Psi.element_size()
+                                                + self._C.numel() * self._C.element_size())}
+        if self.device.type != "cpu":
+            self._B, self._Psi, self._C = self._B.to(self.device), self._Psi.to(self.device), self._C.to(self.device)
+
+    # ---------------------------------------------------------------- evaluate
+    def image(self, weights) -> torch.Tensor:
+        """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
+        w = self.exact._weights(weights).to(self.dtype)
+        Bn = w.shape[0]
+        gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, P*Q*S*K)
+        c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
+        z = c @ self._Psi                                                    # (B, P*Q*S*K)
+        return (gamma * z).reshape(Bn, -1, self._inner).sum(-1)
+
+    def planes(self, weights) -> dict[str, torch.Tensor]:
+        """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``."""
+        img = self.image(weights)
+        out, k = {}, 0
+        for name, (h, w) in self._shapes.items():
+            out[name] = img[:, k:k + h * w].reshape(-1, h, w)
+            k += h * w
+        return out
+
+    # ---------------------------------------------------------------- check
+    def _check(self, masks) -> dict:
+        ne = self.n_elements
+        if masks is None:
+            g = torch.Generator().manual_seed(0)
+            k = max(1, ne // 4)
+            rows = [torch.ones(ne)]
+            for _ in range(2):
+                m = torch.zeros(ne)
+                m[torch.randperm(ne, generator=g)[:k]] = 1
+                rows.append(m)
+            masks = torch.stack(rows)
+        masks = torch.as_tensor(np.asarray(masks), dtype=torch.float64) if not isinstance(masks, torch.Tensor) \
+            else masks.to(torch.float64)
+        with torch.no_grad():
+            exact = {k: v.to(torch.complex128) for k, v in self.exact.planes(masks.to(self.exact.dtype)).items()}
+            fast = {k: v.to(torch.complex128) for k, v in self.planes(masks).items()}
+        err = fast_relative_error(fast, exact)
+        worst = float(err.max())
+        rec = {"masks": int(masks.shape[0]), "max_relative_error": worst,
+               "per_mask": [float(e) for e in err], "tolerance": self.settings.check_tol}
+        if not math.isfinite(worst) or worst > self.settings.check_tol:
+            raise FastPathUnavailable(f"the fast path departs from the exact path by {worst:.2e} (relative "
+                                      f"squared error) on its check selections, above {self.settings.check_tol:.1e}")
+        return rec
