@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.physics.volume.psf import MatrixPSF
+from arraysel.physics.volume.psf import MatrixPSF, check_weights, plane_axes
 
 __all__ = ["FastPathUnavailable", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
@@ -318,7 +318,7 @@ class MatrixFastPSF:
     # ---------------------------------------------------------------- evaluate
     def image(self, weights) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
-        w = self.exact._weights(weights).to(self.dtype)
+        w = check_weights(weights, self.n_elements, self.dtype, self.device)
         Bn = w.shape[0]
         gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, P*Q*S*K)
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
@@ -335,6 +335,47 @@ class MatrixFastPSF:
         return out
 
     # ---------------------------------------------------------------- check
+    def state(self) -> dict[str, torch.Tensor]:
+        """The tensors that :meth:`from_state` restores this model from (for the on-disk cache)."""
+        return {"B": self._B.cpu(), "Psi": self._Psi.cpu(), "C": self._C.cpu(),
+                "inner": torch.tensor(self._inner), "image_scale": torch.tensor(float(self.image_scale)),
+                "check_error": torch.tensor(float(self.check["max_relative_error"])),
+                "ranks": torch.tensor(self.sizes["transmit_ranks"]), "nodes": torch.tensor(self.sizes["nodes"]),
+                "harmonics": torch.tensor(self.sizes["harmonics"]),
+                "amplitude_terms": torch.tensor(self.sizes["amplitude_terms"])}
+
+    @classmethod
+    def from_state(cls, setup, state: dict, settings: FastSettings | None = None, dtype=torch.float32,
+                   device="cpu") -> "MatrixFastPSF":
+        """A model restored from :meth:`state` for ``setup`` (no exact model is built: :attr:`exact`
+        is None). Raises ValueError when the tensors do not fit the setup."""
+        self = cls.__new__(cls)
+        self.settings = settings or FastSettings()
+        self.exact = None
+        self.setup = setup
+        self.coords = plane_axes(setup)
+        self._shapes = {k: tuple(v.shape[:2]) for k, v in self.coords.items()}
+        self.n_elements = setup.probe.n_elements
+        self.dtype = dtype
+        self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+        self.device = torch.device(device)
+        self.image_scale = float(state["image_scale"])
+        self._inner = int(state["inner"])
+        n_pix = sum(h * w for h, w in self._shapes.values())
+        B, Psi, C = state["B"], state["Psi"], state["C"]
+        if (B.shape != (self.n_elements, 2 * n_pix * self._inner) or Psi.shape[1] != n_pix * self._inner
+                or C.shape[:2] != (setup.n_tx, self.n_elements) or C.shape[0] * C.shape[2] != Psi.shape[0]):
+            raise ValueError("the stored fast-path tensors do not fit this scene")
+        self._B = B.to(self.device, dtype).contiguous()
+        self._Psi = Psi.to(self.device, self.cdtype).contiguous()
+        self._C = C.to(self.device, self.cdtype).contiguous()
+        self.sizes = {"transmit_ranks": [int(r) for r in state["ranks"]], "nodes": int(state["nodes"]),
+                      "harmonics": int(state["harmonics"]), "amplitude_terms": int(state["amplitude_terms"]),
+                      "pixels": n_pix, "bytes": int(sum(t.numel() * t.element_size() for t in (B, Psi, C)))}
+        self.check = {"max_relative_error": float(state["check_error"]), "tolerance": self.settings.check_tol,
+                      "restored": True}
+        return self
+
     def _check(self, masks) -> dict:
         ne = self.n_elements
         if masks is None:

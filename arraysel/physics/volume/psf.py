@@ -37,7 +37,7 @@ from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
 from arraysel.physics.volume.beamform import receive_distance3, transmit_distance3
 from arraysel.physics.volume.simus import element_responses3, grid_for_points3
 
-__all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise"]
+__all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise", "check_weights"]
 
 #: a batch on the CPU whose delay-and-sum reads at least this many (pixel, element, transmit)
 #: entries goes to the compiled kernels (:mod:`.kernels`, with their adjoint for the gradient):
@@ -173,6 +173,20 @@ def plane_axes(setup: MatrixPSFSetup) -> dict[str, torch.Tensor]:
     return out
 
 
+def check_weights(weights, n_elements: int, dtype, device) -> torch.Tensor:
+    """Element weights as a (B, Ne) tensor of ``dtype`` on ``device``; SelectionError for another
+    shape or a value that is not finite."""
+    w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights, dtype=np.float64))
+    if w.dim() == 1:
+        w = w[None]
+    if w.dim() != 2 or w.shape[-1] != n_elements:
+        raise SelectionError(f"weights must have shape (B, {n_elements}) (element iy * nx + ix), "
+                             f"got {tuple(w.shape)}")
+    if not bool(torch.isfinite(w.detach()).all()):
+        raise SelectionError("weights must be finite")
+    return w.to(device=device, dtype=dtype)
+
+
 def peak_normalise(planes: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Each selection's planes divided by their joint peak magnitude (the largest ``|value|`` over
     all its planes; detached), so that the peak is 1. Raises NumericalError for an all-zero one."""
@@ -251,15 +265,7 @@ class MatrixPSF:
 
     # ------------------------------------------------------------------ pieces
     def _weights(self, weights) -> torch.Tensor:
-        w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights, dtype=np.float64))
-        if w.dim() == 1:
-            w = w[None]
-        if w.dim() != 2 or w.shape[-1] != self.n_elements:
-            raise SelectionError(f"weights must have shape (B, {self.n_elements}) (element iy * nx + ix), "
-                                 f"got {tuple(w.shape)}")
-        if not bool(torch.isfinite(w.detach()).all()):
-            raise SelectionError("weights must be finite")
-        return w.to(device=self.device, dtype=self.dtype)
+        return check_weights(weights, self.n_elements, self.dtype, self.device)
 
     def iq(self, weights, tx: int, elements: torch.Tensor | None = None) -> torch.Tensor:
         """I/Q signals (B, n, T) of transmit ``tx`` for the receive ``elements`` (default all),
