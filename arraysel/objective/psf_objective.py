@@ -387,12 +387,17 @@ _CACHE: dict = {}
 
 
 def build_objective(scene="paper", device="cpu", dtype=torch.float32, **kw) -> Objective:
-    """Build (or reuse, within a process) the objective of a scene."""
+    """Build (or reuse, within a process) the objective of a scene (a 3-D scene's:
+    :class:`~arraysel.objective.matrix_objective.MatrixObjective`)."""
     sc = load_scene(scene) if not isinstance(scene, Scene) else scene
     key = (repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
     obj = _CACHE.get(key)
     if obj is None:
-        obj = Objective(sc, device=device, dtype=dtype, **kw)
+        if sc.is_volume:
+            from arraysel.objective.matrix_objective import MatrixObjective
+            obj = MatrixObjective(sc, device=device, dtype=dtype, **kw)
+        else:
+            obj = Objective(sc, device=device, dtype=dtype, **kw)
         _CACHE[key] = obj
     obj.reset_counters()
     return obj

@@ -95,8 +95,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "tx_cycles": Key("float", (0, 100, True), 1.0, "transmit pulse length, cycles"),
     },
     "transmit": {
-        "n_tx": Key("int", (1, 512), 7, "number of plane waves"),
-        "max_tilt_deg": Key("float", (0, 89.9, False), 10.0, "tilts are linspace(-max, +max, n_tx), degrees"),
+        "n_tx": Key("int", (1, 512), 7, "number of plane waves (1-D probes)"),
+        "max_tilt_deg": Key("float", (0, 89.9, False), 10.0, "tilts are linspace(-max, +max, n_tx), degrees "
+                            "(3-D scenes: the largest tilt in x)"),
+        "n_tx_x": Key("int", (1, 64), 3, "tilts in x (3-D scenes; the transmits are n_tx_x * n_tx_y)"),
+        "n_tx_y": Key("int", (1, 64), 3, "tilts in y (3-D scenes)"),
+        "max_tilt_deg_y": Key("float", (0, 89.9, False), None, "the largest tilt in y, degrees (3-D scenes; "
+                              "default: max_tilt_deg)"),
+        "source_distance": Key("length", (0, 1, False), 0.0, "3-D scenes: diverging waves from a virtual source "
+                               "this far behind the array, m (0: plane waves)", "m", _POS_UNITS),
     },
     "grid": {
         "n_x": Key("length", (8, 8192, False), 400, "grid columns (lateral size)", "px", _GRID_UNITS, True),
@@ -116,7 +123,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "points": Key("points", (1, 64), None, "field points [[x, z], ...] (lengths, m by default), each "
                       "simulated on its own grid centred on it; exclusive with scatterer_x/z and "
                       "grid.z_offset", "m", _POS_UNITS),
+        "scatterer_y": Key("length", (-1, 1, False), None, "y of the one scatterer, m (3-D scenes; default: 0)",
+                           "m", _POS_UNITS),
         "reflectivity": Key("float", (0, 1e6, True), 1.0, "reflection coefficient"),
+    },
+    "volume": {  # its presence makes a scene 3-D (a matrix probe, planes through the scatterer)
+        "planes": Key("str", None, "xy,xz,yz", "the planes imaged, comma-separated: xy (the C-plane at the "
+                      "scatterer's depth), xz, yz"),
+        "half_x": Key("length", (0, 1000, True), 8.0, "half-size of the planes along x", "wl", _POS_UNITS),
+        "half_y": Key("length", (0, 1000, True), 8.0, "half-size of the planes along y", "wl", _POS_UNITS),
+        "half_z": Key("length", (0, 1000, True), 4.0, "half-size of the planes along z", "wl", _POS_UNITS),
+        "pixels_per_wavelength": Key("float", (0.1, 100, False), 3.0, "pixel = lambda0 / this, every plane"),
+        "fast": Key("bool", None, True, "use the fast 3-D path when its check passes (else the exact path)"),
     },
     "receive": {
         "fnumber": Key("float", (0, 100, False), 0.0, "receive f-number (0 = full aperture)"),
@@ -464,6 +482,57 @@ class Scene:
                                  "(e.g. 'MATRIX-32x32')")
         return probe
 
+    @property
+    def is_volume(self) -> bool:
+        """True for a 3-D scene (a ``[volume]`` section: a matrix probe imaged on planes)."""
+        return "volume" in self.tree
+
+    def matrix_setup(self):
+        """The :class:`~arraysel.physics.volume.MatrixPSFSetup` of a 3-D scene (``[volume]``)."""
+        from arraysel.physics.volume import MatrixPSFSetup, diverging_delays3, plane_wave_delays3, tilt_grid
+
+        if not self.is_volume:
+            raise ParameterError(f"scene {self.name!r} has no [volume] section: it is not a 3-D scene")
+        probe = self.matrix_probe()
+        acq = self.acquisition()
+        tx = self.value("transmit", "max_tilt_deg")
+        ty = self.value("transmit", "max_tilt_deg_y")
+        ax, ay = tilt_grid(int(self.value("transmit", "n_tx_x")), int(self.value("transmit", "n_tx_y")),
+                           float(tx), float(tx if ty is None else ty))
+        dist = float(self.length("transmit", "source_distance"))
+        delays = (diverging_delays3(probe, ax, ay, dist, acq) if dist > 0 else plane_wave_delays3(probe, ax, ay, acq))
+        lam = self.wavelength
+        half = {k: float(self.length("volume", k)) * lam for k in ("half_x", "half_y", "half_z")}
+        x = self.length("medium", "scatterer_x")
+        y = self.length("medium", "scatterer_y")
+        z = self.length("medium", "scatterer_z")
+        return MatrixPSFSetup(probe=probe, acq=acq, delays=delays,
+                              scatterer=(0.0 if x is None else float(x), 0.0 if y is None else float(y), float(z)),
+                              pixel=lam / float(self.value("volume", "pixels_per_wavelength")),
+                              planes=self.planes(), reflectivity=float(self.value("medium", "reflectivity")),
+                              iq_bandwidth=self.value("receive", "iq_bandwidth"), options=self._sim_options(), **half)
+
+    def planes(self) -> tuple[str, ...]:
+        """The planes of a 3-D scene (``volume.planes``), checked."""
+        from arraysel.physics.volume import PLANES
+
+        raw = str(self.value("volume", "planes"))
+        names = tuple(p.strip() for p in raw.split(",") if p.strip())
+        bad = [p for p in names if p not in PLANES]
+        if bad or not names or len(set(names)) != len(names):
+            raise ParameterError(f"volume.planes = {raw!r}: allowed a comma-separated subset of {list(PLANES)} "
+                                 "without repeats")
+        return names
+
+    def _sim_options(self):
+        from arraysel.physics.simus import SimOptions
+
+        split = self.value("simulator", "element_splitting")
+        return SimOptions(db_thresh=float(self.value("simulator", "db_thresh")),
+                          element_splitting=None if not split else int(split),
+                          full_frequency_directivity=bool(self.value("simulator", "full_frequency_directivity")),
+                          frequency_step=float(self.value("simulator", "frequency_step")))
+
     def acquisition(self):
         from arraysel.physics.probes import Acquisition
 
@@ -510,7 +579,6 @@ class Scene:
 
     def _setup(self, x_offset: int, z_offset: int, scatterer):
         from arraysel.physics.psf import PSFSetup
-        from arraysel.physics.simus import SimOptions
 
         probe = self.probe()
         if probe.is_matrix:
@@ -522,11 +590,7 @@ class Scene:
         tilt = float(self.value("transmit", "max_tilt_deg"))
         tilts = tuple(np.deg2rad(np.linspace(-tilt, tilt, n_tx))) if n_tx > 1 else (0.0,)
         pixel = self.pixel
-        split = self.value("simulator", "element_splitting")
-        options = SimOptions(db_thresh=float(self.value("simulator", "db_thresh")),
-                             element_splitting=None if not split else int(split),
-                             full_frequency_directivity=bool(self.value("simulator", "full_frequency_directivity")),
-                             frequency_step=float(self.value("simulator", "frequency_step")))
+        options = self._sim_options()
         return PSFSetup(probe=probe, acq=acq, tilts=tilts, n_x=int(self.length("grid", "n_x")),
                         n_z=int(self.length("grid", "n_z")), pixel=pixel, z_offset=z_offset, x_offset=x_offset,
                         scatterer=scatterer, reflectivity=float(self.value("medium", "reflectivity")),
@@ -647,6 +711,43 @@ def _memory_check(scene: Scene, n_elements: int) -> None:
         f"grid.n_x / grid.n_z (or coarsen grid.pixel), or raise {MEMORY_GIB}")
 
 
+#: keys that only a 3-D scene reads
+VOLUME_ONLY_KEYS = (("transmit", "n_tx_x"), ("transmit", "n_tx_y"), ("transmit", "max_tilt_deg_y"),
+                    ("transmit", "source_distance"), ("medium", "scatterer_y"))
+#: keys that a 3-D scene does not read (it images planes, not the xz grid)
+PLANAR_ONLY_SECTIONS = ("grid",)
+PLANAR_ONLY_KEYS = (("transmit", "n_tx"), ("medium", "points"), ("receive", "fnumber"),
+                    ("simulator", "fast_margin"), ("simulator", "fast_block"))
+
+
+def _volume_checks(scene: Scene) -> None:
+    """A 3-D scene: a matrix probe, one scatterer below the array, metric regions inside the planes."""
+    scene.matrix_probe()
+    for sec in PLANAR_ONLY_SECTIONS:
+        if scene.section(sec):
+            key = next(iter(scene.section(sec)))
+            raise ParameterError(f"{sec}.{key} does not apply to a 3-D scene (its planes are set in [volume])")
+    wrong = [f"{sec}.{key}" for sec, key in PLANAR_ONLY_KEYS if key in scene.section(sec)]
+    if wrong:
+        raise ParameterError(f"{wrong[0]} does not apply to a 3-D scene")
+    if scene.length("medium", "scatterer_z") is None:
+        raise ParameterError("medium.scatterer_z is required in a 3-D scene (the scatterer's depth, e.g. '30 mm')")
+    scene.planes()
+    halves = {k: float(scene.length("volume", k)) for k in ("half_x", "half_y", "half_z")}
+    r_main = float(scene.length("metrics", "r_main"))
+    r_guard = float(scene.length("metrics", "r_guard"))
+    if r_guard < r_main:
+        raise ParameterError("metrics.r_guard must be >= metrics.r_main "
+                             f"(r_main = {r_main:.4g} wl, r_guard = {r_guard:.4g} wl)")
+    if r_main > min(halves.values()):
+        raise ParameterError(f"metrics.r_main = {r_main:.4g} wl does not fit the planes: allowed at most the "
+                             f"smallest half-size, {min(halves.values()):.4g} wl (volume.half_x/y/z)")
+    if r_guard >= max(halves.values()):
+        raise ParameterError(f"metrics.r_guard = {r_guard:.4g} wl leaves no side-lobe region: allowed below the "
+                             f"largest half-size, {max(halves.values()):.4g} wl (volume.half_x/y/z)")
+    scene.matrix_setup()  # the setup's own checks (plane sizes, depth), naming their keys
+
+
 def _finish(name: str, tree: dict) -> Scene:
     scene = Scene(name=tree.get("name", name), tree=tree)
     probe = scene.probe()
@@ -656,6 +757,12 @@ def _finish(name: str, tree: dict) -> Scene:
     if not 1 <= int(k) <= probe.n_elements:
         raise ParameterError(f"selection.k = {k} is out of range; allowed: [1, {probe.n_elements}] "
                              f"(the probe has {probe.n_elements} elements)")
+    if scene.is_volume:
+        _volume_checks(scene)
+        return scene
+    wrong = [f"{sec}.{key}" for sec, key in VOLUME_ONLY_KEYS if key in scene.section(sec)]
+    if wrong:
+        raise ParameterError(f"{wrong[0]} applies to 3-D scenes only (a [volume] section and a matrix probe)")
     if scene.get("grid", "pixel") is not None:
         p = scene.pixel
         if not 0 < p <= 1:

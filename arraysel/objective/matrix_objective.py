@@ -1,0 +1,198 @@
+"""The objective of a 3-D scene: a matrix probe's PSF on planes through one scatterer.
+
+:class:`MatrixObjective` is :class:`~arraysel.objective.psf_objective.Objective`'s counterpart for
+a scene with a ``[volume]`` section (``docs/matrix.md``): the same contract (``evaluate``,
+``mask_loss``, ``selection_loss``, counters, a worker recipe), the Table-1 terms of
+:func:`~arraysel.objective.metrics3d.psf3d_metrics` over every plane together as headline
+metrics, and the 2-D array figures of merit (``PSL_dB``, ``width_x_6dB``, ``width_y_6dB``) as
+extra columns (``breakdown_names``).
+
+The planes come from the fast path (:class:`~arraysel.physics.volume.fast.MatrixFastPSF`) when
+its build-time check against the exact path passes, else from the exact path, said once in the
+log. The fast path's tensors are cached on disk like the 1-D pair basis (``arraysel cache``), so
+only the first run with a scene's settings builds them.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+
+import numpy as np
+import torch
+
+from arraysel.errors import ParameterError, SelectionError
+from arraysel.objective.metrics import METRIC_NAMES
+from arraysel.objective.metrics3d import MERIT_NAMES, psf3d_metrics
+from arraysel.objective.psf_objective import Objective, SceneObjectiveFactory
+from arraysel.objective.contract import dtype_name
+from arraysel.scenes.schema import Scene, load_scene
+
+__all__ = ["MatrixObjective", "matrix_model", "FAST_VERSION"]
+
+_log = logging.getLogger(__name__)
+
+#: the version of the cached fast-path tensors (bumped when their meaning changes)
+FAST_VERSION = 1
+#: masks per batch of :meth:`MatrixObjective.evaluate` (the fast path's batch product)
+DEFAULT_CHUNK_3D = 64
+
+
+def _setup_key(setup) -> tuple:
+    """A cache key of a :class:`~arraysel.physics.volume.MatrixPSFSetup` (its delays by digest)."""
+    d = np.ascontiguousarray(setup.delays, dtype=np.float64)
+    fields = (setup.probe, setup.acq, setup.scatterer, setup.half_x, setup.half_y, setup.half_z, setup.pixel,
+              setup.planes, setup.reflectivity, setup.iq_bandwidth, setup.options)
+    return (repr(fields), d.shape, hashlib.sha256(d.tobytes()).hexdigest())
+
+
+def matrix_model(setup, dtype=torch.float32, device="cpu", fast: bool = True):
+    """The planes model of ``setup``: ``(model, why)``. ``model`` is the fast path (from the
+    on-disk cache, or built and checked against the exact path, then cached) or, when ``fast`` is
+    False or the fast path is refused, the exact :class:`~arraysel.physics.volume.MatrixPSF`;
+    ``why`` is None, or the reason the exact path is used."""
+    from arraysel import __version__
+    from arraysel.io import cache
+    from arraysel.physics.volume import MatrixPSF
+    from arraysel.physics.volume.fast import FastPathUnavailable, FastSettings, MatrixFastPSF
+
+    if not fast:
+        return MatrixPSF(setup, dtype=dtype, device=device), "disabled (volume.fast = false)"
+    settings = FastSettings()
+    refused: list[str] = []
+
+    def build() -> dict:
+        exact = MatrixPSF(setup, dtype=torch.float64)
+        try:
+            return MatrixFastPSF(exact, settings, dtype=torch.float32).state()
+        except FastPathUnavailable as exc:
+            refused.append(str(exc))
+            return {"refused": torch.tensor(1)}
+
+    def check(state: dict) -> None:
+        if "refused" not in state:
+            MatrixFastPSF.from_state(setup, state, settings)
+
+    key = (__version__, FAST_VERSION, _setup_key(setup), repr(settings))
+    state = cache.load_or_build("psf3-fast", key, build, what="the 3-D fast path", check=check)
+    if "refused" in state:
+        why = refused[0] if refused else "refused when it was built (its check against the exact path failed)"
+        return MatrixPSF(setup, dtype=dtype, device=device), f"unavailable: {why}"
+    return MatrixFastPSF.from_state(setup, state, settings, dtype=dtype, device=device), None
+
+
+class MatrixObjective(Objective):
+    """Batched, differentiable objective of a 3-D scene (see the module docstring).
+
+    Parameters: scene (a 3-D :class:`~arraysel.scenes.schema.Scene` or its name/path), device,
+    dtype, chunk (masks per batch of :meth:`evaluate`), fast (False: the exact path only).
+    """
+
+    metric_names = METRIC_NAMES
+
+    def __init__(self, scene: Scene | str = "matrix-1024", device="cpu", dtype=torch.float32,
+                 chunk: int = DEFAULT_CHUNK_3D, fast: bool = True):
+        self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
+        if not self.scene.is_volume:
+            raise ParameterError(f"scene {self.scene.name!r} has no [volume] section: use Objective for it")
+        self.device = torch.device(device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+        self.dtype = dtype
+        self.chunk = int(chunk)
+        self.setup = self.scene.matrix_setup()
+        probe = self.setup.probe
+        self.n_elements = probe.n_elements
+        self.k = self.scene.k
+        #: the element grid (ny, nx) and centres (Ne, 3) in metres (ObjectiveContract's layout)
+        self.element_grid = tuple(probe.grid_shape)
+        self.element_positions = probe.element_positions()
+        self.n_points = 1
+        self.points = [self.setup.scatterer]
+        self.fast_requested = bool(fast) and bool(self.scene.value("volume", "fast"))
+        self.model, self.exact_reason = matrix_model(self.setup, dtype, self.device, self.fast_requested)
+        if self.exact_reason is not None:
+            _log.warning("%s", self.exact_notice())
+        self.coords = {k: v.numpy() for k, v in self.model.coords.items()}
+        self.metric_kw = dict(wavelength=self.scene.wavelength, r_main=float(self.scene.length("metrics", "r_main")),
+                              r_guard=float(self.scene.length("metrics", "r_guard")),
+                              quantile=float(self.scene.value("metrics", "quantile")))
+        #: the 2-D array figures of merit, extra columns of a run's row
+        self.breakdown_names = MERIT_NAMES
+        self.weights = self.scene.weights
+        self._ref = None
+        self._announced = True
+        self.evaluations = 0
+        self.gradient_steps = 0
+        self.seconds = 0.0
+        self.fallbacks = 0
+
+    @property
+    def fast(self) -> bool:
+        """True when the planes come from the fast path."""
+        return self.exact_reason is None
+
+    def estimate_seconds(self, n_masks: int = 1) -> float:
+        return n_masks * (0.01 if self.fast else 1.0)
+
+    def exact_notice(self, n_masks: int | None = None) -> str:
+        if self.fast:
+            return f"scene {self.scene.name!r}: fast 3-D PSF path"
+        return (f"scene {self.scene.name!r}: 3-D PSF fast path {self.exact_reason}; using the exact path "
+                f"(about 1 s per mask)")
+
+    # ------------------------------------------------------------------ planes
+    def planes(self, weights) -> dict[str, torch.Tensor]:
+        """The complex planes ``{name: (B, H, W)}`` of weights (B, Ne), differentiable."""
+        return self.model.planes(weights)
+
+    def reference_planes(self) -> dict[str, torch.Tensor]:
+        """The full array's planes ``{name: (1, H, W)}`` (computed once, no gradient)."""
+        if self._ref is None:
+            with torch.no_grad():
+                self._ref = self.model.planes(torch.ones(1, self.n_elements, dtype=self.dtype, device=self.device))
+        return self._ref
+
+    def kernels(self, masks, point=None):
+        raise ParameterError("a 3-D scene has planes, not a 2-D kernel: use MatrixObjective.planes")
+
+    def reference_kernel(self, point=None):
+        raise ParameterError("a 3-D scene has planes, not a 2-D kernel: use MatrixObjective.reference_planes")
+
+    def _metrics(self, planes, terms=None) -> dict[str, torch.Tensor]:
+        ref = {k: v.to(planes[k].dtype) for k, v in self.reference_planes().items()}
+        return psf3d_metrics(planes, self.coords, planes_ref=ref, terms=terms, **self.metric_kw)
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, masks, return_planes: bool = False) -> dict[str, np.ndarray]:
+        """Every Table-1 metric and figure of merit of a batch of masks: {name: float64 (B,)};
+        with ``return_planes`` also ``"planes"``: {name: complex (B, H, W)}. No gradient."""
+        with torch.no_grad(), self._timed():
+            m = self.as_masks(masks)
+            out: dict[str, list] = {k: [] for k in (*METRIC_NAMES, *MERIT_NAMES)}
+            kept: dict[str, list] = {}
+            for i in range(0, m.shape[0], self.chunk):
+                planes = self.model.planes(m[i:i + self.chunk])
+                met = self._metrics(planes)
+                for k in out:
+                    out[k].append(met[k].double().cpu())
+                if return_planes:
+                    for k, v in planes.items():
+                        kept.setdefault(k, []).append(v.cpu())
+            self.evaluations += int(m.shape[0])
+        res = {k: torch.cat(v).numpy() for k, v in out.items()}
+        if return_planes:
+            res["planes"] = {k: torch.cat(v).numpy() for k, v in kept.items()}
+        return res
+
+    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
+        """Differentiable Table-1 terms (B,) of soft element weights (B, Ne)."""
+        w = weights if weights.dim() == 2 else weights[None]
+        if w.shape[-1] != self.n_elements:
+            raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
+        return self._metrics(self.model.planes(w.to(self.device, self.dtype)), terms=terms)
+
+    def worker_factory(self) -> SceneObjectiveFactory | None:
+        if type(self) is not MatrixObjective:
+            return None
+        return SceneObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
+                                     chunk=int(self.chunk))
