@@ -20,7 +20,7 @@ _LAZY = {
     "load_scene": ("arraysel.scenes.schema", "load_scene"),
     "Scene": ("arraysel.scenes.schema", "Scene"),
     "Objective": ("arraysel.objective.psf_objective", "Objective"),
-    "build_objective": ("arraysel.objective.psf_objective", "build_objective"),
+    "build_objective": ("arraysel.objective.build", "build_objective"),
     "compare": ("arraysel.api", "compare"),
     "CompareResult": ("arraysel.api", "CompareResult"),
     "Budget": ("arraysel.selectors.contract", "Budget"),

@@ -88,7 +88,7 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
         else:
             import torch
 
-            from arraysel.objective.psf_objective import build_objective
+            from arraysel.objective.build import build_objective
             objective = build_objective(scene if isinstance(scene, Scene) else load_scene(scene), device=device,
                                         dtype=getattr(torch, dtype))
     if out_dir is None:

@@ -13,9 +13,9 @@ __all__ = list(_PSF_NAMES)
 
 def __getattr__(name):
     if name in _PSF_NAMES:
-        from arraysel.objective import psf_objective
+        from arraysel.objective import build, psf_objective
 
-        value = getattr(psf_objective, name)
+        value = getattr(build if name == "build_objective" else psf_objective, name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'arraysel.objective' has no attribute {name!r}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from arraysel.errors import ParameterError
 
-__all__ = ["TOY_SCENE", "objective_for"]
+__all__ = ["TOY_SCENE", "objective_for", "build_objective"]
 
 #: the scene name that gives the toy objective, and its size
 TOY_SCENE = "toy"
@@ -22,8 +22,25 @@ def objective_for(scene: str, device: str = "cpu", dtype_name: str = "float32", 
     if scene == TOY_SCENE:
         from arraysel.objective.toy import ToyObjective
         return ToyObjective(*TOY_SIZE, device=device, dtype=dtype)
-    from arraysel.objective.psf_objective import build_objective
     from arraysel.scenes.schema import load_scene
 
     over = {"metrics": {"aggregate": aggregate}} if aggregate else None
     return build_objective(load_scene(scene, overrides=over), device=device, dtype=dtype)
+
+
+def build_objective(scene="paper", device="cpu", dtype=None, **kw):
+    """Build (or reuse, within a process) the objective of a scene: a 1-D scene's
+    :class:`~arraysel.objective.psf_objective.Objective`, a 3-D scene's
+    :class:`~arraysel.objective.matrix_objective.MatrixObjective` (keywords: theirs)."""
+    import torch
+
+    from arraysel.objective import psf_objective
+    from arraysel.scenes.schema import Scene, load_scene
+
+    sc = scene if isinstance(scene, Scene) else load_scene(scene)
+    cls = None
+    if sc.is_volume:
+        from arraysel.objective.matrix_objective import MatrixObjective
+        cls = MatrixObjective
+    return psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype,
+                                         objective_class=cls, **kw)

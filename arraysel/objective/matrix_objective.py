@@ -23,11 +23,11 @@ import torch
 from arraysel.errors import ParameterError, SelectionError
 from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.objective.metrics3d import MERIT_NAMES, psf3d_metrics
-from arraysel.objective.psf_objective import Objective, SceneObjectiveFactory
+from arraysel.objective.psf_objective import Objective, SceneObjectiveFactory, build_objective
 from arraysel.objective.contract import dtype_name
 from arraysel.scenes.schema import Scene, load_scene
 
-__all__ = ["MatrixObjective", "matrix_model", "FAST_VERSION"]
+__all__ = ["MatrixObjective", "MatrixObjectiveFactory", "matrix_model", "FAST_VERSION"]
 
 _log = logging.getLogger(__name__)
 
@@ -191,8 +191,20 @@ class MatrixObjective(Objective):
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         return self._metrics(self.model.planes(w.to(self.device, self.dtype)), terms=terms)
 
-    def worker_factory(self) -> SceneObjectiveFactory | None:
+    def worker_factory(self) -> "MatrixObjectiveFactory | None":
         if type(self) is not MatrixObjective:
             return None
-        return SceneObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
-                                     chunk=int(self.chunk))
+        return MatrixObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
+                                      chunk=int(self.chunk))
+
+
+class MatrixObjectiveFactory(SceneObjectiveFactory):
+    """Builds the :class:`MatrixObjective` of a 3-D scene on a worker (fields as
+    :class:`~arraysel.objective.psf_objective.SceneObjectiveFactory`)."""
+
+    def __hash__(self):
+        return hash(self.key())
+
+    def __call__(self):
+        return build_objective(load_scene(dict(self.scene)), device=self.device, dtype=getattr(torch, self.dtype),
+                               chunk=self.chunk, objective_class=MatrixObjective)

@@ -386,18 +386,19 @@ class Objective:
 _CACHE: dict = {}
 
 
-def build_objective(scene="paper", device="cpu", dtype=torch.float32, **kw) -> Objective:
-    """Build (or reuse, within a process) the objective of a scene (a 3-D scene's:
-    :class:`~arraysel.objective.matrix_objective.MatrixObjective`)."""
+def build_objective(scene="paper", device="cpu", dtype=torch.float32, objective_class=None, **kw) -> Objective:
+    """Build (or reuse, within a process) the objective of a scene: an ``objective_class``
+    (default :class:`Objective`; :func:`arraysel.objective.build.build_objective` picks the
+    3-D scenes' :class:`~arraysel.objective.matrix_objective.MatrixObjective`)."""
     sc = load_scene(scene) if not isinstance(scene, Scene) else scene
-    key = (repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
+    cls = Objective if objective_class is None else objective_class
+    if sc.is_volume and cls is Objective:
+        raise ParameterError(f"scene {sc.name!r} is a 3-D scene: build it with arraysel.build_objective "
+                             "(arraysel.objective.build), which gives its MatrixObjective")
+    key = (cls.__name__, repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
     obj = _CACHE.get(key)
     if obj is None:
-        if sc.is_volume:
-            from arraysel.objective.matrix_objective import MatrixObjective
-            obj = MatrixObjective(sc, device=device, dtype=dtype, **kw)
-        else:
-            obj = Objective(sc, device=device, dtype=dtype, **kw)
+        obj = cls(sc, device=device, dtype=dtype, **kw)
         _CACHE[key] = obj
     obj.reset_counters()
     return obj

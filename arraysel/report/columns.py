@@ -4,9 +4,10 @@ write and the tables (``arraysel.report.tables``, ``arraysel.report.stats``,
 from __future__ import annotations
 
 from arraysel.objective.metrics import METRIC_NAMES
+from arraysel.objective.metrics3d import MERIT_NAMES
 
 __all__ = ["METRICS", "TABLE1_METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "TABLE1_COLUMNS", "STATS_COLUMNS",
-           "PAPER_NAMES"]
+           "PAPER_NAMES", "MERIT_COLUMNS"]
 
 METRICS = METRIC_NAMES
 #: columns of a run row, in this order
@@ -24,6 +25,10 @@ TABLE1_METRICS = tuple(m for m in METRICS if m != "L_SLR")
 #: finite Mean). ``seeds``: the configuration's runs; ``error``: the errors of all its runs.
 TABLE1_COLUMNS = ("config", *TABLE1_METRICS, "seconds", "evaluations", "elements", "L_SLR", "gradient_steps",
                   "overhead_seconds", "seed", "seeds", "error")
+
+#: columns a 3-D scene's runs add (the 2-D array figures of merit); ``table1.csv`` carries them
+#: after :data:`TABLE1_COLUMNS` when the runs have them
+MERIT_COLUMNS = MERIT_NAMES
 
 #: columns of ``stats.csv``: one row per configuration, statistics of its runs' ``Mean`` over seeds
 #: (runs without a finite Mean are left out and counted in ``n_failed``):

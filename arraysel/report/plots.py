@@ -479,21 +479,19 @@ def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict |
 
     ``planes`` maps each plane name to an array ``(B, H, W)``, B = ``len(labels)``; ``coords`` to
     its ``(H, W, 3)`` pixel positions (metres); ``ref`` to the full array's ``(H, W)`` (or
-    ``(1, H, W)``). Every row is in dB of the full array's peak over all planes when ``ref`` is
-    given, of its own peak otherwise.
+    ``(1, H, W)``). Every row is in dB of its own peak over its planes (a sparse array's echo is
+    weaker than the full array's: its shape is what the figure compares).
     """
     names = list(planes)
     rows = [(lab, {n: _as_numpy(planes[n])[i] for n in names}) for i, lab in enumerate(labels)]
-    peak = None
     if ref is not None:
         ref = {n: _as_numpy(ref[n]).reshape(_as_numpy(ref[n]).shape[-2:]) for n in names}
         rows.insert(0, ("full array", ref))
-        peak = max(float(np.abs(v).max()) for v in ref.values())
     fig = figure((3.2 * len(names) + 1.0, 3.0 * len(rows)))
     axes = np.array(fig.subplots(len(rows), len(names), squeeze=False))
     im = None
     for r, (lab, row) in enumerate(rows):
-        own = peak if peak is not None else max(float(np.abs(v).max()) for v in row.values())
+        own = max(float(np.abs(v).max()) for v in row.values())
         for c, name in enumerate(names):
             im = plane_image(axes[r, c], row[name], coords[name], ref_peak=own, title=f"{lab}: {name}")
     fig.colorbar(im, ax=list(axes.ravel()), label="dB", shrink=0.8)
@@ -502,8 +500,8 @@ def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict |
 
 @styled
 def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
-    """Lateral profiles of the C-plane through its peak, along x and along y, in dB of the full
-    array's peak (each selection's own peak without ``ref``), the full array in black; the legend
+    """Lateral profiles of the C-plane through its peak, along x and along y, each in dB of its own
+    peak, the full array (``ref``) in black; the legend
     gives each -6 dB width (:func:`arraysel.objective.metrics3d.main_lobe_widths`).
 
     ``c_planes`` ``(B, H, W)`` (B = ``len(labels)``), ``coords`` ``(H, W, 3)`` metres, ``ref``
@@ -513,18 +511,16 @@ def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
 
     c = _as_numpy(coords)
     items = [(lab, _as_numpy(c_planes)[i]) for i, lab in enumerate(labels)]
-    peak = None
     if ref is not None:
         ref = _as_numpy(ref).reshape(_as_numpy(ref).shape[-2:])
         items.insert(0, ("full", ref))
-        peak = float(np.abs(ref).max())
     fig = figure((10, 4))
     ax_x, ax_y = fig.subplots(1, 2)
     for lab, plane in items:
         prof = c_plane_profiles(plane, c)
         widths = main_lobe_widths(plane, c)
         style = dict(color="k", lw=2) if (ref is not None and lab == "full") else dict(lw=1)
-        own = peak if peak is not None else float(np.abs(plane).max())
+        own = float(np.abs(plane).max())
         for ax, letter in ((ax_x, "x"), (ax_y, "y")):
             s, a = prof[letter]
             w = float(widths[letter][0])

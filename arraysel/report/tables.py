@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
-from arraysel.report.columns import ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
+from arraysel.report.columns import MERIT_COLUMNS, ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
 from arraysel.report.stats import stats_table
 from arraysel.selection import Selection
 
@@ -202,8 +202,10 @@ def table1(runs) -> "Any":
         errs = [f"seed {s}: {e}" if str(s) != "" else str(e)
                 for s, e in zip(g["seed"], g["error"]) if isinstance(e, str) and e]
         rec["error"] = "; ".join(errs)
+        rec.update({c: row[c] for c in MERIT_COLUMNS if c in row.index})
         out.append(rec)
-    return pd.DataFrame(out, columns=list(TABLE1_COLUMNS))
+    merit = [c for c in MERIT_COLUMNS if c in runs.columns]
+    return pd.DataFrame(out, columns=list(TABLE1_COLUMNS) + merit)
 
 
 def _best(means: np.ndarray) -> int:

@@ -471,17 +471,36 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
 def write_figures(objective, selections: dict[str, Selection], table, trace, out: Path) -> list[str]:
     """Draw the figures of a comparison (:mod:`arraysel.report.plots`) from each config's
     :class:`~arraysel.selection.Selection` (``table``: its ``full`` row's Mean) and save them in
-    ``out``: ``masks.png``, ``psfs.png``, ``profiles.png``, ``trace.png``, ``anytime.png``. Returns a
+    ``out``: ``masks.png``, ``psfs.png`` (a 3-D scene: ``planes.png``), ``profiles.png``, ``trace.png``,
+    ``anytime.png``. Returns a
     list of problems (empty when all went well): a figure never loses the tables."""
     problems: list[str] = []
     pitch = getattr(getattr(objective, "setup", None), "pitch", None)
+    grid = getattr(objective, "element_grid", None)
     try:
-        plots.save_figure(plots.selections_figure(selections), out / "masks.png")
+        if grid is not None:  # a matrix probe: each selection as its ny x nx image
+            kept = [config for config, sel in selections.items() if len(sel)]
+            plots.save_figure(plots.matrix_masks_figure(kept, np.array([selections[c].mask for c in kept]), grid),
+                              out / "masks.png")
+        else:
+            plots.save_figure(plots.selections_figure(selections), out / "masks.png")
     except Exception as exc:  # a figure must never lose the tables
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
     labels = [config for config, sel in selections.items() if len(sel) and config != "full"]
     masks = np.array([selections[config].mask for config in labels], dtype=bool)
-    if len(labels):
+    if len(labels) and hasattr(objective, "reference_planes"):
+        try:  # a 3-D scene: its planes and the C-plane's lateral profiles
+            import torch
+            with torch.no_grad():
+                planes = {k: v.cpu().numpy() for k, v in objective.planes(masks.astype(np.float32)).items()}
+                ref = {k: v.cpu().numpy() for k, v in objective.reference_planes().items()}
+            plots.save_figure(plots.planes_figure(labels, planes, objective.coords, ref), out / "planes.png")
+            if "xy" in planes:
+                plots.save_figure(plots.lateral_profiles_figure(labels, planes["xy"], objective.coords["xy"],
+                                                                ref["xy"]), out / "profiles.png")
+        except Exception as exc:
+            problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
+    elif len(labels):
         try:
             import torch
             with torch.no_grad():
