@@ -22,3 +22,28 @@ r_guard = 0.5
 fast_margin = 2
 fast_block = 4
 """
+
+#: a 3-D scene of a 4 x 4 matrix probe (one plane wave, small planes): its fast path builds in a second
+TINY_MATRIX_SCENE = """
+name = "tiny3d"
+base = "matrix-1024"
+[probe]
+nx = 4
+ny = 4
+[transmit]
+n_tx_x = 1
+n_tx_y = 1
+source_distance = 0.0
+[medium]
+scatterer_z = "10 mm"
+[volume]
+half_x = 3.0
+half_y = 3.0
+half_z = 2.0
+pixels_per_wavelength = 2.0
+[selection]
+k = 4
+[metrics]
+r_main = 1.0
+r_guard = 2.0
+"""

@@ -64,19 +64,29 @@ def run(args) -> int:
     n = count_masks(args.masks, ne, k)
 
     obj = build_objective(args.scene if args.scene == "toy" else scene, args.device, args.dtype)
+    volume = hasattr(obj, "reference_planes")  # a 3-D scene: planes, and the figures of merit as columns
+    names = (*METRIC_NAMES, *obj.breakdown_names) if volume else METRIC_NAMES
     kernels = args.psf_out is not None
     chunk = CHUNK_WITH_KERNELS if kernels else CHUNK
     with AtomicFile(args.out) as csv, (StreamingNpz(args.psf_out) if kernels else _Null()) as npz:
-        csv.write((",".join(("elements", *METRIC_NAMES)) + "\n").encode())
-        if kernels:
+        csv.write((",".join(("elements", *names)) + "\n").encode())
+        if kernels and volume:
+            ref_planes = {k: v[0].cpu().numpy() for k, v in obj.reference_planes().items()}
+            ref = np.concatenate([v.reshape(-1) for v in ref_planes.values()])
+            npz.begin("psf", (n, ref.size), ref.dtype)
+        elif kernels:
             ref = obj.reference_kernel().cpu().numpy()
             npz.begin("psf", (n, *ref.shape), ref.dtype)
         bar = tqdm(total=n, unit="mask", desc="evaluate", file=sys.stderr, disable=args.no_progress or None,
                    dynamic_ncols=True)
         done = 0
         for sels, masks in iter_mask_chunks(args.masks, ne, k, chunk):
-            res = obj.evaluate(masks, return_kernels=True) if kernels else obj.evaluate(masks)
-            cols = np.stack([np.asarray(res[m], dtype=np.float64) for m in METRIC_NAMES], axis=1)
+            if kernels and volume:
+                res = obj.evaluate(masks, return_planes=True)
+                res["kernels"] = np.concatenate([v.reshape(len(sels), -1) for v in res["planes"].values()], axis=1)
+            else:
+                res = obj.evaluate(masks, return_kernels=True) if kernels else obj.evaluate(masks)
+            cols = np.stack([np.asarray(res[m], dtype=np.float64) for m in names], axis=1)
             lines = [" ".join(map(str, s)) + "," + ",".join(f"{v:.8g}" for v in row)
                      for s, row in zip(sels, cols.tolist())]
             csv.write(("\n".join(lines) + "\n").encode())
@@ -91,6 +101,13 @@ def run(args) -> int:
         if kernels:
             npz.end()
             npz.add("psf_ref", ref)
+            if volume:  # the planes' pixels in the columns of psf, and each plane on its own
+                npz.add("coords", np.concatenate([c.reshape(-1, 3) for c in obj.coords.values()]))
+                npz.add("planes", np.array(list(obj.coords)))
+                npz.add("plane_shapes", np.array([c.shape[:2] for c in obj.coords.values()]))
+                for k, v in ref_planes.items():
+                    npz.add(f"psf_ref_{k}", v)
+                    npz.add(f"coords_{k}", obj.coords[k])
             npz.commit()  # the kernels first: no CSV without its npz
         csv.commit()
     print(f"scored {n} selection(s) on scene {name!r}: wrote {args.out}"

@@ -8,10 +8,13 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("psf", help="synthesise the PSF kernel of a selection",
                               description="Compute the complex PSF kernel (SPEC §1) of an element selection "
                                           "and write it, with the full-array reference and the Table-1 "
-                                          "metrics, to an npz file.")
+                                          "metrics, to an npz file. A 3-D scene writes each plane "
+                                          "(psf_xy, psf_ref_xy, coords_xy: pixel positions in metres, ...) "
+                                          "and the figures of merit (PSL_dB, width_x_6dB, width_y_6dB).")
     p.add_argument("--scene", default="paper", help="scene name or .toml file (default paper)")
     p.add_argument("--elements", default=None, metavar="I,J,...",
-                   help="0-based active elements (default: every second element, 0,2,4,...)")
+                   help="0-based active elements (default: every second element, 0,2,4,...; a matrix probe: "
+                        "every second in x and in y, element iy * nx + ix)")
     p.add_argument("--out", default="psf.npz", help="output .npz (default psf.npz)")
     p.add_argument("--plot", action="store_true", help="also write a PNG (40 dB dynamic range) next to --out")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -24,7 +27,7 @@ def run(args) -> int:
     import torch
 
     from arraysel.io.masks import atomic_savez, parse_elements
-    from arraysel.objective.psf_objective import build_objective
+    from arraysel.objective.build import build_objective
     from arraysel.selection import masks_from_indices
     from arraysel.scenes.schema import load_scene
 
@@ -36,12 +39,19 @@ def run(args) -> int:
     check_outputs([("--out", args.out), ("--plot", args.out[:-4] + ".png" if args.plot else None)],
                   inputs=[("--scene", scene_input(args.scene))])
     scene = load_scene(args.scene)
-    ne = scene.probe().n_elements
+    probe = scene.probe()
+    ne = probe.n_elements
     if args.elements is None:
-        elements = list(range(0, ne, 2))
+        if scene.is_volume:  # every second element in x and in y
+            ny, nx = probe.grid_shape
+            elements = [iy * nx + ix for iy in range(0, ny, 2) for ix in range(0, nx, 2)]
+        else:
+            elements = list(range(0, ne, 2))
     else:
         elements = parse_elements(args.elements, ne, None)
     obj = build_objective(scene, device=args.device, dtype=getattr(torch, args.dtype))
+    if scene.is_volume:
+        return _volume(args, obj, elements, masks_from_indices([elements], ne))
     res = obj.evaluate(masks_from_indices([elements], ne), return_kernels=True)
     kernel = res["kernels"][0]
     ref = obj.reference_kernel().cpu().numpy()
@@ -55,5 +65,34 @@ def run(args) -> int:
     if args.plot:
         png = args.out[:-4] + ".png"
         save_figure(psf_figure(kernel, ref, obj.setup.pitch, elements, ne), png)
+        print(f"wrote {png}")
+    return 0
+
+
+def _volume(args, obj, elements, mask) -> int:
+    """``arraysel psf`` on a 3-D scene: every plane with its pixel positions, the metrics."""
+    import numpy as np
+
+    from arraysel.io.masks import atomic_savez
+    from arraysel.report.plots import planes_figure, save_figure
+
+    res = obj.evaluate(mask, return_planes=True)
+    ref = {k: v[0].cpu().numpy() for k, v in obj.reference_planes().items()}
+    metrics = {k: float(res[k][0]) for k in (*obj.metric_names, *obj.breakdown_names)}
+    arrays = {}
+    for k, v in res["planes"].items():
+        arrays[f"psf_{k}"] = v[0]
+        arrays[f"psf_ref_{k}"] = ref[k]
+        arrays[f"coords_{k}"] = obj.coords[k]
+    atomic_savez(args.out, **arrays, elements=np.array(elements), planes=np.array(list(ref)),
+                 **{k: np.float64(v) for k, v in metrics.items()})
+    print(f"elements: {','.join(map(str, elements))}")
+    for k, v in metrics.items():
+        print(f"{k:>12s} = {v:.6g}")
+    print(f"wrote {args.out}")
+    if args.plot:
+        png = args.out[:-4] + ".png"
+        planes = {k: v[:1] for k, v in res["planes"].items()}
+        save_figure(planes_figure([f"{len(elements)} elements"], planes, obj.coords, ref), png)
         print(f"wrote {png}")
     return 0

@@ -336,8 +336,10 @@ class MatrixFastPSF:
 
     # ---------------------------------------------------------------- check
     def state(self) -> dict[str, torch.Tensor]:
-        """The tensors that :meth:`from_state` restores this model from (for the on-disk cache)."""
-        return {"B": self._B.cpu(), "Psi": self._Psi.cpu(), "C": self._C.cpu(),
+        """The tensors that :meth:`from_state` restores this model from (for the on-disk cache;
+        stored in single precision, 1e-7 relative, far below the check's tolerance)."""
+        return {"B": self._B.cpu().float(), "Psi": self._Psi.cpu().to(torch.complex64),
+                "C": self._C.cpu().to(torch.complex64),
                 "inner": torch.tensor(self._inner), "image_scale": torch.tensor(float(self.image_scale)),
                 "check_error": torch.tensor(float(self.check["max_relative_error"])),
                 "ranks": torch.tensor(self.sizes["transmit_ranks"]), "nodes": torch.tensor(self.sizes["nodes"]),
