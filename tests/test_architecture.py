@@ -284,3 +284,21 @@ def test_selections_are_not_parsed_back_from_tables():
         if m.startswith("arraysel.report"):
             assert "parse_element_text" not in ast.unparse(tree), m
             assert ".split()" not in MODULES[m].read_text(encoding="utf-8"), m
+
+
+def test_objectives_read_their_scene_once():
+    # the scene is read into ObjectiveSettings (and the physics setups) in __init__; afterwards an
+    # objective reads its settings, never the scene again (worker_factory only serialises it)
+    import ast
+
+    allowed = {"__init__", "worker_factory"}
+    for name in ("psf_objective.py", "matrix_objective.py"):
+        tree = ast.parse((Path(__file__).resolve().parents[1] / "arraysel" / "objective" / name).read_text())
+        for cls in (n for n in tree.body if isinstance(n, ast.ClassDef) and n.name.endswith("Objective")):
+            for fn in (n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name not in allowed):
+                for node in ast.walk(fn):
+                    if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute)
+                            and node.value.attr == "scene" and isinstance(node.value.value, ast.Name)
+                            and node.value.value.id == "self"):
+                        raise AssertionError(f"{name}: {cls.name}.{fn.name} reads self.scene.{node.attr} "
+                                             "after construction (use self.settings)")

@@ -121,26 +121,26 @@ class MatrixObjective(Objective):
             raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
         self.dtype = dtype
         self.chunk = int(chunk)
+        #: the scene's settings, read once: the objective does not go back to the scene
+        self.settings = st = self.scene.objective_settings()
         self.setup = self.scene.matrix_setup()
         probe = self.setup.probe
         self.n_elements = probe.n_elements
-        self.k = self.scene.k
+        self.k = st.k
         #: the element grid (ny, nx) and centres (Ne, 3) in metres (ObjectiveContract's layout)
         self.element_grid = tuple(probe.grid_shape)
         self.element_positions = probe.element_positions()
         self.n_points = 1
         self.points = [self.setup.scatterer]
-        self.fast_requested = bool(fast) and bool(self.scene.value("volume", "fast"))
+        self.fast_requested = bool(fast) and st.fast
         self.model, self.exact_reason = matrix_model(self.setup, self.k, dtype, self.device, self.fast_requested)
         if self.exact_reason is not None:
             _log.warning("%s", self.exact_notice())
         self.coords = {k: v.numpy() for k, v in self.model.coords.items()}
-        self.metric_kw = dict(wavelength=self.scene.wavelength, r_main=float(self.scene.length("metrics", "r_main")),
-                              r_guard=float(self.scene.length("metrics", "r_guard")),
-                              quantile=float(self.scene.value("metrics", "quantile")))
+        self.metric_kw = dict(wavelength=st.wavelength, **st.metric_radii)
         #: the 2-D array figures of merit, extra columns of a run's row
         self.breakdown_names = MERIT_NAMES
-        self.weights = self.scene.weights
+        self.weights = dict(st.weights)
         self._ref = None
         self._announced = True
         self.evaluations = 0
@@ -158,8 +158,8 @@ class MatrixObjective(Objective):
 
     def exact_notice(self, n_masks: int | None = None) -> str:
         if self.fast:
-            return f"scene {self.scene.name!r}: fast 3-D PSF path"
-        return (f"scene {self.scene.name!r}: 3-D PSF fast path {self.exact_reason}; using the exact path "
+            return f"scene {self.settings.name!r}: fast 3-D PSF path"
+        return (f"scene {self.settings.name!r}: 3-D PSF fast path {self.exact_reason}; using the exact path "
                 f"(about 1 s per mask)")
 
     # ------------------------------------------------------------------ planes

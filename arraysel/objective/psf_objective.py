@@ -109,11 +109,13 @@ class Objective:
         self.dtype = dtype
         self.chunk = int(chunk)
         self.fast_requested = bool(fast)
+        #: the scene's settings, read once: the objective does not go back to the scene
+        self.settings = st = self.scene.objective_settings()
         self.setups = self.scene.psf_setups()
         setup = self.setups[0]
         self.setup = setup
         self.n_elements = setup.probe.n_elements
-        self.k = self.scene.k
+        self.k = st.k
         #: the layout (ObjectiveContract's optional capability): a 1-D probe has no grid; its element
         #: centres (Ne, 3) as (x, y, z) in metres
         self.element_grid = None
@@ -122,9 +124,8 @@ class Objective:
         #: field points (x, z) in metres, one PSF model each (``self.psfs``; ``self.psf`` is the first)
         self.points = self.scene.points()
         self.n_points = len(self.setups)
-        self.aggregate = str(self.scene.value("metrics", "aggregate"))
-        margin = int(self.scene.value("simulator", "fast_margin"))
-        block = int(self.scene.value("simulator", "fast_block"))
+        self.aggregate = st.aggregate
+        margin, block = st.fast_margin, st.fast_block
         self.psfs = [PSFModel(s, dtype=dtype, device=self.device, fast=fast, margin=margin, block=block)
                      for s in self.setups]
         self.psf = self.psfs[0]
@@ -136,13 +137,10 @@ class Objective:
         self._announced = False
         if any(p.basis is None for p in self.psfs):
             _log.warning("%s", self.exact_notice())
-        self.metric_kw = dict(pitch=setup.pitch, wavelength=setup.wavelength,
-                              r_main=float(self.scene.length("metrics", "r_main")),
-                              r_guard=float(self.scene.length("metrics", "r_guard")),
-                              quantile=float(self.scene.value("metrics", "quantile")))
+        self.metric_kw = dict(pitch=setup.pitch, wavelength=setup.wavelength, **st.metric_radii)
         #: extra result keys of a several-point scene: every metric per point, their mean and worst
         self.breakdown_names = point_metric_names(self.n_points)
-        self.weights = self.scene.weights
+        self.weights = dict(st.weights)
         self.evaluations = 0
         self.gradient_steps = 0
         self.seconds = 0.0
@@ -167,12 +165,12 @@ class Objective:
         """One line saying that (and why) the scene runs on the exact path, with time and memory."""
         slow = [i for i, p in enumerate(self.psfs) if p.basis is None]
         if not slow:
-            return f"scene {self.scene.name!r}: fast PSF path on every field point"
+            return f"scene {self.settings.name!r}: fast PSF path on every field point"
         why = "disabled (fast=False)" if not self.fast_requested else "unavailable (its precomputation is over its cap)"
         where = "" if self.n_points == 1 else f" for {len(slow)} of {self.n_points} field points"
         per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.basis is None)
         mem = max(p.exact_bytes(p.masks_per_batch()) for p in (self.psfs[i] for i in slow))
-        text = (f"scene {self.scene.name!r}: PSF fast path {why}{where}; using the exact path: about "
+        text = (f"scene {self.settings.name!r}: PSF fast path {why}{where}; using the exact path: about "
                 f"{_fmt_seconds(per)} per mask (estimated), memory up to {mem / 2 ** 30:.1f} GiB "
                 f"(cap {self.psfs[slow[0]].memory_limit / 2 ** 30:.1f} GiB, ARRAYSEL_MEMORY_GIB)")
         if n_masks is not None:
@@ -358,8 +356,8 @@ class Objective:
             w = P.sum(1).clamp(0, 1)[None]
             psf = self._psf_loss(w)[1]
             total, terms = training_loss({k: v.sum() for k, v in psf.items()}, self.weights, P_soft=P_soft)
-            if self.scene.needs_data:
-                raise ParameterError(f"scene {self.scene.name!r} weights L_conv/L_rec: train it with "
+            if self.settings.needs_data:
+                raise ParameterError(f"scene {self.settings.name!r} weights L_conv/L_rec: train it with "
                                      "`arraysel train` (end-to-end training computes those terms)")
             if not bool(torch.isfinite(total.detach())):
                 raise NumericalError("selection_loss is not finite (NaN/Inf)")

@@ -349,6 +349,37 @@ def _read_file(path: str) -> dict:
 
 
 @dataclass(frozen=True)
+class ObjectiveSettings:
+    """What an objective reads from its scene, read once (:meth:`Scene.objective_settings`): the
+    objective keeps this and its physics setups and never goes back to the scene.
+
+    name: the scene's name (for messages); k: active elements; weights: the loss weights
+    (``{term: weight}``, a read-only mapping); needs_data: a data term (L_conv, L_rec) is weighted;
+    r_main, r_guard: metric radii (wavelengths); quantile: q of L_SLR_q; aggregate: several field
+    points' headline (``mean`` or ``worst``); fast_margin, fast_block: the 1-D fast path's
+    region and blocks (pixels); fast: a 3-D scene's ``volume.fast``; wavelength: lambda0 (m).
+    """
+
+    name: str
+    k: int
+    weights: Any
+    needs_data: bool
+    r_main: float
+    r_guard: float
+    quantile: float
+    aggregate: str
+    fast_margin: int
+    fast_block: int
+    fast: bool
+    wavelength: float
+
+    @property
+    def metric_radii(self) -> dict[str, float]:
+        """``r_main``, ``r_guard`` and ``quantile`` as the metric functions' keywords."""
+        return {"r_main": self.r_main, "r_guard": self.r_guard, "quantile": self.quantile}
+
+
+@dataclass(frozen=True)
 class Scene:
     """A validated scene. ``tree`` holds the resolved sections (see :data:`SCHEMA`)."""
 
@@ -392,6 +423,17 @@ class Scene:
         """A new scene with ``{section: {key: value}}`` overrides applied (validated)."""
         tree = _merge(self.tree, validate_tree(overrides))
         return _finish(self.name, tree)
+
+    def objective_settings(self) -> ObjectiveSettings:
+        """The settings an objective reads, typed and frozen (:class:`ObjectiveSettings`)."""
+        from types import MappingProxyType
+
+        return ObjectiveSettings(
+            name=self.name, k=self.k, weights=MappingProxyType(dict(self.weights)), needs_data=self.needs_data,
+            r_main=float(self.length("metrics", "r_main")), r_guard=float(self.length("metrics", "r_guard")),
+            quantile=float(self.value("metrics", "quantile")), aggregate=str(self.value("metrics", "aggregate")),
+            fast_margin=int(self.value("simulator", "fast_margin")), fast_block=int(self.value("simulator", "fast_block")),
+            fast=bool(self.value("volume", "fast")), wavelength=self.wavelength)
 
     # units ---------------------------------------------------------------------
     @property

@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.physics.volume.psf import MatrixPSF, check_weights, plane_axes
+from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes
 
 __all__ = ["FastPathUnavailable", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
@@ -318,7 +318,7 @@ class MatrixFastPSF:
     # ---------------------------------------------------------------- evaluate
     def image(self, weights) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
-        w = check_weights(weights, self.n_elements, self.dtype, self.device)
+        w = check_element_weights(weights, self.n_elements, self.dtype, self.device)
         Bn = w.shape[0]
         gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, P*Q*S*K)
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)

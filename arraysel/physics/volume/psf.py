@@ -37,7 +37,7 @@ from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
 from arraysel.physics.volume.beamform import receive_distance3, transmit_distance3
 from arraysel.physics.volume.simus import element_responses3, grid_for_points3
 
-__all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise", "check_weights"]
+__all__ = ["PLANES", "MatrixPSFSetup", "MatrixPSF", "plane_axes", "peak_normalise", "check_element_weights"]
 
 #: a batch on the CPU whose delay-and-sum reads at least this many (pixel, element, transmit)
 #: entries goes to the compiled kernels (:mod:`.kernels`, with their adjoint for the gradient):
@@ -173,7 +173,7 @@ def plane_axes(setup: MatrixPSFSetup) -> dict[str, torch.Tensor]:
     return out
 
 
-def check_weights(weights, n_elements: int, dtype, device) -> torch.Tensor:
+def check_element_weights(weights, n_elements: int, dtype, device) -> torch.Tensor:
     """Element weights as a (B, Ne) tensor of ``dtype`` on ``device``; SelectionError for another
     shape or a value that is not finite."""
     w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights, dtype=np.float64))
@@ -265,7 +265,7 @@ class MatrixPSF:
 
     # ------------------------------------------------------------------ pieces
     def _weights(self, weights) -> torch.Tensor:
-        return check_weights(weights, self.n_elements, self.dtype, self.device)
+        return check_element_weights(weights, self.n_elements, self.dtype, self.device)
 
     def iq(self, weights, tx: int, elements: torch.Tensor | None = None) -> torch.Tensor:
         """I/Q signals (B, n, T) of transmit ``tx`` for the receive ``elements`` (default all),
