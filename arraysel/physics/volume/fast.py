@@ -48,7 +48,7 @@ import torch
 from arraysel.errors import ParameterError, check_number
 from arraysel.physics.volume.psf import MatrixPSF
 
-__all__ = ["FastPathUnavailable", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
+__all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
 
 class FastPathUnavailable(RuntimeError):
@@ -188,12 +188,13 @@ class MatrixFastPSF:
         self.setup = exact.setup
         self.coords = exact.coords
         self._shapes = dict(exact._shapes)
+        chunk = check_number("pixel_chunk", pixel_chunk, lo=1, hi=1 << 20, integer=True)
         self.n_elements = exact.n_elements
         self.image_scale = exact.image_scale
         self.dtype = dtype
         self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
         self.device = exact.device
-        self._build(int(pixel_chunk))
+        self._build(int(chunk))
         self.check = self._check(check_masks)
 
     # ---------------------------------------------------------------- build
@@ -218,8 +219,10 @@ class MatrixFastPSF:
             xi = ex._tx_pos[n].to("cpu", torch.float64)                    # (P,)
             x = xi[:, None] + rx_pos
             if float(x.min()) < 0 or float(x.max()) > t.grid.n_time - 2:
-                raise FastPathUnavailable("some pixel reads a sample outside the RF record (the exact "
-                                          "path skips those reads; the fast path cannot)")
+                raise FastPathUnavailable(
+                    f"transmit {n}: some pixel reads a sample outside the RF record (samples {float(x.min()):.1f} "
+                    f"to {float(x.max()):.1f} read, record [0, {t.grid.n_time - 2}]); the exact path skips "
+                    "those reads, the fast path cannot: shrink the planes or use the exact path")
             Ln = _tone_response(t, s0, s1, fc, fs, 0.1 * math.sqrt(st.check_tol))
             f = t.grid.f.to(torch.float64)
             kf = 2 * math.pi * f / fs
@@ -318,7 +321,7 @@ class MatrixFastPSF:
     # ---------------------------------------------------------------- evaluate
     def image(self, weights) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
-        w = self.exact._weights(weights).to(self.dtype)
+        w = MatrixPSF._weights(self, weights)  # the exact path's checks, in this path's dtype and device
         Bn = w.shape[0]
         gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, P*Q*S*K)
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
