@@ -369,8 +369,10 @@ class MatrixFastPSF:
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
         z = c @ self._Psi                                                    # (B, columns)
         prod = gamma * z
-        img = torch.cat([prod[:, off:off + n * width].reshape(Bn, n, width).sum(-1)
-                         for n, width, off in self._groups], dim=1)          # (B, P) in the groups' order
+        # split, not slices: a slice's backward fills a full-size zero tensor per group
+        parts = torch.split(prod, [n * width for n, width, _ in self._groups], dim=1)
+        img = torch.cat([part.reshape(Bn, n, width).sum(-1) for part, (n, width, _) in zip(parts, self._groups)],
+                        dim=1)                                               # (B, P) in the groups' order
         return img[:, self._unsort]
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
