@@ -243,6 +243,8 @@ def test_bad_arguments_and_empty_selection(tiny):
     exact, fast = tiny
     with pytest.raises(ParameterError, match="dtype"):
         MatrixFastPSF(exact, dtype=torch.float16)
+    with pytest.raises(ParameterError, match="settings must be a FastSettings"):
+        MatrixFastPSF(exact, {"tol": 1e-5})
     with pytest.raises(ParameterError, match="pixel_chunk"):
         MatrixFastPSF(exact, pixel_chunk=0)
     with pytest.raises(SelectionError, match=r"\(B, 6\)"):

@@ -198,13 +198,17 @@ class MatrixFastPSF:
     subsets of a quarter of the elements, seed 0).
 
     Raises :class:`FastPathUnavailable` when the scene breaks an assumption or the check fails.
-    :attr:`check` records the measured errors; :attr:`sizes` the truncation ranks.
+    :attr:`check` records the measured errors; :attr:`sizes` the truncation ranks
+    (``transmit_ranks``, ``nodes`` the most a pixel uses, ``pixels_by_nodes``, ``harmonics``,
+    ``amplitude_terms``), ``pixels`` and the ``bytes`` of the evaluation tensors.
     """
 
     def __init__(self, exact: MatrixPSF, settings: FastSettings | None = None, dtype=torch.float32,
                  check_masks=None, pixel_chunk: int = 256):
         if dtype not in (torch.float32, torch.float64):
             raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
+        if settings is not None and not isinstance(settings, FastSettings):
+            raise ParameterError(f"settings must be a FastSettings, got {type(settings).__name__}")
         self.settings = settings or FastSettings()
         self.exact = exact
         self.setup = exact.setup
