@@ -32,7 +32,7 @@ __all__ = ["MatrixObjective", "MatrixObjectiveFactory", "matrix_model", "FAST_VE
 _log = logging.getLogger(__name__)
 
 #: the version of the cached fast-path tensors (bumped when their meaning changes)
-FAST_VERSION = 1
+FAST_VERSION = 2
 #: the most interpolation harmonics (``FastSettings.replicas``) the fast path's build tries
 MAX_REPLICAS = 2
 #: masks per batch of :meth:`MatrixObjective.evaluate` (the fast path's batch product)

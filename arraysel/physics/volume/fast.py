@@ -23,7 +23,10 @@ so the image of pixel ``p`` is
 * **receive delays per pixel**: ``conj(RC_e(f)) = A_e(f) exp(-i kappa_f eta_e(s))`` with ``A_e``
   smooth in f (a polynomial in f times a shared spectrum, :func:`_receive_amplitudes`), and
   ``delta_e(p) = eta_e(p) - eta_e(s)`` spans a short interval for each pixel, on which
-  ``exp(i (kappa_f - kappa_c) delta)`` is interpolated at Chebyshev nodes ``delta_pm``;
+  ``exp(i (kappa_f - kappa_c) delta)`` is interpolated at Chebyshev nodes ``delta_pm``; each pixel
+  gets the fewest nodes its interval needs (near the scatterer the receive delays hardly differ from
+  the scatterer's, so few), and pixels are grouped by that count (:attr:`MatrixFastPSF.sizes`
+  ``pixels_by_nodes``);
 * what is left per pixel is a receive sum ``gamma_pqmk(w) = sum_e w_e B_e,pqmk`` (one matrix
   product for a batch of selections) and a transmit sum ``sum_ng c_ng(w) Psi_ng,pqmk``.
 
@@ -48,7 +51,7 @@ import torch
 from arraysel.errors import ParameterError, check_number
 from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes
 
-__all__ = ["FastPathUnavailable", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
+__all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
 
 class FastPathUnavailable(RuntimeError):
@@ -142,6 +145,25 @@ def _tone_response(t, s0: int, s1: int, fc: float, fs: float, tol: float) -> tor
     return L
 
 
+def _node_reach(n: int, tol: float, a_hi: float) -> float:
+    """The largest phase half-span ``a <= a_hi`` for which ``n`` Chebyshev nodes interpolate
+    ``exp(i a t)`` on [-1, 1] to ``tol`` (max error on a fine grid; bisection, the error growing with a)."""
+    th = torch.linspace(-1, 1, 401, dtype=torch.float64)
+    nd = _chebyshev_nodes(n)
+    ell = _lagrange(nd, th).to(torch.complex128)
+
+    def err(a):
+        return float((ell @ torch.polar(torch.ones_like(nd), a * nd) - torch.polar(torch.ones_like(th), a * th)).abs().max())
+
+    if err(a_hi) <= tol:
+        return a_hi
+    lo, hi = 0.0, a_hi
+    for _ in range(40):
+        m = (lo + hi) / 2
+        lo, hi = (m, hi) if err(m) <= tol else (lo, m)
+    return lo
+
+
 def _receive_amplitudes(A: list[torch.Tensor], f: list[torch.Tensor], fc: float, weights: list[torch.Tensor],
                         tol: float, max_k: int = 8):
     """Fit ``A_e(f) = shape_n(f) sum_k a_ek ((f - fc) / fc)^k`` for every transmit's grid.
@@ -176,24 +198,29 @@ class MatrixFastPSF:
     subsets of a quarter of the elements, seed 0).
 
     Raises :class:`FastPathUnavailable` when the scene breaks an assumption or the check fails.
-    :attr:`check` records the measured errors; :attr:`sizes` the truncation ranks.
+    :attr:`check` records the measured errors; :attr:`sizes` the truncation ranks
+    (``transmit_ranks``, ``nodes`` the most a pixel uses, ``pixels_by_nodes``, ``harmonics``,
+    ``amplitude_terms``), ``pixels`` and the ``bytes`` of the evaluation tensors.
     """
 
     def __init__(self, exact: MatrixPSF, settings: FastSettings | None = None, dtype=torch.float32,
                  check_masks=None, pixel_chunk: int = 256):
         if dtype not in (torch.float32, torch.float64):
             raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
+        if settings is not None and not isinstance(settings, FastSettings):
+            raise ParameterError(f"settings must be a FastSettings, got {type(settings).__name__}")
         self.settings = settings or FastSettings()
         self.exact = exact
         self.setup = exact.setup
         self.coords = exact.coords
         self._shapes = dict(exact._shapes)
+        chunk = check_number("pixel_chunk", pixel_chunk, lo=1, hi=1 << 20, integer=True)
         self.n_elements = exact.n_elements
         self.image_scale = exact.image_scale
         self.dtype = dtype
         self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
         self.device = exact.device
-        self._build(int(pixel_chunk))
+        self._build(int(chunk))
         self.check = self._check(check_masks)
 
     # ---------------------------------------------------------------- build
@@ -218,8 +245,10 @@ class MatrixFastPSF:
             xi = ex._tx_pos[n].to("cpu", torch.float64)                    # (P,)
             x = xi[:, None] + rx_pos
             if float(x.min()) < 0 or float(x.max()) > t.grid.n_time - 2:
-                raise FastPathUnavailable("some pixel reads a sample outside the RF record (the exact "
-                                          "path skips those reads; the fast path cannot)")
+                raise FastPathUnavailable(
+                    f"transmit {n}: some pixel reads a sample outside the RF record (samples {float(x.min()):.1f} "
+                    f"to {float(x.max()):.1f} read, record [0, {t.grid.n_time - 2}]); the exact path skips "
+                    "those reads, the fast path cannot: shrink the planes or use the exact path")
             Ln = _tone_response(t, s0, s1, fc, fs, 0.1 * math.sqrt(st.check_tol))
             f = t.grid.f.to(torch.float64)
             kf = 2 * math.pi * f / fs
@@ -248,82 +277,107 @@ class MatrixFastPSF:
             Phi.append(torch.where(D[None] > 0, Vh[:r] / safe[None], torch.zeros_like(Vh[:r])))  # (r, F)
         ranks = [int(cn.shape[1]) for cn in C_list]
 
-        # Chebyshev nodes per pixel on [min_e delta, max_e delta]
+        # Chebyshev nodes per pixel on [min_e delta, max_e delta]: a pixel whose receive delays span
+        # a phase half-width a_p needs the fewest nodes that interpolate exp(i a_p t) on [-1, 1] to tol;
+        # pixels are grouped by that count (pixels near the scatterer need few)
         lo, hi = delta.amin(1), delta.amax(1)
         mid, half = (lo + hi) / 2, (hi - lo) / 2
         band = torch.cat([(2 * math.pi * f / fs - kc)[r > tol] for f, r in zip(fgrid, relevance)]).abs().max()
-        a = float(band * half.max())
-        S_nodes = None
+        a_pix = band * half                                                  # (P,) phase half-spans
+        need = torch.full_like(a_pix, -1, dtype=torch.long)
         for n_nodes in range(4, st.max_nodes + 1, 2):
-            th = torch.linspace(-1, 1, 401, dtype=torch.float64)
-            ell = _lagrange(_chebyshev_nodes(n_nodes), th)                   # (401, S)
-            nd = _chebyshev_nodes(n_nodes)
-            err = (ell.to(torch.complex128) @ torch.polar(torch.ones_like(nd), a * nd) - torch.polar(torch.ones_like(th), a * th)).abs().max()
-            if float(err) <= tol:
-                S_nodes = n_nodes
+            left = need < 0
+            if not bool(left.any()):
                 break
-        if S_nodes is None:
+            reach = _node_reach(n_nodes, tol, float(a_pix[left].max()))
+            need[left & (a_pix <= reach)] = n_nodes
+        if bool((need < 0).any()):
             raise FastPathUnavailable(f"the receive delays of a pixel span too long a time for "
-                                      f"{st.max_nodes} interpolation nodes (phase span {2 * a:.1f} rad)")
-        nodes = _chebyshev_nodes(S_nodes)
-        dnode = mid[:, None] + half[:, None] * nodes[None]                   # (P, S) delta_pm
+                                      f"{st.max_nodes} interpolation nodes (phase span {2 * float(a_pix.max()):.1f} rad)")
         Q = len(orders)
         P = rx_pos.shape[0]
+        groups = []                                                          # (nodes, pixels, column offset)
+        off = 0
+        for n_nodes in sorted(set(need.tolist())):
+            idx = torch.nonzero(need == n_nodes).flatten()
+            groups.append((n_nodes, idx, off))
+            off += idx.numel() * Q * n_nodes * K
+        n_cols = off
 
-        # receive matrix B: (Ne, P, Q, S, K)
-        B = torch.empty(self.n_elements, P, Q, S_nodes, K, dtype=self.cdtype)
-        for p0 in range(0, P, chunk):
-            sl = slice(p0, min(P, p0 + chunk))
-            dl = delta[sl]                                                   # (p, Ne)
-            tnorm = torch.where(half[sl, None] > 0, (dl - mid[sl, None]) / torch.where(
-                half[sl, None] > 0, half[sl, None], torch.ones_like(half[sl, None])), torch.zeros_like(dl))
-            ell = _lagrange(nodes.expand(dl.shape[0], S_nodes), tnorm)       # (p, Ne, S)
-            ph = torch.polar(torch.ones_like(dl), kc * dl)                   # (p, Ne)
-            reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[sl]) for q in orders], 1)
-            blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)      # (p, Q, Ne, S)
-            blk = blk[..., None] * a_ek[None, None, :, None, :]               # (p, Q, Ne, S, K)
-            B[:, sl] = blk.permute(2, 0, 1, 3, 4).to(self.cdtype)
+        # receive matrix B: (Ne, columns), each group's columns ordered (pixel, q, node, k)
+        B = torch.empty(self.n_elements, n_cols, dtype=self.cdtype)
+        for n_nodes, idx, off in groups:
+            nodes = _chebyshev_nodes(n_nodes)
+            width = Q * n_nodes * K
+            for p0 in range(0, idx.numel(), chunk):
+                ii = idx[p0:p0 + chunk]
+                dl = delta[ii]                                               # (p, Ne)
+                hh = half[ii, None]
+                tnorm = torch.where(hh > 0, (dl - mid[ii, None]) / torch.where(hh > 0, hh, torch.ones_like(hh)),
+                                    torch.zeros_like(dl))
+                ell = _lagrange(nodes.expand(dl.shape[0], n_nodes), tnorm)  # (p, Ne, S)
+                ph = torch.polar(torch.ones_like(dl), kc * dl)               # (p, Ne)
+                reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[ii]) for q in orders], 1)
+                blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)  # (p, Q, Ne, S)
+                blk = blk[..., None] * a_ek[None, None, :, None, :]           # (p, Q, Ne, S, K)
+                c0 = off + p0 * width
+                B[:, c0:c0 + ii.numel() * width] = blk.permute(2, 0, 1, 3, 4).reshape(self.n_elements, -1).to(self.cdtype)
 
-        # transmit tensor Psi: (n_tx, r_max, P, Q, S, K), zero-padded in g
+        # transmit tensor Psi: (n_tx, r_max, columns), zero-padded in g
         r_max = max(ranks)
-        Psi = torch.zeros(n_tx, r_max, P, Q, S_nodes, K, dtype=self.cdtype)
+        Psi = torch.zeros(n_tx, r_max, n_cols, dtype=self.cdtype)
         for n in range(n_tx):
             f = fgrid[n]
             kf = 2 * math.pi * f / fs
             h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
             W = (Phi[n] * L[n][None])[:, None, None, :] * h[None, :, None, :] * rx_basis[n][None, None]  # (r, Q, K, F)
             xi = tx_pos[n]
-            for p0 in range(0, P, chunk):
-                sl = slice(p0, min(P, p0 + chunk))
-                zeta = xi[sl, None] + dnode[sl]                              # (p, S)
-                E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
-                pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[sl, None]
-                                               - kc * dnode[sl]) for q in orders], 1)  # (p, Q, S)
-                # sum_f W[g,q,k,f] E[p,s,f]  -> (g, q, k, p, s)
-                v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
-                Psi[n, :ranks[n], sl] = v.to(self.cdtype)
+            for n_nodes, idx, off in groups:
+                nodes = _chebyshev_nodes(n_nodes)
+                width = Q * n_nodes * K
+                for p0 in range(0, idx.numel(), chunk):
+                    ii = idx[p0:p0 + chunk]
+                    dnode = mid[ii, None] + half[ii, None] * nodes[None]     # (p, S) delta_pm
+                    zeta = xi[ii, None] + dnode                              # (p, S)
+                    E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
+                    pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[ii, None]
+                                                   - kc * dnode) for q in orders], 1)  # (p, Q, S)
+                    # sum_f W[g,q,k,f] E[p,s,f]  -> (g, p, q, s, k)
+                    v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
+                    c0 = off + p0 * width
+                    Psi[n, :ranks[n], c0:c0 + ii.numel() * width] = v.reshape(ranks[n], -1).to(self.cdtype)
+        order = torch.cat([idx for _, idx, _ in groups])
+        #: (pixels in the groups' order, nodes a pixel, column offset) per group, and the inverse order
+        self._groups = [(idx.numel(), Q * n_nodes * K, off) for n_nodes, idx, off in groups]
+        self._unsort = torch.argsort(order)
         self._C = torch.zeros(n_tx, self.n_elements, r_max, dtype=self.cdtype)
         for n, cn in enumerate(C_list):
             self._C[n, :, :ranks[n]] = cn.to(self.cdtype)
-        self._B = torch.view_as_real(B.reshape(self.n_elements, -1)).reshape(self.n_elements, -1).contiguous()
-        self._Psi = Psi.reshape(n_tx * r_max, -1).contiguous()
-        self._inner = Q * S_nodes * K
-        self.sizes = {"transmit_ranks": ranks, "nodes": S_nodes, "harmonics": Q, "amplitude_terms": K,
+        self._B = torch.view_as_real(B).reshape(self.n_elements, -1)     # (Ne, 2 columns): re, im interleaved
+        self._Psi = Psi.reshape(n_tx * r_max, -1)
+        self.sizes = {"transmit_ranks": ranks, "nodes": max(g[0] for g in groups),
+                      "pixels_by_nodes": {g[0]: int(g[1].numel()) for g in groups}, "harmonics": Q, "amplitude_terms": K,
                       "pixels": P, "bytes": int(self._B.numel() * self._B.element_size()
                                                 + self._Psi.numel() * self._Psi.element_size()
                                                 + self._C.numel() * self._C.element_size())}
         if self.device.type != "cpu":
             self._B, self._Psi, self._C = self._B.to(self.device), self._Psi.to(self.device), self._C.to(self.device)
+            self._unsort = self._unsort.to(self.device)
 
     # ---------------------------------------------------------------- evaluate
     def image(self, weights) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
         w = check_element_weights(weights, self.n_elements, self.dtype, self.device)
         Bn = w.shape[0]
-        gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, P*Q*S*K)
+        gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, columns)
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
-        z = c @ self._Psi                                                    # (B, P*Q*S*K)
-        return (gamma * z).reshape(Bn, -1, self._inner).sum(-1)
+        z = c @ self._Psi                                                    # (B, columns)
+        prod = gamma * z
+        # split, not slices: a slice's backward fills a full-size zero tensor per group
+        parts = torch.split(prod, [n * width for n, width, _ in self._groups], dim=1)
+        img = torch.cat([part.reshape(Bn, n, width).sum(-1) for part, (n, width, _) in zip(parts, self._groups)],
+                        dim=1)                                               # (B, P) in the groups' order
+        return img[:, self._unsort]
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``."""
@@ -339,8 +393,9 @@ class MatrixFastPSF:
         """The tensors that :meth:`from_state` restores this model from (for the on-disk cache;
         stored in single precision, 1e-7 relative, far below the check's tolerance)."""
         return {"B": self._B.cpu().float(), "Psi": self._Psi.cpu().to(torch.complex64),
-                "C": self._C.cpu().to(torch.complex64),
-                "inner": torch.tensor(self._inner), "image_scale": torch.tensor(float(self.image_scale)),
+                "C": self._C.cpu().to(torch.complex64), "unsort": self._unsort.cpu(),
+                "groups": torch.tensor(self._groups, dtype=torch.int64).reshape(-1, 3),
+                "image_scale": torch.tensor(float(self.image_scale)),
                 "check_error": torch.tensor(float(self.check["max_relative_error"])),
                 "ranks": torch.tensor(self.sizes["transmit_ranks"]), "nodes": torch.tensor(self.sizes["nodes"]),
                 "harmonics": torch.tensor(self.sizes["harmonics"]),
@@ -362,15 +417,18 @@ class MatrixFastPSF:
         self.cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
         self.device = torch.device(device)
         self.image_scale = float(state["image_scale"])
-        self._inner = int(state["inner"])
+        self._groups = [tuple(int(v) for v in row) for row in state["groups"]]
         n_pix = sum(h * w for h, w in self._shapes.values())
-        B, Psi, C = state["B"], state["Psi"], state["C"]
-        if (B.shape != (self.n_elements, 2 * n_pix * self._inner) or Psi.shape[1] != n_pix * self._inner
+        columns = sum(n * width for n, width, _ in self._groups)
+        B, Psi, C, unsort = state["B"], state["Psi"], state["C"], state["unsort"]
+        if (B.shape != (self.n_elements, 2 * columns) or Psi.shape[1] != columns or unsort.shape != (n_pix,)
+                or sum(n for n, _, _ in self._groups) != n_pix
                 or C.shape[:2] != (setup.n_tx, self.n_elements) or C.shape[0] * C.shape[2] != Psi.shape[0]):
             raise ValueError("the stored fast-path tensors do not fit this scene")
         self._B = B.to(self.device, dtype).contiguous()
         self._Psi = Psi.to(self.device, self.cdtype).contiguous()
         self._C = C.to(self.device, self.cdtype).contiguous()
+        self._unsort = unsort.to(self.device)
         self.sizes = {"transmit_ranks": [int(r) for r in state["ranks"]], "nodes": int(state["nodes"]),
                       "harmonics": int(state["harmonics"]), "amplitude_terms": int(state["amplitude_terms"]),
                       "pixels": n_pix, "bytes": int(sum(t.numel() * t.element_size() for t in (B, Psi, C)))}
