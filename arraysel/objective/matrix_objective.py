@@ -35,7 +35,8 @@ _log = logging.getLogger(__name__)
 FAST_VERSION = 2
 #: the most interpolation harmonics (``FastSettings.replicas``) the fast path's build tries
 MAX_REPLICAS = 2
-#: masks per batch of :meth:`MatrixObjective.evaluate`: the fast path's matrix product is most efficient from about 128 masks (benchmarks/bench_matrix_fast.py)
+#: masks per batch of :meth:`MatrixObjective.evaluate`: the fast path's matrix product is most
+#: efficient from about 128 masks (``benchmarks/bench_matrix_fast.py``)
 DEFAULT_CHUNK_3D = 128
 
 
