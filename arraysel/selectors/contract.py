@@ -383,7 +383,8 @@ class BudgetedObjective:
       count or record anything for the runs that follow.
 
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
-    :meth:`score_indices`, :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
+    :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
+    ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
     one call: :mod:`arraysel.objective.neighbours`), ``best`` / ``best_mean`` (best recorded so far),
     ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
     :meth:`remaining` (evaluations the budget allows now).
@@ -425,6 +426,14 @@ class BudgetedObjective:
     @property
     def best_mean(self) -> float:
         return self.recorder.best_mean
+
+    def fallback(self, selection) -> None:
+        """Name ``selection`` (``k`` element indices) as what the run returns when its budget ends
+        before any ``k``-selection was scored (a search's start, say); nothing is scored or
+        counted, and a scored selection always takes precedence."""
+        self._check_open()
+        if self.recorder.first is None:
+            self.recorder.first = check_selection(selection, self.n_elements, self.k)
 
     def remaining(self) -> int | float:
         """Evaluations the budget allows now (``math.inf`` when only time limits it, 0 when spent)."""

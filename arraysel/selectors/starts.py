@@ -109,6 +109,17 @@ def start_options(default: str = "uniform") -> dict[str, Option]:
 
 def start_selection(how: str, objective, k: int, rng: np.random.Generator, elements: str | None = None,
                     option: str = "start") -> list[int]:
+    """The start selection ``how`` names (see :func:`_start`); on a budgeted objective it is also
+    the run's fallback (``objective.fallback``): what the run returns when its budget ends before
+    a ``k``-selection is scored (a greedy start that used the whole budget, say)."""
+    start = _start(how, objective, k, rng, elements, option)
+    note = getattr(type(objective), "fallback", None)
+    if note is not None:
+        objective.fallback(start)
+    return start
+
+
+def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str | None, option: str) -> list[int]:
     """The start selection ``how`` names: ``uniform`` (:func:`uniform_layout`, matrix arrays
     included), ``random``, ``greedy`` (:func:`greedy_selection`, spends evaluations) or
     ``elements`` (the text of the option ``elements``); ``elements`` given means ``elements``
