@@ -22,7 +22,7 @@ from pathlib import Path
 
 #: (selector, options) runs per scene, in order; seeds 0, 1, ... per entry (see _plan)
 RECIPES = {
-    "paper": [("ils", {}), ("ils", {"mode": "best"}), ("swap", {"start": "random", "mode": "best"}),
+    "paper": [("ils", {"mode": "best", "starts": 7}), ("ils", {}), ("swap", {"start": "random", "mode": "best"}),
               ("ils", {"relink": 0.6}), ("ils", {}), ("ils", {"mode": "best", "relink": 0.6})],
     "l11-5v": [("ils", {}), ("ils", {"relink": 0.6}), ("swap", {"start": "uniform"}), ("ils", {}),
                ("anneal", {})],
