@@ -1,5 +1,5 @@
 """Where a search starts: the start selections every built-in search offers, random subsets and
-the element list of an option, as framework helpers a selector calls instead of writing its own.
+the element list of an option: the framework's, which a selector calls instead of writing its own.
 
 * :func:`random_subsets`: uniformly random ``k``-subsets, many at once;
 * :func:`random_mask`: one random ``k``-selection as a boolean mask;
