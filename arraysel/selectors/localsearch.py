@@ -328,8 +328,8 @@ class EliteSearch(SwapSearch):
                 break
             spent = len(self._cache)
             best_before = self.best_value
-            if self.restart_after and stale >= self.restart_after:
-                m, stale = self._random_mask(self.rng), 0
+            if not self.pool or (self.restart_after and stale >= self.restart_after):
+                m, stale = self._random_mask(self.rng), 0  # (an empty pool: nothing finite scored yet)
                 v = float(self.score(m[None])[0])
             elif len(self.pool) >= 2 and self.rng.random() < self.relink_p:
                 i, j = self.rng.choice(len(self.pool), 2, replace=False)
