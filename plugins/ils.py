@@ -20,8 +20,8 @@ class IteratedLocalSearch(Selector):
     name = "ils"
     description = "multi-start iterated swap local search: elite pool, path relinking, growing perturbations"
     options = {
-        **start_options("random"),
-        "starts": Option(int, 4, "starting selections (the start and random ones), each descended first", lo=1),
+        **start_options("greedy"),
+        "starts": Option(int, 2, "starting selections (the start and random ones), each descended first", lo=1),
         "elite": Option(int, 8, "distinct local optima kept in the elite pool", lo=1),
         "relink": Option(float, 0.3, "probability that a round relinks two elites (else it perturbs one)",
                          lo=0.0, hi=1.0),
