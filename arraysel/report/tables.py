@@ -67,8 +67,9 @@ def write_tables(out: Path, runs, trace=None) -> None:
 
 
 def best_known_mean(folder) -> float | None:
-    """The best-known Mean of the scene and ``k`` the comparison in ``folder`` ran (its ``run.json``),
-    or None (no run.json, a scene without a stored best known)."""
+    """The best-known Mean of the scene and ``k`` the comparison in ``folder`` ran (its ``run.json``):
+    the entry's ``reference_Mean`` where it has one (a lower value reported without its mask), else
+    its ``Mean``; None without run.json or a stored entry."""
     from arraysel.scenes.best_known import best_known
 
     try:
@@ -76,7 +77,7 @@ def best_known_mean(folder) -> float | None:
     except (OSError, ValueError):
         return None
     entry = best_known(meta.get("scene_name"), meta.get("k")) if isinstance(meta, dict) else None
-    return float(entry["Mean"]) if entry else None
+    return float(entry.get("reference_Mean", entry["Mean"])) if entry else None
 
 
 def read_runs(path):
