@@ -27,92 +27,69 @@ import math
 
 import numpy as np
 
+from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
-
-from .swap import START_CHOICES, start_selection
-
-
-def _random_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
-    total = on.size * off.size
-    pick = rng.choice(total, size=min(b, total), replace=False)
-    return on[pick // off.size], off[pick % off.size]
+from arraysel.selectors.localsearch import random_swap_pairs
+from arraysel.selectors.starts import start_options, start_selection
 
 
 class AnnealSelector(Selector):
     name = "anneal"
     description = "simulated annealing over element swaps, geometric temperature over the budget, batched Metropolis"
     options = {
-        "start": Option(str, "uniform", "start selection (uniform, random, greedy or elements)",
-                        choices=START_CHOICES),
-        "elements": Option(str, None, "start elements for start=elements, e.g. '0 2 4 ...'"),
+        **start_options("uniform"),
         "t0": Option(float, None, "initial temperature (auto: the median uphill swap is accepted with "
                      "probability 1/2); 0: accept only moves that do not worsen", lo=0.0),
         "ratio": Option(float, 1e-3, "final / initial temperature", lo=1e-12, hi=1.0),
-        "batch": Option(int, 128, "most swaps scored per objective.evaluate call", lo=1),
+        "batch": Option(int, 128, "most swaps scored per objective call", lo=1),
         "min_batch": Option(int, 16, "fewest swaps scored per call", lo=1),
         "horizon": Option(int, 200_000, "evaluations the schedule spans when the budget has no limit", lo=1),
     }
     deterministic = False
 
-    def batch_size(self, n_elements, k):
-        return self.options["batch"]
-
     def select(self, objective, k, seed):
         o = self.options
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
-        how = "elements" if o["elements"] is not None else o["start"]
-        start = start_selection(how, objective, k, rng, o["elements"])
+        start = start_selection(o["start"], objective, k, rng, o["elements"])
         if k in (0, n):
             return start
         budget = objective.budget
         cur = np.zeros(n, dtype=bool)
         cur[start] = True
-        try:
-            f_cur = float(objective.score(cur[None])[0])
-            t0 = o["t0"]
-            if t0 is None:
-                a, b = _random_pairs(cur, 32, rng)
-                cands = np.repeat(cur[None], a.size, axis=0)
-                cands[np.arange(a.size), a] = False
-                cands[np.arange(a.size), b] = True
-                with np.errstate(invalid="ignore"):
-                    d = objective.score(cands) - f_cur
-                up = d[np.isfinite(d) & (d > 0)]
-                t0 = float(np.median(up)) / math.log(2) if up.size else 1e-3 * max(abs(f_cur), 1e-12)
-                if not math.isfinite(t0) or t0 <= 0:
-                    t0 = 1e-3
-            used0 = objective.evaluations
-            accept_rate = 0.5
-            lo, hi = min(o["min_batch"], o["batch"]), o["batch"]
-            while True:
-                frac = budget.fraction() if not budget.unlimited else \
-                    min(1.0, (objective.evaluations - used0) / o["horizon"])
-                temp = t0 * o["ratio"] ** frac
-                b = int(np.clip(math.ceil(2.0 / max(accept_rate, 1e-3)), lo, hi))
-                a, bb = _random_pairs(cur, b, rng)
-                cands = np.repeat(cur[None], a.size, axis=0)
-                rows = np.arange(a.size)
-                cands[rows, a] = False
-                cands[rows, bb] = True
-                values = objective.score(cands)
-                with np.errstate(over="ignore", invalid="ignore"):
-                    delta = values - f_cur
-                    prob = np.where(delta <= 0, 1.0, np.exp(-np.maximum(delta, 0) / temp) if temp > 0 else 0.0)
-                prob = np.where(np.isfinite(values), prob, 0.0)
-                ok = np.flatnonzero(rng.random(a.size) < prob)
-                seen = a.size if ok.size == 0 else int(ok[0]) + 1
-                accept_rate = 0.8 * accept_rate + 0.2 * (ok.size > 0) / seen
-                if ok.size:
-                    cur, f_cur = cands[ok[0]], float(values[ok[0]])
-                if budget.unlimited and frac >= 1.0:
-                    break
-        except BudgetExhausted:
-            pass
-        best = objective.best
-        return best if best is not None else start
+        f_cur = float(objective.score(cur[None])[0])
+        t0 = o["t0"]
+        if t0 is None:
+            a, b = random_swap_pairs(cur, 32, rng)
+            with np.errstate(invalid="ignore"):
+                d = objective.score_swaps(cur, a, b) - f_cur
+            up = d[np.isfinite(d) & (d > 0)]
+            t0 = float(np.median(up)) / math.log(2) if up.size else 1e-3 * max(abs(f_cur), 1e-12)
+            if not math.isfinite(t0) or t0 <= 0:
+                t0 = 1e-3
+        used0 = objective.evaluations
+        accept_rate = 0.5
+        lo, hi = min(o["min_batch"], o["batch"]), o["batch"]
+        while True:
+            frac = budget.fraction() if not budget.unlimited else \
+                min(1.0, (objective.evaluations - used0) / o["horizon"])
+            temp = t0 * o["ratio"] ** frac
+            b = int(np.clip(math.ceil(2.0 / max(accept_rate, 1e-3)), lo, hi))
+            a, bb = random_swap_pairs(cur, b, rng)
+            values = objective.score_swaps(cur, a, bb)
+            with np.errstate(over="ignore", invalid="ignore"):
+                delta = values - f_cur
+                prob = np.where(delta <= 0, 1.0, np.exp(-np.maximum(delta, 0) / temp) if temp > 0 else 0.0)
+            prob = np.where(np.isfinite(values), prob, 0.0)
+            ok = np.flatnonzero(rng.random(a.size) < prob)
+            seen = a.size if ok.size == 0 else int(ok[0]) + 1
+            accept_rate = 0.8 * accept_rate + 0.2 * (ok.size > 0) / seen
+            if ok.size:
+                cur = cur.copy()
+                cur[a[ok[0]]], cur[bb[ok[0]]] = False, True
+                f_cur = float(values[ok[0]])
+            if budget.unlimited and frac >= 1.0:
+                return objective.best if objective.best is not None else start
 
 
 @hookimpl

@@ -8,7 +8,8 @@ import numpy as np
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.layouts import uniform_layout
-from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
+from arraysel.selectors.contract import Option, Selector, numpy_rng
+from arraysel.selectors.starts import random_subsets
 
 
 class UniformSelector(Selector):
@@ -24,22 +25,12 @@ class UniformSelector(Selector):
     options = {}
     deterministic = True
 
-    def batch_size(self, n_elements, k):
-        return 1
-
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
         grid, _ = element_layout(objective)
         chosen = uniform_layout(n, k, grid)
         objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
         return chosen
-
-
-def random_subsets(rng: np.random.Generator, batch: int, n: int, k: int) -> np.ndarray:
-    """``(batch, k)`` sorted indices of uniformly random k-subsets of range(n)."""
-    keys = rng.random((batch, n))
-    idx = np.argpartition(keys, k - 1, axis=1)[:, :k] if k < n else np.tile(np.arange(n), (batch, 1))
-    return np.sort(idx, axis=1)
 
 
 class RandomSelector(Selector):
@@ -57,9 +48,6 @@ class RandomSelector(Selector):
     }
     deterministic = False
 
-    def batch_size(self, n_elements, k):
-        return self.options["chunk"]
-
     def planned_evaluations(self, n_elements, k):
         return self.options["n"]
 
@@ -75,26 +63,23 @@ class RandomSelector(Selector):
         # about `target` seconds; the subsets drawn do not depend on chunking
         target = 2.0 if budget.seconds is None else min(2.0, max(0.05, 0.02 * budget.seconds))
         size = 1  # the first call is one mask, so a slow objective overruns by one mask at most
-        try:
-            while drawn < total:
-                b = int(min(size, total - drawn, objective.remaining()))
-                if b <= 0:
-                    break
-                subsets = random_subsets(rng, b, n, k)
-                t0 = time.perf_counter()
-                if first is None:
-                    first = subsets[0]
-                masks = np.zeros((b, n), dtype=bool)
-                np.put_along_axis(masks, subsets, True, axis=1)
-                means = objective.score(masks)
-                drawn += b
-                per_mask = max((time.perf_counter() - t0) / b, 1e-9)
-                size = int(min(chunk, 4 * b, max(1, target / per_mask)))
-                i = int(np.argmin(means))
-                if means[i] < best_mean:
-                    best, best_mean = subsets[i], float(means[i])
-        except BudgetExhausted:
-            best = objective.best if objective.best is not None else best
+        while drawn < total:
+            b = int(min(size, total - drawn, objective.remaining()))
+            if b <= 0:
+                break
+            subsets = random_subsets(rng, b, n, k)
+            t0 = time.perf_counter()
+            if first is None:
+                first = subsets[0]
+            masks = np.zeros((b, n), dtype=bool)
+            np.put_along_axis(masks, subsets, True, axis=1)
+            means = objective.score(masks)
+            drawn += b
+            per_mask = max((time.perf_counter() - t0) / b, 1e-9)
+            size = int(min(chunk, 4 * b, max(1, target / per_mask)))
+            i = int(np.argmin(means))
+            if means[i] < best_mean:
+                best, best_mean = subsets[i], float(means[i])
         if best is None:  # no finite score (or no budget): one random subset
             best = first if first is not None else random_subsets(rng, 1, n, k)[0]
         return [int(i) for i in best]

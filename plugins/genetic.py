@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.localsearch import random_swaps
-from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng
-
-from .baselines import random_subsets
+from arraysel.selectors.starts import random_subsets
 
 
 def exact_k_crossover(p1: np.ndarray, p2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -46,9 +46,6 @@ class GeneticSelector(Selector):
     }
     deterministic = False
 
-    def batch_size(self, n_elements, k):
-        return max(self.options["population"], self.options["children"])
-
     def select(self, objective, k, seed):
         o = self.options
         n = int(objective.n_elements)
@@ -57,46 +54,40 @@ class GeneticSelector(Selector):
         pop = np.zeros((mu, n), dtype=bool)
         np.put_along_axis(pop, random_subsets(rng, mu, n, k), True, axis=1)
         pop[0] = False
-        pop[0, [(i * n) // k for i in range(k)]] = True
-        fallback = [int(i) for i in np.flatnonzero(pop[0])]
+        pop[0, uniform_layout(n, k)] = True
         if k in (0, n):
-            return fallback
-        try:
-            fit = objective.score(pop)
-            while True:
-                children = np.zeros((o["children"], n), dtype=bool)
-                known = {np.packbits(m).tobytes() for m in pop}
-                for c in range(o["children"]):
-                    i = self._tournament(fit, rng)
-                    if rng.random() < o["crossover"]:
-                        j = self._tournament(fit, rng)
-                        child = exact_k_crossover(pop[i], pop[j], rng)
-                    else:
-                        child = pop[i].copy()
-                    child = random_swaps(child, int(rng.poisson(o["mutation"])), rng)
+            return [int(i) for i in np.flatnonzero(pop[0])]
+        fit = objective.score(pop)
+        while True:
+            children = np.zeros((o["children"], n), dtype=bool)
+            known = {np.packbits(m).tobytes() for m in pop}
+            for c in range(o["children"]):
+                i = self._tournament(fit, rng)
+                if rng.random() < o["crossover"]:
+                    j = self._tournament(fit, rng)
+                    child = exact_k_crossover(pop[i], pop[j], rng)
+                else:
+                    child = pop[i].copy()
+                child = random_swaps(child, int(rng.poisson(o["mutation"])), rng)
+                key = np.packbits(child).tobytes()
+                if key in known:
+                    child = random_swaps(child, 1, rng)
                     key = np.packbits(child).tobytes()
-                    if key in known:
-                        child = random_swaps(child, 1, rng)
-                        key = np.packbits(child).tobytes()
-                    known.add(key)
-                    children[c] = child
-                cfit = objective.score(children)
-                allm = np.concatenate([pop, children])
-                allf = np.concatenate([fit, cfit])
-                order = np.lexsort((np.arange(allf.size), allf))
-                keep, seen = [], set()
-                for idx in order:
-                    key = np.packbits(allm[idx]).tobytes()
-                    if key not in seen:
-                        seen.add(key)
-                        keep.append(idx)
-                    if len(keep) == mu:
-                        break
-                pop, fit = allm[keep], allf[keep]
-        except BudgetExhausted:
-            pass
-        best = objective.best
-        return best if best is not None else fallback
+                known.add(key)
+                children[c] = child
+            cfit = objective.score(children)
+            allm = np.concatenate([pop, children])
+            allf = np.concatenate([fit, cfit])
+            order = np.lexsort((np.arange(allf.size), allf))
+            keep, seen = [], set()
+            for idx in order:
+                key = np.packbits(allm[idx]).tobytes()
+                if key not in seen:
+                    seen.add(key)
+                    keep.append(idx)
+                if len(keep) == mu:
+                    break
+            pop, fit = allm[keep], allf[keep]
 
     def _tournament(self, fit: np.ndarray, rng: np.random.Generator) -> int:
         idx = rng.choice(fit.size, size=min(self.options["tournament"], fit.size), replace=False)

@@ -1,8 +1,8 @@
 """``nevergrad``: run any nevergrad optimizer on the selection problem (exact-k encodings).
 
 Written as a third-party plugin would be: it uses only arraysel's public API
-(``Selector``, ``Option``, ``hookimpl``, ``numpy_rng``, ``top_k``,
-``BudgetExhausted``) and imports nevergrad only when it runs
+(``Selector``, ``Option``, ``hookimpl``, ``numpy_rng``, ``top_k``; the runner ends
+it when the budget is spent) and imports nevergrad only when it runs
 (``pip install arraysel[nevergrad]``).
 
 Encodings (option ``encoding``), both exactly ``k`` elements for every point:
@@ -40,7 +40,7 @@ import numpy as np
 
 from arraysel.errors import ParameterError
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.contract import BudgetExhausted, Option, Selector, numpy_rng, top_k
+from arraysel.selectors.contract import Option, Selector, numpy_rng, top_k
 
 _DEFAULT_NG_BUDGET = 20_000
 
@@ -95,9 +95,6 @@ class NevergradSelector(Selector):
                                  f"nevergrad optimizer; e.g. NGOpt, DiscreteOnePlusOne, "
                                  f"PortfolioDiscreteOnePlusOne, CMA{'; similar: ' + ', '.join(close) if close else ''}")
 
-    def batch_size(self, n_elements, k):
-        return self.options["batch"]
-
     def _make(self, ng, n: int, budget: int, rng: np.random.Generator):
         if self.options["encoding"] == "keys":
             param = ng.p.Array(shape=(n,), lower=0.0, upper=1.0)
@@ -132,29 +129,23 @@ class NevergradSelector(Selector):
         lamarck = self.options["encoding"] == "binary" and self.options["repair"] == "lamarck"
         limit = objective.budget.evaluations
         ng_budget = self.options["ng_budget"] or (int(limit) if limit is not None else _DEFAULT_NG_BUDGET)
-        fallback = [(i * n) // k for i in range(k)]
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ng.errors.NevergradWarning)
-                warnings.simplefilter("ignore", RuntimeWarning)
-                while True:  # one optimizer per nevergrad budget
-                    opt = self._make(ng, n, ng_budget, rng)
-                    while opt.num_ask < ng_budget:
-                        todo = min(opt.num_workers, ng_budget - opt.num_ask)
-                        cands = [opt.ask() for _ in range(todo)]
-                        masks = np.stack([self._decode(c.value, n, k, repair) for c in cands])
-                        values = objective.score(masks)
-                        worst = np.max(values[np.isfinite(values)], initial=1.0)
-                        for c, m, v in zip(cands, masks, values):
-                            loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
-                            if lamarck and int(np.sum(np.asarray(c.value) > 0)) != k:
-                                lamarck = _tell_repaired(ng, opt, c, m, loss)
-                            else:
-                                opt.tell(c, loss)
-        except BudgetExhausted:
-            pass
-        best = objective.best
-        return best if best is not None else fallback
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ng.errors.NevergradWarning)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            while True:  # one optimizer per nevergrad budget
+                opt = self._make(ng, n, ng_budget, rng)
+                while opt.num_ask < ng_budget:
+                    todo = min(opt.num_workers, ng_budget - opt.num_ask)
+                    cands = [opt.ask() for _ in range(todo)]
+                    masks = np.stack([self._decode(c.value, n, k, repair) for c in cands])
+                    values = objective.score(masks)
+                    worst = np.max(values[np.isfinite(values)], initial=1.0)
+                    for c, m, v in zip(cands, masks, values):
+                        loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
+                        if lamarck and int(np.sum(np.asarray(c.value) > 0)) != k:
+                            lamarck = _tell_repaired(ng, opt, c, m, loss)
+                        else:
+                            opt.tell(c, loss)
 
 
 @hookimpl

@@ -50,9 +50,6 @@ class NLoptSelector(Selector):
     uses_gradients = True
     deterministic = False
 
-    def batch_size(self, n_elements, k):
-        return 2  # one mask_loss + at most one evaluate per NLopt call
-
     def select(self, objective, k, seed):
         import nlopt
 

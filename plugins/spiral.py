@@ -30,9 +30,6 @@ class SpiralSelector(Selector):
     }
     deterministic = True
 
-    def batch_size(self, n_elements, k):
-        return 1
-
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
         grid, positions = element_layout(objective)

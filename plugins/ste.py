@@ -20,7 +20,7 @@ import torch
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.relax import cosine_temperature, sequential_selection
-from arraysel.selectors.contract import BudgetExhausted, Option, Selector, indices_to_mask, torch_rng
+from arraysel.selectors.contract import Option, Selector, indices_to_mask, torch_rng
 
 # Default learning rates, measured on arraysel.testing.ToyObjective (Ne=64, k=32,
 # 300 gradient steps, 3 seeds, best Mean; target 0.0404):
@@ -48,9 +48,6 @@ class MatrixSelector(Selector):
     #: consecutive NaN/Inf losses after which the loop stops (the logits no longer move)
     MAX_BAD_STEPS = 50
 
-    def batch_size(self, n_elements, k):
-        return 2  # one selection_loss + at most one evaluate per step
-
     # subclasses choose how a step draws its selection
     def draw(self, logits: torch.Tensor, tau: float, generator: torch.Generator):
         raise NotImplementedError
@@ -74,34 +71,31 @@ class MatrixSelector(Selector):
             scored.add(key)
             objective.evaluate(indices_to_mask(key, n)[None, :])
 
-        try:
-            for step in range(o["steps"]):
-                tau = cosine_temperature(step, o["tau_start"], o["tau_end"], o["tau_steps"])
-                rel = self.draw(logits, tau, gen)
-                last = rel.indices
-                score(rel.indices)
-                opt.zero_grad(set_to_none=True)
-                try:
-                    loss, _terms = objective.selection_loss(rel.P, rel.P_soft, step)
-                except NumericalError:
-                    loss = None  # a degenerate draw: skip the step
-                if loss is None or not bool(torch.isfinite(loss.detach()).all()):
-                    bad_steps += 1  # skip a NaN/Inf loss instead of poisoning the logits
-                    if bad_steps >= self.MAX_BAD_STEPS:
-                        break  # the logits cannot move: keep the best selection scored so far
-                    continue
-                bad_steps = 0
-                loss.backward()
-                if logits.grad is not None and bool(torch.isfinite(logits.grad).all()):
-                    opt.step()
-            # the noise-free arg-max selection of the final logits
-            with torch.no_grad():
-                tau = cosine_temperature(o["steps"], o["tau_start"], o["tau_end"], o["tau_steps"])
-                final = sequential_selection(logits.detach(), tau).indices
-            last = final
-            score(final)
-        except BudgetExhausted:
-            pass
+        for step in range(o["steps"]):
+            tau = cosine_temperature(step, o["tau_start"], o["tau_end"], o["tau_steps"])
+            rel = self.draw(logits, tau, gen)
+            last = rel.indices
+            score(rel.indices)
+            opt.zero_grad(set_to_none=True)
+            try:
+                loss, _terms = objective.selection_loss(rel.P, rel.P_soft, step)
+            except NumericalError:
+                loss = None  # a degenerate draw: skip the step
+            if loss is None or not bool(torch.isfinite(loss.detach()).all()):
+                bad_steps += 1  # skip a NaN/Inf loss instead of poisoning the logits
+                if bad_steps >= self.MAX_BAD_STEPS:
+                    break  # the logits cannot move: keep the best selection scored so far
+                continue
+            bad_steps = 0
+            loss.backward()
+            if logits.grad is not None and bool(torch.isfinite(logits.grad).all()):
+                opt.step()
+        # the noise-free arg-max selection of the final logits
+        with torch.no_grad():
+            tau = cosine_temperature(o["steps"], o["tau_start"], o["tau_end"], o["tau_steps"])
+            final = sequential_selection(logits.detach(), tau).indices
+        last = final
+        score(final)
         if objective.best is not None:
             return objective.best
         return sorted(last) if last is not None else list(range(k))

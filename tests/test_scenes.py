@@ -375,3 +375,18 @@ def test_end_to_end_scenes_only_warn_about_regions(caplog):
                for r in caplog.records)
     with pytest.raises(ParameterError, match=r"metrics\.r_main = 1\.5 \(24\.0 px\) does not fit grid\.window = 32"):
         load_scene({"base": "paper", "grid": {"n_x": 64, "n_z": 64, "window": 32}})
+
+
+def test_best_known_selections_are_selections_of_their_scenes():
+    from arraysel.scenes.best_known import best_known, load_best_known
+
+    table = load_best_known()
+    assert "paper" in table
+    for name, entry in table.items():
+        scene = load_scene(name)
+        n = scene.probe().n_elements
+        el = entry["elements"]
+        assert entry["k"] == scene.k == len(el) == len(set(el)) and all(0 <= i < n for i in el), name
+        assert 0 < entry.get("reference_Mean", entry["Mean"]) <= entry["Mean"] and entry["command"], name
+        assert best_known(name, scene.k)["Mean"] == entry["Mean"] and best_known(name, scene.k + 1) is None
+    assert best_known("no-such-scene") is None

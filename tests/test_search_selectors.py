@@ -111,6 +111,8 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {}, (0, 1)),
     ("swap", {"start": "random", "mode": "best"}, (0,)),
     ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
+    ("ils", {}, (0, 1, 2)),
+    ("ils", {"mode": "best", "relink": 1.0}, (0, 1)),
     ("anneal", {}, (0, 1)),
     ("genetic", {}, (0, 1)),
     ("nevergrad", {}, (0,)),
@@ -151,7 +153,7 @@ def test_nevergrad_binary_lamarck_repair_tells_exact_k_points(reg, monkeypatch):
 
 
 def test_search_selectors_are_reproducible_per_seed(reg):
-    for name in ("swap", "anneal", "genetic"):
+    for name in ("swap", "ils", "anneal", "genetic"):
         rows = [Experiment(ToyObjective(16, 8), name, budget=Budget(evaluations=300), seed=s,
                            registry=reg).run() for s in (5, 5)]
         assert rows[0]["elements"] == rows[1]["elements"] and rows[0]["Mean"] == rows[1]["Mean"]
@@ -161,15 +163,48 @@ def test_bad_options_name_the_option(reg):
     # start elements are checked against Ne and k when the run starts: the message lands in the row
     row = Experiment(ToyObjective(14, 7), "swap", options={"elements": "0 1 2"}, registry=reg,
                      budget=Budget(evaluations=10)).run()
-    assert "ParameterError: option elements must list k = 7" in row["error"]
+    assert "ParameterError: option elements: expected k = 7 elements, got 3" in row["error"]
     row = Experiment(ToyObjective(14, 7), "swap", options={"elements": "0 1 2 3 4 5 99"}, registry=reg,
                      budget=Budget(evaluations=10)).run()
-    assert "option elements: indices [99] are outside [0, 13]" in row["error"]
+    assert "option elements: element indices must be in [0, 13], got [99]" in row["error"]
     with pytest.raises(ParameterError, match=r"swap.polish = 2.0 is out of range; allowed: \[0.0, 0.9\]"):
         reg["swap"](polish=2.0)
     pytest.importorskip("nevergrad")
     with pytest.raises(ParameterError, match="nevergrad.optimizer = 'NoSuchOpt' is not a nevergrad optimizer"):
         reg["nevergrad"](optimizer="NoSuchOpt")
+
+
+def test_a_start_is_the_run_s_fallback_when_the_budget_ends_first(reg):
+    # the greedy start needs about Ne^2/2 evaluations: with 10, no selection of k elements is
+    # scored, and the run returns the greedy start (finished from its last ranking) instead of failing
+    for name in ("swap", "ils", "anneal"):
+        row = Experiment(ToyObjective(14, 7), name, options={"start": "greedy"}, budget=Budget(evaluations=10),
+                         seed=0, registry=reg).run()
+        assert row["error"] == "" and len(row["elements"].split()) == 7, (name, row["error"])
+
+
+def test_elite_search_keeps_distinct_elites_and_relinks_between_them():
+    from arraysel.selectors.localsearch import EliteSearch
+    from arraysel.selectors.contract import numpy_rng
+
+    obj, view, rec = _view(evaluations=20000, k=10, n=20)
+    search = EliteSearch(view, 10, numpy_rng(0), starts=4, elite=4, relink=0.5, max_rounds=40)
+    best, value = search.run(list(range(10)))
+    values = [v for v, _, _ in search.pool]
+    keys = [k for _, k, _ in search.pool]
+    assert 1 <= len(keys) == len(set(keys)) <= 4 and values == sorted(values)
+    assert value == values[0] == rec.best_mean and best == rec.best
+    # a path from a towards b: each step one swap of an element of a \ b for one of b \ a; the
+    # result lies strictly between them (k elements, neither end), and it was scored
+    rng = np.random.default_rng(1)
+    a, b = np.zeros(20, bool), np.zeros(20, bool)
+    a[rng.choice(20, 10, replace=False)] = True
+    b[rng.choice(20, 10, replace=False)] = True
+    mask, v = search.relink(a, b)
+    assert mask.sum() == 10 and (mask != a).any() and (mask != b).any()
+    assert (mask & a & b).sum() == (a & b).sum()  # what both ends share stays
+    assert v == pytest.approx(float(obj.evaluate(mask[None])["Mean"][0]))
+    assert search.relink(a, a) is None
 
 
 def test_polish_improves_on_the_selector_within_the_same_budget(reg):

@@ -119,7 +119,7 @@ def test_table1_rows_are_the_best_runs():
     a = t.set_index("config").loc["a"]
     best = runs[(runs["config"] == "a") & (runs["seed"] == 1)].iloc[0]
     for col in TABLE1_COLUMNS:
-        if col not in ("config", "seeds", "error"):
+        if col not in ("config", "seeds", "error", "AOCC"):
             assert a[col] == best[col], col
     assert a["seeds"] == 4 and a["error"] == "seed 2: boom"
     dead = t.set_index("config").loc["dead"]
@@ -191,3 +191,67 @@ def test_api_result_carries_the_stats_table(tmp_path):
         sps.mannwhitneyu(means, res.runs.loc[res.runs["config"] == "random", "Mean"]).pvalue)
     assert s.loc["uniform", "note"].startswith("no confidence interval") and s.loc["ste", "note"] == ""
     assert res.table.set_index("config").loc["ste", "Mean"] == pytest.approx(means.min())
+
+
+# ---------------------------------------------------------------------------
+# anytime score (AOCC) and the gaps
+# ---------------------------------------------------------------------------
+
+def test_aocc_of_a_run_by_hand():
+    from arraysel.report.stats import run_aocc
+
+    # y = lb from evaluation 5 on, ub before: eaf 0 on [0, 5), 1 on [5, 10] -> 0.5
+    assert run_aocc([(1, 1.0), (5, 0.01)], lb=0.01, ub=1.0, eval_max=10) == pytest.approx(0.5)
+    # the geometric middle (log scale) from the start: eaf 0.5 everywhere
+    assert run_aocc([(1, 0.1)], lb=0.01, ub=1.0, eval_max=4) == pytest.approx(0.5)
+    # an infinite first value (no selection scored yet) counts as the worst
+    assert run_aocc([(1, math.inf), (3, 0.01)], lb=0.01, ub=1.0, eval_max=4) == pytest.approx(0.25)
+    assert math.isnan(run_aocc([], lb=0.01, ub=1.0, eval_max=4))
+
+
+def test_aocc_equals_iohinspector_on_the_ioh_files(tmp_path):
+    iohinspector = pytest.importorskip("iohinspector")
+    import warnings
+
+    import pandas as pd
+    from iohinspector.metrics import get_aocc
+    from iohinspector.metrics.utils import transform_fval
+
+    from arraysel.report.stats import aocc_by_config
+    from arraysel.run.compare import compare
+    from arraysel.selectors.contract import Budget
+    from arraysel.selectors.registry import build_plugin_manager, get_registry
+    from arraysel.testing import ToyObjective
+
+    reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
+    compare(ToyObjective(16, 8), ["uniform", "random", "swap", "greedy"], out_dir=tmp_path, seeds=[0, 1],
+            budget=Budget(evaluations=300), registry=reg, progress=False, figures=False)
+    trace = pd.read_csv(tmp_path / "trace.csv")
+    mine = aocc_by_config(trace)
+    dm = iohinspector.DataManager()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dm.add_folder(str(tmp_path / "ioh"))
+    y = trace["best_Mean"].to_numpy()
+    y = y[np.isfinite(y)]
+    ref = get_aocc(transform_fval(dm.load(monotonic=True, include_meta_data=True), lb=y.min(), ub=y.max()),
+                   eval_max=int(trace["evaluations"].max()), free_vars=["algorithm_name"])
+    ref = dict(zip(ref["algorithm_name"], ref["AOCC"]))
+    assert set(mine) == set(ref) == {"uniform", "random", "swap", "greedy"}
+    for config, value in ref.items():
+        assert mine[config] == pytest.approx(value, rel=1e-12, abs=1e-12), config
+    # the files carry it: stats.csv and table1.csv
+    st = pd.read_csv(tmp_path / "stats.csv").set_index("config")
+    t1 = pd.read_csv(tmp_path / "table1.csv").set_index("config")
+    for config, value in ref.items():
+        assert st.loc[config, "AOCC"] == pytest.approx(value) and t1.loc[config, "AOCC"] == pytest.approx(value)
+
+
+def test_gap_closed_and_gap_to_best_known():
+    runs = _runs({"full": [0.01], "uniform": [0.05], "a": [0.02, 0.04, 0.03]})
+    s = stats_table(runs, best_known=0.02).set_index("config")
+    assert s.loc["a", "gap_closed"] == pytest.approx((0.05 - 0.03) / (0.05 - 0.01))
+    assert s.loc["a", "gap_to_best_known"] == pytest.approx(0.03 / 0.02 - 1)
+    assert s.loc["uniform", "gap_closed"] == 0 and s.loc["full", "gap_closed"] == 1
+    s = stats_table(_runs({"full": [0.01], "a": [0.02]})).set_index("config")
+    assert s["gap_closed"].isna().all() and s["gap_to_best_known"].isna().all()

@@ -9,6 +9,13 @@ method returning a picklable zero-argument callable that builds an equal objecti
 :class:`WorkerFactory`), or ``None`` when it cannot. Executors and isolated runs use it
 (:func:`arraysel.run.workers.objective_factory_for`); they never look at the objective's class.
 
+Capability: an objective may score the one-swap neighbours of a selection in one call
+(:class:`ScoresSwaps`): ``evaluate_swaps(mask, out, into)`` returns what ``evaluate`` returns for
+the masks ``mask`` with element ``out[i]`` switched off and ``into[i]`` switched on, the same
+values as scoring those masks independently, exploiting what they share.
+:func:`arraysel.objective.neighbours.evaluate_swaps` calls it, and scores the masks with
+``evaluate`` for an objective without it.
+
 Capability: an objective may say how its elements are laid out (:class:`HasLayout`):
 ``element_grid`` is ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``) or ``None`` for a
 1-D array, and ``element_positions`` the element centres, a numpy ``(Ne, 3)`` array of (x, y, z) in
@@ -26,7 +33,7 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_number
 
-__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "WorkerFactory", "dtype_name", "check_element_grid",
+__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "WorkerFactory", "dtype_name", "check_element_grid",
            "element_layout"]
 
 
@@ -55,6 +62,19 @@ class Rebuildable(Protocol):
     """An objective that can be sent to worker processes as a recipe."""
 
     def worker_factory(self) -> Callable[[], Any] | None:
+        ...
+
+
+@runtime_checkable
+class ScoresSwaps(Protocol):
+    """An objective that scores a selection's one-swap neighbours in one call (optional capability).
+
+    ``evaluate_swaps(mask, out, into)``: ``mask`` a boolean ``(Ne,)`` selection, ``out`` and
+    ``into`` int arrays ``(B,)`` with ``mask[out]`` all True and ``mask[into]`` all False; returns
+    ``{name: float64 array (B,)}`` equal to ``evaluate`` of the ``B`` neighbour masks, and counts
+    ``B`` evaluations."""
+
+    def evaluate_swaps(self, mask, out, into) -> dict:
         ...
 
 

@@ -22,9 +22,10 @@ TABLE1_METRICS = tuple(m for m in METRICS if m != "L_SLR")
 #: columns of ``table1.csv``: one row per configuration, every value but ``seeds`` and ``error``
 #: taken from ONE run of ``runs.csv``, the configuration's listed selection: the run with the
 #: lowest finite ``Mean`` over its seeds (``seed`` names it; the first run when none has a
-#: finite Mean). ``seeds``: the configuration's runs; ``error``: the errors of all its runs.
+#: finite Mean). ``seeds``: the configuration's runs; ``error``: the errors of all its runs;
+#: ``AOCC``: the mean over its runs (as in ``stats.csv``).
 TABLE1_COLUMNS = ("config", *TABLE1_METRICS, "seconds", "evaluations", "elements", "L_SLR", "gradient_steps",
-                  "overhead_seconds", "seed", "seeds", "error")
+                  "overhead_seconds", "AOCC", "seed", "seeds", "error")
 
 #: columns a 3-D scene's runs add (the 2-D array figures of merit); ``table1.csv`` carries them
 #: after :data:`TABLE1_COLUMNS` when the runs have them
@@ -36,6 +37,10 @@ MERIT_COLUMNS = MERIT_NAMES
 #: * ``n_seeds`` runs used, ``n_failed`` runs left out;
 #: * ``Mean_median``, ``Mean_q25``, ``Mean_q75``, ``Mean_iqr`` (``q75 - q25``; numpy's linear
 #:   percentiles), ``Mean_mean``, ``Mean_std`` (ddof 1), ``Mean_best`` (lowest), ``Mean_worst``;
+#: * ``AOCC``: the mean area over the convergence curve of its runs (iohinspector's definition,
+#:   bounds from the comparison's trace; :mod:`arraysel.report.stats`);
+#: * ``gap_closed`` = (uniform - median) / (uniform - full), ``gap_to_best_known`` = median / the
+#:   scene's best-known Mean - 1 (NaN where the comparison or the scene lacks what they need);
 #: * ``Mean_median_ci_low`` / ``_high``: percentile-bootstrap 95 % confidence interval of the
 #:   median (``scipy.stats.bootstrap``, fixed seed; see :mod:`arraysel.report.stats`);
 #: * ``evaluations_median``, ``seconds_median``;
@@ -43,7 +48,8 @@ MERIT_COLUMNS = MERIT_NAMES
 #:   those of the ``random`` configuration (``scipy.stats.mannwhitneyu``);
 #: * ``note``: why a statistic is NaN (fewer than 2 runs, no ``random`` configuration, ...).
 STATS_COLUMNS = ("config", "n_seeds", "n_failed", "Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr",
-                 "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "Mean_median_ci_low",
+                 "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "AOCC", "gap_closed", "gap_to_best_known",
+                 "Mean_median_ci_low",
                  "Mean_median_ci_high", "evaluations_median", "seconds_median", "U_vs_random", "p_vs_random",
                  "note")
 

@@ -16,6 +16,17 @@ worst, a bootstrap confidence interval of the median, and a rank test against th
   (exact p-value for small samples without ties, the normal approximation otherwise, as scipy
   chooses with ``method="auto"``); NaN, with the reason in ``note``, when there is no ``random``
   configuration, for ``random`` itself, or when either side has fewer than 2 runs.
+* **AOCC** (:func:`aocc_by_config`): the area over the convergence curve of each run, as
+  ``iohinspector`` computes it (``transform_fval`` then ``get_aocc``), averaged over the
+  configuration's runs: the best-so-far ``Mean`` of the trace, on a log scale between the lowest
+  and the highest finite ``best_Mean`` of the whole comparison, turned into ``1 - (log y - log
+  lb) / (log ub - log lb)`` clipped to [0, 1], integrated over evaluations 0 .. the largest run's
+  evaluations and divided by that length. 1: the comparison's best value at once; 0: never
+  better than its worst. The bounds are the comparison's own, so AOCC ranks the selectors of one
+  comparison; it is NaN without a trace.
+* **Gaps** (:func:`gap_columns`): ``gap_closed`` = (uniform - median) / (uniform - full) when the
+  comparison holds the ``uniform`` and ``full`` rows; ``gap_to_best_known`` = median / best
+  known - 1 when the scene has a stored best-known selection (:mod:`arraysel.scenes.best_known`).
 """
 from __future__ import annotations
 
@@ -27,7 +38,8 @@ import numpy as np
 from arraysel.report.columns import STATS_COLUMNS
 
 __all__ = ["CI_LEVEL", "BOOTSTRAP_RESAMPLES", "BOOTSTRAP_SEED", "BASELINE", "finite", "seed_statistics",
-           "median_ci", "rank_test", "baseline_config", "stats_table"]
+           "median_ci", "rank_test", "baseline_config", "stats_table", "run_aocc", "aocc_by_config",
+           "gap_columns"]
 
 #: confidence level of the bootstrap interval of the median Mean
 CI_LEVEL = 0.95
@@ -113,11 +125,82 @@ def _median(values) -> float:
     return float(np.median(v)) if v.size else math.nan
 
 
-def stats_table(runs) -> Any:
-    """``stats.csv`` of a runs table (a DataFrame with ``config``, ``Mean``, ``evaluations``,
-    ``seconds`` and optionally ``selector``): one row per configuration, in their order."""
+def _dat_rows(rows) -> list[tuple[int, float]]:
+    """``(evaluations, best_Mean)`` of one run's trace rows as its IOHprofiler ``.dat`` holds them
+    (:func:`arraysel.report.tables.write_ioh`): by evaluations (an ``end`` row last), evaluations
+    at least 1, and a first row ``(1, inf)`` when the first scored selection came later."""
+    rows = sorted(rows, key=lambda t: (int(t["evaluations"]), str(t.get("event")) == "end"))
+    out = [(max(1, int(t["evaluations"])), float(t["best_Mean"])) for t in rows]
+    if out and int(rows[0]["evaluations"]) > 1:
+        out.insert(0, (1, math.inf))
+    return out
+
+
+def run_aocc(points, lb: float, ub: float, eval_max: float) -> float:
+    """AOCC of one run's ``(evaluations, best-so-far y)`` points, as ``iohinspector``'s
+    ``transform_fval(lb, ub, scale_log=True)`` and ``get_aocc(eval_max)`` compute it (see the module)."""
+    if not points or not (0 < lb < ub) or not eval_max > 0:
+        return math.nan
+    e = np.array([p[0] for p in points if p[0] <= eval_max], dtype=np.float64)
+    y = np.array([p[1] for p in points if p[0] <= eval_max], dtype=np.float64)
+    if not e.size:
+        return math.nan
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = (np.log10(y) - math.log10(lb)) / (math.log10(ub) - math.log10(lb))
+    eaf = 1.0 - np.clip(np.nan_to_num(norm, nan=1.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    e = np.concatenate([[0.0], e, [float(eval_max)]])
+    eaf = np.concatenate([[eaf.min()], eaf, [eaf.max()]])
+    order = np.argsort(e, kind="stable")
+    e, eaf = e[order], eaf[order]
+    return float(np.sum(np.diff(e) * eaf[:-1]) / eval_max)
+
+
+def aocc_by_config(trace) -> dict[str, float]:
+    """Mean AOCC of each configuration's runs (the trace's ``config``, ``seed``, ``evaluations``,
+    ``best_Mean`` and ``event``; bounds and horizon from the whole trace, see the module)."""
     import pandas as pd
 
+    if trace is None or not len(trace):
+        return {}
+    t = pd.DataFrame(trace)
+    y = pd.to_numeric(t["best_Mean"], errors="coerce").to_numpy(dtype=np.float64)
+    y = y[np.isfinite(y) & (y > 0)]
+    if not y.size:
+        return {}
+    lb, ub = float(y.min()), float(y.max())
+    if not ub > lb:
+        ub = lb * (1 + 1e-12)
+    eval_max = float(max(1, pd.to_numeric(t["evaluations"], errors="coerce").max()))
+    out: dict[str, list[float]] = {}
+    for (config, _seed), g in t.groupby(["config", "seed"], sort=False, dropna=False):
+        out.setdefault(str(config), []).append(run_aocc(_dat_rows(g.to_dict("records")), lb, ub, eval_max))
+    return {c: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan for c, v in out.items()}
+
+
+def gap_columns(runs, medians: dict[str, float], best_known: float | None) -> dict[str, tuple[float, float]]:
+    """``{config: (gap_closed, gap_to_best_known)}`` of the configurations' median Means (see the
+    module; NaN where the comparison lacks ``uniform`` or ``full``, or the scene a best known)."""
+    def mean_of(config):
+        v = finite(runs.loc[runs["config"].astype(str) == config, "Mean"])
+        return float(np.median(v)) if v.size else math.nan
+
+    uniform, full = mean_of("uniform"), mean_of("full")
+    span = uniform - full
+    out = {}
+    for config, med in medians.items():
+        closed = (uniform - med) / span if math.isfinite(span) and span != 0 else math.nan
+        to_best = med / best_known - 1.0 if best_known else math.nan
+        out[config] = (closed, to_best)
+    return out
+
+
+def stats_table(runs, trace=None, best_known: float | None = None) -> Any:
+    """``stats.csv`` of a runs table (a DataFrame with ``config``, ``Mean``, ``evaluations``,
+    ``seconds`` and optionally ``selector``): one row per configuration, in their order. ``trace``
+    (``trace.csv``'s rows) gives the AOCC, ``best_known`` (the scene's best-known Mean) the gap to it."""
+    import pandas as pd
+
+    aoccs = aocc_by_config(trace)
     base, base_note = baseline_config(runs)
     ref = runs.loc[runs["config"].astype(str) == base, "Mean"] if base is not None else []
     out = []
@@ -125,6 +208,7 @@ def stats_table(runs) -> Any:
         means = finite(g["Mean"])
         rec: dict[str, Any] = {"config": config, "n_seeds": int(means.size), "n_failed": int(len(g) - means.size)}
         rec.update(seed_statistics(means))
+        rec["AOCC"] = aoccs.get(str(config), math.nan)
         low, high, ci_note = median_ci(means)
         rec["Mean_median_ci_low"], rec["Mean_median_ci_high"] = low, high
         rec["evaluations_median"] = _median(g["evaluations"])
@@ -138,4 +222,7 @@ def stats_table(runs) -> Any:
         rec["U_vs_random"], rec["p_vs_random"] = u, p
         rec["note"] = "; ".join(n for n in (ci_note, test_note) if n)
         out.append(rec)
+    gaps = gap_columns(runs, {r["config"]: r["Mean_median"] for r in out}, best_known)
+    for rec in out:
+        rec["gap_closed"], rec["gap_to_best_known"] = gaps[rec["config"]]
     return pd.DataFrame(out, columns=list(STATS_COLUMNS))

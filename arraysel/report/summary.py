@@ -47,7 +47,7 @@ def load_comparison(folder) -> Comparison:
     import pandas as pd
 
     from arraysel.report.stats import stats_table
-    from arraysel.report.tables import read_runs, table1
+    from arraysel.report.tables import best_known_mean, read_runs, table1
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -76,7 +76,10 @@ def load_comparison(folder) -> Comparison:
         raise ParameterError(f"{runs_path} lacks the column(s) {', '.join(missing)}")
     if not len(runs):
         raise ParameterError(f"{runs_path} holds no runs")
-    return Comparison(folder=folder, meta=meta, runs=runs, table=table1(runs), stats=stats_table(runs))
+    trace = pd.read_csv(folder / "trace.csv") if (folder / "trace.csv").is_file() else None
+    stats = stats_table(runs, trace, best_known_mean(folder))
+    return Comparison(folder=folder, meta=meta, runs=runs, table=table1(runs, dict(zip(stats["config"], stats["AOCC"]))),
+                      stats=stats)
 
 
 #: the columns of :func:`summary_rows`, by key: (plain / Markdown header, LaTeX header)
@@ -210,8 +213,9 @@ def to_text(table, stats) -> str:
     import pandas as pd
 
     cols = ["config", "Mean", "seed", "seeds", "evaluations", "Mean_median", "Mean_iqr", "Mean_median_ci_low",
-            "Mean_median_ci_high", "p_vs_random", "error"]
-    joined = table.merge(stats.drop(columns=["note"]), on="config", how="left", sort=False)
+            "Mean_median_ci_high", "AOCC", "gap_closed", "gap_to_best_known", "p_vs_random", "error"]
+    joined = table.drop(columns=["AOCC"], errors="ignore").merge(stats.drop(columns=["note"]), on="config",
+                                                                 how="left", sort=False)
     with pd.option_context("display.width", 200, "display.max_colwidth", 60, "display.max_columns", 20):
         return joined[[c for c in cols if c in joined]].to_string(index=False)
 

@@ -52,10 +52,32 @@ def write_csv(path, df) -> None:
     atomic_write_text(path, df.to_csv(index=False))
 
 
-def write_tables(out: Path, runs) -> None:
-    """Write ``table1.csv`` and ``stats.csv`` of the runs table ``runs`` to the folder ``out``."""
-    write_csv(Path(out) / "table1.csv", table1(runs))
-    write_csv(Path(out) / "stats.csv", stats_table(runs))
+def write_tables(out: Path, runs, trace=None) -> None:
+    """Write ``table1.csv`` and ``stats.csv`` of the runs table ``runs`` to the folder ``out``; the
+    AOCC from ``trace`` (default: the folder's ``trace.csv``), the gap to the best known from the
+    scene and ``k`` of the folder's ``run.json``."""
+    out = Path(out)
+    if trace is None and (out / "trace.csv").is_file():
+        import pandas as pd
+
+        trace = pd.read_csv(out / "trace.csv")
+    stats = stats_table(runs, trace, best_known_mean(out))
+    write_csv(out / "table1.csv", table1(runs, dict(zip(stats["config"], stats["AOCC"]))))
+    write_csv(out / "stats.csv", stats)
+
+
+def best_known_mean(folder) -> float | None:
+    """The best-known Mean of the scene and ``k`` the comparison in ``folder`` ran (its ``run.json``):
+    the entry's ``reference_Mean`` where it has one (a lower value reported without its mask), else
+    its ``Mean``; None without run.json or a stored entry."""
+    from arraysel.scenes.best_known import best_known
+
+    try:
+        meta = json.loads((Path(folder) / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    entry = best_known(meta.get("scene_name"), meta.get("k")) if isinstance(meta, dict) else None
+    return float(entry.get("reference_Mean", entry["Mean"])) if entry else None
 
 
 def read_runs(path):
@@ -77,7 +99,7 @@ def rebuild_tables(folder) -> list[Path]:
     """Rebuild ``table1.csv`` and ``stats.csv`` of a comparison folder from its ``runs.csv``;
     returns the paths written."""
     folder = Path(folder)
-    write_tables(folder, read_runs(folder / "runs.csv"))
+    write_tables(folder, read_runs(folder / "runs.csv"))  # the trace and run.json from the folder too
     return [folder / "table1.csv", folder / "stats.csv"]
 
 
@@ -93,7 +115,7 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
     write_csv(out / "trace.csv", pd.DataFrame(trace, columns=list(TRACE_COLUMNS)))
     write_ioh(out / "ioh", rows, trace, problem or "arraysel")
     write_csv(out / "runs.csv", runs)
-    write_tables(out, runs)
+    write_tables(out, runs, trace)
 
 
 # ---------------------------------------------------------------------------
@@ -186,10 +208,11 @@ def pd_float(v) -> float:
         return math.nan
 
 
-def table1(runs) -> "Any":
+def table1(runs, aocc: dict | None = None) -> "Any":
     """``table1.csv`` of a runs table (a DataFrame with ``ROW_COLUMNS``): one row per config, in
     their order, each the row of the config's run with the lowest finite ``Mean`` (its first run
-    when none has one), with ``seeds`` (its runs) and ``error`` (the errors of all its runs)."""
+    when none has one), with ``seeds`` (its runs), ``error`` (the errors of all its runs) and
+    ``AOCC`` (from ``aocc``, by config: :func:`arraysel.report.stats.aocc_by_config`)."""
     import pandas as pd
 
     out = []
@@ -199,6 +222,7 @@ def table1(runs) -> "Any":
         rec["config"] = config
         rec["elements"] = row["elements"] if isinstance(row["elements"], str) else ""
         rec["seeds"] = len(g)
+        rec["AOCC"] = (aocc or {}).get(config, math.nan)
         errs = [f"seed {s}: {e}" if str(s) != "" else str(e)
                 for s, e in zip(g["seed"], g["error"]) if isinstance(e, str) and e]
         rec["error"] = "; ".join(errs)

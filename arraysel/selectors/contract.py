@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
+from arraysel.objective.neighbours import check_swaps, evaluate_swaps, swap_masks
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 
 __all__ = [
@@ -382,7 +383,9 @@ class BudgetedObjective:
       count or record anything for the runs that follow.
 
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
-    :meth:`score_indices`, ``best`` / ``best_mean`` (best recorded so far),
+    :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
+    ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
+    one call: :mod:`arraysel.objective.neighbours`), ``best`` / ``best_mean`` (best recorded so far),
     ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
     :meth:`remaining` (evaluations the budget allows now).
     """
@@ -424,6 +427,14 @@ class BudgetedObjective:
     def best_mean(self) -> float:
         return self.recorder.best_mean
 
+    def fallback(self, selection) -> None:
+        """Name ``selection`` (``k`` element indices) as what the run returns when its budget ends
+        before any ``k``-selection was scored (a search's start, say); nothing is scored or
+        counted, and a scored selection always takes precedence."""
+        self._check_open()
+        if self.recorder.first is None:
+            self.recorder.first = check_selection(selection, self.n_elements, self.k)
+
     def remaining(self) -> int | float:
         """Evaluations the budget allows now (``math.inf`` when only time limits it, 0 when spent)."""
         if self.budget.exhausted():
@@ -455,11 +466,17 @@ class BudgetedObjective:
         if masks.ndim == 1:
             masks = masks[None, :]
         hard = _hard_masks(masks)
-        total = int(masks.shape[0])
+        if int(masks.shape[0]) == 0:
+            return self._inner.evaluate(masks, **kwargs)
+        return self._in_pieces(int(hard.shape[0]), lambda sl: self._inner.evaluate(hard[sl], **kwargs),
+                               lambda sl: hard[sl])
+
+    def _in_pieces(self, total: int, call, masks_of) -> dict[str, np.ndarray]:
+        """Score ``total`` masks by ``call(slice)`` in pieces the budget allows, recording the
+        ``masks_of(slice)``; raise :class:`BudgetExhausted` after the allowed first masks when the
+        budget does not allow them all."""
         parts: list[dict] = []
         done = 0
-        if total == 0:
-            return self._inner.evaluate(masks, **kwargs)
         while done < total:
             want = min(self.piece, total - done)
             if self.budget.seconds is not None and self._per_mask > 0:
@@ -470,10 +487,11 @@ class BudgetedObjective:
                 raise self._exhausted(f"{done} of {total} masks of this call scored")
             before = self.budget.used_evaluations()
             t0 = time.perf_counter()
-            out = self._inner.evaluate(hard[done:done + allowed], **kwargs)
+            sl = slice(done, done + allowed)
+            out = call(sl)
             per_mask = (time.perf_counter() - t0) / allowed
             self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
-            self._record(hard[done:done + allowed], np.asarray(out["Mean"], dtype=np.float64), before)
+            self._record(masks_of(sl), np.asarray(out["Mean"], dtype=np.float64), before)
             parts.append(out)
             done += allowed
             if allowed < want:
@@ -481,6 +499,22 @@ class BudgetedObjective:
         if len(parts) == 1:
             return parts[0]
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+    def evaluate_swaps(self, mask, out, into) -> dict[str, np.ndarray]:
+        """:func:`arraysel.objective.neighbours.evaluate_swaps` of the wrapped objective (its own
+        neighbourhood scoring where it has one), counted, clipped and recorded like
+        :meth:`evaluate` of the neighbour masks."""
+        self._check_open()
+        m, a, b = check_swaps(mask, out, into)
+        if a.size == 0:
+            return self._inner.evaluate(np.zeros((0, m.size), dtype=bool))
+        return self._in_pieces(a.size, lambda sl: evaluate_swaps(self._inner, m, a[sl], b[sl]),
+                               lambda sl: swap_masks(m, a[sl], b[sl]))
+
+    def score_swaps(self, mask, out, into) -> np.ndarray:
+        """``Mean`` of the one-swap neighbours ``(out[i], into[i])`` of ``mask`` (:meth:`evaluate_swaps`),
+        float64 with NaN/Inf as ``+inf``."""
+        return finite_or_inf(self.evaluate_swaps(mask, out, into)["Mean"])
 
     def score(self, masks) -> np.ndarray:
         """``Mean`` of each mask ``(B, Ne)`` as float64, NaN/Inf replaced by ``+inf``."""

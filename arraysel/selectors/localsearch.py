@@ -37,19 +37,18 @@ from typing import Callable
 import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
+from arraysel.objective.neighbours import swap_masks, swap_pairs
+from arraysel.selectors.starts import random_mask
 
-__all__ = ["SwapSearch", "swap_neighbours", "random_swaps"]
+__all__ = ["SwapSearch", "EliteSearch", "random_swaps", "random_swap_pairs"]
 
 
-def swap_neighbours(mask: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """All ``(on, off)`` swap pairs of a boolean mask, in a random order when ``rng`` is given."""
+def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``min(b, k (Ne - k))`` distinct random swaps ``(out, into)`` of a boolean mask."""
     on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
-    a = np.repeat(on, off.size)
-    b = np.tile(off, on.size)
-    if rng is not None:
-        order = rng.permutation(a.size)
-        a, b = a[order], b[order]
-    return a, b
+    total = on.size * off.size
+    pick = rng.choice(total, size=min(b, total), replace=False)
+    return on[pick // off.size], off[pick % off.size]
 
 
 def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
@@ -115,6 +114,19 @@ class SwapSearch:
 
     def score(self, masks: np.ndarray) -> np.ndarray:
         """Mean of each mask (NaN as +inf); selections seen before are not scored again."""
+        return self._cached(masks, lambda todo: self.objective.score(masks[todo]))
+
+    def score_swaps(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(neighbour masks, their Means)`` of the swaps ``(a[i], b[i])`` of ``mask``: the
+        neighbours not seen before are scored in one call of the objective's ``score_swaps``
+        (:mod:`arraysel.objective.neighbours`) when it has one."""
+        cands = swap_masks(mask, a, b)
+        own = getattr(self.objective, "score_swaps", None)
+        if own is None:
+            return cands, self.score(cands)
+        return cands, self._cached(cands, lambda todo: own(mask, a[todo], b[todo]))
+
+    def _cached(self, masks: np.ndarray, scorer) -> np.ndarray:
         keys = [self._key(m) for m in masks]
         out = np.full(len(keys), math.inf)
         todo = []
@@ -125,8 +137,9 @@ class SwapSearch:
             else:
                 out[i] = v
         if todo:
-            values = self.objective.score(masks[todo])
-            out[todo] = values
+            idx = np.asarray(todo)
+            values = scorer(idx)
+            out[idx] = values
             if len(self._cache) + len(todo) > self.cache_size:
                 self._cache.clear()
             for i, v in zip(todo, values):
@@ -138,24 +151,16 @@ class SwapSearch:
             self.best_value, self.best_mask = value, mask.copy()
 
     # -- descent -------------------------------------------------------------------
-    def _batch(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        cands = np.repeat(mask[None], a.size, axis=0)
-        rows = np.arange(a.size)
-        cands[rows, a] = False
-        cands[rows, b] = True
-        return cands
-
     def descend(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float]:
         """Improve ``mask`` by swaps until it is a local optimum; return it and its value."""
         mask = mask.copy()
         while True:
-            a, b = swap_neighbours(mask, self.rng)
+            a, b = swap_pairs(mask, self.rng)
             if a.size == 0:
                 return mask, value
             moved = False
             if self.mode == "best":
-                cands = self._batch(mask, a, b)
-                values = self.score(cands)
+                cands, values = self.score_swaps(mask, a, b)
                 i = int(np.argmin(values))
                 if values[i] < value:
                     mask, value, moved = cands[i], float(values[i]), True
@@ -163,8 +168,7 @@ class SwapSearch:
                 limit = max(1, int(math.ceil(self.scan * a.size)))
                 for s in range(0, limit, self.chunk):
                     sl = slice(s, min(s + self.chunk, limit))
-                    cands = self._batch(mask, a[sl], b[sl])
-                    values = self.score(cands)
+                    cands, values = self.score_swaps(mask, a[sl], b[sl])
                     i = int(np.argmin(values))
                     if values[i] < value:
                         mask, value, moved = cands[i], float(values[i]), True
@@ -176,14 +180,10 @@ class SwapSearch:
 
     # -- iterated local search ---------------------------------------------------------
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
-        m = np.zeros(self.n, dtype=bool)
-        m[rng.choice(self.n, self.k, replace=False)] = True
-        return m
+        return random_mask(rng, self.n, self.k)
 
-    def run(self, start) -> tuple[list[int], float]:
-        """Search from ``start`` (element indices or a boolean mask); return the best
-        selection and its Mean. Ends by the objective's BudgetExhausted (propagated)
-        or after ``max_rounds`` rounds."""
+    def _start_mask(self, start) -> np.ndarray:
+        """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
         mask = np.asarray(start)
         if mask.dtype != bool or mask.shape != (self.n,):
             idx = np.asarray(start, dtype=np.int64)
@@ -193,6 +193,13 @@ class SwapSearch:
             mask[idx] = True
         if int(mask.sum()) != self.k:
             raise ParameterError(f"a swap search start must hold k = {self.k} elements, got {int(mask.sum())}")
+        return mask
+
+    def run(self, start) -> tuple[list[int], float]:
+        """Search from ``start`` (element indices or a boolean mask); return the best
+        selection and its Mean. Ends by the objective's BudgetExhausted (propagated)
+        or after ``max_rounds`` rounds."""
+        mask = self._start_mask(start)
         value = float(self.score(mask[None])[0])
         self._note(mask, value)
         base, base_value = self.descend(mask, value)
@@ -224,4 +231,128 @@ class SwapSearch:
             idle = idle + 1 if len(self._cache) == spent else 0
             if idle >= self.MAX_IDLE_ROUNDS:
                 break  # the reachable selections are all scored (a tiny problem)
+        return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
+
+
+class EliteSearch(SwapSearch):
+    """Multi-start iterated local search over an elite pool, with path relinking.
+
+    1. **starts**: the given start and ``starts - 1`` random selections, each improved by a
+       descent (:meth:`SwapSearch.descend`) into a local optimum; the distinct local optima
+       found so far, at most ``elite`` of them, the best first, form the *elite pool*;
+    2. **rounds**, until the budget ends: with probability ``relink`` (and at least two
+       elites) a *path relinking* from one elite towards another (:meth:`relink`), otherwise a
+       *perturbation* of an elite (a random one of the better half) by ``strength`` random
+       swaps; then a descent from the result, which enters the pool when it is new and better
+       than its worst member (replacing it). ``strength`` starts at ``perturb``, grows by one
+       after each round that found no new best (up to ``max_perturb``) and falls back to
+       ``perturb`` when one does (variable-strength perturbation);
+    3. **restart**: after ``restart_after`` rounds in a row without a new best, a fresh random
+       selection is descended and enters the pool (which keeps the best elites).
+
+    Path relinking from ``A`` towards ``B`` walks, one swap at a time, from ``A`` to ``B``: each
+    step scores (one batched call) the swaps of an element of ``A`` not in ``B`` for one of ``B``
+    not in ``A`` still to be made (at most ``relink_batch`` of them, a random subset when there
+    are more) and takes the best; the best selection strictly between the two ends is the
+    result. It combines what two good, different selections share.
+
+    Every call of the objective is a batch; the run is reproducible from the generator. It
+    ends like :class:`SwapSearch` (the objective's BudgetExhausted, or ``max_rounds``).
+    """
+
+    def __init__(self, objective, k: int, rng: np.random.Generator, *, starts: int = 4, elite: int = 8,
+                 relink: float = 0.5, relink_batch: int = 256, max_perturb: int = 8, **kw):
+        super().__init__(objective, k, rng, **kw)
+        self.starts = int(check_number("starts", starts, lo=1, integer=True))
+        self.elite = int(check_number("elite", elite, lo=1, integer=True))
+        self.relink_p = float(check_number("relink", relink, lo=0.0, hi=1.0))
+        self.relink_batch = int(check_number("relink_batch", relink_batch, lo=1, integer=True))
+        self.max_perturb = int(check_number("max_perturb", max_perturb, lo=0, integer=True))
+        self.pool: list[tuple[float, bytes, np.ndarray]] = []  # (value, key, mask), best first
+        self.relinks = 0
+
+    def _enter(self, mask: np.ndarray, value: float) -> None:
+        """Offer a local optimum to the elite pool (distinct selections, the best ``elite``)."""
+        self._note(mask, value)
+        key = self._key(mask)
+        if any(key == kk for _, kk, _ in self.pool) or not math.isfinite(value):
+            return
+        if len(self.pool) >= self.elite:
+            if value >= self.pool[-1][0]:
+                return
+            self.pool.pop()
+        self.pool.append((value, key, mask.copy()))
+        self.pool.sort(key=lambda e: e[0])
+
+    def relink(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """The best selection strictly between ``a`` and ``b`` on a greedy swap path from ``a``
+        towards ``b`` (see the class); None when they are one swap apart or less."""
+        cur = a.copy()
+        best: tuple[np.ndarray, float] | None = None
+        while True:
+            outs = np.flatnonzero(cur & ~b)
+            ins = np.flatnonzero(b & ~cur)
+            if outs.size <= 1:  # the next swap would reach b
+                return best
+            o = np.repeat(outs, ins.size)
+            i = np.tile(ins, outs.size)
+            if o.size > self.relink_batch:
+                pick = self.rng.choice(o.size, self.relink_batch, replace=False)
+                o, i = o[pick], i[pick]
+            cands, values = self.score_swaps(cur, o, i)
+            j = int(np.argmin(values))
+            cur = cands[j]
+            if best is None or values[j] < best[1]:
+                best = (cur.copy(), float(values[j]))
+
+    def run(self, start) -> tuple[list[int], float]:
+        """Search from ``start`` (element indices or a boolean mask) and ``starts - 1`` random
+        selections; return the best selection and its Mean (see the class)."""
+        mask = self._start_mask(start)
+        if self.k in (0, self.n):
+            value = float(self.score(mask[None])[0])
+            self._note(mask, value)
+            return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
+        for s in range(self.starts):
+            m = mask if s == 0 else self._random_mask(self.rng)
+            v = float(self.score(m[None])[0])
+            self._note(m, v)
+            m, v = self.descend(m, v)
+            self.local_optima += 1
+            self._enter(m, v)
+        strength = max(1, self.perturb)
+        stale = rounds = idle = 0
+        while self.max_rounds is None or rounds < self.max_rounds:
+            rounds += 1
+            if self.objective.remaining() <= 0:
+                break
+            spent = len(self._cache)
+            best_before = self.best_value
+            if not self.pool or (self.restart_after and stale >= self.restart_after):
+                m, stale = self._random_mask(self.rng), 0  # (an empty pool: nothing finite scored yet)
+                v = float(self.score(m[None])[0])
+            elif len(self.pool) >= 2 and self.rng.random() < self.relink_p:
+                i, j = self.rng.choice(len(self.pool), 2, replace=False)
+                found = self.relink(self.pool[i][2], self.pool[j][2])
+                self.relinks += 1
+                if found is None:
+                    idle = idle + 1 if len(self._cache) == spent else 0
+                    continue
+                m, v = found
+            else:
+                half = max(1, (len(self.pool) + 1) // 2)
+                base = self.pool[int(self.rng.integers(half))][2]
+                m = random_swaps(base, strength, self.rng)
+                v = float(self.score(m[None])[0])
+            m, v = self.descend(m, v)
+            self.local_optima += 1
+            self._enter(m, v)
+            if self.best_value < best_before:
+                stale, strength = 0, max(1, self.perturb)
+            else:
+                stale += 1
+                strength = min(max(1, self.max_perturb), strength + 1)
+            idle = idle + 1 if len(self._cache) == spent else 0
+            if idle >= self.MAX_IDLE_ROUNDS:
+                break
         return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value

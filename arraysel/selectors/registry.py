@@ -65,6 +65,7 @@ BUILTIN_PLUGINS: dict[str, str] = {
     "arraysel.nlopt": "arraysel_plugins.nlopt_relax",
     "arraysel.greedy": "arraysel_plugins.greedy",
     "arraysel.swap": "arraysel_plugins.swap",
+    "arraysel.ils": "arraysel_plugins.ils",
     "arraysel.anneal": "arraysel_plugins.anneal",
     "arraysel.genetic": "arraysel_plugins.genetic",
     "arraysel.nevergrad": "arraysel_plugins.nevergrad_bridge",

@@ -1,0 +1,102 @@
+"""Neighbour evaluations a second: one-swap neighbourhoods scored in one call against the same masks
+scored independently, and where the time of a neighbourhood goes.
+
+    python benchmarks/bench_neighbours.py --scenes paper,l11-5v,c5-2v --pairs 512 --rounds 3 --threads 2
+
+Per scene: the uniform layout's first ``--pairs`` one-swap neighbours (a random order, seed 0) are
+scored ``--rounds`` times each way, alternated in one process:
+``arraysel.objective.neighbours.evaluate_swaps`` (the objective's own ``evaluate_swaps`` when it
+has one, else its fallback: the neighbour masks through ``evaluate``) and ``objective.evaluate`` of
+the neighbour masks built by the caller. Both must give the same Means (checked). Then one more
+neighbourhood evaluation runs under ``cProfile``, and the share of its time in the PSF fast path's
+stages is printed: the channel envelopes of the certificates, the images on E, the refinement of
+loose blocks and ties, the exact path, and the metrics. The last line is one JSON record.
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import set_threads  # noqa: E402
+
+#: profile entries (file suffix, function) of the stages reported
+STAGES = {
+    "envelopes": ("certificate.py", "envelopes"),
+    "images on E": ("basis.py", "images"),
+    "refinement": ("refinement.py", "refine"),
+    "exact path": ("operator.py", "kernels_exact"),
+    "metrics": ("metrics.py", "psf_metrics"),
+}
+
+
+def _stage_shares(prof: cProfile.Profile) -> dict[str, float]:
+    st = pstats.Stats(prof)
+    total = max(st.total_tt, 1e-12)
+    out = {}
+    for name, (suffix, func) in STAGES.items():
+        cum = sum(v[3] for (f, _, fn), v in st.stats.items() if f.endswith(suffix) and fn == func)
+        out[name] = cum / total
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="paper,l11-5v,c5-2v")
+    ap.add_argument("--pairs", type=int, default=512)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args(argv)
+    set_threads(args.threads)
+    import numpy as np
+
+    from arraysel.objective.neighbours import evaluate_swaps, swap_masks, swap_pairs
+    from arraysel.objective.psf_objective import build_objective
+    from arraysel.selectors.layouts import uniform_layout
+
+    record = {"pairs": args.pairs, "rounds": args.rounds, "threads": args.threads, "scenes": {}}
+    print(f"{'scene':8s} {'Ne':>4s} {'k':>4s} {'own':>4s} {'swaps/s':>9s} {'masks/s':>9s} {'ratio':>6s}  stages of a "
+          f"neighbourhood (share of its time)")
+    for scene in [s for s in args.scenes.split(",") if s]:
+        obj = build_objective(scene)
+        n, k = int(obj.n_elements), int(obj.k)
+        base = np.zeros(n, dtype=bool)
+        base[uniform_layout(n, k)] = True
+        out, into = swap_pairs(base, np.random.default_rng(0))
+        out, into = out[:args.pairs], into[:args.pairs]
+        masks = swap_masks(base, out, into)
+        obj.evaluate(masks[:8])  # warm: compiled passes, plans
+        t_swaps, t_masks = [], []
+        for _ in range(args.rounds):
+            t0 = time.perf_counter()
+            a = evaluate_swaps(obj, base, out, into)["Mean"]
+            t_swaps.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            b = obj.evaluate(swap_masks(base, out, into))["Mean"]
+            t_masks.append(time.perf_counter() - t0)
+            if not np.array_equal(a, b):
+                raise SystemExit(f"{scene}: the neighbourhood's Means differ from the masks' "
+                                 f"(largest difference {np.nanmax(np.abs(a - b)):.3g})")
+        prof = cProfile.Profile()
+        prof.enable()
+        evaluate_swaps(obj, base, out, into)
+        prof.disable()
+        shares = _stage_shares(prof)
+        rs, rm = out.size / min(t_swaps), out.size / min(t_masks)
+        own = callable(getattr(obj, "evaluate_swaps", None))
+        print(f"{scene:8s} {n:4d} {k:4d} {'yes' if own else 'no':>4s} {rs:9.1f} {rm:9.1f} {rs / rm:6.2f}  " +
+              ", ".join(f"{k_} {v:.0%}" for k_, v in shares.items()))
+        record["scenes"][scene] = {"n_elements": n, "k": k, "own_evaluate_swaps": own, "swaps_per_s": rs,
+                                   "masks_per_s": rm, "seconds_swaps": t_swaps, "seconds_masks": t_masks,
+                                   "stage_shares": shares}
+    print(json.dumps(record))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
