@@ -71,6 +71,11 @@ def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify
         result = ("ok", fn(objective, item))
     except Exception as exc:  # the task's own failure (unpickling the selector, a plugin's error)
         result = ("failed", _error_text(exc))
+    # release what this process registered for cleanup (numba's lock, a named semaphore) before
+    # the result goes: the supervisor kills the child as soon as it has it, which would leave the
+    # semaphore to the resource tracker (a warning at exit)
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
     try:
         conn.send(result)
     except Exception as exc:  # a result that does not pickle
@@ -243,13 +248,17 @@ def default_threads() -> int:
 
 
 class IsolatedWorker:
-    """Runs ``fn(objective, item)`` tasks one at a time, each in a fresh child process
-    (:class:`OneShot`), so that a task that hangs, exits its process, crashes it or changes the
-    objective (or anything else in its process) costs only its own result.
+    """Runs ``fn(objective, item)`` tasks one at a time, each in a fresh child process forked from
+    a warm template (:class:`~arraysel.run.template.WarmTemplate`: the objective is built and
+    warmed once, before the first run's clock starts), so that a task that hangs, exits its
+    process, crashes it or changes the objective (or anything else in its process) costs only its
+    own result.
 
     :meth:`run` returns the task's result, or a :class:`TaskFailed` saying what happened: the
-    process was stopped ``timeout`` seconds after its objective was built, or it ended (exit code)
-    without a result. ``starts`` counts the children started. ``verify``: see :class:`OneShot`.
+    process was stopped ``timeout`` seconds after it started, or it ended (exit code) without a
+    result. ``starts`` counts the children started; ``warm_ups`` lists the template's warm-ups
+    (one, unless a run killed its template). ``threads``: each run's threads (default: this
+    process's torch threads). ``verify``: see :class:`OneShot`.
     """
 
     def __init__(self, factory, threads: int | None = None, verify: str | None = None):
@@ -257,23 +266,24 @@ class IsolatedWorker:
         self.threads = threads
         self.verify = verify
         self.starts = 0
-        self._current: OneShot | None = None
+        self._template = None
+
+    @property
+    def warm_ups(self) -> list[dict]:
+        return [] if self._template is None else list(self._template.warm_ups)
 
     def run(self, fn: Callable, item, timeout: float | None = None):
-        threads = default_threads() if self.threads is None else self.threads
-        shot = OneShot(self.factory, fn, item, timeout, threads, self.verify)
-        self._current = shot
+        from arraysel.run.template import WarmTemplate
+
+        if self._template is None:
+            threads = default_threads() if self.threads is None else self.threads
+            self._template = WarmTemplate(self.factory, threads, self.verify)
         self.starts += 1
-        try:
-            return shot.start().wait()
-        finally:
-            shot.kill()
-            self._current = None
+        return self._template.run(fn, item, timeout)
 
     def close(self) -> None:
-        if self._current is not None:
-            self._current.kill()
-            self._current = None
+        if self._template is not None:
+            self._template.close()
 
     def __enter__(self):
         return self
