@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from arraysel.objective.toy import ToyObjectiveFactory
-from arraysel.run.experiment import budget_flag
+from arraysel.run.experiment import Experiment, budget_flag, late_start_flag
 from arraysel.run.template import WarmTemplate, run_with_retries, threads_per_worker, warm_objective
 from arraysel.run.workers import TaskFailed
-from arraysel.selectors.contract import Budget
+from arraysel.selectors.contract import Budget, Option, Selector
 from support import time_limit
 
 _bounded = time_limit(120)
@@ -142,17 +142,41 @@ def test_no_semaphore_is_left_to_the_resource_tracker(tmp_path):
     assert "leaked" not in out.stderr, out.stderr
 
 
-def _row(seconds, error=""):
-    return {"seconds": seconds, "error": error}
+def _row(seconds, error="", flag=""):
+    return {"seconds": seconds, "error": error, "budget_flag": flag}
 
 
 def test_budget_flag_says_when_the_budget_did_not_measure_the_search():
     b = Budget(seconds=10)
-    assert budget_flag(_row(10.2), [{"seconds": 0.1, "event": "improvement"}], b, 30) == ""
-    assert budget_flag(_row(41.0), [{"seconds": 0.1, "event": "improvement"}], b, 30).startswith("overran: 41.0 s")
-    late = budget_flag(_row(10.0), [{"seconds": 7.5, "event": "improvement"}, {"seconds": 10, "event": "end"}], b, 30)
-    assert late.startswith("late start: its first scored selection came 7.5 s")
-    killed = budget_flag(_row(math.nan, "run failed: BudgetExceededError: stopped after 40.1 s (its limit ...)"),
-                         [], b, 30)
+    assert budget_flag(_row(10.2), b, 30) == ""
+    assert budget_flag(_row(41.0), b, 30).startswith("overran: 41.0 s of a 10 s budget")
+    killed = budget_flag(_row(math.nan, "run failed: BudgetExceededError: stopped after 40.1 s (its limit ...)"), b, 30)
     assert killed.startswith("overran: stopped at its deadline")
-    assert budget_flag(_row(500.0), [{"seconds": 400, "event": "improvement"}], Budget(evaluations=10), 30) == ""
+    late = late_start_flag(7.5, b)
+    assert late.startswith("late start: its first objective call came 7.5 s") and late_start_flag(4.0, b) == ""
+    assert budget_flag(_row(41.0, flag=late), b, 30).endswith("; " + late)  # the run's own flag is kept
+    assert budget_flag(_row(500.0, flag=late), Budget(evaluations=10), 30) == ""
+    assert late_start_flag(None, b) == "" and late_start_flag(9.0, Budget(evaluations=5)) == ""
+
+
+class _SlowStart(Selector):
+    """Waits ``wait`` seconds before its first objective call (work outside its search)."""
+
+    name = "slow_start"
+    description = "waits, then scores one selection"
+    options = {"wait": Option(float, 0.0, "seconds before the first call")}
+    deterministic = True
+
+    def select(self, objective, k, seed):
+        time.sleep(self.options["wait"])
+        sel = list(range(k))
+        objective.score_indices([sel])
+        return sel
+
+
+def test_an_experiment_flags_a_late_first_call():
+    obj = ToyObjectiveFactory(16, 8)()
+    late = Experiment(obj, _SlowStart, options={"wait": 0.7}, budget=Budget(seconds=1.0)).run()
+    assert late["budget_flag"].startswith("late start: its first objective call came 0.")
+    prompt = Experiment(obj, _SlowStart, options={"wait": 0.0}, budget=Budget(seconds=1.0)).run()
+    assert prompt["budget_flag"] == "" and prompt["error"] == ""

@@ -424,7 +424,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                         traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                         save()
                         raise ArrayselError(f"{lab} seed {seed}: {why}")
-                row = {**row, "budget_flag": budget_flag(row, trace, budget, grace)}
+                row = {**row, "budget_flag": budget_flag(row, budget, grace)}
                 rows.append(row)
                 traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                 save()
@@ -450,7 +450,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                         trace = []
                     else:
                         row, trace = _checked(objective, res["row"], res["trace"])
-                    row = {**row, "budget_flag": budget_flag(row, trace, budget, grace)}
+                    row = {**row, "budget_flag": budget_flag(row, budget, grace)}
                     results[i] = (row, [{"config": lab, "seed": seed, **t} for t in trace])
                     rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
                     traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]

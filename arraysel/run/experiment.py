@@ -43,7 +43,8 @@ from arraysel.selection import format_elements
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder,
                                          Selector, check_selection, indices_to_mask, numpy_rng)
 
-__all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label", "budget_flag"]
+__all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label", "budget_flag",
+           "late_start_flag"]
 
 
 def config_label(name: str, options: dict | None = None) -> str:
@@ -133,10 +134,11 @@ class Experiment:
         watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
             else contextlib.nullcontext()
         polish = float(selector.options.get("polish") or 0.0)
+        calls = _FirstCall(obj)
         try:
             with watch:
                 stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
-                result = _run_selector(selector, obj, k, stage, seed, recorder)
+                result = _run_selector(selector, calls, k, stage, seed, recorder)
                 if polish > 0:
                     result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k))
             selection = check_selection(result, n, k)
@@ -177,38 +179,72 @@ class Experiment:
             "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
             "elements": format_elements(selection),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
-            "error": error, "budget_flag": "", **extra,
+            "error": error,
+            "budget_flag": late_start_flag(None if calls.first is None else calls.first - t0, budget), **extra,
         }
 
 
-#: a run whose first scored selection comes after this share of its time budget is flagged
+#: a run whose first objective call comes after this share of its time budget is flagged
 LATE_START_SHARE = 0.5
 
 
-def budget_flag(row: dict, trace: list, budget: Budget, grace_s: float) -> str:
+def late_start_flag(first_call_s: float | None, budget: Budget) -> str:
+    """``late start: ...`` when a run's first objective call (``evaluate``, ``mask_loss`` or
+    ``selection_loss``) came after more than :data:`LATE_START_SHARE` of its time budget (most of
+    the budget went to work outside its search), else ``''``."""
+    if budget.seconds is None or first_call_s is None or first_call_s <= LATE_START_SHARE * budget.seconds:
+        return ""
+    return f"late start: its first objective call came {first_call_s:.1f} s into its {budget.seconds:g} s budget"
+
+
+def budget_flag(row: dict, budget: Budget, grace_s: float) -> str:
     """The ``budget_flag`` of a run's row: ``''`` when its time budget measured its search, else
     why not (``"; "``-joined): ``overran`` (it took more than its time budget plus ``grace_s``
-    seconds, or was stopped at that deadline) or ``late start`` (its first scored selection, the
-    first row of its ``trace``, came after more than :data:`LATE_START_SHARE` of the budget: most
-    of it went to work outside its search). Runs without a time budget are never flagged."""
+    seconds, or was stopped at that deadline), and the row's own ``late start``
+    (:func:`late_start_flag`, set where the run was made). Runs without a time budget are never
+    flagged."""
     limit = budget.seconds
     if limit is None:
         return ""
     flags = []
     seconds = float(row.get("seconds", math.nan))
     error = str(row.get("error") or "")
-    if (math.isfinite(seconds) and seconds > limit + grace_s) or "BudgetExceededError: stopped after" in error:
-        flags.append(f"overran: {seconds:.1f} s of a {limit:g} s budget (grace {grace_s:g} s)"
-                     if math.isfinite(seconds) else f"overran: stopped at its deadline ({limit:g} s + {grace_s:g} s)")
-    firsts = [float(t["seconds"]) for t in trace if t.get("event", "improvement") == "improvement"][:1]
-    if firsts and firsts[0] > LATE_START_SHARE * limit:
-        flags.append(f"late start: its first scored selection came {firsts[0]:.1f} s into its {limit:g} s budget")
-    return "; ".join(flags)
+    if math.isfinite(seconds) and seconds > limit + grace_s:
+        flags.append(f"overran: {seconds:.1f} s of a {limit:g} s budget (grace {grace_s:g} s)")
+    elif "BudgetExceededError: stopped after" in error:
+        flags.append(f"overran: stopped at its deadline ({limit:g} s + {grace_s:g} s)")
+    own = [f for f in str(row.get("budget_flag") or "").split("; ") if f.startswith("late start")]
+    return "; ".join(flags + own[:1])
+
+
+class _FirstCall:
+    """The objective as a run's budgeted view sees it: notes when the run first calls
+    ``evaluate``, ``mask_loss`` or ``selection_loss``; everything else is the objective's."""
+
+    _CALLS = ("evaluate", "mask_loss", "selection_loss")
+
+    def __init__(self, objective):
+        object.__setattr__(self, "_objective", objective)
+        object.__setattr__(self, "first", None)
+
+    def __getattr__(self, name):
+        value = getattr(self._objective, name)
+        if name in self._CALLS and callable(value):
+            def call(*args, **kwargs):
+                if self.first is None:
+                    object.__setattr__(self, "first", time.perf_counter())
+                return value(*args, **kwargs)
+            return call
+        return value
+
+    def __setattr__(self, name, value):
+        setattr(self._objective, name, value)
 
 
 def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
-    """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj``; return what it
-    returned (or, when the budget ended the search, the best selection recorded)."""
+    """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj`` (a
+    :class:`_FirstCall` noting its first call); return what it returned (or, when the budget ended
+    the search, the best selection recorded)."""
     view = BudgetedObjective(obj, budget, recorder, k)
     try:
         return selector.select(view, k, seed)
