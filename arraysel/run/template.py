@@ -330,30 +330,26 @@ class WarmTemplate:
                 end.close()
         self.conn = self.alive_w = None
 
-    def wait_warm(self, limit: float = BUILD_LIMIT_S) -> dict:
-        """Block until the template is warm; its ``info`` (raises ``RuntimeError`` if it is not)."""
-        end = time.monotonic() + limit
-        while self.info is None and self.broken is None and time.monotonic() < end:
-            if self.conn.poll(min(1.0, max(0.0, end - time.monotonic()))):
-                self._read_one()
-            elif not self.proc.is_alive():
-                self.broken = f"the template process ended (exit code {self.proc.exitcode}) before it was warm"
-        if self.info is None:
-            raise RuntimeError(self.broken or f"the template was not warm within {limit:g} s")
-        return self.info
-
     # -- one run ---------------------------------------------------------------------------
     def submit(self, fn: Callable, item, timeout: float | None = None) -> "WarmTemplate":
         """Hand the template the run ``fn(objective, item)`` (it starts once the template is warm)."""
         if self.busy:
             raise RuntimeError("the template is already doing a run")
+        payload = pickle.dumps((fn, item))
+        if self.proc is not None and not self.proc.is_alive():  # it ended since its last run
+            self.close()
         if self.proc is None:
             self.start()
         self._reset_run()
         self.busy = True
         self.timeout = timeout
         self.started_at = time.monotonic()
-        self.conn.send(("run", pickle.dumps((fn, item)), timeout))
+        try:
+            self.conn.send(("run", payload, timeout))
+        except OSError:  # it ended just now: a new one
+            self.close()
+            self.start()
+            self.conn.send(("run", payload, timeout))
         return self
 
     @property
