@@ -180,3 +180,11 @@ def test_an_experiment_flags_a_late_first_call():
     assert late["budget_flag"].startswith("late start: its first objective call came 0.")
     prompt = Experiment(obj, _SlowStart, options={"wait": 0.0}, budget=Budget(seconds=1.0)).run()
     assert prompt["budget_flag"] == "" and prompt["error"] == ""
+
+
+def test_a_template_that_ended_between_runs_is_replaced(template):
+    first = template.run(_who, 0)
+    os.kill(template.info["pid"], signal.SIGKILL)
+    template.proc.join(10)
+    again = template.run(_who, 0)
+    assert again["ppid"] != first["ppid"] and len(template.warm_ups) == 2
