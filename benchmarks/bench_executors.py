@@ -65,12 +65,15 @@ def _command(executor: str, workers: int, budget_s: float, scene: str, out: Path
     return cmd
 
 
-def one(spec: str, workers: int, budget_s: float, scene: str, out: Path) -> dict:
+def one(spec: str, default_workers: int, budget_s: float, scene: str, out: Path) -> dict:
     """One ``arraysel compare`` of ``spec`` (an executor; ``local1``: local with ``--threads 1``;
     ``local1x2``: two of those at the same time, one per seed); its rows, threads, warm-ups, wall
     time and load."""
     import pandas as pd
 
+    workers = default_workers
+    if ":" in spec:  # process:1, dask:3: that many workers
+        spec, workers = spec.split(":")[0], int(spec.split(":")[1])
     executor = "local" if spec.startswith("local") else spec
     threads = 1 if spec.startswith("local1") else None
     if spec == "local1x2":
@@ -98,7 +101,8 @@ def one(spec: str, workers: int, budget_s: float, scene: str, out: Path) -> dict
         threads = max(1, os.cpu_count() // (1 if executor == "local" else workers))
     rows = {sel: [int(e) for e in runs[runs["selector"] == sel]["evaluations"]] for sel in SELECTORS}
     flags = [f for f in runs["budget_flag"] if f]
-    return {"executor": spec, "workers": 1 if executor == "local" else workers, "threads": threads,
+    label = spec if executor == "local" or workers == default_workers else f"{spec}:{workers}"
+    return {"executor": label, "workers": 1 if executor == "local" else workers, "threads": threads,
             "evaluations": rows, "wall_s": round(wall, 1), "load_before": load0, "load_after": _load(),
             "warm_ups": [(round(w["ready_s"], 2), round(w["warm_s"], 2)) for w in warm], "flags": flags,
             "stderr_leak": "leaked semaphore" in stderr}
@@ -110,7 +114,7 @@ def _per_core(r: dict, sel: str) -> float:
 
 
 def table(results: list[dict], budget_s: float) -> list[dict]:
-    local = next(r for r in results if r["executor"] == "local")
+    local = next((r for r in results if r["executor"] == "local"), results[0])
     one_thread = next((r for r in results if r["executor"] == "local1"), None)
     two_local = next((r for r in results if r["executor"] == "local1x2"), None)
     out = []
@@ -146,13 +150,14 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--executors", default="local,local1,local1x2,process,dask",
                     help="what to run (default local,local1,local1x2,process,dask; local1: local with "
-                         "--threads 1; local1x2: two local1 compares at once, one per seed)")
+                         "--threads 1; local1x2: two local1 compares at once, one per seed; process:1, "
+                         "dask:1: with that many workers instead of --workers)")
     ap.add_argument("--out", default=None, help="folder for the compare outputs (default: a temporary one)")
     args = ap.parse_args(argv)
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-executors-"))
     record = {"cpu_count": os.cpu_count(), "passes": []}
     for budget_s in [args.budget_s] + ([60.0] if args.long else []):
-        results = [one(ex, args.workers, budget_s, args.scene, base / f"{ex}-{budget_s:g}")
+        results = [one(ex, args.workers, budget_s, args.scene, base / f"{ex.replace(':', '-')}-{budget_s:g}")
                    for ex in args.executors.split(",")]
         record["passes"].append({"budget_s": budget_s, "rows": table(results, budget_s), "runs": results})
     emit_json(record)

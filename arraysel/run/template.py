@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.util
 import os
 import pickle
 import signal
@@ -253,6 +254,10 @@ def _child_main(res, up, objective, payload: bytes, threads: int, timeout) -> No
         data = pickle.dumps(result)
     except Exception as exc:  # a result that does not pickle
         data = pickle.dumps(("failed", f"its result could not be sent back: {_error_text(exc)}"))
+    # release what the run registered for cleanup (a multiprocessing lock is a named semaphore)
+    # before the result goes: the template kills the child as soon as it has it
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
     res.send_bytes(b"F" + data)
     res.close()
     _end()
