@@ -119,6 +119,12 @@ def mp_context():
     there is no forkserver. Never plain ``fork``: forking a process whose torch thread pools are
     running can deadlock."""
     import multiprocessing
+    # OpenMP threads that sleep at a barrier instead of spinning: the runs share the machine with
+    # each other, the calling process and whatever else runs there, and spinning threads then
+    # take the cores the others need (paper scene, 2 threads a run on a machine with a load of
+    # 4 on 2 cores: 1.8x to 4.5x the evaluations of the default policy). Read by OpenMP when the
+    # forkserver (or a spawned child) loads torch; a policy set by the user is kept.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["torch", "arraysel.run.workers", "arraysel.run.compare_task"])
