@@ -22,30 +22,14 @@ import time
 from typing import Callable
 
 from arraysel.errors import error_text as _error_text
-from arraysel.run.workers import TaskFailed, _process_init, mp_context as _mp_context
+from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end,  # noqa: F401
+                                  _process_init, _watch, mp_context as _mp_context)
 
 __all__ = ["DEFAULT_GRACE_S", "BUILD_LIMIT_S", "OneShot", "IsolatedWorker", "run_one_shot"]
 
 
 #: seconds a run may go past its time budget before its process is stopped
 DEFAULT_GRACE_S = 30.0
-#: seconds a child may take to build its objective before it is stopped (a first build of a
-#: large scene's PSF basis, or a wait on another process building it, takes minutes)
-BUILD_LIMIT_S = 1800.0
-#: seconds a child goes on past its deadline before it ends itself (its supervisor kills it first)
-_SELF_STOP_MARGIN_S = 10.0
-
-
-def _watch(alive, limit: list) -> None:
-    """Child-side watchdog thread: end the process when its supervisor is gone (``alive``, the
-    read end of a pipe whose only write end the supervisor holds, reads end-of-file: this holds
-    for a killed supervisor not yet reaped, whose pid still exists), or when ``limit[0]`` (a
-    ``time.monotonic`` deadline, ``None``: none) has passed."""
-    while True:
-        if alive.poll(0.5):  # the supervisor never writes: readable means it is gone
-            os._exit(70)
-        if limit[0] is not None and time.monotonic() > limit[0]:
-            os._exit(124)
 
 
 def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify, env) -> None:
@@ -82,30 +66,6 @@ def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify
         conn.send(("failed", f"its result could not be sent back: {_error_text(exc)}"))
     conn.close()
     _end()
-
-
-def _end(code: int = 0) -> None:
-    """End the child now, without waiting for threads the task left running; release what
-    multiprocessing registered for cleanup (semaphores: else the resource tracker warns)."""
-    with contextlib.suppress(Exception):
-        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
-    os._exit(code)
-
-
-@contextlib.contextmanager
-def _children_allowed():
-    """Let a daemonic process (a Dask worker under its nanny) start the child: multiprocessing
-    refuses children of daemonic processes so that none is orphaned at exit; the child's
-    watchdog ends it when its supervisor is gone, which is what that rule protects."""
-    config = multiprocessing.current_process()._config  # noqa: SLF001 - no public switch exists
-    daemon = config.get("daemon")
-    if daemon:
-        config["daemon"] = False
-    try:
-        yield
-    finally:
-        if daemon:
-            config["daemon"] = daemon
 
 
 class OneShot:

@@ -39,8 +39,8 @@ import time
 from typing import Callable
 
 from arraysel.errors import error_text as _error_text
-from arraysel.run.isolation import BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, _children_allowed, _end, _watch
-from arraysel.run.workers import TaskFailed, _process_init, mp_context as _mp_context
+from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end, _process_init,
+                                  _watch, mp_context as _mp_context)
 
 __all__ = ["WarmTemplate", "warm_objective", "set_threads", "cpu_cores", "threads_per_worker", "run_with_retries",
            "borrowed_template", "close_templates"]
