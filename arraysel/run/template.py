@@ -184,6 +184,8 @@ def _fork_run(ctrl, alive, objective, payload: bytes, threads: int, timeout) -> 
             for end in (ctrl, alive, res_r, up_w):
                 end.close()
             _child_main(res_w, up_r, objective, payload, threads, timeout)
+        except SystemExit as exc:  # the run called sys.exit(): its code, as a process would end
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         except BaseException:  # noqa: BLE001 - a child never returns into the template's loop
             code = 1
         _end(code)
