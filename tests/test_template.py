@@ -159,29 +159,6 @@ def test_budget_flag_says_when_the_budget_did_not_measure_the_search():
     assert late_start_flag(None, b) == "" and late_start_flag(9.0, Budget(evaluations=5)) == ""
 
 
-class _SlowStart(Selector):
-    """Waits ``wait`` seconds before its first objective call (work outside its search)."""
-
-    name = "slow_start"
-    description = "waits, then scores one selection"
-    options = {"wait": Option(float, 0.0, "seconds before the first call")}
-    deterministic = True
-
-    def select(self, objective, k, seed):
-        time.sleep(self.options["wait"])
-        sel = list(range(k))
-        objective.score_indices([sel])
-        return sel
-
-
-def test_an_experiment_flags_a_late_first_call():
-    obj = ToyObjectiveFactory(16, 8)()
-    late = Experiment(obj, _SlowStart, options={"wait": 0.7}, budget=Budget(seconds=1.0)).run()
-    assert late["budget_flag"].startswith("late start: its first objective call came 0.")
-    prompt = Experiment(obj, _SlowStart, options={"wait": 0.0}, budget=Budget(seconds=1.0)).run()
-    assert prompt["budget_flag"] == "" and prompt["error"] == ""
-
-
 def test_a_template_that_ended_between_runs_is_replaced(template):
     first = template.run(_who, 0)
     os.kill(template.info["pid"], signal.SIGKILL)

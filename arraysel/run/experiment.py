@@ -134,11 +134,10 @@ class Experiment:
         watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
             else contextlib.nullcontext()
         polish = float(selector.options.get("polish") or 0.0)
-        calls = _FirstCall(obj)
         try:
             with watch:
                 stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
-                result = _run_selector(selector, calls, k, stage, seed, recorder)
+                result = _run_selector(selector, obj, k, stage, seed, recorder)
                 if polish > 0:
                     result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k))
             selection = check_selection(result, n, k)
@@ -180,7 +179,7 @@ class Experiment:
             "elements": format_elements(selection),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
             "error": error,
-            "budget_flag": late_start_flag(None if calls.first is None else calls.first - t0, budget), **extra,
+            "budget_flag": "", **extra,
         }
 
 
@@ -217,34 +216,9 @@ def budget_flag(row: dict, budget: Budget, grace_s: float) -> str:
     return "; ".join(flags + own[:1])
 
 
-class _FirstCall:
-    """The objective as a run's budgeted view sees it: notes when the run first calls
-    ``evaluate``, ``mask_loss`` or ``selection_loss``; everything else is the objective's."""
-
-    _CALLS = ("evaluate", "mask_loss", "selection_loss")
-
-    def __init__(self, objective):
-        object.__setattr__(self, "_objective", objective)
-        object.__setattr__(self, "first", None)
-
-    def __getattr__(self, name):
-        value = getattr(self._objective, name)
-        if name in self._CALLS and callable(value):
-            def call(*args, **kwargs):
-                if self.first is None:
-                    object.__setattr__(self, "first", time.perf_counter())
-                return value(*args, **kwargs)
-            return call
-        return value
-
-    def __setattr__(self, name, value):
-        setattr(self._objective, name, value)
-
-
 def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
-    """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj`` (a
-    :class:`_FirstCall` noting its first call); return what it returned (or, when the budget ended
-    the search, the best selection recorded)."""
+    """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj``; return what it
+    returned (or, when the budget ended the search, the best selection recorded)."""
     view = BudgetedObjective(obj, budget, recorder, k)
     try:
         return selector.select(view, k, seed)
