@@ -176,7 +176,7 @@ def test_no_library_module_uses_the_test_helpers():
 
 def test_executors_do_not_know_objective_classes():
     """Workers rebuild an objective through its ``worker_factory()`` capability, not by its class."""
-    for m in ("arraysel.run.executors", "arraysel.run.workers", "arraysel.run.isolation",
+    for m in ("arraysel.run.executors", "arraysel.run.workers", "arraysel.run.isolation", "arraysel.run.template",
               "arraysel.run.random_search", "arraysel.run.compare_task", "arraysel.run.compare"):
         assert not {t for t in GRAPH[m] if t.startswith("arraysel.objective.")}, m
         assert "__name__ ==" not in MODULES[m].read_text(encoding="utf-8").replace("if __name__", "")

@@ -280,3 +280,19 @@ def test_dask_worker_death_loses_only_its_run(dask_ex, reg, tmp_path):
     assert by.loc["uniform", "error"] == ""
     assert "run lost: worker process died" in by.loc["always_crash", "error"]
     assert by.loc["always_crash", "elements"] == "" and by.loc["always_crash", "Mean"] == ""  # NaN
+
+
+def test_threads_per_run_are_cores_over_workers_unless_given():
+    from arraysel.run.template import threads_per_worker
+    with ProcessExecutor(workers=2) as ex:
+        assert ex.threads == threads_per_worker(2) and ex.describe()["threads"] == ex.threads
+    assert make_executor("process", workers=2, threads=3).threads == 3
+    with pytest.raises(ParameterError, match="--threads"):
+        make_executor("process", workers=2, threads=0)
+
+
+def test_compare_cli_checks_threads(tmp_path, capsys):
+    from arraysel.cli.main import main
+    rc = main(["compare", "--scene", "toy", "--selectors", "uniform", "--budget-evals", "5", "--threads", "0",
+               "--out", str(tmp_path / "o"), "--no-progress", "--no-figures"])
+    assert rc == 2 and "--threads" in capsys.readouterr().err

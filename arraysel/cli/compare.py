@@ -84,6 +84,10 @@ def add_parser(subparsers) -> None:
                         "(default: the number of CPU cores)")
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
                    help="address of a running Dask scheduler (--executor dask)")
+    g.add_argument("--threads", type=int, default=None, metavar="T",
+                   help="threads of each run (torch, numba, BLAS); default: the cores shared out over the "
+                        "runs that go at a time (cores / --workers; on a Dask cluster, each host's cores / "
+                        "the tasks its workers run at a time; locally, all cores)")
     g.add_argument("--retries", type=int, default=2, metavar="N",
                    help="times a run is started again after its worker died or it failed (default 2)")
     p.add_argument("--aggregate", choices=("mean", "worst"), default=None,
@@ -217,11 +221,12 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
     if budget.unlimited:
         raise ParameterError("--budget-s 0 needs --budget-evals: a run must have some budget")
     retries = check_number("--retries", args.retries, lo=0, hi=100, integer=True)
+    threads = None if args.threads is None else check_number("--threads", args.threads, lo=1, hi=1024, integer=True)
     executor = None
     if args.executor != "local" or args.workers is not None or args.scheduler:
         from arraysel.run.executors import make_executor
         executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
-                                 retries=retries)
+                                 retries=retries, threads=threads)
     try:
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
         notice = _exact_run_notice(objective, budget, n_runs)
@@ -231,7 +236,7 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
                         budget=budget, registry=registry, resume=args.resume,
                         progress=not args.no_progress, figures=not args.no_figures,
                         command_line=["arraysel", *sys.argv[1:]], executor=executor, force=args.force,
-                        isolate=not args.in_process, grace_s=grace_s)
+                        isolate=not args.in_process, grace_s=grace_s, threads=threads)
     finally:
         if executor is not None:
             executor.close()

@@ -10,9 +10,11 @@ __all__ = ["METRICS", "TABLE1_METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "TABLE1_
            "PAPER_NAMES", "MERIT_COLUMNS"]
 
 METRICS = METRIC_NAMES
-#: columns of a run row, in this order
+#: columns of a run row, in this order; ``budget_flag`` says when a run's time budget did not
+#: measure its search (:func:`arraysel.run.experiment.budget_flag`), else it is empty
 ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "seconds", "evaluations",
-               "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error")
+               "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error",
+               "budget_flag")
 #: columns of ``trace.csv``: one ``improvement`` row per new best, then one ``end`` row at the
 #: run's last evaluation and time
 TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean", "event")

@@ -71,6 +71,8 @@ def load_comparison(folder) -> Comparison:
         runs = read_runs(runs_path)
     except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError) as exc:
         raise ParameterError(f"{runs_path} cannot be read ({type(exc).__name__}: {exc})") from None
+    if "budget_flag" not in runs.columns:  # written before the column existed: no flags
+        runs["budget_flag"] = ""
     missing = [c for c in ROW_COLUMNS if c not in runs.columns]
     if missing:
         raise ParameterError(f"{runs_path} lacks the column(s) {', '.join(missing)}")

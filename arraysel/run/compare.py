@@ -28,7 +28,8 @@ from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
-from arraysel.run.experiment import Experiment, _failed_row, _final_metrics, _lost_row, config_label, full_row
+from arraysel.run.experiment import (Experiment, _failed_row, _final_metrics, _lost_row, budget_flag, config_label,
+                                     full_row)
 from arraysel.run.isolation import DEFAULT_GRACE_S, IsolatedWorker
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir, remove_results
 from arraysel.run.workers import TaskFailed, objective_factory_for
@@ -38,7 +39,7 @@ from arraysel.selectors.contract import Budget, BudgetExceededError
 __all__ = ["DEFAULT_SEEDS", "compare", "write_figures"]
 
 
-def _make_isolator(objective, objective_factory, todo, classes):
+def _make_isolator(objective, objective_factory, todo, classes, threads=None):
     """An :class:`~arraysel.run.isolation.IsolatedWorker` for the local runs, and the configs whose
     selector class cannot be sent to it (they run in this process)."""
     factory = objective_factory if objective_factory is not None else objective_factory_for(objective)
@@ -51,7 +52,7 @@ def _make_isolator(objective, objective_factory, todo, classes):
         except ParameterError as exc:
             print(f"arraysel compare: {lab} runs in this process, not isolated: {exc}", file=sys.stderr)
             in_process.add(lab)
-    return IsolatedWorker(factory, verify=verify), in_process
+    return IsolatedWorker(factory, threads=threads, verify=verify), in_process
 
 
 def _timeout(budget: Budget, grace: float) -> float | None:
@@ -102,6 +103,27 @@ def _run_isolated(isolator, objective, lab, cls, opts, budget, seed, grace) -> t
     if isinstance(res, TaskFailed):
         return _task_failed_row(objective, lab, cls, opts, seed, res, budget, grace, lost=False), []
     return _checked(objective, res["row"], res["trace"])
+
+
+def _warm_here(objective) -> dict:
+    """Warm the objective of this process before a run made here starts its clock (so that its
+    one-off work is not charged to the first run); the warm-up's figures for ``run.json``."""
+    from arraysel.run.template import warm_objective
+
+    return warm_objective(objective)
+
+
+def _record_warm_ups(meta: dict, executor, isolator) -> None:
+    """``run.json``'s ``worker_warm_ups``: each worker's one-off work (objective build, basis
+    check, compiled code, plans), timed once per worker, never charged to a run."""
+    found = []
+    if executor is not None and hasattr(executor, "worker_warm_ups"):
+        found = executor.worker_warm_ups()
+    elif isolator is not None:
+        found = isolator.warm_ups
+    if found:
+        meta["worker_warm_ups"] = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in w.items()}
+                                   for w in found]
 
 
 #: the objective's counters (they change with every call)
@@ -199,7 +221,7 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
             budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
             figures: bool = True, command_line: Sequence[str] | None = None,
             info: dict | None = None, executor=None, objective_factory=None, force: bool = False,
-            isolate: bool = False, grace_s: float | None = None):
+            isolate: bool = False, grace_s: float | None = None, threads: int | None = None):
     """Run each selector for each seed on ``objective``; write the report to ``out_dir``.
 
     Parameters
@@ -234,6 +256,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         A selector class that cannot be sent to a child process runs in this process.
     grace_s : seconds past the time budget before an isolated run is stopped (default
         :data:`arraysel.run.isolation.DEFAULT_GRACE_S`)
+    threads : threads of each isolated local run (default: this process's torch threads); an
+        executor sets its own (``threads=`` of :func:`arraysel.run.executors.make_executor`)
 
     Returns
     -------
@@ -282,11 +306,11 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         return _compare_locked(objective, out, registry, budget, sels, seeds, classes, labels, grace,
                                resume=resume, force=force, progress=progress, figures=figures,
                                command_line=command_line, info=info, executor=executor,
-                               objective_factory=objective_factory, isolate=isolate)
+                               objective_factory=objective_factory, isolate=isolate, threads=threads)
 
 
 def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes, labels, grace, *, resume,
-                    force, progress, figures, command_line, info, executor, objective_factory, isolate):
+                    force, progress, figures, command_line, info, executor, objective_factory, isolate, threads):
     """The body of :func:`compare`, once ``out`` is locked."""
     import pandas as pd
     from tqdm.auto import tqdm
@@ -355,7 +379,6 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
     reporting.write_json(out / "run.json", meta)
 
     full = full_row(objective)
-    fingerprint = _Fingerprint(objective, full)  # checked after each run made in this process
 
     def save():
         reporting.write_runs(out, [full] + rows, traces, budget, problem=scene_name or "arraysel")
@@ -371,7 +394,10 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
         items = [compare_item(lab, classes[name], opts, budget, seed) for lab, name, opts, seed in todo]
     isolator, in_process = None, set()
     if isolate and not remote and todo:
-        isolator, in_process = _make_isolator(objective, objective_factory, todo, classes)
+        isolator, in_process = _make_isolator(objective, objective_factory, todo, classes, threads)
+    if not remote and todo and (isolator is None or in_process):  # runs in this process: warm it first
+        meta["warm_up"] = _warm_here(objective)
+    fingerprint = _Fingerprint(objective, full)  # checked after each run made in this process (warmed)
     save()
     bar = tqdm(total=len(todo), disable=not progress, desc="compare", unit="run", file=sys.stderr)
     finished = 0
@@ -398,6 +424,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                         traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                         save()
                         raise ArrayselError(f"{lab} seed {seed}: {why}")
+                row = {**row, "budget_flag": budget_flag(row, budget, grace)}
                 rows.append(row)
                 traces.extend({"config": lab, "seed": seed, **t} for t in trace)
                 save()
@@ -423,6 +450,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
                         trace = []
                     else:
                         row, trace = _checked(objective, res["row"], res["trace"])
+                    row = {**row, "budget_flag": budget_flag(row, budget, grace)}
                     results[i] = (row, [{"config": lab, "seed": seed, **t} for t in trace])
                     rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
                     traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]
@@ -434,6 +462,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
         bar.close()
         if isolator is not None:
             isolator.close()
+        _record_warm_ups(meta, executor if remote else None, isolator)
         left = len(todo) - finished
         meta["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {_error_text(exc)}"
         meta["finished"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -446,6 +475,7 @@ def _compare_locked(objective, out: Path, registry, budget, sels, seeds, classes
     bar.close()
     if isolator is not None:
         isolator.close()
+    _record_warm_ups(meta, executor if remote else None, isolator)
 
     table = reporting.table1(pd.DataFrame([full] + rows, columns=list(ROW_COLUMNS)))
     if figures:

@@ -45,6 +45,7 @@ from typing import Any, Callable, Iterator, Sequence
 from arraysel.errors import ParameterError, check_choice, check_number, error_text as _error_text
 from arraysel.run.workers import TaskFailed, _process_init, _run_on_worker
 from arraysel.run.workers import mp_context as _mp_context
+from arraysel.run.template import threads_per_worker
 
 __all__ = ["EXECUTORS", "DASK_INSTALL_HINT", "DEFAULT_RETRIES", "TaskFailed", "Executor", "LocalExecutor",
            "ProcessExecutor", "DaskExecutor", "make_executor", "as_executor"]
@@ -81,6 +82,12 @@ class Executor:
     def describe(self) -> dict:
         return {"executor": self.name, "workers": self.workers, "retries": self.retries}
 
+    def worker_warm_ups(self) -> list[dict]:
+        """One entry per warm template this executor's workers started (the one-off work of a
+        worker, done before its first run's clock starts; ``info`` of
+        :class:`~arraysel.run.template.WarmTemplate`)."""
+        return []
+
     def close(self) -> None:
         pass
 
@@ -104,6 +111,10 @@ class LocalExecutor(Executor):
         super().__init__(retries)
         self.objective = objective
         self._built: dict[str, Any] = {}
+        self.warm_ups: list[dict] = []
+
+    def worker_warm_ups(self) -> list[dict]:
+        return list(self.warm_ups)
 
     def _objective(self, factory):
         if self.objective is not None:
@@ -115,9 +126,15 @@ class LocalExecutor(Executor):
 
     def run_tasks(self, factory, fn, items, *, fresh=False, timeout=None, verify=None):
         if fresh:
-            from arraysel.run.isolation import default_threads, run_one_shot
-            for i, item in enumerate(items):
-                yield i, run_one_shot(factory, fn, item, timeout, default_threads(), self.retries, verify)
+            from arraysel.run.isolation import default_threads
+            from arraysel.run.template import WarmTemplate, run_with_retries
+            template = WarmTemplate(factory, default_threads(), verify)
+            try:
+                for i, item in enumerate(items):
+                    yield i, run_with_retries(template, fn, item, timeout, self.retries)
+            finally:
+                self.warm_ups.extend(template.warm_ups)
+                template.close()
             return
         obj = self._objective(factory)
         for i, item in enumerate(items):
@@ -153,11 +170,14 @@ class ProcessExecutor(Executor):
         n = (os.cpu_count() or 1) if workers is None else workers
         self._workers = int(check_number("workers", n, lo=1, hi=1024, integer=True))
         if threads is None:
-            threads = max(1, (os.cpu_count() or 1) // self._workers)
+            threads = threads_per_worker(self._workers)
         self.threads = int(check_number("threads", threads, lo=0, integer=True))
         self._pool: cf.ProcessPoolExecutor | None = None
         self._pool_token: str | None = None
         self.restarts = 0
+        self._templates: list = []
+        self._template_key = None
+        self.warm_ups: list[dict] = []
 
     @property
     def workers(self) -> int:
@@ -185,28 +205,47 @@ class ProcessExecutor(Executor):
             self._pool = None
             self._pool_token = None
 
-    def _run_fresh(self, factory, fn, items, timeout, verify):
-        """Each task in a fresh child started here, at most ``workers`` at a time."""
-        from arraysel.run.isolation import OneShot
+    def _templates_for(self, factory, verify) -> list:
+        """This pool's warm templates for ``factory`` (started, warming, on first use; kept for
+        the next :meth:`run_tasks`)."""
+        from arraysel.run.template import WarmTemplate
 
+        key = (factory.key(), verify)
+        if self._template_key != key:
+            self._close_templates()
+            self._templates = [WarmTemplate(factory, self.threads, verify).start() for _ in range(self._workers)]
+            self._template_key = key
+        return self._templates
+
+    def _close_templates(self) -> None:
+        for t in self._templates:
+            self.warm_ups.extend(t.warm_ups)
+            t.close()
+        self._templates, self._template_key = [], None
+
+    def _run_fresh(self, factory, fn, items, timeout, verify):
+        """Each task in a child forked from one of ``workers`` warm templates, at most one per
+        template at a time."""
         items = list(items)
         pending = collections.deque(range(len(items)))
         attempts = [0] * len(items)
-        running: dict[OneShot, int] = {}
+        templates = self._templates_for(factory, verify)
+        running: dict = {}
         try:
             while pending or running:
-                while pending and len(running) < self._workers:
-                    i = pending.popleft()
-                    attempts[i] += 1
-                    running[OneShot(factory, fn, items[i], timeout, self.threads, verify).start()] = i
-                left = min(s.deadline for s in running) - time.monotonic()
-                multiprocessing.connection.wait([w for s in running for w in s.waitables()],
+                for t in templates:
+                    if pending and t not in running:
+                        i = pending.popleft()
+                        attempts[i] += 1
+                        running[t.submit(fn, items[i], timeout)] = i
+                left = min(t.deadline for t in running) - time.monotonic()
+                multiprocessing.connection.wait([w for t in running for w in t.waitables()],
                                                 timeout=min(max(0.0, left), 3600.0))
-                for shot in list(running):
-                    res = shot.poll()
+                for t in list(running):
+                    res = t.poll()
                     if res is None:
                         continue
-                    i = running.pop(shot)
+                    i = running.pop(t)
                     if isinstance(res, TaskFailed):
                         res.attempts = attempts[i]
                         if res.kind == "died":
@@ -217,8 +256,16 @@ class ProcessExecutor(Executor):
                             res.message = f"worker process died ({attempts[i]} attempt(s)): {res.message}"
                     yield i, res
         finally:
-            for shot in running:
-                shot.kill()
+            for t in running:
+                t.cancel()
+
+    def describe(self) -> dict:
+        return {**super().describe(), "threads": self.threads}
+
+    def worker_warm_ups(self) -> list[dict]:
+        """The warm-up of each template this pool started (``info`` of
+        :class:`~arraysel.run.template.WarmTemplate`)."""
+        return self.warm_ups + [w for t in self._templates for w in t.warm_ups]
 
     def run_tasks(self, factory, fn, items, *, fresh=False, timeout=None, verify=None):
         if fresh:
@@ -292,6 +339,7 @@ class ProcessExecutor(Executor):
 
     def close(self) -> None:
         self._shutdown()
+        self._close_templates()
 
 
 # -- Dask -------------------------------------------------------------------
@@ -323,8 +371,10 @@ def _make_factory_plugin_class():
             _install_factory(self.token, self.factory)
 
         def teardown(self, worker):
+            from arraysel.run.template import close_templates
             from arraysel.run.workers import _remove_factory
             _remove_factory(self.token)
+            close_templates(self.token)
 
     FactoryPlugin.__module__ = __name__
     FactoryPlugin.__qualname__ = "_FactoryPlugin"
@@ -359,8 +409,11 @@ class DaskExecutor(Executor):
     name = "dask"
 
     def __init__(self, scheduler: str | None = None, workers: int | None = None,
-                 retries: int = DEFAULT_RETRIES, connect_timeout: float = 30.0, client=None):
+                 retries: int = DEFAULT_RETRIES, connect_timeout: float = 30.0, client=None,
+                 threads: int | None = None):
         super().__init__(retries)
+        self.threads = None if threads is None else int(check_number("threads", threads, lo=1, integer=True))
+        self._warm_ups: dict = {}
         distributed = _import_distributed()
         self._own_client = client is None
         self.cluster = None
@@ -396,7 +449,21 @@ class DaskExecutor(Executor):
         return len(self.client.nthreads())
 
     def describe(self) -> dict:
-        return {**super().describe(), "scheduler": self.client.scheduler.address}
+        return {**super().describe(), "scheduler": self.client.scheduler.address,
+                "threads": "cores / tasks at a time on the host" if self.threads is None else self.threads}
+
+    def worker_warm_ups(self) -> list[dict]:
+        return list(self._warm_ups.values())
+
+    def _threads_by_host(self) -> dict | int:
+        """Threads of each run: the ``threads`` given, else ``{host: tasks that run at a time on
+        it}`` (the sum of its workers' threads), from which a worker takes cores / that."""
+        if self.threads is not None:
+            return int(self.threads)
+        per_host: dict[str, int] = collections.Counter()
+        for addr, info in self.client.scheduler_info(n_workers=-1)["workers"].items():
+            per_host[_host_of(addr)] += int(info.get("nthreads") or 1)
+        return dict(per_host)
 
     def _install(self, factory) -> str:
         token = factory.key()
@@ -411,7 +478,8 @@ class DaskExecutor(Executor):
         token = self._install(factory)
         run = uuid.uuid4().hex[:8]
         if fresh:  # the worker runs each task in a child of its own, killed at the deadline
-            futures = [self.client.submit(_run_fresh_on_worker, token, fn, item, timeout, self.retries,
+            threads = self._threads_by_host()
+            futures = [self.client.submit(_run_fresh_on_worker, token, fn, item, timeout, self.retries, threads,
                                           key=f"arraysel-{run}-{i}", retries=self.retries, pure=False)
                        for i, item in enumerate(items)]
         else:
@@ -431,6 +499,10 @@ class DaskExecutor(Executor):
                     result = TaskFailed(f"task failed ({self.retries + 1} attempt(s)): {_error_text(exc)}",
                                         self.retries + 1, exc)
                 f.release()
+                if fresh and isinstance(result, dict) and "warm_ups" in result:
+                    for w in result["warm_ups"]:
+                        self._warm_ups[(w.get("host"), w.get("pid"))] = w
+                    result = result["result"]
                 yield i, result
         finally:
             for f in futures:
@@ -450,24 +522,40 @@ class DaskExecutor(Executor):
                 self.cluster.close()
 
 
-def _run_fresh_on_worker(token: str, fn, item, timeout, retries: int):
-    """On a Dask worker: ``fn(objective, item)`` in a fresh child of the worker, built from the
-    factory the worker plugin installed (:func:`arraysel.run.isolation.run_one_shot`)."""
+def _host_of(address: str) -> str:
+    """``tcp://10.0.0.5:40123`` -> ``10.0.0.5``."""
+    return address.split("://", 1)[-1].rsplit(":", 1)[0]
+
+
+def _run_fresh_on_worker(token: str, fn, item, timeout, retries: int, threads):
+    """On a Dask worker: ``fn(objective, item)`` in a child forked from this worker's warm template
+    (built from the factory the worker plugin installed, warmed on the worker's first task, before
+    that run's clock starts). ``threads``: the run's threads, or ``{host: tasks at a time}`` to
+    share this host's cores. Returns ``{"result": ..., "warm_ups": [...]}``."""
     from arraysel.errors import ArrayselError
-    from arraysel.run.isolation import default_threads, run_one_shot
+    from arraysel.run.template import borrowed_template, cpu_cores
     from arraysel.run.workers import _FACTORIES
 
     factory = _FACTORIES.get(token)
     if factory is None:
         raise ArrayselError(f"worker process {os.getpid()} has no objective factory {token} "
                             f"(the executor did not install it)")
-    return run_one_shot(factory, fn, item, timeout, default_threads(), retries)
+    if isinstance(threads, dict):
+        from distributed import get_worker
+        threads = max(1, cpu_cores() // max(1, int(threads.get(_host_of(get_worker().address), 1))))
+    from arraysel.run.template import run_with_retries
+    with borrowed_template(token, factory, threads) as template:
+        result = run_with_retries(template, fn, item, timeout, retries)
+        return {"result": result, "warm_ups": list(template.warm_ups)}
 
 
 def make_executor(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None,
-                  retries: int = DEFAULT_RETRIES) -> Executor:
-    """The executor of ``arraysel compare --executor KIND [--workers N] [--scheduler ADDR]``."""
+                  retries: int = DEFAULT_RETRIES, threads: int | None = None) -> Executor:
+    """The executor of ``arraysel compare --executor KIND [--workers N] [--scheduler ADDR]
+    [--threads T]`` (``threads``: each run's threads; default cores / runs at a time)."""
     check_choice("--executor", kind, EXECUTORS)
+    if threads is not None:
+        check_number("--threads", threads, lo=1, hi=1024, integer=True)
     if scheduler and kind != "dask":
         raise ParameterError("--scheduler is only used with --executor dask")
     if workers is not None:
@@ -480,8 +568,8 @@ def make_executor(kind: str = "local", *, workers: int | None = None, scheduler:
     if kind == "local":
         return LocalExecutor(retries=0)
     if kind == "process":
-        return ProcessExecutor(workers=workers, retries=retries)
-    return DaskExecutor(scheduler=scheduler, workers=workers, retries=retries)
+        return ProcessExecutor(workers=workers, retries=retries, threads=threads)
+    return DaskExecutor(scheduler=scheduler, workers=workers, retries=retries, threads=threads)
 
 
 def as_executor(executor) -> tuple[Executor, bool]:

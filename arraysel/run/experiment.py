@@ -43,7 +43,8 @@ from arraysel.selection import format_elements
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder,
                                          Selector, check_selection, indices_to_mask, numpy_rng)
 
-__all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label"]
+__all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label", "budget_flag",
+           "late_start_flag"]
 
 
 def config_label(name: str, options: dict | None = None) -> str:
@@ -177,8 +178,42 @@ class Experiment:
             "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
             "elements": format_elements(selection),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
-            "error": error, **extra,
+            "error": error,
+            "budget_flag": "", **extra,
         }
+
+
+#: a run whose first objective call comes after this share of its time budget is flagged
+LATE_START_SHARE = 0.5
+
+
+def late_start_flag(first_call_s: float | None, budget: Budget) -> str:
+    """``late start: ...`` when a run's first objective call (``evaluate``, ``mask_loss`` or
+    ``selection_loss``) came after more than :data:`LATE_START_SHARE` of its time budget (most of
+    the budget went to work outside its search), else ``''``."""
+    if budget.seconds is None or first_call_s is None or first_call_s <= LATE_START_SHARE * budget.seconds:
+        return ""
+    return f"late start: its first objective call came {first_call_s:.1f} s into its {budget.seconds:g} s budget"
+
+
+def budget_flag(row: dict, budget: Budget, grace_s: float) -> str:
+    """The ``budget_flag`` of a run's row: ``''`` when its time budget measured its search, else
+    why not (``"; "``-joined): ``overran`` (it took more than its time budget plus ``grace_s``
+    seconds, or was stopped at that deadline), and the row's own ``late start``
+    (:func:`late_start_flag`, set where the run was made). Runs without a time budget are never
+    flagged."""
+    limit = budget.seconds
+    if limit is None:
+        return ""
+    flags = []
+    seconds = float(row.get("seconds", math.nan))
+    error = str(row.get("error") or "")
+    if math.isfinite(seconds) and seconds > limit + grace_s:
+        flags.append(f"overran: {seconds:.1f} s of a {limit:g} s budget (grace {grace_s:g} s)")
+    elif "BudgetExceededError: stopped after" in error:
+        flags.append(f"overran: stopped at its deadline ({limit:g} s + {grace_s:g} s)")
+    own = [f for f in str(row.get("budget_flag") or "").split("; ") if f.startswith("late start")]
+    return "; ".join(flags + own[:1])
 
 
 def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
@@ -294,7 +329,7 @@ def full_row(objective) -> dict:
         "config": "full", "selector": "full", "seed": "", "k": n, "n_elements": n, **metrics,
         "seconds": wall, "evaluations": e1 - e0, "gradient_steps": g1 - g0,
         "objective_seconds": s1 - s0, "overhead_seconds": max(0.0, wall - (s1 - s0)),
-        "elements": format_elements(range(n)), "options": "", "error": error, **extra,
+        "elements": format_elements(range(n)), "options": "", "error": error, "budget_flag": "", **extra,
     }
 
 
@@ -312,5 +347,5 @@ def _failed_row(objective, config: str, name: str, options: dict, seed: int, mes
         "seconds": nan, "evaluations": nan, "gradient_steps": nan, "objective_seconds": nan,
         "overhead_seconds": nan, "elements": "",
         "options": json.dumps(options, sort_keys=True, default=str) if options else "",
-        "error": message,
+        "error": message, "budget_flag": "",
     }

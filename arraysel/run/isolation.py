@@ -22,30 +22,14 @@ import time
 from typing import Callable
 
 from arraysel.errors import error_text as _error_text
-from arraysel.run.workers import TaskFailed, _process_init, mp_context as _mp_context
+from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end,  # noqa: F401
+                                  _process_init, _watch, mp_context as _mp_context)
 
 __all__ = ["DEFAULT_GRACE_S", "BUILD_LIMIT_S", "OneShot", "IsolatedWorker", "run_one_shot"]
 
 
 #: seconds a run may go past its time budget before its process is stopped
 DEFAULT_GRACE_S = 30.0
-#: seconds a child may take to build its objective before it is stopped (a first build of a
-#: large scene's PSF basis, or a wait on another process building it, takes minutes)
-BUILD_LIMIT_S = 1800.0
-#: seconds a child goes on past its deadline before it ends itself (its supervisor kills it first)
-_SELF_STOP_MARGIN_S = 10.0
-
-
-def _watch(alive, limit: list) -> None:
-    """Child-side watchdog thread: end the process when its supervisor is gone (``alive``, the
-    read end of a pipe whose only write end the supervisor holds, reads end-of-file: this holds
-    for a killed supervisor not yet reaped, whose pid still exists), or when ``limit[0]`` (a
-    ``time.monotonic`` deadline, ``None``: none) has passed."""
-    while True:
-        if alive.poll(0.5):  # the supervisor never writes: readable means it is gone
-            os._exit(70)
-        if limit[0] is not None and time.monotonic() > limit[0]:
-            os._exit(124)
 
 
 def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify, env) -> None:
@@ -71,36 +55,17 @@ def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify
         result = ("ok", fn(objective, item))
     except Exception as exc:  # the task's own failure (unpickling the selector, a plugin's error)
         result = ("failed", _error_text(exc))
+    # release what this process registered for cleanup (numba's lock, a named semaphore) before
+    # the result goes: the supervisor kills the child as soon as it has it, which would leave the
+    # semaphore to the resource tracker (a warning at exit)
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
     try:
         conn.send(result)
     except Exception as exc:  # a result that does not pickle
         conn.send(("failed", f"its result could not be sent back: {_error_text(exc)}"))
     conn.close()
     _end()
-
-
-def _end(code: int = 0) -> None:
-    """End the child now, without waiting for threads the task left running; release what
-    multiprocessing registered for cleanup (semaphores: else the resource tracker warns)."""
-    with contextlib.suppress(Exception):
-        multiprocessing.util._run_finalizers(0)  # noqa: SLF001 - what a normal exit runs
-    os._exit(code)
-
-
-@contextlib.contextmanager
-def _children_allowed():
-    """Let a daemonic process (a Dask worker under its nanny) start the child: multiprocessing
-    refuses children of daemonic processes so that none is orphaned at exit; the child's
-    watchdog ends it when its supervisor is gone, which is what that rule protects."""
-    config = multiprocessing.current_process()._config  # noqa: SLF001 - no public switch exists
-    daemon = config.get("daemon")
-    if daemon:
-        config["daemon"] = False
-    try:
-        yield
-    finally:
-        if daemon:
-            config["daemon"] = daemon
 
 
 class OneShot:
@@ -243,13 +208,17 @@ def default_threads() -> int:
 
 
 class IsolatedWorker:
-    """Runs ``fn(objective, item)`` tasks one at a time, each in a fresh child process
-    (:class:`OneShot`), so that a task that hangs, exits its process, crashes it or changes the
-    objective (or anything else in its process) costs only its own result.
+    """Runs ``fn(objective, item)`` tasks one at a time, each in a fresh child process forked from
+    a warm template (:class:`~arraysel.run.template.WarmTemplate`: the objective is built and
+    warmed once, before the first run's clock starts), so that a task that hangs, exits its
+    process, crashes it or changes the objective (or anything else in its process) costs only its
+    own result.
 
     :meth:`run` returns the task's result, or a :class:`TaskFailed` saying what happened: the
-    process was stopped ``timeout`` seconds after its objective was built, or it ended (exit code)
-    without a result. ``starts`` counts the children started. ``verify``: see :class:`OneShot`.
+    process was stopped ``timeout`` seconds after it started, or it ended (exit code) without a
+    result. ``starts`` counts the children started; ``warm_ups`` lists the template's warm-ups
+    (one, unless a run killed its template). ``threads``: each run's threads (default: this
+    process's torch threads). ``verify``: see :class:`OneShot`.
     """
 
     def __init__(self, factory, threads: int | None = None, verify: str | None = None):
@@ -257,23 +226,24 @@ class IsolatedWorker:
         self.threads = threads
         self.verify = verify
         self.starts = 0
-        self._current: OneShot | None = None
+        self._template = None
+
+    @property
+    def warm_ups(self) -> list[dict]:
+        return [] if self._template is None else list(self._template.warm_ups)
 
     def run(self, fn: Callable, item, timeout: float | None = None):
-        threads = default_threads() if self.threads is None else self.threads
-        shot = OneShot(self.factory, fn, item, timeout, threads, self.verify)
-        self._current = shot
+        from arraysel.run.template import WarmTemplate
+
+        if self._template is None:
+            threads = default_threads() if self.threads is None else self.threads
+            self._template = WarmTemplate(self.factory, threads, self.verify)
         self.starts += 1
-        try:
-            return shot.start().wait()
-        finally:
-            shot.kill()
-            self._current = None
+        return self._template.run(fn, item, timeout)
 
     def close(self) -> None:
-        if self._current is not None:
-            self._current.kill()
-            self._current = None
+        if self._template is not None:
+            self._template.close()
 
     def __enter__(self):
         return self
