@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes
+from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes, split_planes
 
 __all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
@@ -381,12 +381,7 @@ class MatrixFastPSF:
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``."""
-        img = self.image(weights)
-        out, k = {}, 0
-        for name, (h, w) in self._shapes.items():
-            out[name] = img[:, k:k + h * w].reshape(-1, h, w)
-            k += h * w
-        return out
+        return split_planes(self.image(weights), self._shapes)
 
     # ---------------------------------------------------------------- check
     def state(self) -> dict[str, torch.Tensor]:

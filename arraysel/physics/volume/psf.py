@@ -173,6 +173,16 @@ def plane_axes(setup: MatrixPSFSetup) -> dict[str, torch.Tensor]:
     return out
 
 
+def split_planes(img: torch.Tensor, shapes: dict[str, tuple[int, int]]) -> dict[str, torch.Tensor]:
+    """The planes ``{name: (B, H, W)}`` of an image (B, Npix) whose pixels are the planes'
+    pixels concatenated in ``shapes`` order (``{name: (H, W)}``)."""
+    out, k = {}, 0
+    for name, (h, w) in shapes.items():
+        out[name] = img[:, k:k + h * w].reshape(-1, h, w)
+        k += h * w
+    return out
+
+
 def check_element_weights(weights, n_elements: int, dtype, device) -> torch.Tensor:
     """Element weights as a (B, Ne) tensor of ``dtype`` on ``device``; SelectionError for another
     shape or a value that is not finite."""
@@ -336,9 +346,4 @@ class MatrixPSF:
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """The compound image on each plane: ``{name: complex (B, H, W)}`` (:attr:`coords` order
         and pixels), in units of ``image_scale``; differentiable in ``weights``."""
-        img = self.image(weights)
-        out, k = {}, 0
-        for name, (h, w) in self._shapes.items():
-            out[name] = img[:, k:k + h * w].reshape(-1, h, w)
-            k += h * w
-        return out
+        return split_planes(self.image(weights), self._shapes)
