@@ -55,6 +55,8 @@ def test_matrix_1024_scene_is_the_issue_geometry():
     ({"metrics": {"r_guard": 5.0}}, "metrics.r_guard"),
     ({"metrics": {"r_main": 2.5, "r_guard": 2.8}}, "metrics.r_main"),
     ({"volume": {"half_x": -1.0}}, "volume.half_x"),
+    ({"volume": {"half_x": 900.0, "pixels_per_wavelength": 3.0}}, "volume.half_x"),
+    ({"volume": {"half_z": 100.0}}, "volume.half_z"),
 ])
 def test_bad_3d_scenes_name_the_key(tiny_path, over, key):
     with pytest.raises(ParameterError, match=key.replace(".", r"\.")):

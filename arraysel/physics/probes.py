@@ -39,6 +39,10 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_number
 
+#: the planes through a scatterer a matrix probe's 3-D PSF is imaged on, in this order: the
+#: C-plane ``xy`` at the scatterer's depth, then ``xz`` and ``yz`` (``docs/matrix.md``)
+MATRIX_PLANES = ("xy", "xz", "yz")
+
 __all__ = [
     "Probe",
     "MatrixProbe",

@@ -556,7 +556,7 @@ class Scene:
 
     def planes(self) -> tuple[str, ...]:
         """The planes of a 3-D scene (``volume.planes``), checked."""
-        from arraysel.physics.volume import PLANES
+        from arraysel.physics.probes import MATRIX_PLANES as PLANES
 
         raw = str(self.value("volume", "planes"))
         names = tuple(p.strip() for p in raw.split(",") if p.strip())
@@ -787,7 +787,19 @@ def _volume_checks(scene: Scene) -> None:
     if r_guard >= max(halves.values()):
         raise ParameterError(f"metrics.r_guard = {r_guard:.4g} wl leaves no side-lobe region: allowed below the "
                              f"largest half-size, {max(halves.values()):.4g} wl (volume.half_x/y/z)")
-    scene.matrix_setup()  # the setup's own checks (plane sizes, depth), naming their keys
+    # the planes' pixels and extent (checked again, with the physics, by MatrixPSFSetup)
+    per_wl = float(scene.value("volume", "pixels_per_wavelength"))
+    for key, half in halves.items():
+        n = max(1, int(round(2 * half * per_wl)))
+        if n > 4096:
+            raise ParameterError(f"volume.{key} = {half:.4g} wl is {n} pixels at volume.pixels_per_wavelength = "
+                                 f"{per_wl:g}; allowed: at most 4096 pixels an axis")
+    depth = float(scene.length("medium", "scatterer_z"))
+    n_z = max(1, int(round(2 * halves["half_z"] * per_wl)))
+    top = depth - (n_z // 2) * scene.wavelength / per_wl
+    if top <= 0:
+        raise ParameterError(f"volume.half_z = {halves['half_z']:.4g} wl reaches above the array from the "
+                             f"scatterer's depth medium.scatterer_z = {depth:.4g} m; allowed: planes below z = 0")
 
 
 def _finish(name: str, tree: dict) -> Scene:

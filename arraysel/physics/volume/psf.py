@@ -30,7 +30,7 @@ import torch
 
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.physics.beamform import das_apply
-from arraysel.physics.probes import Acquisition, MatrixProbe, check_sampling
+from arraysel.physics.probes import MATRIX_PLANES, Acquisition, MatrixProbe, check_sampling
 from arraysel.physics.psf.operator import normalised_transmits
 from arraysel.physics.psf.window import scale_complex
 from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
@@ -72,7 +72,7 @@ class _CompiledDAS(torch.autograd.Function):
         return torch.from_numpy(giq), None
 
 #: the planes, in this order: the C-plane at the scatterer's depth, then the xz and yz planes
-PLANES = ("xy", "xz", "yz")
+PLANES = MATRIX_PLANES
 
 
 def _axis(name: str, half: float, pixel: float) -> int:
