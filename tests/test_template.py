@@ -159,6 +159,31 @@ def test_budget_flag_says_when_the_budget_did_not_measure_the_search():
     assert late_start_flag(None, b) == "" and late_start_flag(9.0, Budget(evaluations=5)) == ""
 
 
+class _SlowStart(Selector):
+    """Spends ``wait`` seconds before its first objective call, then scores one uniform layout."""
+    name = "slow-start"
+    options = {"wait": Option(float, 0.0, "seconds to wait before searching")}
+
+    def select(self, objective, k, seed):
+        time.sleep(self.options["wait"])
+        mask = np.zeros(objective.n_elements, dtype=bool)
+        mask[:k] = True
+        objective.score(mask[None, :])
+        return list(range(k))
+
+
+@pytest.mark.parametrize("wait, late", [(0.0, False), (0.7, True)])
+def test_a_run_that_starts_its_search_late_is_flagged(wait, late):
+    objective = ToyObjectiveFactory(n_elements=8, k=3)()
+    row = Experiment(objective, _SlowStart, {"wait": wait}, Budget(seconds=1.0)).run()
+    assert row["error"] == ""
+    if late:
+        assert row["budget_flag"].startswith("late start: its first objective call came 0.")
+        assert budget_flag(row, Budget(seconds=1.0), 30) == row["budget_flag"]  # compare keeps it
+    else:
+        assert row["budget_flag"] == ""
+
+
 def test_a_template_that_ended_between_runs_is_replaced(template):
     first = template.run(_who, 0)
     os.kill(template.info["pid"], signal.SIGKILL)

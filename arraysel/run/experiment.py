@@ -130,6 +130,7 @@ class Experiment:
         recorder = Recorder(obj, budget)
         error = ""
         selection = None
+        started: list[float] = []  # when the selector first called the objective
         t0 = time.perf_counter()
         watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
             else contextlib.nullcontext()
@@ -137,7 +138,7 @@ class Experiment:
         try:
             with watch:
                 stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
-                result = _run_selector(selector, obj, k, stage, seed, recorder)
+                result = _run_selector(selector, obj, k, stage, seed, recorder, started)
                 if polish > 0:
                     result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k))
             selection = check_selection(result, n, k)
@@ -179,7 +180,7 @@ class Experiment:
             "elements": format_elements(selection),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
             "error": error,
-            "budget_flag": "", **extra,
+            "budget_flag": late_start_flag(started[0] if started else None, budget), **extra,
         }
 
 
@@ -216,9 +217,10 @@ def budget_flag(row: dict, budget: Budget, grace_s: float) -> str:
     return "; ".join(flags + own[:1])
 
 
-def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder):
+def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder, started: list):
     """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj``; return what it
-    returned (or, when the budget ended the search, the best selection recorded)."""
+    returned (or, when the budget ended the search, the best selection recorded). ``started``
+    receives the seconds into the budget of the selector's first objective call (when it made one)."""
     view = BudgetedObjective(obj, budget, recorder, k)
     try:
         return selector.select(view, k, seed)
@@ -226,6 +228,8 @@ def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Re
         return _best_or_first(recorder)
     finally:
         view.close()  # a thread the selector left running can no longer count or record
+        if view.first_call_s is not None:
+            started.append(view.first_call_s)
 
 
 def _best_or_first(recorder: Recorder) -> list[int]:

@@ -400,6 +400,9 @@ class BudgetedObjective:
         self.piece = max(1, int(piece if piece is not None else min(default, 256)))
         self._per_mask = 0.0  # running estimate of the seconds one mask costs
         self._closed = False
+        #: seconds into the budget at which the run first called the objective (``evaluate``,
+        #: ``evaluate_swaps``, ``mask_loss`` or ``selection_loss``); ``None`` before that
+        self.first_call_s: float | None = None
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
         if name.startswith("__") or name in ("_inner", "_closed"):
@@ -411,6 +414,11 @@ class BudgetedObjective:
         """End the run: later calls (from a thread the selector left running) raise instead of
         counting against, or recording in, a run that is over. The runner calls it."""
         self._closed = True
+
+    def _started(self) -> None:
+        """Note the time of the run's first objective call (the late-start flag reads it)."""
+        if self.first_call_s is None:
+            self.first_call_s = float(self.budget.elapsed())
 
     def _check_open(self) -> None:
         if self._closed:
@@ -460,6 +468,7 @@ class BudgetedObjective:
     # -- the Objective contract -----------------------------------------------
     def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
         self._check_open()
+        self._started()
         if isinstance(masks, torch.Tensor):
             masks = masks.detach().cpu().numpy()
         masks = np.asarray(masks)
@@ -505,6 +514,7 @@ class BudgetedObjective:
         neighbourhood scoring where it has one), counted, clipped and recorded like
         :meth:`evaluate` of the neighbour masks."""
         self._check_open()
+        self._started()
         m, a, b = check_swaps(mask, out, into)
         if a.size == 0:
             return self._inner.evaluate(np.zeros((0, m.size), dtype=bool))
@@ -530,6 +540,7 @@ class BudgetedObjective:
 
     def mask_loss(self, weights, *args, **kwargs):
         self._check_open()
+        self._started()
         b = int(weights.shape[0]) if getattr(weights, "ndim", 1) == 2 else 1
         if self.budget.allowed(b) < b:
             raise self._exhausted(f"mask_loss of {b} weight vectors")
@@ -537,6 +548,7 @@ class BudgetedObjective:
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
         self._check_open()
+        self._started()
         if self.budget.allowed(1) < 1:
             raise self._exhausted("selection_loss")
         return self._inner.selection_loss(P, P_soft, *args, **kwargs)
