@@ -17,7 +17,8 @@ import pytest
 from arraysel.errors import ArrayselError, ParameterError
 from arraysel.objective.toy import ToyObjectiveFactory
 from arraysel.run.executors import LocalExecutor, ProcessExecutor, TaskFailed, make_executor
-from arraysel.run.random_search import distributed_evaluate, distributed_random_search, random_subsets
+from arraysel.run.random_search import distributed_evaluate, distributed_random_search
+from arraysel.selectors.starts import random_subsets
 from arraysel.run.workers import objective_factory_for
 from arraysel.selectors.registry import SelectorRegistry, build_plugin_manager, get_registry
 from arraysel.report.columns import ROW_COLUMNS

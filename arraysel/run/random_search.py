@@ -9,8 +9,7 @@ chunk), do not depend on the executor or on the number of workers.
 Example
 -------
 >>> from arraysel.objective.toy import ToyObjectiveFactory
->>> from arraysel.selectors.contract import finite_or_inf
-from arraysel.run.executors import ProcessExecutor
+>>> from arraysel.run.executors import ProcessExecutor
 >>> from arraysel.run.random_search import distributed_random_search
 >>> with ProcessExecutor(workers=2) as ex:                              # doctest: +SKIP
 ...     res = distributed_random_search(ToyObjectiveFactory(64, 32), 100_000, None, 0, ex, 4096)
@@ -28,16 +27,9 @@ import numpy as np
 from arraysel.errors import ArrayselError, ParameterError, check_number
 from arraysel.run.executors import Executor, TaskFailed, as_executor as _as_executor
 from arraysel.selectors.contract import finite_or_inf
+from arraysel.selectors.starts import random_subsets
 
-__all__ = ["RandomSearchResult", "distributed_random_search", "distributed_evaluate", "random_subsets"]
-
-
-def random_subsets(rng: np.random.Generator, batch: int, n: int, k: int) -> np.ndarray:
-    """``(batch, k)`` sorted element indices of uniformly random k-subsets of ``range(n)``."""
-    if k >= n:
-        return np.tile(np.arange(n), (batch, 1))
-    keys = rng.random((batch, n))
-    return np.sort(np.argpartition(keys, k - 1, axis=1)[:, :k], axis=1)
+__all__ = ["RandomSearchResult", "distributed_random_search", "distributed_evaluate"]
 
 
 def _random_chunk(objective, item) -> dict:
