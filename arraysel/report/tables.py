@@ -41,7 +41,7 @@ __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_
            "read_runs", "typed_runs", "rebuild_tables", "TABLE1_COLUMNS", "WrittenTables"]
 
 #: text columns of ``runs.csv`` (read as text, an empty cell as "")
-_TEXT_COLUMNS = ("config", "selector", "elements", "options", "error")
+_TEXT_COLUMNS = ("config", "selector", "elements", "options", "error", "budget_flag")
 
 
 def write_json(path, data: Any) -> None:
