@@ -22,7 +22,7 @@ _LAZY = {
     "Objective": ("arraysel.objective.psf_objective", "Objective"),
     "build_objective": ("arraysel.objective.build", "build_objective"),
     "compare": ("arraysel.api", "compare"),
-    "CompareResult": ("arraysel.api", "CompareResult"),
+    "CompareResult": ("arraysel.run.compare", "CompareResult"),
     "Budget": ("arraysel.selectors.contract", "Budget"),
     "Selector": ("arraysel.selectors.contract", "Selector"),
     "cache_dir": ("arraysel.io.cache", "cache_dir"),

@@ -8,6 +8,7 @@
 >>> res.table            # pandas DataFrame (table1.csv: each selector's best run)
 >>> res.stats            # pandas DataFrame (stats.csv: statistics over seeds)
 >>> res.figures["psfs"]  # matplotlib Figure
+>>> res.selections["random"].indices  # the selection table1.csv lists
 
 Everything here is a thin layer over the modules that do the work
 (:mod:`arraysel.scenes.schema`, :mod:`arraysel.objective.psf_objective`, :mod:`arraysel.run.compare`).
@@ -21,36 +22,21 @@ from typing import Any, Sequence
 __all__ = ["CompareResult", "compare"]
 
 
-@dataclasses.dataclass
-class CompareResult:
-    """What :func:`compare` returns.
+def __getattr__(name):
+    # CompareResult lives with compare (arraysel.run.compare); looked up on first use, so that
+    # importing this module loads neither torch nor pandas
+    if name == "CompareResult":
+        from arraysel.run.compare import CompareResult
 
-    table : ``table1.csv`` (one row per configuration, ``full`` first: the metrics of its listed
-        selection, the run with the best Mean over its seeds)
-    stats : ``stats.csv`` (one row per configuration: the statistics of its Means over seeds,
-        bootstrap confidence interval of the median, rank test against ``random``)
-    runs : ``runs.csv`` (one row per (configuration, seed) run)
-    trace : ``trace.csv`` (improvements of the best Mean over time)
-    figures : ``{"masks", "psfs", "profiles", "trace"}`` -> matplotlib Figure (those drawn)
-    out_dir : the folder that holds the files
-    """
-
-    table: Any
-    runs: Any
-    trace: Any
-    figures: dict
-    out_dir: str
-    stats: Any = None
-
-    def _repr_html_(self) -> str:  # a notebook shows the table
-        return self.table._repr_html_()
+        return CompareResult
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *, seeds: Sequence[int] = (0,),
             budget_s: float | None = 60.0, budget_evals: int | None = None, options: dict | None = None,
             out_dir: str | os.PathLike | None = None, force: bool = False, resume: bool = False,
             device: str = "cpu", dtype: str = "float32", isolate: bool = False, grace_s: float | None = None,
-            progress: bool = True, figures: bool = True, objective=None) -> CompareResult:
+            progress: bool = True, figures: bool = True, objective=None) -> "CompareResult":
     """Compare selectors on a scene, as ``arraysel compare`` does, and return the results.
 
     Parameters
@@ -68,11 +54,11 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
 
     Returns
     -------
-    :class:`CompareResult` with pandas DataFrames and matplotlib Figures.
+    :class:`~arraysel.run.compare.CompareResult` (pandas DataFrames: ``table``, ``stats``, ``runs``,
+    ``trace``; each configuration's ``selections``; the ``failures``) with its ``figures``
+    (``{"masks", "psfs", "profiles", "trace", "anytime"}`` -> matplotlib Figure, those drawn).
     """
     import tempfile
-
-    import pandas as pd
 
     from arraysel.report import plots
     from arraysel.run.compare import compare as _compare
@@ -96,12 +82,7 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
     opts = options or {}
     sels = [(name, opts.get(name, {})) for name in selectors]
     with plots.collect_figures() as figs:
-        table = _compare(objective, sels, out_dir=out_dir, seeds=list(seeds), budget=budget, resume=resume,
-                         force=force, progress=progress, figures=figures, isolate=isolate, grace_s=grace_s,
-                         command_line=["arraysel.compare(...)"])
-    out = os.fspath(out_dir)
-    runs = pd.read_csv(os.path.join(out, "runs.csv"), keep_default_na=False, na_values=["", "nan", "NaN"])
-    trace = pd.read_csv(os.path.join(out, "trace.csv"))
-    stats = pd.read_csv(os.path.join(out, "stats.csv"), keep_default_na=False, na_values=["", "nan", "NaN"])
-    stats["note"] = stats["note"].fillna("")
-    return CompareResult(table=table, runs=runs, trace=trace, figures=dict(figs), out_dir=out, stats=stats)
+        result = _compare(objective, sels, out_dir=out_dir, seeds=list(seeds), budget=budget, resume=resume,
+                          force=force, progress=progress, figures=figures, isolate=isolate, grace_s=grace_s,
+                          command_line=["arraysel.compare(...)"])
+    return dataclasses.replace(result, figures=dict(figs))

@@ -42,7 +42,7 @@ API_PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
         "`import arraysel as asel` gives these names (imported on first use, so `import arraysel` "
         "itself loads neither torch nor pandas). Each is documented where it lives.",
         ("arraysel", "arraysel.scenes.schema.load_scene", "arraysel.objective.psf_objective.build_objective",
-         "arraysel.api.compare", "arraysel.api.CompareResult", "arraysel.io.cache.cache_dir"),
+         "arraysel.api.compare", "arraysel.run.compare.CompareResult", "arraysel.io.cache.cache_dir"),
     ),
     "scenes": (
         "Scenes",

@@ -302,3 +302,84 @@ def test_objectives_read_their_scene_once():
                             and node.value.value.id == "self"):
                         raise AssertionError(f"{name}: {cls.name}.{fn.name} reads self.scene.{node.attr} "
                                              "after construction (use self.settings)")
+
+
+# ---------------------------------------------------------------------------
+# compare: a result, runners, one store (a selection's text formed at the store only)
+# ---------------------------------------------------------------------------
+
+COMPARE_FUNCTION_LINES = 80
+#: the calls that write a comparison's files
+FILE_WRITERS = {"write_json", "write_csv", "write_runs", "write_tables", "write_ioh", "save_figure",
+                "atomic_write_text", "atomic_write_bytes", "remove_results", "write_figures"}
+
+
+def _calls(tree: ast.AST) -> set[str]:
+    """The names a module calls (a method of its ``store``, the CompareStore, left out)."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            f = node.func
+            if isinstance(f, ast.Attribute) and not (isinstance(f.value, ast.Name) and f.value.id == "store"):
+                out.add(f.attr)
+            elif isinstance(f, ast.Name):
+                out.add(f.id)
+    return out
+
+
+def test_compare_returns_a_frozen_result():
+    import dataclasses
+
+    from arraysel.run.compare import CompareResult, compare
+
+    assert dataclasses.is_dataclass(CompareResult) and CompareResult.__dataclass_params__.frozen
+    fields = {f.name for f in dataclasses.fields(CompareResult)}
+    assert {"table", "runs", "trace", "stats", "selections", "failures", "out_dir"} <= fields
+    fn = next(n for n in _tree("arraysel.run.compare").body if isinstance(n, ast.FunctionDef) and n.name == "compare")
+    assert ast.unparse(fn.returns) == "CompareResult"
+
+
+def test_compare_functions_stay_short():
+    for m in ("arraysel.run.compare", "arraysel.run.runners", "arraysel.run.store"):
+        for node in ast.walk(_tree(m)):
+            if isinstance(node, ast.FunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                assert length <= COMPARE_FUNCTION_LINES, f"{m}.{node.name}: {length} lines"
+
+
+def test_run_modes_are_runners():
+    from arraysel.run import runners
+
+    for name in ("InProcessRunner", "IsolatedRunner", "ExecutorRunner"):
+        cls = getattr(runners, name)
+        assert issubclass(cls, runners.Runner) and "run" in vars(cls), name
+    # a run without a result gets its row in one place
+    builders = {m for m in MODULES if m.startswith("arraysel.run")
+                and any(isinstance(n, ast.Dict) and any(isinstance(k, ast.Constant) and k.value == "error"
+                                                        for k in n.keys)
+                        and any(isinstance(k, ast.Constant) and k.value == "n_elements" for k in n.keys)
+                        for n in ast.walk(_tree(m)))}
+    assert builders == {"arraysel.run.experiment", "arraysel.run.runners"}, builders  # a run's row | failure_row
+
+
+def test_only_the_store_writes_the_compare_files():
+    for m in (m for m in MODULES if m.startswith("arraysel.run") and m not in
+              ("arraysel.run.store", "arraysel.run.outdir")):
+        assert not (_calls(_tree(m)) & FILE_WRITERS), (m, _calls(_tree(m)) & FILE_WRITERS)
+
+
+def test_a_selections_text_is_formed_at_the_store_only():
+    """In ``run``, a row's ``elements`` is a ``Selection``: only the store forms or reads its text."""
+    for m in (m for m in MODULES if m.startswith("arraysel.run") and m != "arraysel.run.store"):
+        tree = _tree(m)
+        attrs = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+        names = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} | attrs
+        assert not names & {"format_elements", "parse_element_text", "from_text"}, m
+        assert "text" not in attrs, m  # Selection.text
+
+
+def test_the_cli_and_api_use_the_result_not_the_files():
+    """``arraysel compare`` and ``api.compare`` take the tables from the result, never read back."""
+    for m in ("arraysel.cli.compare", "arraysel.api"):
+        calls = _calls(_tree(m))
+        assert not calls & {"read_csv", "read_runs", "read_text", "read_bytes", "open", "load", "loads"}, (m, calls)

@@ -92,7 +92,7 @@ BUDGET = Budget(evaluations=150, seconds=30)
 
 def _run(tmp, reg, executor=None, selectors=SELECTORS, seeds=(0, 1)):
     table = compare(ToyObjective(16, 8), selectors, out_dir=tmp, seeds=list(seeds), budget=BUDGET,
-                    registry=reg, progress=False, figures=False, executor=executor)
+                    registry=reg, progress=False, figures=False, executor=executor).table
     runs = pd.read_csv(tmp / "runs.csv", keep_default_na=False)
     trace = pd.read_csv(tmp / "trace.csv", keep_default_na=False)
     return table, runs, trace

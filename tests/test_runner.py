@@ -144,7 +144,7 @@ def test_compare_writes_all_files(reg, tmp_path):
     obj = ToyObjective(16, 8)
     table = compare(obj, ["ste", "random", "uniform"], out_dir=tmp_path, seeds=[0, 1],
                     budget=Budget(evaluations=60, seconds=10), registry=reg, progress=False,
-                    command_line=["arraysel", "compare"])
+                    command_line=["arraysel", "compare"]).table
     names = {p.name for p in tmp_path.iterdir()}
     assert {"table1.csv", "stats.csv", "runs.csv", "trace.csv", "ioh", "run.json", "masks.png",
             "psfs.png", "profiles.png", "trace.png", "anytime.png"} <= names

@@ -139,7 +139,7 @@ def _check_rows_are_their_elements(table, objective, rtol):
 def test_toy_table1_metrics_are_those_of_its_elements(reg, tmp_path):
     obj = ToyObjective(16, 8)
     table = compare(obj, ["random", "ste", "uniform"], out_dir=tmp_path, seeds=[0, 1, 2],
-                    budget=Budget(evaluations=40), registry=reg, progress=False, figures=False)
+                    budget=Budget(evaluations=40), registry=reg, progress=False, figures=False).table
     runs = read_runs(tmp_path / "runs.csv")
     t1 = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
     _check_rows_are_their_elements(t1, obj, 1e-6)

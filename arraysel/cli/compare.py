@@ -232,34 +232,24 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
         notice = _exact_run_notice(objective, budget, n_runs)
         if notice:
             print(f"arraysel compare: {notice}", file=sys.stderr)
-        table = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
-                        budget=budget, registry=registry, resume=args.resume,
-                        progress=not args.no_progress, figures=not args.no_figures,
-                        command_line=["arraysel", *sys.argv[1:]], executor=executor, force=args.force,
-                        isolate=not args.in_process, grace_s=grace_s, threads=threads)
+        result = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
+                         budget=budget, registry=registry, resume=args.resume,
+                         progress=not args.no_progress, figures=not args.no_figures,
+                         command_line=["arraysel", *sys.argv[1:]], executor=executor, force=args.force,
+                         isolate=not args.in_process, grace_s=grace_s, threads=threads)
     finally:
         if executor is not None:
             executor.close()
-    import pandas as pd
-
     from arraysel.report.summary import to_text
 
-    print(to_text(table, pd.read_csv(f"{args.out}/stats.csv")))  # the statistics as written (AOCC, gaps)
+    print(to_text(result.table, result.stats))  # the tables as written (AOCC, gaps)
     print(f"wrote {args.out}/table1.csv (each selector's best run), stats.csv (statistics over seeds), "
           f"runs.csv, trace.csv, ioh/, run.json" + ("" if args.no_figures else " and figures"))
-    return _report_failures(args.out)
+    return _report_failures(result.failures)
 
 
-def _report_failures(out: str) -> int:
-    """Say which runs have an error row (from run.json); exit code 1 when any, else 0."""
-    import json
-    import os
-
-    try:
-        with open(os.path.join(out, "run.json"), "rb") as fh:
-            failed = json.loads(fh.read().decode("utf-8")).get("failed_runs", [])
-    except (OSError, ValueError):
-        return 0
+def _report_failures(failed) -> int:
+    """Say which runs have an error row; exit code 1 when any, else 0."""
     if failed:
         print(f"arraysel compare: {len(failed)} run(s) failed (see the error column of runs.csv): "
               + ", ".join(failed), file=sys.stderr)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -38,10 +38,10 @@ from arraysel.report.stats import stats_table
 from arraysel.selection import Selection
 
 __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "best_rows", "stats_table",
-           "read_runs", "rebuild_tables", "TABLE1_COLUMNS"]
+           "read_runs", "typed_runs", "rebuild_tables", "TABLE1_COLUMNS", "WrittenTables"]
 
 #: text columns of ``runs.csv`` (read as text, an empty cell as "")
-_TEXT_COLUMNS = ("config", "selector", "elements", "options", "error")
+_TEXT_COLUMNS = ("config", "selector", "elements", "options", "error", "budget_flag")
 
 
 def write_json(path, data: Any) -> None:
@@ -52,18 +52,20 @@ def write_csv(path, df) -> None:
     atomic_write_text(path, df.to_csv(index=False))
 
 
-def write_tables(out: Path, runs, trace=None) -> None:
+def write_tables(out: Path, runs, trace=None) -> tuple[Any, Any]:
     """Write ``table1.csv`` and ``stats.csv`` of the runs table ``runs`` to the folder ``out``; the
     AOCC from ``trace`` (default: the folder's ``trace.csv``), the gap to the best known from the
-    scene and ``k`` of the folder's ``run.json``."""
+    scene and ``k`` of the folder's ``run.json``. Returns the two tables written."""
     out = Path(out)
     if trace is None and (out / "trace.csv").is_file():
         import pandas as pd
 
         trace = pd.read_csv(out / "trace.csv")
     stats = stats_table(runs, trace, best_known_mean(out))
-    write_csv(out / "table1.csv", table1(runs, dict(zip(stats["config"], stats["AOCC"]))))
+    table = table1(runs, dict(zip(stats["config"], stats["AOCC"])))
+    write_csv(out / "table1.csv", table)
     write_csv(out / "stats.csv", stats)
+    return table, stats
 
 
 def best_known_mean(folder) -> float | None:
@@ -85,8 +87,16 @@ def read_runs(path):
     as numbers (``nan`` as NaN)."""
     import pandas as pd
 
-    runs = pd.read_csv(path, dtype={c: str for c in _TEXT_COLUMNS}, keep_default_na=False,
-                       na_values=["", "nan", "NaN"])
+    return typed_runs(pd.read_csv(path, dtype={c: str for c in _TEXT_COLUMNS}, keep_default_na=False,
+                                  na_values=["", "nan", "NaN"]))
+
+
+def typed_runs(runs):
+    """A runs table with the types :func:`read_runs` gives: the text columns as text (a missing
+    cell as ``""``), ``seed`` as whole numbers with a gap (the ``full`` row has none)."""
+    import pandas as pd
+
+    runs = runs.copy()
     for c in _TEXT_COLUMNS:
         if c in runs:
             runs[c] = runs[c].fillna("").astype(str)
@@ -103,8 +113,19 @@ def rebuild_tables(folder) -> list[Path]:
     return [folder / "table1.csv", folder / "stats.csv"]
 
 
-def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: str | None = None) -> None:
-    """Write ``runs.csv``, ``table1.csv``, ``trace.csv`` and the IOHprofiler files (``ioh/``)."""
+class WrittenTables(NamedTuple):
+    """The tables :func:`write_runs` wrote (DataFrames): ``runs.csv``, ``trace.csv``, ``table1.csv``,
+    ``stats.csv``."""
+
+    runs: Any
+    trace: Any
+    table: Any
+    stats: Any
+
+
+def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: str | None = None) -> WrittenTables:
+    """Write ``runs.csv``, ``table1.csv``, ``stats.csv``, ``trace.csv`` and the IOHprofiler files
+    (``ioh/``) of the rows as a file holds them (``elements`` as text); returns the tables."""
     import pandas as pd
 
     # a several-point scene's per-point columns ("L_PSF@p0", ..., "Mean@worst") follow ROW_COLUMNS
@@ -112,10 +133,12 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
     runs = pd.DataFrame(rows, columns=list(ROW_COLUMNS) + extra)
     # traces first: a run named in runs.csv always has its trace on disk (a kill between two of
     # these writes leaves a run traced but not listed, which --resume runs again)
-    write_csv(out / "trace.csv", pd.DataFrame(trace, columns=list(TRACE_COLUMNS)))
+    traces = pd.DataFrame(trace, columns=list(TRACE_COLUMNS))
+    write_csv(out / "trace.csv", traces)
     write_ioh(out / "ioh", rows, trace, problem or "arraysel")
     write_csv(out / "runs.csv", runs)
-    write_tables(out, runs, trace)
+    table, stats = write_tables(out, runs, trace)
+    return WrittenTables(runs, traces, table, stats)
 
 
 # ---------------------------------------------------------------------------

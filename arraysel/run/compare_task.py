@@ -44,14 +44,15 @@ class _Raise:
 
 
 def compare_task(objective, item) -> dict | _Raise:
-    """Run one ``(selector, seed)`` experiment on a worker: ``{"row": ..., "trace": [...]}``."""
+    """Run one ``(selector, seed)`` experiment on a worker: ``{"row": ..., "trace": [...]}`` (the
+    row's ``elements``: its :class:`~arraysel.selection.Selection`, :meth:`Experiment.execute`)."""
     for spec in item["plugins"]:
         load_plugin(spec)
     cls = pickle.loads(item["selector"])
     exp = Experiment(objective, cls, options=item["options"], budget=item["budget"], seed=item["seed"],
                      config=item["config"])
     try:
-        row = exp.run()
+        row = exp.execute()
     except BudgetExceededError as exc:
         return _Raise(exc)
     return {"row": row, "trace": [dict(t) for t in exp.trace], "pid": os.getpid()}

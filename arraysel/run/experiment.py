@@ -23,6 +23,10 @@ Example
 >>> row = Experiment(ToyObjective(16, 8), "uniform", budget=Budget(evaluations=10)).run()
 >>> row["elements"]
 '0 2 4 6 8 10 12 14'
+
+:meth:`Experiment.execute` returns the same row with its ``elements`` as a
+:class:`~arraysel.selection.Selection` (``None`` when the run has none): the form ``compare`` carries
+to its files and figures; its text is formed where a row is written (:func:`arraysel.run.store.file_row`).
 """
 from __future__ import annotations
 
@@ -39,7 +43,7 @@ import numpy as np
 
 from arraysel.errors import SelectionError, check_number, error_text as _error_text
 from arraysel.report.columns import METRICS, ROW_COLUMNS, TRACE_COLUMNS  # noqa: F401  (re-exported)
-from arraysel.selection import format_elements
+from arraysel.selection import Selection
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder,
                                          Selector, check_selection, indices_to_mask, numpy_rng)
 
@@ -115,7 +119,15 @@ class Experiment:
     selection: list | None = dataclasses.field(default=None, init=False)
 
     def run(self) -> dict:
-        """Run the selector once; return a row with the keys :data:`ROW_COLUMNS`."""
+        """Run the selector once; return a row with the keys :data:`ROW_COLUMNS`, as a file holds it
+        (``elements`` as text, ``"0 2 4"``)."""
+        from arraysel.run.store import file_row
+
+        return file_row(self.execute())
+
+    def execute(self) -> dict:
+        """Run the selector once; return its row with ``elements`` a :class:`Selection` (``None``
+        when the run has no selection)."""
         obj = self.objective
         cls = _resolve(self.selector, self.registry)
         selector = cls(**self.options)
@@ -177,7 +189,7 @@ class Experiment:
             **metrics,
             "seconds": wall, "evaluations": used, "gradient_steps": g1 - g0,
             "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
-            "elements": format_elements(selection),
+            "elements": None if selection is None else Selection(tuple(selection), n),
             "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
             "error": error,
             "budget_flag": late_start_flag(started[0] if started else None, budget), **extra,
@@ -314,7 +326,8 @@ class _RunProgress:
 
 
 def full_row(objective) -> dict:
-    """The ``full`` reference row: every element active, evaluated once."""
+    """The ``full`` reference row: every element active, evaluated once (``elements``: their
+    :class:`Selection`)."""
     n = int(objective.n_elements)
     e0, g0, s0 = _counters(objective)
     t0 = time.perf_counter()
@@ -333,23 +346,5 @@ def full_row(objective) -> dict:
         "config": "full", "selector": "full", "seed": "", "k": n, "n_elements": n, **metrics,
         "seconds": wall, "evaluations": e1 - e0, "gradient_steps": g1 - g0,
         "objective_seconds": s1 - s0, "overhead_seconds": max(0.0, wall - (s1 - s0)),
-        "elements": format_elements(range(n)), "options": "", "error": error, "budget_flag": "", **extra,
-    }
-
-
-def _lost_row(objective, config: str, name: str, options: dict, seed: int, message: str) -> dict:
-    """The row of a run that could not be completed on any worker."""
-    return _failed_row(objective, config, name, options, seed, f"run lost: {message}")
-
-
-def _failed_row(objective, config: str, name: str, options: dict, seed: int, message: str) -> dict:
-    """The row of a run that has no result, with ``message`` as its error."""
-    nan = math.nan
-    return {
-        "config": config, "selector": name, "seed": seed, "k": int(objective.k),
-        "n_elements": int(objective.n_elements), **{m: nan for m in METRICS},
-        "seconds": nan, "evaluations": nan, "gradient_steps": nan, "objective_seconds": nan,
-        "overhead_seconds": nan, "elements": "",
-        "options": json.dumps(options, sort_keys=True, default=str) if options else "",
-        "error": message, "budget_flag": "",
+        "elements": Selection(tuple(range(n)), n), "options": "", "error": error, "budget_flag": "", **extra,
     }

@@ -1,0 +1,319 @@
+"""The run modes of ``compare`` as interchangeable runners.
+
+A runner makes the ``(selector, seed)`` runs of a comparison, each a :class:`RunSpec`; they share
+one small interface (:class:`Runner`): :meth:`~Runner.prepare` before the first run's clock
+starts (build what the runs need; warm this process's objective when runs go here),
+:meth:`~Runner.run` yields ``(i, row, trace)`` for ``todo[i]`` as each run finishes (in any
+order), :meth:`~Runner.warm_ups` lists the workers' one-off work for ``run.json``, and
+:meth:`~Runner.close` ends them. The three:
+
+* :class:`InProcessRunner` -- one after another in this process (``--in-process``);
+* :class:`IsolatedRunner` -- each in a fresh child process forked from a warm template
+  (:mod:`arraysel.run.isolation`, :mod:`arraysel.run.template`; the default);
+* :class:`ExecutorRunner` -- on an executor, again each in a fresh process
+  (:mod:`arraysel.run.executors`: a process pool or Dask).
+
+A row's ``elements`` is the run's :class:`~arraysel.selection.Selection` (``None`` without
+one). A run without a result gets its row from :func:`failure_row`, the one place such rows
+are made.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+import sys
+from typing import Callable, Iterator
+
+import numpy as np
+
+from arraysel.errors import ArrayselError, ParameterError, error_text as _error_text
+from arraysel.report.columns import METRICS
+from arraysel.run.compare_task import _Raise, compare_item, compare_task
+from arraysel.run.experiment import Experiment, _final_metrics
+from arraysel.run.workers import TaskFailed, objective_factory_for
+from arraysel.selection import indices_to_mask
+from arraysel.selectors.contract import Budget, BudgetExceededError
+
+__all__ = ["RunSpec", "Runner", "InProcessRunner", "IsolatedRunner", "ExecutorRunner", "make_runner",
+           "failure_row"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One ``(selector, seed)`` run of a comparison: its config label, selector class and options."""
+
+    config: str
+    selector: type
+    options: dict
+    seed: int
+
+
+def failure_row(objective, spec: RunSpec, failure: BaseException | TaskFailed, budget: Budget, grace: float,
+                lost: bool = False) -> dict:
+    """The row of a run without a result, ``error`` saying why: the
+    :class:`~arraysel.selectors.contract.BudgetExceededError` it raised, or the
+    :class:`~arraysel.run.workers.TaskFailed` of its process (stopped at its deadline: ``run failed:
+    BudgetExceededError: ...``; died or failed: ``run failed: ...``; with ``lost``, a run an executor
+    could not complete on any worker: ``run lost: ...``)."""
+    if isinstance(failure, BaseException):
+        if not lost:
+            return _error_row(objective, spec, _error_text(failure))
+        failure = TaskFailed(_error_text(failure))
+    msg = failure.message
+    if failure.kind == "timeout":
+        return _error_row(objective, spec, f"run failed: BudgetExceededError: {msg}; the budget was "
+                                           f"{budget.seconds:g} s and the grace period {grace:g} s")
+    return _error_row(objective, spec, f"run lost: {msg}" if lost else f"run failed: {msg}")
+
+
+def _error_row(objective, spec: RunSpec, message: str) -> dict:
+    nan = math.nan
+    return {
+        "config": spec.config, "selector": spec.selector.name, "seed": spec.seed, "k": int(objective.k),
+        "n_elements": int(objective.n_elements), **{m: nan for m in METRICS},
+        "seconds": nan, "evaluations": nan, "gradient_steps": nan, "objective_seconds": nan,
+        "overhead_seconds": nan, "elements": None,
+        "options": json.dumps(spec.options, sort_keys=True, default=str) if spec.options else "",
+        "error": message, "budget_flag": "",
+    }
+
+
+def _timeout(budget: Budget, grace: float) -> float | None:
+    """Seconds a run's process may take: its time budget plus the grace period."""
+    return None if budget.seconds is None else budget.seconds + grace
+
+
+def _checked(objective, row: dict, trace: list) -> tuple[dict, list]:
+    """A row made in another process, checked here: its selection is scored again on this
+    process's objective, which no plugin has touched. A Mean that differs (a selector that
+    patched ``evaluate`` in its own process, say) is replaced by the true one, the row gets an
+    error naming both, and its trace, recorded in that process, is left out."""
+    selection = row.get("elements")
+    if not selection or str(row.get("error") or "").strip():
+        return row, trace
+    try:
+        true = _final_metrics(objective, list(selection.indices))
+    except Exception as exc:  # its selection cannot be scored here: the row cannot be trusted
+        return {**row, "error": f"its selection could not be scored again: {_error_text(exc)}"}, []
+    got, want = float(row.get("Mean", math.nan)), float(true.get("Mean", math.nan))
+    if got == want or abs(got - want) <= 1e-5 * abs(want):
+        return row, trace
+    return {**row, **true, "error": f"the run reported Mean {got:.6g} for its selection, which scores {want:.6g}: "
+                                    f"the selector changed the objective in its own process (its trace is "
+                                    f"left out)"}, []
+
+
+class Runner:
+    """The interface of a run mode (see the module's text); a runner makes each run at most once."""
+
+    def prepare(self, todo: list[RunSpec]) -> dict | None:
+        """Get ready for ``todo`` before the first run's clock starts; the warm-up of this
+        process's objective for ``run.json`` when runs go here, else ``None``."""
+        return None
+
+    def run(self, todo: list[RunSpec], on_start: Callable[[RunSpec], None] | None = None
+            ) -> Iterator[tuple[int, dict, list]]:
+        """``(i, row, trace)`` of ``todo[i]``, as each run finishes."""
+        raise NotImplementedError
+
+    def warm_ups(self) -> list[dict]:
+        """Each worker's one-off work (objective build, basis check, compiled code), never
+        charged to a run."""
+        return []
+
+    def close(self) -> None:
+        """End the workers (a runner that has none does nothing)."""
+
+
+class InProcessRunner(Runner):
+    """The runs one after another in this process, on ``objective`` itself (warmed first). After
+    each, the objective must be as it was (:class:`_Fingerprint`): a run that changed it is
+    yielded with an error, then the comparison stops (:class:`~arraysel.errors.ArrayselError`)."""
+
+    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False):
+        self.objective, self.budget, self.grace = objective, budget, grace
+        self.full_mean, self.progress = full_mean, progress
+        self.fingerprint: _Fingerprint | None = None
+
+    def prepare(self, todo: list[RunSpec]) -> dict | None:
+        from arraysel.run.template import warm_objective
+
+        warm = warm_objective(self.objective) if todo else None
+        self.fingerprint = _Fingerprint(self.objective, self.full_mean)  # taken once warm
+        return warm
+
+    def run(self, todo, on_start=None):
+        for i, spec in enumerate(todo):
+            if on_start is not None:
+                on_start(spec)
+            row, trace, why = self.run_one(spec)
+            yield i, row, trace
+            if why:
+                raise ArrayselError(f"{spec.config} seed {spec.seed}: {why}")
+
+    def run_one(self, spec: RunSpec) -> tuple[dict, list, str]:
+        """``(row, trace, why)``: ``why`` is ``''`` unless the run changed the objective (then
+        its row holds the error too)."""
+        exp = Experiment(self.objective, spec.selector, options=spec.options, budget=self.budget, seed=spec.seed,
+                         config=spec.config, progress=self.progress)
+        try:
+            row, trace = exp.execute(), exp.trace
+        except BudgetExceededError as exc:
+            row, trace = failure_row(self.objective, spec, exc, self.budget, self.grace), []
+        changed = self.fingerprint.changed() if self.fingerprint is not None else ""
+        if not changed:
+            return row, trace, ""
+        # its numbers, and those of every later run here, cannot be trusted
+        why = f"the selector changed the objective it was given ({changed}); run it isolated (without --in-process)"
+        return {**row, "error": "; ".join(e for e in (str(row.get("error") or ""), why) if e)}, trace, why
+
+
+class IsolatedRunner(Runner):
+    """Each run in a fresh child process forked from a warm template
+    (:class:`~arraysel.run.isolation.IsolatedWorker`), stopped ``grace`` seconds after its time
+    budget. A config whose selector class cannot be sent to a child runs in this process
+    (``local``, an :class:`InProcessRunner`)."""
+
+    def __init__(self, objective, factory, budget: Budget, grace: float, local: InProcessRunner,
+                 threads: int | None = None, verify: str | None = None):
+        self.objective, self.factory, self.budget, self.grace = objective, factory, budget, grace
+        self.local, self.threads, self.verify = local, threads, verify
+        self.worker = None
+        self.here: set[str] = set()
+
+    def prepare(self, todo):
+        from arraysel.run.isolation import IsolatedWorker
+
+        for spec in todo:
+            try:
+                compare_item(spec.config, spec.selector, spec.options, Budget(evaluations=1), 0)
+            except ParameterError as exc:
+                print(f"arraysel compare: {spec.config} runs in this process, not isolated: {exc}", file=sys.stderr)
+                self.here.add(spec.config)
+        self.worker = IsolatedWorker(self.factory, threads=self.threads, verify=self.verify)
+        return self.local.prepare([s for s in todo if s.config in self.here]) if self.here else None
+
+    def run(self, todo, on_start=None):
+        for i, spec in enumerate(todo):
+            if on_start is not None:
+                on_start(spec)
+            if spec.config in self.here:
+                row, trace, why = self.local.run_one(spec)
+                yield i, row, trace
+                if why:
+                    raise ArrayselError(f"{spec.config} seed {spec.seed}: {why}")
+                continue
+            item = compare_item(spec.config, spec.selector, spec.options, self.budget, spec.seed)
+            res = self.worker.run(compare_task, item, _timeout(self.budget, self.grace))
+            if isinstance(res, _Raise) and not isinstance(res.exception, BudgetExceededError):
+                raise res.exception
+            if isinstance(res, (_Raise, TaskFailed)):
+                failure = res.exception if isinstance(res, _Raise) else res
+                yield i, failure_row(self.objective, spec, failure, self.budget, self.grace), []
+            else:
+                yield (i, *_checked(self.objective, res["row"], res["trace"]))
+
+    def warm_ups(self):
+        return [] if self.worker is None else self.worker.warm_ups
+
+    def close(self):
+        if self.worker is not None:
+            self.worker.close()
+
+
+class ExecutorRunner(Runner):
+    """The runs on an :class:`~arraysel.run.executors.Executor`, each in a fresh process stopped at
+    its deadline; results arrive in any order. A run that kept failing gets a ``run lost`` row."""
+
+    def __init__(self, objective, factory, executor, budget: Budget, grace: float, verify: str | None = None):
+        self.objective, self.factory, self.executor = objective, factory, executor
+        self.budget, self.grace, self.verify = budget, grace, verify
+        self.items: list[dict] = []
+
+    def prepare(self, todo):
+        self.items = [compare_item(s.config, s.selector, s.options, self.budget, s.seed) for s in todo]
+        return None
+
+    def run(self, todo, on_start=None):
+        tasks = self.executor.run_tasks(self.factory, compare_task, self.items, fresh=True,
+                                        timeout=_timeout(self.budget, self.grace), verify=self.verify)
+        with contextlib.closing(tasks):  # closing the generator cancels the rest on an exception
+            for i, res in tasks:
+                if isinstance(res, _Raise) and not isinstance(res.exception, BudgetExceededError):
+                    raise res.exception
+                if isinstance(res, (_Raise, TaskFailed)):
+                    failure = res.exception if isinstance(res, _Raise) else res
+                    yield i, failure_row(self.objective, todo[i], failure, self.budget, self.grace, lost=True), []
+                else:
+                    yield (i, *_checked(self.objective, res["row"], res["trace"]))
+
+    def warm_ups(self):
+        return self.executor.worker_warm_ups() if hasattr(self.executor, "worker_warm_ups") else []
+
+
+def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, executor=None, objective_factory=None,
+                isolate: bool = False, threads: int | None = None, progress: bool = False) -> Runner:
+    """The runner of a comparison: on ``executor`` (unless it runs in this process), else isolated
+    child processes (``isolate``), else this process."""
+    local = InProcessRunner(objective, budget, grace, full_mean, progress)
+    remote = executor is not None and not getattr(executor, "in_process", False)
+    if not remote and not isolate:
+        return local
+    factory = objective_factory if objective_factory is not None else objective_factory_for(objective)
+    # the children load the cache entries this process has just loaded and checked: sizes suffice
+    verify = "size" if objective_factory is None else None
+    if remote:
+        return ExecutorRunner(objective, factory, executor, budget, grace, verify)
+    return IsolatedRunner(objective, factory, budget, grace, local, threads, verify)
+
+
+#: the objective's counters (they change with every call)
+_COUNTERS = ("evaluations", "gradient_steps", "seconds")
+
+
+class _Fingerprint:
+    """What a run in this process must leave as it found it: the objective's attributes and the
+    methods of its class and of :class:`~arraysel.selectors.contract.BudgetedObjective` (by
+    identity: a replaced or wrapped ``evaluate`` shows), and the full array's Mean (an attribute
+    edited in place, such as ``metric_kw["r_main"]``, shows there)."""
+
+    def __init__(self, objective, full_mean: float):
+        self.objective = objective
+        self.full_mean = float(full_mean)
+        self.ids = self._ids()
+
+    def _ids(self) -> dict:
+        from arraysel.selectors.contract import BudgetedObjective
+
+        out = {}
+        for where, mapping in (("objective", getattr(self.objective, "__dict__", {})),
+                               ("its class", vars(type(self.objective))),
+                               ("BudgetedObjective", vars(BudgetedObjective))):
+            for key, value in mapping.items():
+                if where == "objective" and key in _COUNTERS:
+                    continue
+                scalar = value is None or isinstance(value, (bool, int, float, str))
+                out[(where, key)] = ("value", value) if scalar else ("id", id(value))
+        return out
+
+    def changed(self) -> str:
+        """'' when nothing changed, else what did (one phrase)."""
+        now = self._ids()
+        keys = sorted(k for k in set(now) | set(self.ids) if now.get(k) != self.ids.get(k))
+        if keys:
+            where, key = keys[0]
+            return f"{key!r} of {where} was replaced, added or removed"
+        want = self.full_mean
+        if not math.isfinite(want):
+            return ""
+        n = int(self.objective.n_elements)
+        try:
+            out = self.objective.evaluate(indices_to_mask(list(range(n)), n)[None])
+            got = float(np.asarray(out["Mean"], dtype=np.float64).reshape(-1)[0])
+        except Exception as exc:
+            return f"scoring the full array now fails ({_error_text(exc)})"
+        if got == want or abs(got - want) <= 1e-9 * abs(want):
+            return ""
+        return f"the full array's Mean was {want:.6g} before it and is {got:.6g} after it"
