@@ -95,3 +95,120 @@ def test_budgeted_neighbourhood_equals_budgeted_masks():
         results.append((v, obj.evaluations, rec.best, [r["evaluations"] for r in rec.rows]))
     np.testing.assert_array_equal(results[0][0], results[1][0])
     assert results[0][1:] == results[1][1:]
+
+
+# ---------------------------------------------------------------- the PSF objective's own neighbourhoods
+import tomllib  # noqa: E402
+
+import torch  # noqa: E402
+
+from scene_texts import TINY_SCENE  # noqa: E402
+
+
+def _tiny_objective(dtype, **over):
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.scenes.schema import load_scene
+
+    tree = tomllib.loads(TINY_SCENE)
+    for sec, keys in over.items():
+        tree.setdefault(sec, {}).update(keys)
+    return Objective(load_scene(tree), dtype=dtype)
+
+
+def _assert_same_scores(got, ref, rtol, atol=0.0):
+    assert set(got) == set(ref)
+    for key in ref:
+        if key == "kernels":
+            np.testing.assert_allclose(got[key], ref[key], rtol=0, atol=max(atol, rtol), err_msg=key)
+        else:
+            np.testing.assert_allclose(got[key], ref[key], rtol=rtol, atol=atol, err_msg=key)
+
+
+def _spy_swap_envelopes(monkeypatch):
+    from arraysel.physics.psf.certificate import Certificates
+
+    calls = []
+    real = Certificates.swap_envelopes
+
+    def spy(self, mask, out, into):
+        calls.append(int(out.numel()))
+        return real(self, mask, out, into)
+
+    monkeypatch.setattr(Certificates, "swap_envelopes", spy)
+    return calls
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_psf_objective_neighbourhood_equals_independent_masks(monkeypatch, dtype, rtol):
+    # a 12-element scene with two field points: every Table-1 key (headline, per point, mean,
+    # worst), the kernels, the counters; the neighbourhood goes through the corrected envelopes
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 5},
+                          medium={"points": [[0.0, 0.02], [0.001, 0.021]]})
+    assert all(p.basis is not None for p in obj.psfs) and isinstance(obj, ScoresSwaps)
+    calls = _spy_swap_envelopes(monkeypatch)
+    m = _mask(12, [0, 3, 4, 8, 11])
+    out, into = swap_pairs(m, np.random.default_rng(2))
+    evaluate_swaps(obj, m, out, into)
+    assert calls == [35, 35]                                 # one call a field point
+    assert obj.evaluations == 35
+    fb = obj.fallbacks
+    got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+    fb_swaps = obj.fallbacks - fb
+    fb = obj.fallbacks
+    ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+    assert obj.fallbacks - fb == fb_swaps and obj.evaluations == 105
+    assert "Mean@p1" in ref and "Mean@worst" in ref
+    _assert_same_scores(got, ref, rtol)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, dtype, rtol):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
+    basis = obj.psf.basis
+    m = _mask(10, [0, 1, 4, 5, 7, 9])
+    out, into = swap_pairs(m)
+    w = torch.as_tensor(swap_masks(m, out, into), dtype=dtype)
+    got = basis.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
+    ref = basis.envelopes(w)
+    assert got.shape == ref.shape and got.dtype == ref.dtype
+    scale = float(ref.abs().max())
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * scale)
+    # the receive elements a neighbour does not use have no channel
+    ntx, ne = len(obj.psf.transmits), 10
+    env = got.view(ntx, ne, -1, w.shape[0]).permute(0, 1, 3, 2)   # (ntx, Ne, B, runs x segments)
+    unused = w.T == 0
+    assert bool(unused.any()) and float(env[:, unused].abs().sum()) == 0.0
+    assert bool((env[:, ~unused].amax(-1) > 0).all())
+
+
+def test_empty_or_bad_neighbourhoods(monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(torch.float64)
+    m = _mask(8, [1, 2, 5, 6])
+    got = obj.evaluate_swaps(m, [], [])
+    assert set(got) == set(obj.metric_names) and all(v.shape == (0,) for v in got.values())
+    with pytest.raises(SelectionError, match="out must name active elements"):
+        obj.evaluate_swaps(m, [0], [3])
+    with pytest.raises(SelectionError, match=r"shape \(8,\)"):
+        obj.evaluate_swaps(_mask(9, [0]), [0], [1])
+
+
+def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper_objective, monkeypatch):
+    # the outer elements only: a wide gap, strong sidelobes, and neighbours whose peaks lie on
+    # many different pixels (and off the base's); every key and kernel as the masks scored alone
+    obj = paper_objective
+    calls = _spy_swap_envelopes(monkeypatch)
+    m = _mask(64, list(range(16)) + list(range(48, 64)))
+    out, into = swap_pairs(m, np.random.default_rng(0))
+    out, into = out[:48], into[:48]
+    w = torch.as_tensor(swap_masks(m, out, into), dtype=torch.float32)
+    with torch.no_grad():
+        base_peak = int(obj.psf.basis.images(torch.as_tensor(m[None], dtype=torch.float32)).abs().flatten().argmax())
+        peaks = obj.psf.basis.images(w).abs().flatten(1).argmax(1)
+    assert bool((peaks != base_peak).any()) and len(set(peaks.tolist())) > 3
+    got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+    assert calls == [out.size]
+    ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+    _assert_same_scores(got, ref, rtol=2e-4, atol=1e-6)
