@@ -25,13 +25,14 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import set_threads  # noqa: E402
 
-#: profile entries (file suffix, function) of the stages reported
+#: profile entries (file suffix, functions) of the stages reported
 STAGES = {
-    "envelopes": ("certificate.py", "envelopes"),
-    "images on E": ("basis.py", "images"),
-    "refinement": ("refinement.py", "refine"),
-    "exact path": ("operator.py", "kernels_exact"),
-    "metrics": ("metrics.py", "psf_metrics"),
+    "envelopes": ("certificate.py", ("envelopes", "swap_envelopes")),
+    "images on E": ("basis.py", ("images",)),
+    "block bounds": ("certificate.py", ("bound",)),
+    "refinement": ("refinement.py", ("refine",)),
+    "exact path": ("operator.py", ("kernels_exact",)),
+    "metrics": ("metrics.py", ("psf_metrics",)),
 }
 
 
@@ -39,8 +40,8 @@ def _stage_shares(prof: cProfile.Profile) -> dict[str, float]:
     st = pstats.Stats(prof)
     total = max(st.total_tt, 1e-12)
     out = {}
-    for name, (suffix, func) in STAGES.items():
-        cum = sum(v[3] for (f, _, fn), v in st.stats.items() if f.endswith(suffix) and fn == func)
+    for name, (suffix, funcs) in STAGES.items():
+        cum = sum(v[3] for (f, _, fn), v in st.stats.items() if f.endswith(suffix) and fn in funcs)
         out[name] = cum / total
     return out
 

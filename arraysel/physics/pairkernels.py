@@ -342,6 +342,30 @@ def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
+def _row_sums_kernel(A, rows, step, out):
+    """``out[c] = sum_{j in rows} A[j, c]`` in float64, parallel over chunks of ``step`` columns
+    (each chunk's sums stay in cache while the rows are read)."""
+    n = A.shape[1]
+    for g in numba.prange((n + step - 1) // step):
+        c0 = g * step
+        c1 = min(n, c0 + step)
+        for c in range(c0, c1):
+            out[c] = 0.0
+        for j in rows:
+            row = A[j, c0:c1]
+            for c in range(c1 - c0):
+                out[c0 + c] += np.float64(row[c])
+
+
+def row_sums(A: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(A.shape[1],) float64 sums of the rows ``rows`` of A (2-D float): a selection's channel
+    products ``sum_{j in mask} A_j`` of ``pair_channels`` (:func:`swap_peaks_into`)."""
+    out = np.empty(A.shape[1], dtype=np.float64)
+    _row_sums_kernel(A, np.ascontiguousarray(rows, dtype=np.int64), 4096, out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
     """``env[n * Ne + e, 0, a, b] = max_r |Y[e] - A[out[b], e] + A[into[b], e]|`` (over the
     samples ``r`` of segment ``a`` of transmit ``n``) for the pairs ``(b, e) = (sel_b[q],

@@ -202,21 +202,22 @@ class Certificates:
         element it uses is ``Y[e] - A_out,e + A_into,e``, three rows read where summing it afresh
         reads k (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
         (:meth:`swaps_compiled`)."""
-        from arraysel.physics.pairkernels import swap_peaks_into
+        from arraysel.physics.pairkernels import row_sums, swap_peaks_into
 
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
         B = int(out.numel())
         nS = self.window_samples // self.segment
-        on = torch.nonzero(mask.detach().cpu() != 0).flatten()
-        A = self.pair_channels
-        Y = torch.zeros(A.shape[1], dtype=torch.float64)
-        for j in on.tolist():  # row by row: a gathered copy of the k rows cost more than the sums
-            Y.add_(A[j])
-        Y = Y.view(ne, -1)
-        env = torch.zeros(ntx * ne, self.max_run, nS, B, dtype=A.dtype)
-        swap_peaks_into(A.numpy(), Y.numpy(), (mask.detach().cpu() != 0).numpy(), out.cpu().numpy(),
-                        into.cpu().numpy(), env.numpy())
+        on = (mask.detach().cpu() != 0).numpy()
+        A = self.pair_channels.numpy()
+        # the selection's channel sums, kept for the next batch of the same neighbourhood
+        key = on.tobytes()
+        held = self.__dict__.get("_swap_sums")
+        if held is None or held[0] != key:
+            held = self._swap_sums = (key, row_sums(A, np.flatnonzero(on)).reshape(ne, -1))
+        env = torch.empty(ntx * ne, self.max_run, nS, B, dtype=self.pair_channels.dtype)
+        env[:, 0].zero_()  # the channels a neighbour does not use; the longer runs come from the first
+        swap_peaks_into(A, held[1], on, out.cpu().numpy(), into.cpu().numpy(), env.numpy())
         return self._segment_runs(env)
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
