@@ -212,3 +212,26 @@ def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper
     assert calls == [out.size]
     ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
     _assert_same_scores(got, ref, rtol=2e-4, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene, dtype, rtol", [("paper", torch.float64, 1e-9), ("l11-5v", torch.float32, 2e-4),
+                                                ("l11-5v", torch.float64, 1e-9)])
+def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
+    # the outer elements (moving peaks) and a random selection of a built-in scene: 64 neighbours
+    # each, every key and kernel as the masks scored alone (builds the scene's basis: minutes)
+    from arraysel.objective.psf_objective import Objective
+
+    obj = Objective(scene, dtype=dtype)
+    n, k = obj.n_elements, obj.k
+    rng = np.random.default_rng(5)
+    for m in (_mask(n, list(range(k // 2)) + list(range(n - k + k // 2, n))),
+              _mask(n, rng.choice(n, k, replace=False))):
+        out, into = swap_pairs(m, rng)
+        out, into = out[:64], into[:64]
+        fb = obj.fallbacks
+        got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+        fb_swaps, fb = obj.fallbacks - fb, obj.fallbacks
+        ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+        assert obj.fallbacks - fb == fb_swaps
+        _assert_same_scores(got, ref, rtol=rtol, atol=1e-6 if dtype == torch.float32 else 1e-12)
