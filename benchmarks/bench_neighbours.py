@@ -3,8 +3,10 @@ scored independently, and where the time of a neighbourhood goes.
 
     python benchmarks/bench_neighbours.py --scenes paper,l11-5v,c5-2v --pairs 256 --rounds 3 --threads 1
 
-Per scene: the uniform layout's first ``--pairs`` one-swap neighbours (a random order, seed 0) are
-scored ``--rounds`` times each way, alternated in one process:
+Per scene, ``--rounds`` steps of a search from the uniform layout: ``--pairs`` one-swap neighbours of
+the selection (a random order, seed 0) are scored each way, alternated in one process, and the
+selection moves to the best of them (so the rows the PSF objective keeps from one neighbourhood to
+the next serve as in a search; the first step forms them); the rates are over all steps. The ways:
 ``arraysel.objective.neighbours.evaluate_swaps`` (the objective's own ``evaluate_swaps`` when it
 has one, else its fallback: the neighbour masks through ``evaluate``) and ``objective.evaluate`` of
 the neighbour masks built by the caller. Both must give the same Means to rounding (checked:
@@ -30,7 +32,7 @@ from _common import set_threads  # noqa: E402
 #: profile entries (file suffix, functions) of the stages reported
 STAGES = {
     "envelopes": ("certificate.py", ("envelopes", "swap_envelopes")),
-    "images on E": ("basis.py", ("images",)),
+    "images on E": ("basis.py", ("images", "swap_images")),
     "block bounds": ("certificate.py", ("bound",)),
     "refinement": ("refinement.py", ("refine",)),
     "exact path": ("operator.py", ("kernels_exact",)),
@@ -70,12 +72,13 @@ def main(argv=None) -> int:
         n, k = int(obj.n_elements), int(obj.k)
         base = np.zeros(n, dtype=bool)
         base[uniform_layout(n, k)] = True
-        out, into = swap_pairs(base, np.random.default_rng(0))
-        out, into = out[:args.pairs], into[:args.pairs]
-        masks = swap_masks(base, out, into)
-        obj.evaluate(masks[:8])  # warm: compiled passes, plans
+        rng = np.random.default_rng(0)
+        obj.evaluate(swap_masks(base, *(v[:8] for v in swap_pairs(base, rng))))  # warm: compiled passes, plans
+        evaluate_swaps(obj, base, *(v[:8] for v in swap_pairs(base, rng)))
         t_swaps, t_masks, diff = [], [], 0.0
         for _ in range(args.rounds):
+            # a step of a search: this selection's neighbours, then a move to the best of them
+            out, into = (v[:args.pairs] for v in swap_pairs(base, rng))
             t0 = time.perf_counter()
             a = evaluate_swaps(obj, base, out, into)["Mean"]
             t_swaps.append(time.perf_counter() - t0)
@@ -86,12 +89,15 @@ def main(argv=None) -> int:
             if not np.allclose(a, b, rtol=1e-4, atol=0):
                 raise SystemExit(f"{scene}: the neighbourhood's Means differ from the masks' "
                                  f"(largest relative difference {diff:.3g})")
+            best = int(np.argmin(b))
+            base = swap_masks(base, out[best:best + 1], into[best:best + 1])[0]
+        out, into = (v[:args.pairs] for v in swap_pairs(base, rng))
         prof = cProfile.Profile()
         prof.enable()
         evaluate_swaps(obj, base, out, into)
         prof.disable()
         shares = _stage_shares(prof)
-        rs, rm = out.size / min(t_swaps), out.size / min(t_masks)
+        rs, rm = out.size * len(t_swaps) / sum(t_swaps), out.size * len(t_masks) / sum(t_masks)
         own = callable(getattr(obj, "evaluate_swaps", None))
         print(f"{scene:8s} {n:4d} {k:4d} {'yes' if own else 'no':>4s} {rs:9.1f} {rm:9.1f} {rs / rm:6.2f}  " +
               ", ".join(f"{k_} {v:.0%}" for k_, v in shares.items()))

@@ -160,6 +160,18 @@ def test_psf_objective_neighbourhood_equals_independent_masks(monkeypatch, dtype
     assert obj.fallbacks - fb == fb_swaps and obj.evaluations == 105
     assert "Mean@p1" in ref and "Mean@worst" in ref
     _assert_same_scores(got, ref, rtol)
+    # a step of a search: the best neighbour's neighbourhood, with the pair-image rows kept from
+    # the last one, and again with none kept
+    best = int(np.argmin(ref["Mean"]))
+    m2 = swap_masks(m, out[best:best + 1], into[best:best + 1])[0]
+    o2, i2 = swap_pairs(m2)
+    ref2 = obj.evaluate(swap_masks(m2, o2, i2), return_kernels=True)
+    _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
+    for p in obj.psfs:
+        p.basis.__dict__.pop("_swap_rows", None)
+        p.basis.swap_rows_max_bytes = 0
+    _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
+    assert all("_swap_rows" not in p.basis.__dict__ for p in obj.psfs)
 
 
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
@@ -212,6 +224,16 @@ def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper
     assert calls == [out.size]
     ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
     _assert_same_scores(got, ref, rtol=2e-4, atol=1e-6)
+    # the images on E of the neighbours (from the selection's image and pair-image rows) against
+    # the product of each neighbour, and their error bounds
+    basis = obj.psf.basis
+    with torch.no_grad():
+        img, eps, werr = basis.swap_images(torch.as_tensor(m, dtype=torch.float32), torch.as_tensor(out),
+                                           torch.as_tensor(into), w)
+        img_r, eps_r, werr_r = basis.images(w, with_error=True)
+    top = float(img_r.abs().amax())
+    assert float((img - img_r).abs().amax()) <= 1e-5 * top
+    assert torch.equal(eps, eps_r) and torch.equal(werr, werr_r)
 
 
 @pytest.mark.slow
