@@ -350,9 +350,9 @@ class PairBasis(BasisBuild, Certificates, Refinement):
                 look = self.pair_lookup()[:, on]                                  # (Ne, k)
                 dev = self.V.device
                 if self.U is not None:
-                    R = self.U.double()[look.reshape(-1).to(dev)].view(*look.shape, -1).sum(1)   # (Ne, rank)
+                    R = self.U[look.reshape(-1).to(dev)].double().view(*look.shape, -1).sum(1)   # (Ne, rank)
                     G = R.to(self.V.dtype) @ self.V
-                    y = (R[on.to(dev)].sum(0) + self.U.double()[self.pair_lookup()[on, on].to(dev)].sum(0)) / 2
+                    y = (R[on.to(dev)].sum(0) + self.U[self.pair_lookup()[on, on].to(dev)].double().sum(0)) / 2
                     y = (y.to(self.V.dtype) @ self.V)[None]
                 else:
                     Vd = self.V.double()
