@@ -95,3 +95,165 @@ def test_budgeted_neighbourhood_equals_budgeted_masks():
         results.append((v, obj.evaluations, rec.best, [r["evaluations"] for r in rec.rows]))
     np.testing.assert_array_equal(results[0][0], results[1][0])
     assert results[0][1:] == results[1][1:]
+
+
+# ---------------------------------------------------------------- the PSF objective's own neighbourhoods
+import tomllib  # noqa: E402
+
+import torch  # noqa: E402
+
+from scene_texts import TINY_SCENE  # noqa: E402
+
+
+def _tiny_objective(dtype, **over):
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.scenes.schema import load_scene
+
+    tree = tomllib.loads(TINY_SCENE)
+    for sec, keys in over.items():
+        tree.setdefault(sec, {}).update(keys)
+    return Objective(load_scene(tree), dtype=dtype)
+
+
+def _assert_same_scores(got, ref, rtol, atol=0.0):
+    assert set(got) == set(ref)
+    for key in ref:
+        if key == "kernels":
+            np.testing.assert_allclose(got[key], ref[key], rtol=0, atol=max(atol, rtol), err_msg=key)
+        else:
+            np.testing.assert_allclose(got[key], ref[key], rtol=rtol, atol=atol, err_msg=key)
+
+
+def _spy_swap_envelopes(monkeypatch):
+    from arraysel.physics.psf.certificate import Certificates
+
+    calls = []
+    real = Certificates.swap_envelopes
+
+    def spy(self, mask, out, into):
+        calls.append(int(out.numel()))
+        return real(self, mask, out, into)
+
+    monkeypatch.setattr(Certificates, "swap_envelopes", spy)
+    return calls
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_psf_objective_neighbourhood_equals_independent_masks(monkeypatch, dtype, rtol):
+    # a 12-element scene with two field points: every Table-1 key (headline, per point, mean,
+    # worst), the kernels, the counters; the neighbourhood goes through the corrected envelopes
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 5},
+                          medium={"points": [[0.0, 0.02], [0.001, 0.021]]})
+    assert all(p.basis is not None for p in obj.psfs) and isinstance(obj, ScoresSwaps)
+    calls = _spy_swap_envelopes(monkeypatch)
+    m = _mask(12, [0, 3, 4, 8, 11])
+    out, into = swap_pairs(m, np.random.default_rng(2))
+    evaluate_swaps(obj, m, out, into)
+    assert calls == [35, 35]                                 # one call a field point
+    assert obj.evaluations == 35
+    fb = obj.fallbacks
+    got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+    fb_swaps = obj.fallbacks - fb
+    fb = obj.fallbacks
+    ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+    assert obj.fallbacks - fb == fb_swaps and obj.evaluations == 105
+    assert "Mean@p1" in ref and "Mean@worst" in ref
+    _assert_same_scores(got, ref, rtol)
+    # a step of a search: the best neighbour's neighbourhood, with the pair-image rows kept from
+    # the last one, and again with none kept
+    best = int(np.argmin(ref["Mean"]))
+    m2 = swap_masks(m, out[best:best + 1], into[best:best + 1])[0]
+    o2, i2 = swap_pairs(m2)
+    ref2 = obj.evaluate(swap_masks(m2, o2, i2), return_kernels=True)
+    _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
+    for p in obj.psfs:
+        p.basis.__dict__.pop("_swap_rows", None)
+        p.basis.swap_rows_max_bytes = 0
+    _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
+    assert all("_swap_rows" not in p.basis.__dict__ for p in obj.psfs)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, dtype, rtol):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
+    basis = obj.psf.basis
+    m = _mask(10, [0, 1, 4, 5, 7, 9])
+    out, into = swap_pairs(m)
+    w = torch.as_tensor(swap_masks(m, out, into), dtype=dtype)
+    got = basis.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
+    ref = basis.envelopes(w)
+    assert got.shape == ref.shape and got.dtype == ref.dtype
+    scale = float(ref.abs().max())
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * scale)
+    # the receive elements a neighbour does not use have no channel
+    ntx, ne = len(obj.psf.transmits), 10
+    env = got.view(ntx, ne, -1, w.shape[0]).permute(0, 1, 3, 2)   # (ntx, Ne, B, runs x segments)
+    unused = w.T == 0
+    assert bool(unused.any()) and float(env[:, unused].abs().sum()) == 0.0
+    assert bool((env[:, ~unused].amax(-1) > 0).all())
+
+
+def test_empty_or_bad_neighbourhoods(monkeypatch):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(torch.float64)
+    m = _mask(8, [1, 2, 5, 6])
+    got = obj.evaluate_swaps(m, [], [])
+    assert set(got) == set(obj.metric_names) and all(v.shape == (0,) for v in got.values())
+    with pytest.raises(SelectionError, match="out must name active elements"):
+        obj.evaluate_swaps(m, [0], [3])
+    with pytest.raises(SelectionError, match=r"shape \(8,\)"):
+        obj.evaluate_swaps(_mask(9, [0]), [0], [1])
+
+
+def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper_objective, monkeypatch):
+    # the outer elements only: a wide gap, strong sidelobes, and neighbours whose peaks lie on
+    # many different pixels (and off the base's); every key and kernel as the masks scored alone
+    obj = paper_objective
+    calls = _spy_swap_envelopes(monkeypatch)
+    m = _mask(64, list(range(16)) + list(range(48, 64)))
+    out, into = swap_pairs(m, np.random.default_rng(0))
+    out, into = out[:48], into[:48]
+    w = torch.as_tensor(swap_masks(m, out, into), dtype=torch.float32)
+    with torch.no_grad():
+        base_peak = int(obj.psf.basis.images(torch.as_tensor(m[None], dtype=torch.float32)).abs().flatten().argmax())
+        peaks = obj.psf.basis.images(w).abs().flatten(1).argmax(1)
+    assert bool((peaks != base_peak).any()) and len(set(peaks.tolist())) > 3
+    got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+    assert calls == [out.size]
+    ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+    _assert_same_scores(got, ref, rtol=2e-4, atol=1e-6)
+    # the images on E of the neighbours (from the selection's image and pair-image rows) against
+    # the product of each neighbour, and their error bounds
+    basis = obj.psf.basis
+    with torch.no_grad():
+        img, eps, werr = basis.swap_images(torch.as_tensor(m, dtype=torch.float32), torch.as_tensor(out),
+                                           torch.as_tensor(into), w)
+        img_r, eps_r, werr_r = basis.images(w, with_error=True)
+    top = float(img_r.abs().amax())
+    assert float((img - img_r).abs().amax()) <= 1e-5 * top
+    assert torch.equal(eps, eps_r) and torch.equal(werr, werr_r)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene, dtype, rtol", [("paper", torch.float64, 1e-9), ("l11-5v", torch.float32, 2e-4),
+                                                ("l11-5v", torch.float64, 1e-9)])
+def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
+    # the outer elements (moving peaks) and a random selection of a built-in scene: 64 neighbours
+    # each, every key and kernel as the masks scored alone (builds the scene's basis: minutes)
+    from arraysel.objective.psf_objective import Objective
+
+    obj = Objective(scene, dtype=dtype)
+    n, k = obj.n_elements, obj.k
+    rng = np.random.default_rng(5)
+    for m in (_mask(n, list(range(k // 2)) + list(range(n - k + k // 2, n))),
+              _mask(n, rng.choice(n, k, replace=False))):
+        out, into = swap_pairs(m, rng)
+        out, into = out[:64], into[:64]
+        fb = obj.fallbacks
+        got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+        fb_swaps, fb = obj.fallbacks - fb, obj.fallbacks
+        ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+        assert obj.fallbacks - fb == fb_swaps
+        _assert_same_scores(got, ref, rtol=rtol, atol=1e-6 if dtype == torch.float32 else 1e-12)

@@ -262,20 +262,52 @@ class Objective:
                 self._announced = True
                 _log.warning("evaluating %d masks on the exact PSF path: about %s", m.shape[0],
                              _fmt_seconds(self.estimate_seconds(int(m.shape[0]))))
-            per = [{k: [] for k in METRIC_NAMES} for _ in self.psfs]
-            kern: list = [[] for _ in self.psfs]
-            for p, model in enumerate(self.psfs):
-                ref = model.reference_kernel()
-                for i, n in self._chunks(model, m.shape[0]):
-                    k, fb = model.kernels(m[i:i + n], return_info=True)
-                    self.fallbacks += int(fb.sum())
-                    met = M.psf_metrics(k, kappa_ref=ref.to(k.dtype), **self.metric_kw)
-                    for name in METRIC_NAMES:
-                        per[p][name].append(met[name].double().cpu())
-                    if return_kernels:
-                        kern[p].append(k.cpu())
-            self.evaluations += int(m.shape[0])
-        per_np = [{name: torch.cat(v) for name, v in d.items()} for d in per]
+            res = self._score(int(m.shape[0]), lambda model, i, n: model.kernels(m[i:i + n], return_info=True),
+                              return_kernels)
+        return res
+
+    def evaluate_swaps(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element
+        ``out[i]`` switched off and ``into[i]`` on (:class:`~arraysel.objective.contract.ScoresSwaps`;
+        :func:`arraysel.objective.neighbours.evaluate_swaps` calls it). The same values, to rounding,
+        as scoring the neighbour masks independently, and counted as as many evaluations; the
+        certificates' channel envelopes of the neighbours are corrected from the selection's own
+        (:meth:`~arraysel.physics.psf.PSFModel.swap_kernels`), a neighbour they do not settle
+        goes on to the refinement and the exact path as in :meth:`evaluate`."""
+        from arraysel.objective.neighbours import check_swaps, swap_masks
+
+        m, a, b = check_swaps(mask, out, into)
+        if type(self).evaluate is not Objective.evaluate:
+            # a subclass that scores masks its own way (MatrixObjective): its evaluate of the masks
+            return self.evaluate(swap_masks(m, a, b))
+        if m.size != self.n_elements:
+            raise SelectionError(f"mask must have shape ({self.n_elements},), got ({m.size},)")
+        if not m.any():
+            raise SelectionError("empty selection (no active element): mask")
+        with torch.no_grad(), self._timed():
+            base = self.as_masks(m[None])[0]
+            return self._score(int(a.size), lambda model, i, n: model.swap_kernels(base, a[i:i + n], b[i:i + n],
+                                                                                     return_info=True),
+                               return_kernels)
+
+    def _score(self, n_masks: int, kernels_of, return_kernels: bool) -> dict[str, np.ndarray]:
+        """Every metric of ``n_masks`` selections whose kernels ``kernels_of(model, start, size)``
+        gives (``(kernels, fell_back)``) batch by batch (:meth:`_chunks`) on each field point."""
+        per = [{k: [] for k in METRIC_NAMES} for _ in self.psfs]
+        kern: list = [[] for _ in self.psfs]
+        for p, model in enumerate(self.psfs):
+            ref = model.reference_kernel()
+            for i, n in self._chunks(model, n_masks):
+                k, fb = kernels_of(model, i, n)
+                self.fallbacks += int(fb.sum())
+                met = M.psf_metrics(k, kappa_ref=ref.to(k.dtype), **self.metric_kw)
+                for name in METRIC_NAMES:
+                    per[p][name].append(met[name].double().cpu())
+                if return_kernels:
+                    kern[p].append(k.cpu())
+        self.evaluations += int(n_masks)
+        empty = torch.zeros(0, dtype=torch.float64)
+        per_np = [{name: torch.cat(v) if v else empty for name, v in d.items()} for d in per]
         if self.n_points == 1:
             res = {name: v.numpy() for name, v in per_np[0].items()}
         else:
@@ -288,7 +320,8 @@ class Objective:
                 res[f"{name}@mean"] = mean.numpy()
                 res[f"{name}@worst"] = worst.numpy()
         if return_kernels:
-            ks = [torch.cat(v).numpy() for v in kern]
+            w = self.setup.window
+            ks = [torch.cat(v).numpy() if v else np.zeros((0, w, w), np.complex64) for v in kern]
             res["kernels"] = ks[0] if self.n_points == 1 else np.stack(ks, 1)
         return res
 

@@ -342,6 +342,89 @@ def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
+def _row_sums_kernel(A, rows, step, out):
+    """``out[c] = sum_{j in rows} A[j, c]`` in float64, parallel over chunks of ``step`` columns
+    (each chunk's sums stay in cache while the rows are read)."""
+    n = A.shape[1]
+    for g in numba.prange((n + step - 1) // step):
+        c0 = g * step
+        c1 = min(n, c0 + step)
+        for c in range(c0, c1):
+            out[c] = 0.0
+        for j in rows:
+            row = A[j, c0:c1]
+            for c in range(c1 - c0):
+                out[c0 + c] += np.float64(row[c])
+
+
+def row_sums(A: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(A.shape[1],) float64 sums of the rows ``rows`` of A (2-D float): a selection's channel
+    products ``sum_{j in mask} A_j`` of ``pair_channels`` (:func:`swap_peaks_into`)."""
+    out = np.empty(A.shape[1], dtype=np.float64)
+    _row_sums_kernel(A, np.ascontiguousarray(rows, dtype=np.int64), 4096, out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
+    """``env[n * Ne + e, 0, a, b] = max_r |Y[e] - A[out[b], e] + A[into[b], e]|`` (over the
+    samples ``r`` of segment ``a`` of transmit ``n``) for the pairs ``(b, e) = (sel_b[q],
+    sel_e[q])``: the segment peaks of receive channel e of the one-swap neighbour b of a 0/1
+    selection whose channel sums over every receive element are ``Y`` (Ne, 2 ntx T) float64,
+    ``Y[e] = sum_{j in mask} A[j, e]``. A: ``pair_channels`` (as :func:`_channel_peaks_kernel`);
+    env: (ntx * Ne, M, nS, B). Each channel is corrected in float64 in a buffer that stays in
+    cache (three rows read where summing it afresh reads k); parallel over the pairs."""
+    ne = Y.shape[0]
+    ns = env.shape[2]
+    half = Y.shape[1] // 2
+    seg = half // (ntx * ns)
+    for q in numba.prange(sel_b.shape[0]):
+        b = sel_b[q]
+        e = sel_e[q]
+        base = e * 2 * half
+        acc = np.empty(2 * half)
+        mx = np.empty(ns)
+        rowy = Y[e]
+        rowa = A[out[b], base:base + 2 * half]
+        rowb = A[into[b], base:base + 2 * half]
+        for c in range(2 * half):
+            acc[c] = rowy[c] - np.float64(rowa[c]) + np.float64(rowb[c])
+        for n in range(ntx):
+            for a in range(ns):
+                mx[a] = 0.0
+            for r in range(seg):
+                o = (n * seg + r) * ns
+                for a in range(ns):
+                    v = acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a]
+                    if v > mx[a]:
+                        mx[a] = v
+                    elif v != v:
+                        mx[a] = v
+            for a in range(ns):
+                env[n * ne + e, 0, a, b] = np.sqrt(mx[a])
+
+
+def swap_peaks_into(A: np.ndarray, Y: np.ndarray, mask: np.ndarray, out: np.ndarray, into: np.ndarray,
+                    env: np.ndarray) -> None:
+    """Write the segment peaks ``|X_ne|`` of the receive channels of the one-swap neighbours
+    ``(out[b], into[b])`` of the 0/1 selection ``mask`` (Ne,) bool into the first run of the
+    envelopes ``env`` (ntx * Ne, M, nS, B), from the selection's channel sums ``Y`` (Ne,
+    2 ntx T) float64 over every receive element (``Y[e] = sum_{j in mask} A[j, e]``): a
+    neighbour's channel is ``Y[e] - A[out, e] + A[into, e]`` on the receive elements it uses
+    (the mask's less ``out``, and ``into``); the entries of the others are left as they are
+    (zero). The same values, to rounding, as :func:`channel_peaks_into` of the neighbour masks."""
+    B = out.shape[0]
+    keep = np.flatnonzero(mask)
+    k = keep.size
+    # per neighbour: the mask's receive elements with ``out`` replaced by ``into``
+    sel_e = np.repeat(keep[None, :], B, axis=0)
+    sel_e[sel_e == out[:, None]] = into  # one match a row, rows in order
+    sel_b = np.repeat(np.arange(B, dtype=np.int64), k)
+    _swap_peaks_kernel(A, Y, out.astype(np.int64), into.astype(np.int64), sel_b, sel_e.reshape(-1).astype(np.int64),
+                       env.shape[0] // Y.shape[0], env)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _cut_windows_kernel(img, z0, x0, n, out, norms):
     """Windows ``out[b] = img[b, z0:z0 + n, x0:x0 + n] / top / norm`` with ``top`` the window's
     largest magnitude (1 when zero) and ``norm`` the L2 norm of the window divided by ``top``

@@ -278,12 +278,95 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         img = torch.complex(y[:, : self.npix], y[:, self.npix:]).reshape(w.shape[0], *self.shape)
         if not with_error:
             return img
+        return (img, *self._image_errors(c, cu if self.U is not None else None))
+
+    def _image_errors(self, c: torch.Tensor, cu: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,) per-pixel and window error bounds of the images of pair products ``c`` whose
+        coefficients are ``cu = c @ U`` (None without compression): see :meth:`images`."""
         with torch.no_grad():
             cn2 = (c.detach() ** 2).sum(1)
-            resid = (cn2 - (cu.detach() ** 2).sum(1)).clamp(min=0).sqrt() if self.U is not None else 0 * cn2
+            resid = (cn2 - (cu.detach() ** 2).sum(1)).clamp(min=0).sqrt() if cu is not None else 0 * cn2
             rnd = self._rounding(c.detach(), cn2)
             eps = resid * self.error.pixel_residual + rnd
             win_err = resid * self.error.spectral_tail + rnd * self.model.setup.window
+        return eps, win_err
+
+    #: largest memory (bytes) of the pair images on E (rows of ``U V``) that :meth:`swap_images`
+    #: keeps from one neighbourhood to the next (all P rows: 0.35 GB in float32 on the paper
+    #: scene, 1.4 GB for 128 elements); beyond it the rows a neighbourhood needs are formed and
+    #: dropped
+    swap_rows_max_bytes = 3 << 29
+
+    def pair_lookup(self) -> torch.Tensor:
+        """(Ne, Ne) long: the index of pair (e, j) (either order) among :attr:`pairs_e`, :attr:`pairs_j`."""
+        look = self.__dict__.get("_pair_lookup")
+        if look is None:
+            ne = self.model.n_elements
+            look = torch.empty(ne, ne, dtype=torch.long)
+            idx = torch.arange(self.pairs_e.numel())
+            look[self.pairs_e.cpu(), self.pairs_j.cpu()] = idx
+            look[self.pairs_j.cpu(), self.pairs_e.cpu()] = idx
+            self._pair_lookup = look
+        return look
+
+    def pair_rows(self, pairs: torch.Tensor) -> torch.Tensor:
+        """(n, 2 Npix) pair images on E ([re | im]) of the pairs ``pairs`` (long (n,)): rows of
+        ``U V`` (of ``V`` without compression). Rows formed once are kept while all P of them fit
+        :attr:`swap_rows_max_bytes`: a search's next neighbourhood needs mostly the same rows."""
+        if self.U is None:
+            return self.V[pairs.to(self.V.device)]
+        store = self.__dict__.get("_swap_rows")
+        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_max_bytes:
+            store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
+                                                   device=self.V.device),
+                                       torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
+        if store is None:
+            return self.U[pairs.to(self.U.device)] @ self.V
+        H, have = store
+        pairs = pairs.cpu()
+        need = torch.unique(pairs[~have[pairs]])
+        if need.numel():
+            H[need.to(H.device)] = self.U[need.to(self.U.device)] @ self.V
+            have[need] = True
+        return H[pairs.to(H.device)]
+
+    def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
+        """:meth:`images` ``(w, with_error=True)`` of the one-swap neighbours ``w`` (B, Ne) of the 0/1
+        selection ``mask`` (Ne,): element ``out[b]`` off, ``into[b]`` on. The image is bilinear in
+        the selection, so a neighbour's image on E is the selection's, less the image rows
+        ``G_a = sum_{j in mask} H_aj`` of ``a = out[b]``, plus those of ``b = into[b]``, plus
+        ``H_bb`` and less ``H_ab`` (``H`` the pair images, :meth:`pair_rows`; ``G = R V`` with ``R``
+        the rows of ``U`` summed over the selection): sums of rows where :meth:`images` forms the
+        product ``(c U) V`` of every neighbour. The error bounds are :meth:`images`' own (from
+        ``c U``). No gradient."""
+        with torch.no_grad():
+            c = self._pairs(w)
+            cu = c @ self.U if self.U is not None else None
+            eps, win_err = self._image_errors(c, cu)
+            on = torch.nonzero(mask.cpu() != 0).flatten()
+            key = (mask.cpu() != 0).numpy().tobytes()
+            held = self.__dict__.get("_swap_base")
+            if held is None or held[0] != key:
+                look = self.pair_lookup()[:, on]                                  # (Ne, k)
+                dev = self.V.device
+                if self.U is not None:
+                    R = self.U[look.reshape(-1).to(dev)].double().view(*look.shape, -1).sum(1)   # (Ne, rank)
+                    G = R.to(self.V.dtype) @ self.V
+                    y = (R[on.to(dev)].sum(0) + self.U[self.pair_lookup()[on, on].to(dev)].double().sum(0)) / 2
+                    y = (y.to(self.V.dtype) @ self.V)[None]
+                else:
+                    Vd = self.V.double()
+                    G = Vd[look.reshape(-1).to(dev)].view(*look.shape, -1).sum(1)
+                    y = ((G[on.to(dev)].sum(0) + Vd[self.pair_lookup()[on, on].to(dev)].sum(0)) / 2)[None]
+                    G, y = G.to(self.V.dtype), y.to(self.V.dtype)
+                held = self._swap_base = (key, y, G)
+            _, y, G = held
+            a, b = out.cpu(), into.cpu()
+            look = self.pair_lookup()
+            dev = G.device
+            yb = (y - G[a.to(dev)]).add_(G[b.to(dev)])
+            yb.add_(self.pair_rows(look[b, b])).sub_(self.pair_rows(look[a, b]))
+            img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
 
     def _rounding(self, c: torch.Tensor, cn2: torch.Tensor | None = None) -> torch.Tensor:

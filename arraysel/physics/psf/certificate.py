@@ -177,10 +177,48 @@ class Certificates:
                     peaks[s, e0:e1] = peak
             peaks.sqrt_().mul_(w.abs()[:, :, None, None])
             seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
+        return self._segment_runs(env)
+
+    def _segment_runs(self, env: torch.Tensor) -> torch.Tensor:
+        """Fill runs 2 .. ``max_run`` of envelopes ``env`` (nch, M, nS, B) whose first run (the
+        segment peaks) is set: M - 1 running maxima; returns them as (nch * M * nS, B)."""
+        nS, B = env.shape[2], env.shape[3]
+        seg = env[:, 0]
         for m in range(1, self.max_run):
             env[:, m, nS - m:] = env[:, m - 1, nS - m:]
             torch.maximum(env[:, m - 1, : nS - m], seg[:, m:], out=env[:, m, : nS - m])
         return env.view(-1, B)
+
+    def swaps_compiled(self, mask: torch.Tensor) -> bool:
+        """Whether :meth:`swap_envelopes` serves the neighbours of ``mask``: on the CPU, without
+        gradient, for a 0/1 selection."""
+        return mask.device.type == "cpu" and not mask.requires_grad and bool(((mask == 0) | (mask == 1)).all())
+
+    def swap_envelopes(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor) -> torch.Tensor:
+        """:meth:`envelopes` of the one-swap neighbours of the 0/1 selection ``mask`` (Ne,): element
+        ``out[b]`` switched off and ``into[b]`` on (int (B,)), the same values to rounding, for
+        less work: the selection's channel sums over every receive element are formed once
+        (``Y[e] = sum_{j in mask} A_je``, float64), and a neighbour's channel on each receive
+        element it uses is ``Y[e] - A_out,e + A_into,e``, three rows read where summing it afresh
+        reads k (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
+        (:meth:`swaps_compiled`)."""
+        from arraysel.physics.pairkernels import row_sums, swap_peaks_into
+
+        ne = self.model.n_elements
+        ntx = len(self.model.transmits)
+        B = int(out.numel())
+        nS = self.window_samples // self.segment
+        on = (mask.detach().cpu() != 0).numpy()
+        A = self.pair_channels.numpy()
+        # the selection's channel sums, kept for the next batch of the same neighbourhood
+        key = on.tobytes()
+        held = self.__dict__.get("_swap_sums")
+        if held is None or held[0] != key:
+            held = self._swap_sums = (key, row_sums(A, np.flatnonzero(on)).reshape(ne, -1))
+        env = torch.empty(ntx * ne, self.max_run, nS, B, dtype=self.pair_channels.dtype)
+        env[:, 0].zero_()  # the channels a neighbour does not use; the longer runs come from the first
+        swap_peaks_into(A, held[1], on, out.cpu().numpy(), into.cpu().numpy(), env.numpy())
+        return self._segment_runs(env)
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
         """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of

@@ -368,6 +368,32 @@ class PSFModel:
             k = k.index_put((bad,), ke.to(k.dtype)) if k.requires_grad else k.index_copy(0, bad, ke.to(k.dtype))
         return (k, ~ok) if return_info else k
 
+    def swap_kernels(self, mask, out, into, return_info: bool = False):
+        """:meth:`kernels` (no gradient) of the one-swap neighbours of the 0/1 selection ``mask``
+        (Ne,): element ``out[b]`` switched off and ``into[b]`` on (int (B,)). The same kernels, to
+        rounding: on the CPU the certificates' envelopes of the neighbours are corrected from the
+        selection's channel sums (:meth:`~arraysel.physics.psf.certificate.Certificates.swap_envelopes`)
+        instead of being summed afresh, and their images on E from the selection's image and
+        pair-image rows (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_images`) instead of the
+        product of every neighbour; everything after them (peaks, refinement, the exact path for a
+        neighbour the certificates do not settle) is what :meth:`kernels` does."""
+        m = self._weights(mask)[0]
+        a = torch.as_tensor(np.asarray(out, dtype=np.int64)).reshape(-1)
+        b = torch.as_tensor(np.asarray(into, dtype=np.int64)).reshape(-1)
+        w = m.repeat(a.numel(), 1)
+        rows = torch.arange(a.numel())
+        w[rows, a.to(w.device)] = 0
+        w[rows, b.to(w.device)] = 1
+        with torch.no_grad():
+            if self.basis is None or not a.numel() or not self.basis.swaps_compiled(m):
+                return self.kernels(w, return_info=return_info)
+            k, ok = self.basis.kernels(w, env=self.basis.swap_envelopes(m, a, b),
+                                       images=self.basis.swap_images(m, a, b, w))
+            bad = torch.nonzero(~ok).flatten()
+            if bad.numel():
+                k = k.index_copy(0, bad.to(k.device), self.kernels_exact(w[bad]).to(k.dtype))
+        return (k, ~ok) if return_info else k
+
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel (window, window), cached."""
         if self._ref is None:

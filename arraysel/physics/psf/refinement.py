@@ -384,8 +384,11 @@ class Refinement:
                (x0 + s.window <= cols.stop)
         return z0, x0, fits
 
-    def kernels(self, w: torch.Tensor):
+    def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
+        ``env``: the envelopes of ``w`` (:meth:`envelopes`), ``images``: its images on E with
+        their error bounds (:meth:`images` with ``with_error``), when the caller has them (the
+        one-swap neighbours of a selection: :meth:`swap_envelopes`, :meth:`swap_images`).
 
         Certified: the exact peak is located (pixels tied with the approximate peak within the
         error bound are evaluated exactly), its window fits in the region, and the lower bound of
@@ -395,8 +398,9 @@ class Refinement:
         s = self.model.setup
         with torch.no_grad():
             wd = w.detach()
-            env = self.envelopes(wd)
-        img, eps, win_err = self.images(w, with_error=True)
+            if env is None:
+                env = self.envelopes(wd)
+        img, eps, win_err = self.images(w, with_error=True) if images is None else images
         pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
         z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
         with torch.no_grad():
