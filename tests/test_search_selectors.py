@@ -291,3 +291,49 @@ def test_anytime_figure_shows_every_selector(reg, tmp_path):
     uniform = [line for line in ax_e.get_lines() if line.get_label().startswith("uniform")]
     assert uniform and np.isfinite(uniform[0].get_ydata()).any()
     assert math.isfinite(float(np.nanmin(uniform[0].get_ydata())))
+
+
+def _greedy_on(n, k, share, evaluations=None, backward=True):
+    from arraysel.selectors.starts import greedy_selection
+
+    obj, view, _ = _view(evaluations=evaluations, k=k, n=n)
+    before = int(obj.evaluations)
+    sel = greedy_selection(view, k, backward=backward, share=share)
+    return sel, int(obj.evaluations) - before
+
+
+def test_greedy_takes_one_element_a_step_when_the_budget_allows():
+    from arraysel.selectors.starts import greedy_selection
+
+    full, used = _greedy_on(24, 12, 1.0)  # no limits
+    assert used == sum(range(13, 25))  # every step scores every removal
+    for share in (0.5, 1.0):  # a budget with room for it changes nothing
+        assert _greedy_on(24, 12, share, evaluations=10 * used) == (full, used)
+    _, view, _ = _view(k=12, n=24)
+    with pytest.raises(ParameterError, match="share"):
+        greedy_selection(view, 12, share=0.0)
+
+
+@pytest.mark.parametrize("backward", [True, False])
+@pytest.mark.parametrize("evaluations", [300, 900])
+def test_greedy_takes_several_elements_a_step_to_fit_its_share_of_the_budget(evaluations, backward):
+    # one element a step costs (64 + 32 + 1) 32 / 2 = 1,552 evaluations (backward); with a share
+    # of 0.5 the greedy must stay near half of the budget and still return k elements
+    sel, used = _greedy_on(64, 32, 0.5, evaluations=evaluations, backward=backward)
+    assert len(sel) == len(set(sel)) == 32 and all(0 <= i < 64 for i in sel)
+    assert used <= 0.5 * evaluations + 64, used  # its share, give or take the last step
+    assert _greedy_on(64, 32, 0.5, evaluations=evaluations, backward=backward) == (sel, used)  # reproducible
+
+
+def test_a_greedy_start_leaves_the_search_its_share_of_the_budget(reg):
+    # on 64 elements a one-a-step greedy start would use 1,552 of 1,000 evaluations and leave the
+    # swap search nothing: paced, the start uses about half and the search the rest
+    exp = Experiment(ToyObjective(64, 32), "swap", options={"start": "greedy"}, budget=Budget(evaluations=1000),
+                     seed=0, registry=reg)
+    row = exp.run()
+    assert row["error"] == "" and row["evaluations"] == 1000
+    first = exp.trace[0]["evaluations"]  # the first k-selection: the search's first neighbours
+    assert first <= 0.5 * 1000 + 64, first
+    start, _ = _greedy_on(64, 32, 0.5, evaluations=1000)
+    start_mean = float(ToyObjective(64, 32).evaluate(np.isin(np.arange(64), start)[None])["Mean"][0])
+    assert row["Mean"] <= start_mean
