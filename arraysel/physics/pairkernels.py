@@ -287,6 +287,26 @@ def block_bound_sums(env: np.ndarray, index: np.ndarray, chans: np.ndarray, grou
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _segment_peaks(acc, mx, ntx, seg, ns, half, scale, env, ne, e, b):
+    """``env[n * ne + e, 0, a, b] = scale max_r |acc|`` over the samples ``r`` of segment ``a`` of
+    transmit ``n``, for one channel ``acc`` ([re | im] halves, segment-offset-major samples; a
+    NaN sample makes its segment's peak NaN); ``mx`` (ns,) is scratch."""
+    for n in range(ntx):
+        for a in range(ns):
+            mx[a] = 0.0
+        for r in range(seg):
+            o = (n * seg + r) * ns
+            for a in range(ns):
+                v = acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a]
+                if v > mx[a]:
+                    mx[a] = v
+                elif v != v:
+                    mx[a] = v
+        for a in range(ns):
+            env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * scale
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, env):
     """``env[n * Ne + e, 0, a, b] = |w[b, e]| max_r |sum_j w[b, j] A[j, e, :, n, r, a]|`` for the
@@ -314,20 +334,7 @@ def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, env):
                 row = A[j, base:base + 2 * half]  # a contiguous view: the loop vectorises (10x)
                 for c in range(2 * half):
                     acc[c] += wj * row[c]
-        we = abs(np.float64(w[b, e]))
-        for n in range(ntx):
-            for a in range(ns):
-                mx[a] = 0.0
-            for r in range(seg):
-                o = (n * seg + r) * ns
-                for a in range(ns):
-                    v = acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a]
-                    if v > mx[a]:
-                        mx[a] = v
-                    elif v != v:
-                        mx[a] = v
-            for a in range(ns):
-                env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * we
+        _segment_peaks(acc, mx, ntx, seg, ns, half, abs(np.float64(w[b, e])), env, ne, e, b)
 
 
 def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
@@ -389,19 +396,7 @@ def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
         rowb = A[into[b], base:base + 2 * half]
         for c in range(2 * half):
             acc[c] = rowy[c] - np.float64(rowa[c]) + np.float64(rowb[c])
-        for n in range(ntx):
-            for a in range(ns):
-                mx[a] = 0.0
-            for r in range(seg):
-                o = (n * seg + r) * ns
-                for a in range(ns):
-                    v = acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a]
-                    if v > mx[a]:
-                        mx[a] = v
-                    elif v != v:
-                        mx[a] = v
-            for a in range(ns):
-                env[n * ne + e, 0, a, b] = np.sqrt(mx[a])
+        _segment_peaks(acc, mx, ntx, seg, ns, half, 1.0, env, ne, e, b)
 
 
 def swap_peaks_into(A: np.ndarray, Y: np.ndarray, mask: np.ndarray, out: np.ndarray, into: np.ndarray,
