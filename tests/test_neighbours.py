@@ -172,6 +172,15 @@ def test_psf_objective_neighbourhood_equals_independent_masks(monkeypatch, dtype
         p.basis.swap_rows_max_bytes = 0
     _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
     assert all("_swap_rows" not in p.basis.__dict__ for p in obj.psfs)
+    # the memory cap bounds the kept rows too
+    for p in obj.psfs:
+        p.basis.swap_rows_max_bytes = 1 << 40
+    monkeypatch.setenv("ARRAYSEL_MEMORY_GIB", "1e-9")
+    assert all(p.basis.swap_rows_cap() < 2 for p in obj.psfs)
+    _assert_same_scores(obj.evaluate_swaps(m2, o2, i2, return_kernels=True), ref2, rtol)
+    assert all("_swap_rows" not in p.basis.__dict__ for p in obj.psfs)
+    monkeypatch.setenv("ARRAYSEL_MEMORY_GIB", "0.5")
+    assert all(p.basis.swap_rows_cap() == 2 ** 29 for p in obj.psfs)
 
 
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])

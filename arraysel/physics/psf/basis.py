@@ -293,9 +293,17 @@ class PairBasis(BasisBuild, Certificates, Refinement):
 
     #: largest memory (bytes) of the pair images on E (rows of ``U V``) that :meth:`swap_images`
     #: keeps from one neighbourhood to the next (all P rows: 0.35 GB in float32 on the paper
-    #: scene, 1.4 GB for 128 elements); beyond it the rows a neighbourhood needs are formed and
-    #: dropped
+    #: scene, 1.4 GB for 128 elements), and never more than the memory cap
+    #: ``ARRAYSEL_MEMORY_GIB`` (:func:`~arraysel.physics.psf.settings.memory_limit_bytes`); beyond
+    #: it the rows a neighbourhood needs are formed and dropped
     swap_rows_max_bytes = 3 << 29
+
+    def swap_rows_cap(self) -> int:
+        """Bytes of pair-image rows :meth:`pair_rows` may keep: :attr:`swap_rows_max_bytes`, at
+        most the memory cap ``ARRAYSEL_MEMORY_GIB``."""
+        from arraysel.physics.psf.settings import memory_limit_bytes
+
+        return min(int(self.swap_rows_max_bytes), memory_limit_bytes())
 
     def pair_lookup(self) -> torch.Tensor:
         """(Ne, Ne) long: the index of pair (e, j) (either order) among :attr:`pairs_e`, :attr:`pairs_j`."""
@@ -312,11 +320,11 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     def pair_rows(self, pairs: torch.Tensor) -> torch.Tensor:
         """(n, 2 Npix) pair images on E ([re | im]) of the pairs ``pairs`` (long (n,)): rows of
         ``U V`` (of ``V`` without compression). Rows formed once are kept while all P of them fit
-        :attr:`swap_rows_max_bytes`: a search's next neighbourhood needs mostly the same rows."""
+        :meth:`swap_rows_cap`: a search's next neighbourhood needs mostly the same rows."""
         if self.U is None:
             return self.V[pairs.to(self.V.device)]
         store = self.__dict__.get("_swap_rows")
-        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_max_bytes:
+        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_cap():
             store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
                                                    device=self.V.device),
                                        torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
