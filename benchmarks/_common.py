@@ -97,14 +97,27 @@ def uniform_mask(n_elements: int = 64, k: int = 32):
     return m
 
 
-def load_pymust_pipeline():
-    """Import ``tests/pymust_pipeline.py`` by path (the tests folder is not a package)."""
-    path = os.path.join(ROOT, "tests", "pymust_pipeline.py")
-    spec = importlib.util.spec_from_file_location("pymust_pipeline", path)
+def load_tests_module(name: str):
+    """Import ``tests/<name>.py`` by path (the tests folder is not a package): the PyMUST
+    pipelines the benchmarks compare against."""
+    path = os.path.join(ROOT, "tests", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod
     spec.loader.exec_module(mod)
     return mod
+
+
+def load_pymust_pipeline():
+    """Import ``tests/pymust_pipeline.py`` (the 2-D PyMUST pipeline)."""
+    return load_tests_module("pymust_pipeline")
+
+
+def peak_rss_gib() -> float:
+    """Resident peak of this process so far (``ru_maxrss``), GiB."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
 
 
 def si_mse(k, ref) -> float:

@@ -23,28 +23,13 @@ The last output line is a JSON record; everything before it is for people.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
-import resource
 import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import ROOT, machine, random_masks, set_threads  # noqa: E402
-
-
-def _pipeline3():
-    path = os.path.join(ROOT, "tests", "pymust_pipeline3.py")
-    spec = importlib.util.spec_from_file_location("pymust_pipeline3", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _rss_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+from _common import load_tests_module, machine, peak_rss_gib, random_masks, set_threads  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -93,12 +78,12 @@ def main(argv=None) -> dict:
     out = model.planes(w)
     sum(v.abs().pow(2).sum() for v in out.values()).backward()
     rec["arraysel_grad_s"] = round(time.perf_counter() - t, 2)
-    rec["arraysel_peak_rss_gib"] = round(_rss_gib(), 2)
+    rec["arraysel_peak_rss_gib"] = round(peak_rss_gib(), 2)
     print(f"arraysel exact path: precompute {rec['arraysel_precompute_s']} s, first batch of {a.batch} "
           f"{rec['arraysel_first_batch_s']} s, then {rec['arraysel_s_per_mask']} s a mask (batches of {a.batch}), "
           f"one gradient {rec['arraysel_grad_s']} s; peak RSS {rec['arraysel_peak_rss_gib']} GiB")
 
-    mod = _pipeline3()
+    mod = load_tests_module("pymust_pipeline3")
     oracle = mod.PyMUSTScene3(probe, acq, delays, setup.scatterer, {k: v.numpy() for k, v in model.coords.items()})
     uni = np.zeros((32, 32))
     uni[::2, ::2] = 1
@@ -111,7 +96,7 @@ def main(argv=None) -> dict:
     for i in range(a.pymust_masks):
         oracle.planes(masks[i])
     rec["pymust_s_per_mask"] = round((time.perf_counter() - t) / max(1, a.pymust_masks), 3)
-    rec["pymust_peak_rss_gib"] = round(_rss_gib(), 2)
+    rec["pymust_peak_rss_gib"] = round(peak_rss_gib(), 2)
     print(f"PyMUST: first mask {rec['pymust_first_mask_s']} s (DAS matrices {rec['pymust_das_build_s']} s), "
           f"then {rec['pymust_s_per_mask']} s a mask; peak RSS after it {rec['pymust_peak_rss_gib']} GiB")
     rec["speedup_per_mask"] = round(rec["pymust_s_per_mask"] / rec["arraysel_s_per_mask"], 1)

@@ -28,32 +28,17 @@ The last output line is a JSON record; everything before it is for people.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
-import resource
 import statistics
 import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import ROOT, machine, random_masks, set_threads  # noqa: E402
+from _common import load_tests_module, machine, peak_rss_gib, random_masks, set_threads  # noqa: E402
 
 TARGETS = {"ms_per_mask": 10.0, "step_s": 0.5, "precompute_s": 600.0, "rss_gib": 6.0, "speedup": 80.0,
            "si_mse": 1e-4}
-
-
-def _pipeline3():
-    path = os.path.join(ROOT, "tests", "pymust_pipeline3.py")
-    spec = importlib.util.spec_from_file_location("pymust_pipeline3", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _rss_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
 
 
 def _load() -> float:
@@ -99,7 +84,7 @@ def main(argv=None) -> dict:
     rec["planes"] = {k: list(v.shape[:2]) for k, v in exact.coords.items()}
     rec["fast_sizes"] = dict(fast.sizes)
     rec["fast_check_max_relative_error"] = float(f"{fast.check['max_relative_error']:.3g}")
-    rec["rss_after_build_gib"] = round(_rss_gib(), 2)
+    rec["rss_after_build_gib"] = round(peak_rss_gib(), 2)
     print(f"scene: {probe.name}, {len(delays)} diverging waves, planes {rec['planes']} of lambda/3, k = 256, "
           f"{torch.get_num_threads()} threads, load average {rec['load_avg_start']}")
     print(f"precompute: exact model {rec['exact_build_s']} s + fast path {rec['fast_build_s']} s (its check "
@@ -136,7 +121,7 @@ def main(argv=None) -> dict:
             times.append(time.perf_counter() - t)
         steps[bs] = statistics.median(times)
     rec["grad_step_s"] = {str(k): round(v, 3) for k, v in steps.items()}
-    rec["rss_fast_gib"] = round(_rss_gib(), 2)
+    rec["rss_fast_gib"] = round(peak_rss_gib(), 2)
     print("one gradient step (forward + backward): " + ", ".join(f"batch {k}: {v:.3f} s" for k, v in steps.items())
           + f"; resident peak {rec['rss_fast_gib']} GiB")
 
@@ -152,7 +137,7 @@ def main(argv=None) -> dict:
     vs_exact = fast_relative_error({k: v.to(torch.complex128) for k, v in got.items()},
                                    {k: v.to(torch.complex128) for k, v in ex.items()})
     rec["fast_vs_exact"] = {name: float(f"{float(e):.3g}") for name, e in zip(named, vs_exact)}
-    mod = _pipeline3()
+    mod = load_tests_module("pymust_pipeline3")
     oracle = mod.PyMUSTScene3(probe, acq, delays, setup.scatterer, {k: v.numpy() for k, v in exact.coords.items()})
     t = time.perf_counter()
     refs = {"full": oracle.planes(named["full"])}
@@ -162,7 +147,7 @@ def main(argv=None) -> dict:
     for name in ("uniform", "random", "spiral"):
         refs[name] = oracle.planes(named[name])
     rec["pymust_s_per_mask"] = round((time.perf_counter() - t) / 3, 3)
-    rec["rss_with_pymust_gib"] = round(_rss_gib(), 2)
+    rec["rss_with_pymust_gib"] = round(peak_rss_gib(), 2)
     rec["load_avg_pymust"] = _load()
     fid = {}
     for i, name in enumerate(named):
