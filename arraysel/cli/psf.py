@@ -58,15 +58,20 @@ def run(args) -> int:
     metrics = {k: float(res[k][0]) for k in obj.metric_names}
     atomic_savez(args.out, psf=kernel, psf_ref=ref, elements=np.array(elements),
                  pixel=np.float64(obj.setup.pitch), **{k: np.float64(v) for k, v in metrics.items()})
-    print(f"elements: {','.join(map(str, elements))}")
-    for k, v in metrics.items():
-        print(f"{k:>10s} = {v:.6g}")
-    print(f"wrote {args.out}")
+    _print_result(elements, metrics, args.out, width=10)
     if args.plot:
         png = args.out[:-4] + ".png"
         save_figure(psf_figure(kernel, ref, obj.setup.pitch, elements, ne), png)
         print(f"wrote {png}")
     return 0
+
+
+def _print_result(elements, metrics: dict, out: str, width: int) -> None:
+    """Print the selection, its metrics (names right-aligned to ``width``) and the file written."""
+    print(f"elements: {','.join(map(str, elements))}")
+    for k, v in metrics.items():
+        print(f"{k:>{width}s} = {v:.6g}")
+    print(f"wrote {out}")
 
 
 def _volume(args, obj, elements, mask) -> int:
@@ -86,10 +91,7 @@ def _volume(args, obj, elements, mask) -> int:
         arrays[f"coords_{k}"] = obj.coords[k]
     atomic_savez(args.out, **arrays, elements=np.array(elements), planes=np.array(list(ref)),
                  **{k: np.float64(v) for k, v in metrics.items()})
-    print(f"elements: {','.join(map(str, elements))}")
-    for k, v in metrics.items():
-        print(f"{k:>12s} = {v:.6g}")
-    print(f"wrote {args.out}")
+    _print_result(elements, metrics, args.out, width=12)
     if args.plot:
         png = args.out[:-4] + ".png"
         planes = {k: v[:1] for k, v in res["planes"].items()}
