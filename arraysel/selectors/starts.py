@@ -90,9 +90,10 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
             order = np.lexsort((np.arange(len(cands)), means))
             ranking = [cands[i] for i in order]
             left = abs(len(current) - k)
-            take = ranking[:pace.per_step(left, len(cands), backward)]
+            take = ranking[:pace.per_step(left, len(cands))]
             if backward:
-                current = [c for c in current if c not in set(take)]
+                drop = set(take)
+                current = [c for c in current if c not in drop]
             else:
                 current = current + take
     except BudgetExhausted:  # a start must exist even then: finish from the last ranking below
@@ -139,15 +140,15 @@ class _GreedyPace:
             room = min(room, (self.share * b.seconds - b.elapsed()) / self.per_mask)
         return room
 
-    def per_step(self, left: int, scored: int, backward: bool) -> int:
-        """Elements to take now, ``left`` still to go after a step that scored ``scored`` masks."""
+    def per_step(self, left: int, scored: int) -> int:
+        """Elements to take now, ``left`` still to go after a step that scored ``scored`` masks
+        (backward or forward: either way the next steps score one mask fewer each)."""
         if left <= 1:
             return left
         room = self._allowance()
         if math.isinf(room):
             return 1
-        # one element a step: the next steps score scored - 1, scored - 2, ... masks (backward) or
-        # scored - 1, ... (forward: the candidates shrink the same way)
+        # one element a step: the next steps score scored - 1, scored - 2, ... masks
         rest = left - 1
         cost_one = rest * (scored - 1) - rest * (rest - 1) / 2
         if cost_one <= room:
