@@ -360,7 +360,12 @@ class PSFModel:
         if self.basis is None:
             k = self.kernels_exact(w)
             return (k, torch.zeros(w.shape[0], dtype=torch.bool)) if return_info else k
-        k, ok = self.basis.kernels(w)
+        return self._fast_or_exact(w, return_info)
+
+    def _fast_or_exact(self, w: torch.Tensor, return_info: bool, **basis_inputs):
+        """The basis's kernels of weights ``w``, those it does not settle from the exact path;
+        ``basis_inputs`` (``env``, ``images``) go to :meth:`PairBasis.kernels`."""
+        k, ok = self.basis.kernels(w, **basis_inputs)
         bad = torch.nonzero(~ok).flatten()
         if bad.numel():
             ke = self.kernels_exact(w[bad])
@@ -387,12 +392,8 @@ class PSFModel:
         with torch.no_grad():
             if self.basis is None or not a.numel() or not self.basis.swaps_compiled(m):
                 return self.kernels(w, return_info=return_info)
-            k, ok = self.basis.kernels(w, env=self.basis.swap_envelopes(m, a, b),
+            return self._fast_or_exact(w, return_info, env=self.basis.swap_envelopes(m, a, b),
                                        images=self.basis.swap_images(m, a, b, w))
-            bad = torch.nonzero(~ok).flatten()
-            if bad.numel():
-                k = k.index_copy(0, bad.to(k.device), self.kernels_exact(w[bad]).to(k.dtype))
-        return (k, ~ok) if return_info else k
 
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel (window, window), cached."""
