@@ -46,6 +46,7 @@ class AnnealSelector(Selector):
         "horizon": Option(int, 200_000, "evaluations the schedule spans when the budget has no limit", lo=1),
     }
     deterministic = False
+    scores_neighbourhoods = True
 
     def select(self, objective, k, seed):
         o = self.options

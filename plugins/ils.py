@@ -28,19 +28,23 @@ class IteratedLocalSearch(Selector):
         "mode": Option(str, "first", "descent: first (move at the first chunk holding an improvement) or best "
                        "(all k(Ne-k) neighbours a move)", choices=("first", "best")),
         "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
+        "guide": Option(float, 0.5, "first share of each first-mode chunk taken in the order the loss's "
+                        "gradient predicts (adapts to where improvements come from; 0: random order)",
+                        lo=0.0, hi=1.0),
         "perturb": Option(int, 2, "random swaps of the first perturbation after a new best", lo=1),
         "max_perturb": Option(int, 8, "most random swaps of a perturbation", lo=1),
         "restart_after": Option(int, 40, "rounds in a row without a new best before a fresh random start "
                                 "(0: never)", lo=0),
     }
     deterministic = False
+    scores_neighbourhoods = True
 
     def select(self, objective, k, seed):
         o = self.options
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = EliteSearch(objective, k, rng, starts=o["starts"], elite=o["elite"], relink=o["relink"],
-                             mode=o["mode"], chunk=o["chunk"], perturb=o["perturb"],
+                             mode=o["mode"], chunk=o["chunk"], guide=o["guide"], perturb=o["perturb"],
                              max_perturb=o["max_perturb"], restart_after=o["restart_after"])
         return search.run(start)[0]
 

@@ -26,6 +26,9 @@ class SwapSelector(Selector):
         "mode": Option(str, "first", "first: move at the first chunk holding an improvement (random "
                        "order); best: score all k(Ne-k) neighbours per move", choices=("first", "best")),
         "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
+        "guide": Option(float, 0.5, "first share of each first-mode chunk taken in the order the loss's "
+                        "gradient predicts (adapts to where improvements come from; 0: random order)",
+                        lo=0.0, hi=1.0),
         "scan": Option(float, 1.0, "fraction of the neighbourhood scored without improvement before a "
                        "local optimum is declared (first mode)", lo=0.01, hi=1.0),
         "perturb": Option(int, 2, "random swaps of an iterated-local-search perturbation (0: restart "
@@ -34,12 +37,13 @@ class SwapSelector(Selector):
                                 "a random selection (0: never restart)", lo=0),
     }
     deterministic = False
+    scores_neighbourhoods = True
 
     def select(self, objective, k, seed):
         o = self.options
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
-        search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], scan=o["scan"],
+        search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
                             perturb=o["perturb"], restart_after=o["restart_after"])
         return search.run(start)[0]
 

@@ -265,3 +265,59 @@ def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
         ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
         assert obj.fallbacks - fb == fb_swaps
         _assert_same_scores(got, ref, rtol=rtol, atol=1e-6 if dtype == torch.float32 else 1e-12)
+
+
+def _walk_images(obj, m, rng, moves, dtype, tol):
+    """A search's walk: at each step the neighbours' images on E against the product of each
+    neighbour, then a move to one of them (every third step a two-swap jump, which the base is
+    formed afresh for); returns the selection reached."""
+    basis = obj.psf.basis
+    for step in range(moves):
+        out, into = swap_pairs(m, rng)
+        out, into = out[:16], into[:16]
+        w = torch.as_tensor(swap_masks(m, out, into), dtype=dtype)
+        with torch.no_grad():
+            img, eps, werr = basis.swap_images(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out),
+                                               torch.as_tensor(into), w)
+            img_r, eps_r, werr_r = basis.images(w, with_error=True)
+        assert float((img - img_r).abs().amax()) <= tol * float(img_r.abs().amax()), step
+        assert torch.equal(eps, eps_r) and torch.equal(werr, werr_r)
+        m = swap_masks(m, out[step % 16:step % 16 + 1], into[step % 16:step % 16 + 1])[0]
+        if step % 3 == 2:
+            on, off = np.flatnonzero(m), np.flatnonzero(~m)
+            m = swap_masks(m, on[:1], off[:1])[0]
+    return m
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-11), (torch.float32, 2e-6)])
+def test_neighbourhood_base_carried_by_rows_along_a_walk_equals_the_products(monkeypatch, dtype, tol):
+    # with every pair-image row kept (prepare_neighbourhoods), a selection one swap from the last
+    # one has its image and rows G updated by rows, refreshed from the basis every few moves; the
+    # neighbours' images stay those of the product, step after step
+    from arraysel.objective.neighbours import prepare_neighbourhoods
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 6})
+    basis = obj.psf.basis
+    assert prepare_neighbourhoods(obj) >= 0
+    monkeypatch.setattr(type(basis), "swap_base_refresh", 4)
+    rng = np.random.default_rng(4)
+    m = _walk_images(obj, _mask(12, [0, 2, 3, 7, 9, 11]), rng, 14, dtype, tol)
+    assert basis._swap_base_held[4] >= 1                      # the last bases were updated by rows
+    out, into = swap_pairs(m, rng)
+    _assert_same_scores(obj.evaluate_swaps(m, out, into, return_kernels=True),
+                        obj.evaluate(swap_masks(m, out, into), return_kernels=True),
+                        rtol=1e-10 if dtype == torch.float64 else 2e-4, atol=0 if dtype == torch.float64 else 1e-6)
+
+
+def test_paper_neighbourhoods_with_all_rows_kept_along_a_walk(paper_objective, monkeypatch):
+    obj = paper_objective
+    basis = obj.psf.basis
+    assert basis.U is not None                                 # the compressed basis: rows are U V
+    assert obj.prepare_neighbourhoods() is True
+    H, have = basis._swap_rows
+    assert bool(have.all()) and H.shape[0] == basis.pairs_e.numel()
+    pairs = torch.tensor([0, 7, basis.pairs_e.numel() - 1])
+    torch.testing.assert_close(H[pairs], basis.U[pairs] @ basis.V)
+    rng = np.random.default_rng(8)
+    _walk_images(obj, _mask(64, rng.choice(64, 32, replace=False)), rng, 8, torch.float32, 1e-5)

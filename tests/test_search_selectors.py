@@ -337,3 +337,145 @@ def test_a_greedy_start_leaves_the_search_its_share_of_the_budget(reg):
     start, _ = _greedy_on(64, 32, 0.5, evaluations=1000)
     start_mean = float(ToyObjective(64, 32).evaluate(np.isin(np.arange(64), start)[None])["Mean"][0])
     assert row["Mean"] <= start_mean
+
+
+# ---------------------------------------------------------------------------
+# gradient-guided neighbour order
+# ---------------------------------------------------------------------------
+
+def test_guided_chunks_cover_each_swap_once_predicted_best_first():
+    from arraysel.selectors.localsearch import GuidedOrder
+
+    rng = np.random.default_rng(0)
+    a, b = rng.integers(0, 12, 40), rng.integers(0, 12, 40)
+    g = rng.normal(size=12)
+    order = GuidedOrder(0.5)
+    picks = list(order.chunks(a, b, g, chunk=8, limit=40))
+    seen = np.concatenate([p for p, _ in picks])
+    assert sorted(seen.tolist()) == list(range(40))           # every swap once
+    assert all(ng == 4 for _, ng in picks[:3])                # half of each chunk from the prediction
+    first = picks[0][0][:4]
+    assert first.tolist() == np.argsort(g[b] - g[a], kind="stable")[:4].tolist()
+    # a limit stops the scan; no gradient: the random order alone
+    assert sum(len(p) for p, _ in order.chunks(a, b, g, chunk=8, limit=13)) == 13
+    assert [p.tolist() for p, ng in order.chunks(a, b, None, chunk=16, limit=40)] == \
+        [list(range(0, 16)), list(range(16, 32)), list(range(32, 40))]
+
+
+def test_guided_share_follows_where_improvements_come_from_and_probes_at_zero():
+    from arraysel.selectors.localsearch import GuidedOrder
+
+    order = GuidedOrder(0.5, step=0.25, hi=0.75, probe=4)
+    order.credit(True)
+    order.credit(True)
+    assert order.share == 0.75                                 # capped at hi
+    for _ in range(3):
+        order.credit(False)
+    assert order.share == 0.0
+    # at share 0 the gradient is asked for every probe-th move only, with the probe share
+    wants = []
+    for _ in range(8):
+        wants.append(order.wants_gradient())
+        order.credit(None)
+    assert wants.count(True) == 2
+    order.credit(True)                                         # a probe move found the improvement
+    assert order.share == order.probe_share
+
+
+class _LinearObjective(ToyObjective):
+    """Mean = sum of the selected elements' costs: the first-order prediction of a swap is exact."""
+
+    def __init__(self, n, k, cost):
+        super().__init__(n, k)
+        self.cost = np.asarray(cost, dtype=np.float64)
+
+    def evaluate(self, masks):
+        out = super().evaluate(masks)
+        m = np.asarray(masks, dtype=np.float64).reshape(-1, self.n_elements)
+        out["Mean"] = m @ self.cost
+        return out
+
+    def mask_loss(self, weights):
+        import torch
+        self.evaluations += int(weights.shape[0])
+        if weights.requires_grad:
+            self.gradient_steps += 1
+        total = weights @ torch.as_tensor(self.cost, dtype=weights.dtype)
+        return total, {"Mean": total}
+
+
+def test_a_guided_descent_follows_an_exact_gradient_to_the_optimum_in_fewer_evaluations():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+
+    n, k = 40, 10
+    cost = np.random.default_rng(3).normal(size=n)
+    used = {}
+    for guide in (0.0, 0.5):
+        obj = _LinearObjective(n, k, cost)
+        budget = Budget(evaluations=100000).start(obj)
+        view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
+        search = SwapSearch(view, k, numpy_rng(0), chunk=8, guide=guide, max_rounds=0)
+        start = np.zeros(n, dtype=bool)
+        start[np.argsort(cost)[-k:]] = True                     # the worst selection
+        mask, value = search.descend(start, float(start @ cost))
+        assert sorted(np.flatnonzero(mask)) == sorted(np.argsort(cost)[:k])   # the optimum
+        used[guide] = (obj.evaluations, search.moves)
+        if guide:
+            assert search.guide.guided_hits > 0 and search.guide.random_hits == 0
+            assert search.guide.share == search.guide.hi
+    # each guided move is the best swap (the worst selected element for the best other one): k
+    # moves, then one scan of the whole neighbourhood shows the optimum; unguided takes more of both
+    assert used[0.5][1] == k < used[0.0][1]
+    assert used[0.5][0] < 0.7 * used[0.0][0]
+
+
+def test_a_guided_descent_without_a_usable_gradient_scores_like_an_unguided_one():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+
+    obj = _LinearObjective(20, 6, np.linspace(1, 2, 20))
+    obj.mask_loss = lambda w: (w.sum(1) * 0, {})                # a zero gradient: no guidance
+    plain = _LinearObjective(20, 6, np.linspace(1, 2, 20))
+    plain.mask_loss = None
+    got = []
+    for o in (obj, plain):
+        budget = Budget(evaluations=5000).start(o)
+        view = BudgetedObjective(o, budget, Recorder(o, budget), 6)
+        search = SwapSearch(view, 6, numpy_rng(1), chunk=4, guide=0.5, max_rounds=3)
+        got.append(search.run(list(range(14, 20))))
+    assert got[0] == got[1]
+
+
+def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_clock(reg, tmp_path):
+    from arraysel.run.runners import PreparedForNeighbourhoods, RunSpec, make_runner, scores_neighbourhoods
+
+    spec = lambda name, **o: RunSpec(name, reg[name], o, 0)
+    assert all(scores_neighbourhoods(spec(n)) for n in ("swap", "ils", "anneal"))
+    assert not scores_neighbourhoods(spec("random")) and scores_neighbourhoods(spec("random", polish=0.3))
+
+    class Prepared(ToyObjective):
+        prepared = 0
+
+        def prepare_neighbourhoods(self):
+            type(self).prepared += 1
+
+    obj = Prepared(12, 6)
+    budget = Budget(evaluations=50)
+    runner = make_runner(obj, budget, 5.0, 1.0, neighbourhoods=True)
+    assert runner.prepare([spec("random")])["warm_steps"] and Prepared.prepared == 0
+    warm = runner.prepare([spec("swap")])
+    assert Prepared.prepared == 1 and warm["neighbourhoods_s"] >= 0
+    # isolated or remote runs build the objective on the worker: the recipe prepares it there
+    iso = make_runner(obj, budget, 5.0, 1.0, isolate=True, neighbourhoods=True,
+                      objective_factory=lambda: Prepared(12, 6))
+    assert isinstance(iso.factory, PreparedForNeighbourhoods)
+    built = iso.factory()
+    assert isinstance(built, Prepared) and Prepared.prepared == 2
+    plain = make_runner(obj, budget, 5.0, 1.0, isolate=True, objective_factory=lambda: Prepared(12, 6))
+    assert not isinstance(plain.factory, PreparedForNeighbourhoods)
+    # compare prepares the objective when a run needs it
+    Prepared.prepared = 0
+    res = compare(Prepared(12, 6), ["swap", "random"], out_dir=tmp_path / "c", seeds=[0],
+                  budget=Budget(evaluations=60), registry=reg, progress=False, figures=False)
+    assert Prepared.prepared == 1 and not res.failures

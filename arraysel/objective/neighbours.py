@@ -17,7 +17,7 @@ import numpy as np
 
 from arraysel.errors import SelectionError
 
-__all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps"]
+__all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "prepare_neighbourhoods"]
 
 
 def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -76,3 +76,17 @@ def evaluate_swaps(objective, mask, out, into) -> dict[str, np.ndarray]:
     if callable(own):
         return own(m, a, b)
     return objective.evaluate(swap_masks(m, a, b))
+
+
+def prepare_neighbourhoods(objective) -> float:
+    """Do an objective's one-off work for scoring neighbourhoods now (its
+    ``prepare_neighbourhoods()``, where it has one: the physics objective forms the pair-image
+    rows its :meth:`evaluate_swaps` gathers); returns the seconds it took. The runners call it
+    before the budget of a run whose selector scores neighbourhoods starts."""
+    import time
+
+    prepare = getattr(objective, "prepare_neighbourhoods", None)
+    t0 = time.perf_counter()
+    if callable(prepare):
+        prepare()
+    return time.perf_counter() - t0

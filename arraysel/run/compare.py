@@ -30,7 +30,7 @@ from arraysel.report import tables as reporting
 from arraysel.run.experiment import budget_flag, config_label, full_row
 from arraysel.run.isolation import DEFAULT_GRACE_S
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir
-from arraysel.run.runners import Runner, RunSpec, make_runner
+from arraysel.run.runners import Runner, RunSpec, make_runner, scores_neighbourhoods
 from arraysel.run.store import CompareStore, write_figures
 from arraysel.selection import Selection
 from arraysel.selectors.contract import Budget
@@ -216,7 +216,8 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
     full = full_row(objective)
     todo = plan.todo({(r["config"], r["seed"]) for r in rows})
     runner = make_runner(objective, plan.budget, plan.grace, float(full.get("Mean", math.nan)), executor=executor,
-                         objective_factory=objective_factory, isolate=isolate, threads=threads, progress=progress)
+                         objective_factory=objective_factory, isolate=isolate, threads=threads, progress=progress,
+                         neighbourhoods=any(scores_neighbourhoods(s) for s in todo))
     warm = runner.prepare(todo)
     if warm is not None:  # runs made here: this process's objective warmed before the first clock starts
         meta["warm_up"] = warm

@@ -29,6 +29,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from arraysel.errors import ArrayselError, ParameterError, error_text as _error_text
+from arraysel.objective.contract import WorkerFactory
+from arraysel.objective.neighbours import prepare_neighbourhoods
 from arraysel.report.columns import METRICS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
 from arraysel.run.experiment import Experiment, _final_metrics
@@ -132,15 +134,18 @@ class InProcessRunner(Runner):
     each, the objective must be as it was (:class:`_Fingerprint`): a run that changed it is
     yielded with an error, then the comparison stops (:class:`~arraysel.errors.ArrayselError`)."""
 
-    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False):
+    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False,
+                 neighbourhoods: bool = False):
         self.objective, self.budget, self.grace = objective, budget, grace
-        self.full_mean, self.progress = full_mean, progress
+        self.full_mean, self.progress, self.neighbourhoods = full_mean, progress, neighbourhoods
         self.fingerprint: _Fingerprint | None = None
 
     def prepare(self, todo: list[RunSpec]) -> dict | None:
         from arraysel.run.template import warm_objective
 
         warm = warm_objective(self.objective) if todo else None
+        if warm is not None and self.neighbourhoods and any(scores_neighbourhoods(s) for s in todo):
+            warm["neighbourhoods_s"] = prepare_neighbourhoods(self.objective)
         self.fingerprint = _Fingerprint(self.objective, self.full_mean)  # taken once warm
         return warm
 
@@ -253,15 +258,41 @@ class ExecutorRunner(Runner):
         return self.executor.worker_warm_ups() if hasattr(self.executor, "worker_warm_ups") else []
 
 
+@dataclasses.dataclass(frozen=True)
+class PreparedForNeighbourhoods(WorkerFactory):
+    """The objective of ``inner`` (a worker factory), prepared for one-swap neighbourhoods
+    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) as it is built on a worker, so
+    that no run's budget pays for it."""
+
+    inner: object
+
+    def __call__(self):
+        objective = self.inner()
+        prepare_neighbourhoods(objective)
+        return objective
+
+
+def scores_neighbourhoods(spec: RunSpec) -> bool:
+    """Whether the run ``spec`` scores one-swap neighbourhoods: its selector says so
+    (``scores_neighbourhoods``) or it is polished by a swap search (option ``polish``)."""
+    return bool(getattr(spec.selector, "scores_neighbourhoods", False)) or \
+        float(spec.options.get("polish") or 0) > 0
+
+
 def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, executor=None, objective_factory=None,
-                isolate: bool = False, threads: int | None = None, progress: bool = False) -> Runner:
+                isolate: bool = False, threads: int | None = None, progress: bool = False,
+                neighbourhoods: bool = False) -> Runner:
     """The runner of a comparison: on ``executor`` (unless it runs in this process), else isolated
-    child processes (``isolate``), else this process."""
-    local = InProcessRunner(objective, budget, grace, full_mean, progress)
+    child processes (``isolate``), else this process. ``neighbourhoods``: some run scores one-swap
+    neighbourhoods (:func:`scores_neighbourhoods`), so every objective is prepared for them
+    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before the runs' clocks start."""
+    local = InProcessRunner(objective, budget, grace, full_mean, progress, neighbourhoods)
     remote = executor is not None and not getattr(executor, "in_process", False)
     if not remote and not isolate:
         return local
     factory = objective_factory if objective_factory is not None else objective_factory_for(objective)
+    if neighbourhoods:
+        factory = PreparedForNeighbourhoods(factory)
     # the children load the cache entries this process has just loaded and checked: sizes suffice
     verify = "size" if objective_factory is None else None
     if remote:

@@ -601,6 +601,9 @@ class Selector:
         must be reproducible: the same (objective, k, seed) under the same
         evaluation budget gives the same result
     needs_evaluations : spends objective evaluations (False only for fixed layouts)
+    scores_neighbourhoods : scores one-swap neighbourhoods (``score_swaps``/``evaluate_swaps``):
+        the runner prepares the objective for them before the budget starts
+        (``prepare_neighbourhoods``, :mod:`arraysel.objective.neighbours`)
 
     Subclasses implement :meth:`select`. Options are available as
     ``self.options`` (a dict holding every declared option). Every subclass
@@ -615,6 +618,7 @@ class Selector:
     uses_gradients: ClassVar[bool] = False
     deterministic: ClassVar[bool] = False
     needs_evaluations: ClassVar[bool] = True
+    scores_neighbourhoods: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

@@ -11,7 +11,12 @@ neighbours. :class:`SwapSearch` is an iterated local search:
      chunk holds an improving neighbour the search moves to the best of that
      chunk and starts over from the new selection (a fresh random order). When
      ``scan`` x the neighbourhood was scored without improvement the
-     selection is taken as a local optimum;
+     selection is taken as a local optimum. With *gradient guidance*
+     (``guide`` > 0, an objective with ``mask_loss``), a share of each chunk
+     is taken from the swaps the loss's gradient at the selection predicts to
+     improve most (``g[into] - g[out]``, first order), the rest in the random
+     order; the share adapts to where the chunks' best moves come from
+     (:class:`GuidedOrder`);
    * ``best``: every neighbour is scored (one batched call, split in pieces
      by the objective) and the search moves to the best one while it improves;
 
@@ -40,7 +45,7 @@ from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import swap_masks, swap_pairs
 from arraysel.selectors.starts import random_mask
 
-__all__ = ["SwapSearch", "EliteSearch", "random_swaps", "random_swap_pairs"]
+__all__ = ["SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps", "random_swap_pairs"]
 
 
 def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +68,106 @@ def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarr
     return out
 
 
+def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
+    """The gradient (Ne,) float64 of the objective's ``mask_loss`` at the 0/1 selection ``mask``
+    (one evaluation and one gradient step of the budget), or ``None`` where the objective has no
+    ``mask_loss``, it fails with anything but the budget's end, or the gradient is zero or not
+    finite. :class:`~arraysel.selectors.contract.BudgetExhausted` propagates."""
+    import torch
+
+    from arraysel.selectors.contract import BudgetExhausted
+
+    loss = getattr(objective, "mask_loss", None)
+    if not callable(loss):
+        return None
+    dtype = getattr(objective, "dtype", torch.float32)
+    w = torch.tensor(np.asarray(mask, dtype=np.float64)[None], dtype=dtype,
+                     device=getattr(objective, "device", "cpu")).requires_grad_(True)
+    try:
+        total, _terms = loss(w)
+        total.sum().backward()
+    except BudgetExhausted:
+        raise
+    except Exception:  # an objective without a differentiable loss: the search goes unguided
+        return None
+    g = w.grad
+    if g is None:
+        return None
+    g = g.detach()[0].double().cpu().numpy()
+    if not np.isfinite(g).all() or not np.any(g):
+        return None
+    return g
+
+
+class GuidedOrder:
+    """Which one-swap neighbours a first-improvement descent scores next, chunk by chunk.
+
+    The swaps ``(out[i], into[i])`` come in a random order. With a gradient ``g`` of the loss at
+    the selection, the first-order change of a swap is ``g[into] - g[out]``; each chunk then takes
+    ``round(share * chunk)`` swaps in the order of that prediction (most improving first) and the
+    rest in the random order, no swap twice. :meth:`credit` moves ``share`` by ``step`` towards
+    the part that held the chunk's best improving move, within ``[0, hi]``; at share 0 the
+    gradient is only computed every ``probe`` moves (:meth:`wants_gradient`), with share
+    ``probe_share`` for that move, so a gradient that stops predicting costs little and one that
+    predicts again is found back.
+    """
+
+    def __init__(self, share: float, step: float = 0.125, hi: float = 0.875, probe: int = 8,
+                 probe_share: float = 0.5):
+        self.share = float(share)
+        self.step, self.hi, self.probe, self.probe_share = float(step), float(hi), int(probe), float(probe_share)
+        self.moves = 0
+        self.guided_hits = 0
+        self.random_hits = 0
+
+    def wants_gradient(self) -> bool:
+        return self.share > 0 or self.moves % self.probe == 0
+
+    def chunks(self, a: np.ndarray, b: np.ndarray, g: np.ndarray | None, chunk: int, limit: int):
+        """Yield ``(index array into a/b, number of them taken from the prediction)`` per chunk,
+        ``limit`` swaps in all."""
+        n = min(limit, a.size)
+        if g is None:
+            for s in range(0, n, chunk):
+                yield np.arange(s, min(s + chunk, n)), 0
+            return
+        share = self.share if self.share > 0 else self.probe_share
+        ranked = np.argsort(g[b] - g[a], kind="stable")
+        taken = np.zeros(a.size, dtype=bool)
+        gi = ri = done = 0
+        while done < n:
+            size = min(chunk, n - done)
+            ng = min(size, int(round(share * size)))
+            pick = []
+            while len(pick) < ng and gi < ranked.size:
+                j = ranked[gi]
+                gi += 1
+                if not taken[j]:
+                    taken[j] = True
+                    pick.append(j)
+            ng = len(pick)
+            while len(pick) < size and ri < a.size:
+                if not taken[ri]:
+                    taken[ri] = True
+                    pick.append(ri)
+                ri += 1
+            done += len(pick)
+            yield np.asarray(pick, dtype=np.int64), ng
+
+    def credit(self, guided: bool | None) -> None:
+        """After a move: ``guided`` whether its swap came from the prediction (None: the move was
+        made without a gradient)."""
+        self.moves += 1
+        if guided is None:
+            return
+        if guided:
+            self.guided_hits += 1
+            self.share = self.probe_share if self.share == 0 else min(self.hi, self.share + self.step)
+        else:
+            self.random_hits += 1
+            self.share = max(0.0, self.share - self.step)
+
+
 class SwapSearch:
     """Iterated swap local search on a :class:`~arraysel.selectors.contract.BudgetedObjective`.
 
@@ -78,6 +183,8 @@ class SwapSearch:
     perturb : random swaps of a perturbation (0: no perturbation, restart instead)
     restart_after : non-improving perturbations in a row before a restart (0: never)
     restart_from : callable ``rng -> mask`` giving restart selections (default: random)
+    guide : first share of each ``first``-mode chunk taken in the order the loss's gradient
+        predicts (:class:`GuidedOrder`; 0: random order only, no gradient computed)
     max_rounds : stop after this many perturbations/restarts (None: until the budget ends)
     cache_size : most scored selections remembered
     """
@@ -88,7 +195,7 @@ class SwapSearch:
     def __init__(self, objective, k: int, rng: np.random.Generator, *, mode: str = "first", chunk: int = 64,
                  scan: float = 1.0, perturb: int = 2, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
-                 max_rounds: int | None = None, cache_size: int = 2_000_000):
+                 guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000):
         self.objective = objective
         self.n = int(objective.n_elements)
         self.k = int(k)
@@ -99,6 +206,8 @@ class SwapSearch:
         self.perturb = int(check_number("perturb", perturb, lo=0, integer=True))
         self.restart_after = int(check_number("restart_after", restart_after, lo=0, integer=True))
         self.restart_from = restart_from
+        self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
+        self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
         self.cache_size = int(cache_size)
         self._cache: dict[bytes, float] = {}
@@ -166,12 +275,16 @@ class SwapSearch:
                     mask, value, moved = cands[i], float(values[i]), True
             else:
                 limit = max(1, int(math.ceil(self.scan * a.size)))
-                for s in range(0, limit, self.chunk):
-                    sl = slice(s, min(s + self.chunk, limit))
-                    cands, values = self.score_swaps(mask, a[sl], b[sl])
+                g = None
+                if self._guided and self.guide.wants_gradient():
+                    g = loss_gradient(self.objective, mask)
+                    self._guided = g is not None  # an objective without a usable gradient: never again
+                for pick, ng in self.guide.chunks(a, b, g, self.chunk, limit):
+                    cands, values = self.score_swaps(mask, a[pick], b[pick])
                     i = int(np.argmin(values))
                     if values[i] < value:
                         mask, value, moved = cands[i], float(values[i]), True
+                        self.guide.credit(None if g is None else bool(i < ng))
                         break
             if not moved:
                 return mask, value

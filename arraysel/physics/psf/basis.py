@@ -317,17 +317,26 @@ class PairBasis(BasisBuild, Certificates, Refinement):
             self._pair_lookup = look
         return look
 
+    def _row_store(self):
+        """``(H, have)``: the kept pair-image rows on E and which of them are formed, made empty on
+        first use; ``None`` when all P rows do not fit :meth:`swap_rows_cap` (or ``V`` holds the
+        rows itself)."""
+        if self.U is None:
+            return None
+        store = self.__dict__.get("_swap_rows")
+        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_cap():
+            store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
+                                                   device=self.V.device),
+                                       torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
+        return store
+
     def pair_rows(self, pairs: torch.Tensor) -> torch.Tensor:
         """(n, 2 Npix) pair images on E ([re | im]) of the pairs ``pairs`` (long (n,)): rows of
         ``U V`` (of ``V`` without compression). Rows formed once are kept while all P of them fit
         :meth:`swap_rows_cap`: a search's next neighbourhood needs mostly the same rows."""
         if self.U is None:
             return self.V[pairs.to(self.V.device)]
-        store = self.__dict__.get("_swap_rows")
-        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_cap():
-            store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
-                                                   device=self.V.device),
-                                       torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
+        store = self._row_store()
         if store is None:
             return self.U[pairs.to(self.U.device)] @ self.V
         H, have = store
@@ -338,42 +347,91 @@ class PairBasis(BasisBuild, Certificates, Refinement):
             have[need] = True
         return H[pairs.to(H.device)]
 
+    def fill_pair_rows(self, block: int = 256) -> bool:
+        """Form now every pair-image row :meth:`pair_rows` keeps (``block`` rows a product), so that
+        a search's neighbourhoods (:meth:`swap_images`) gather rows instead of forming them: the
+        one-off work of a swap search (a few seconds, :meth:`bytes_of_pair_rows` of memory), done
+        before its budget starts. Returns whether all rows are kept (False: they do not fit
+        :meth:`swap_rows_cap`, and each neighbourhood forms the rows it needs)."""
+        if self.U is None:
+            return True
+        store = self._row_store()
+        if store is None:
+            return False
+        H, have = store
+        todo = torch.nonzero(~have).flatten()
+        for i in range(0, todo.numel(), block):
+            idx = todo[i:i + block]
+            H.index_copy_(0, idx.to(H.device), self.U[idx.to(self.U.device)] @ self.V)
+            have[idx] = True
+        return True
+
+    def bytes_of_pair_rows(self) -> int:
+        """Bytes of all pair-image rows on E (what :meth:`fill_pair_rows` keeps)."""
+        return int(self.pairs_e.numel() * self.V.shape[1] * self.V.element_size())
+
+    #: moves a neighbourhood base is carried by row updates (:meth:`swap_images`) before it is
+    #: formed afresh from the basis
+    swap_base_refresh = 64
+
+    def _swap_base(self, mask: torch.Tensor):
+        """``(y, G)`` of the 0/1 selection ``mask``, float64: its image on E (1, 2 Npix) and the
+        rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix). Kept for the last selection; a selection
+        one swap ``a -> b`` from it is updated by rows, when the pair rows are all kept
+        (``G -= H_.a; G += H_.b``; ``y`` is the neighbour's image), at most
+        :attr:`swap_base_refresh` times in a row."""
+        m = (mask.cpu() != 0)
+        key = m.numpy().tobytes()
+        held = self.__dict__.get("_swap_base_held")
+        if held is not None and held[0] == key:
+            return held[2], held[3]
+        look = self.pair_lookup()
+        on = torch.nonzero(m).flatten()
+        dev = self.V.device
+        if held is not None and held[4] < self.swap_base_refresh:
+            prev = held[1]
+            gone, new = torch.nonzero(prev & ~m).flatten(), torch.nonzero(m & ~prev).flatten()
+            store = self.__dict__.get("_swap_rows")
+            if gone.numel() == 1 and new.numel() == 1 and (self.U is None or (store is not None and bool(store[1].all()))):
+                a, b = int(gone), int(new)
+                y, G = held[2], held[3]  # owned here: updated in place
+                pair = self.pair_rows(torch.stack([look[b, b], look[a, b]]))
+                y.sub_(G[a]).add_(G[b]).add_(pair[0]).sub_(pair[1])
+                G.sub_(self.pair_rows(look[:, a])).add_(self.pair_rows(look[:, b]))
+                self._swap_base_held = (key, m, y, G, held[4] + 1)
+                return y, G
+        sel = look[:, on]                                                         # (Ne, k)
+        if self.U is not None:
+            R = self.U[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)   # (Ne, rank)
+            G = (R.to(self.V.dtype) @ self.V).double()
+            y = (R[on.to(dev)].sum(0) + self.U[look[on, on].to(dev)].double().sum(0)) / 2
+            y = (y.to(self.V.dtype) @ self.V)[None].double()
+        else:
+            G = self.V[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)
+            y = ((G[on.to(dev)].sum(0) + self.V[look[on, on].to(dev)].double().sum(0)) / 2)[None]
+        self._swap_base_held = (key, m, y, G, 0)
+        return y, G
+
     def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
         """:meth:`images` ``(w, with_error=True)`` of the one-swap neighbours ``w`` (B, Ne) of the 0/1
         selection ``mask`` (Ne,): element ``out[b]`` off, ``into[b]`` on. The image is bilinear in
         the selection, so a neighbour's image on E is the selection's, less the image rows
         ``G_a = sum_{j in mask} H_aj`` of ``a = out[b]``, plus those of ``b = into[b]``, plus
-        ``H_bb`` and less ``H_ab`` (``H`` the pair images, :meth:`pair_rows`; ``G = R V`` with ``R``
-        the rows of ``U`` summed over the selection): sums of rows where :meth:`images` forms the
+        ``H_bb`` and less ``H_ab`` (``H`` the pair images, :meth:`pair_rows`; ``G`` and the image
+        from :meth:`_swap_base`, in float64): sums of rows where :meth:`images` forms the
         product ``(c U) V`` of every neighbour. The error bounds are :meth:`images`' own (from
         ``c U``). No gradient."""
         with torch.no_grad():
             c = self._pairs(w)
             cu = c @ self.U if self.U is not None else None
             eps, win_err = self._image_errors(c, cu)
-            on = torch.nonzero(mask.cpu() != 0).flatten()
-            key = (mask.cpu() != 0).numpy().tobytes()
-            held = self.__dict__.get("_swap_base")
-            if held is None or held[0] != key:
-                look = self.pair_lookup()[:, on]                                  # (Ne, k)
-                dev = self.V.device
-                if self.U is not None:
-                    R = self.U[look.reshape(-1).to(dev)].double().view(*look.shape, -1).sum(1)   # (Ne, rank)
-                    G = R.to(self.V.dtype) @ self.V
-                    y = (R[on.to(dev)].sum(0) + self.U[self.pair_lookup()[on, on].to(dev)].double().sum(0)) / 2
-                    y = (y.to(self.V.dtype) @ self.V)[None]
-                else:
-                    Vd = self.V.double()
-                    G = Vd[look.reshape(-1).to(dev)].view(*look.shape, -1).sum(1)
-                    y = ((G[on.to(dev)].sum(0) + Vd[self.pair_lookup()[on, on].to(dev)].sum(0)) / 2)[None]
-                    G, y = G.to(self.V.dtype), y.to(self.V.dtype)
-                held = self._swap_base = (key, y, G)
-            _, y, G = held
+            y, G = self._swap_base(mask)
             a, b = out.cpu(), into.cpu()
             look = self.pair_lookup()
             dev = G.device
             yb = (y - G[a.to(dev)]).add_(G[b.to(dev)])
             yb.add_(self.pair_rows(look[b, b])).sub_(self.pair_rows(look[a, b]))
+            yb = yb.to(self.V.dtype)
             img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
 
