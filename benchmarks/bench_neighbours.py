@@ -15,6 +15,13 @@ neighbourhood evaluation runs under ``cProfile``, and the share of its time in t
 stages is printed: the channel envelopes of the certificates (``swap_envelopes`` for a
 neighbourhood), the images on E, the block bounds, the refinement of loose blocks and ties, the
 exact path, and the metrics. The last line is one JSON record.
+
+With ``--prepare`` each scene runs twice, side by side: on a fresh objective as above, then on one
+prepared for neighbourhoods first (``arraysel.objective.neighbours.prepare_neighbourhoods``: every
+pair-image row formed, its seconds printed), as the runners prepare the objective of a run that
+scores neighbourhoods. Chunks of a first-improvement descent are ``--pairs 64``:
+
+    python benchmarks/bench_neighbours.py --scenes paper,l11-5v --pairs 64 --rounds 12 --threads 1 --prepare
 """
 from __future__ import annotations
 
@@ -56,19 +63,27 @@ def main(argv=None) -> int:
     ap.add_argument("--pairs", type=int, default=512)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--prepare", action="store_true",
+                    help="also run each scene on an objective prepared for neighbourhoods")
     args = ap.parse_args(argv)
     set_threads(args.threads)
     import numpy as np
 
-    from arraysel.objective.neighbours import evaluate_swaps, swap_masks, swap_pairs
+    from arraysel.objective.neighbours import evaluate_swaps, prepare_neighbourhoods, swap_masks, swap_pairs
     from arraysel.objective.psf_objective import build_objective
     from arraysel.selectors.layouts import uniform_layout
 
     record = {"pairs": args.pairs, "rounds": args.rounds, "threads": args.threads, "scenes": {}}
-    print(f"{'scene':8s} {'Ne':>4s} {'k':>4s} {'own':>4s} {'swaps/s':>9s} {'masks/s':>9s} {'ratio':>6s}  stages of a "
+    print(f"{'scene':17s} {'Ne':>4s} {'k':>4s} {'own':>4s} {'swaps/s':>9s} {'masks/s':>9s} {'ratio':>6s}  stages of a "
           f"neighbourhood (share of its time)")
-    for scene in [s for s in args.scenes.split(",") if s]:
+    runs = [(s, False) for s in args.scenes.split(",") if s]
+    if args.prepare:
+        runs = [r for s, _ in runs for r in ((s, False), (s, True))]
+    for scene, prepared in runs:
         obj = build_objective(scene)
+        label = f"{scene}+prepared" if prepared else scene
+        if prepared:
+            print(f"{label}: prepare_neighbourhoods {prepare_neighbourhoods(obj):.1f} s")
         n, k = int(obj.n_elements), int(obj.k)
         base = np.zeros(n, dtype=bool)
         base[uniform_layout(n, k)] = True
@@ -99,9 +114,9 @@ def main(argv=None) -> int:
         shares = _stage_shares(prof)
         rs, rm = out.size * len(t_swaps) / sum(t_swaps), out.size * len(t_masks) / sum(t_masks)
         own = callable(getattr(obj, "evaluate_swaps", None))
-        print(f"{scene:8s} {n:4d} {k:4d} {'yes' if own else 'no':>4s} {rs:9.1f} {rm:9.1f} {rs / rm:6.2f}  " +
+        print(f"{label:17s} {n:4d} {k:4d} {'yes' if own else 'no':>4s} {rs:9.1f} {rm:9.1f} {rs / rm:6.2f}  " +
               ", ".join(f"{k_} {v:.0%}" for k_, v in shares.items()))
-        record["scenes"][scene] = {"n_elements": n, "k": k, "own_evaluate_swaps": own, "swaps_per_s": rs,
+        record["scenes"][label] = {"n_elements": n, "k": k, "own_evaluate_swaps": own, "swaps_per_s": rs,
                                    "masks_per_s": rm, "seconds_swaps": t_swaps, "seconds_masks": t_masks,
                                    "stage_shares": shares, "largest_relative_difference": diff}
     print(json.dumps(record))

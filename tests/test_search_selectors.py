@@ -115,6 +115,8 @@ def test_time_budget_stops_a_large_batch():
     ("ils", {"mode": "best", "relink": 1.0}, (0, 1)),
     ("anneal", {}, (0, 1)),
     ("genetic", {}, (0, 1)),
+    ("memetic", {}, (0, 1, 2)),
+    ("memetic", {"scan": 1.0, "guide": 0.0}, (0,)),
     ("nevergrad", {}, (0,)),
     ("nevergrad", {"encoding": "binary", "optimizer": "DiscreteOnePlusOne"}, (0, 1, 2)),
     ("uniform", {"polish": 0.9}, (0,)),
@@ -153,7 +155,7 @@ def test_nevergrad_binary_lamarck_repair_tells_exact_k_points(reg, monkeypatch):
 
 
 def test_search_selectors_are_reproducible_per_seed(reg):
-    for name in ("swap", "ils", "anneal", "genetic"):
+    for name in ("swap", "ils", "anneal", "genetic", "memetic"):
         rows = [Experiment(ToyObjective(16, 8), name, budget=Budget(evaluations=300), seed=s,
                            registry=reg).run() for s in (5, 5)]
         assert rows[0]["elements"] == rows[1]["elements"] and rows[0]["Mean"] == rows[1]["Mean"]
@@ -451,7 +453,7 @@ def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_cl
     from arraysel.run.runners import PreparedForNeighbourhoods, RunSpec, make_runner, scores_neighbourhoods
 
     spec = lambda name, **o: RunSpec(name, reg[name], o, 0)
-    assert all(scores_neighbourhoods(spec(n)) for n in ("swap", "ils", "anneal"))
+    assert all(scores_neighbourhoods(spec(n)) for n in ("swap", "ils", "anneal", "memetic"))
     assert not scores_neighbourhoods(spec("random")) and scores_neighbourhoods(spec("random", polish=0.3))
 
     class Prepared(ToyObjective):

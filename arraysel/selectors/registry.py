@@ -68,6 +68,7 @@ BUILTIN_PLUGINS: dict[str, str] = {
     "arraysel.ils": "arraysel_plugins.ils",
     "arraysel.anneal": "arraysel_plugins.anneal",
     "arraysel.genetic": "arraysel_plugins.genetic",
+    "arraysel.memetic": "arraysel_plugins.memetic",
     "arraysel.nevergrad": "arraysel_plugins.nevergrad_bridge",
     "arraysel.spiral": "arraysel_plugins.spiral",
 }

@@ -1,0 +1,101 @@
+"""Populations of exact-``k`` selections: what the evolutionary searches share (the ``genetic``
+and ``memetic`` selectors), in the framework so that a plugin calls it instead of copying it.
+
+* :data:`POPULATION_OPTIONS`: the options such a selector declares;
+* :func:`initial_population`: the uniform layout and random ``k``-selections;
+* :func:`exact_k_crossover`: a child with exactly ``k`` elements from two parents;
+* :func:`breed`: ``children`` new selections by tournaments, crossover and swap mutation, none
+  equal to a member of the population or to an earlier child;
+* :func:`survivors`: the ``mu`` best distinct selections of parents and children (elitist).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from arraysel.selectors.contract import Option
+from arraysel.selectors.layouts import uniform_layout
+from arraysel.selectors.localsearch import random_swaps
+from arraysel.selectors.starts import random_subsets
+
+__all__ = ["POPULATION_OPTIONS", "initial_population", "exact_k_crossover", "tournament", "breed", "survivors",
+           "mask_key"]
+
+#: the declared options of a population search (a selector's ``options`` include them)
+POPULATION_OPTIONS = {
+    "population": Option(int, 32, "selections kept (mu)", lo=2),
+    "children": Option(int, 64, "children per generation (lambda), scored in one evaluate call", lo=1),
+    "tournament": Option(int, 3, "tournament size of parent selection", lo=1),
+    "crossover": Option(float, 0.9, "probability that a child is a crossover (else a copy)", lo=0.0, hi=1.0),
+    "mutation": Option(float, 1.0, "mean number of random swaps per child (Poisson)", lo=0.0),
+}
+
+
+def mask_key(mask: np.ndarray) -> bytes:
+    """A hashable key of a boolean mask (its packed bits)."""
+    return np.packbits(mask).tobytes()
+
+
+def initial_population(rng: np.random.Generator, mu: int, n: int, k: int) -> np.ndarray:
+    """``(mu, n)`` boolean masks: the uniform layout first, then random ``k``-selections."""
+    pop = np.zeros((mu, n), dtype=bool)
+    np.put_along_axis(pop, random_subsets(rng, mu, n, k), True, axis=1)
+    pop[0] = False
+    pop[0, uniform_layout(n, k)] = True
+    return pop
+
+
+def exact_k_crossover(p1: np.ndarray, p2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A child mask with exactly ``p1.sum()`` elements: the common ones plus a random fill
+    from the symmetric difference."""
+    child = p1 & p2
+    need = int(p1.sum()) - int(child.sum())
+    if need > 0:
+        diff = np.flatnonzero(p1 ^ p2)
+        child[rng.choice(diff, need, replace=False)] = True
+    return child
+
+
+def tournament(fit: np.ndarray, size: int, rng: np.random.Generator) -> int:
+    """Index of the lowest value among ``size`` distinct random members."""
+    idx = rng.choice(fit.size, size=min(size, fit.size), replace=False)
+    return int(idx[np.argmin(fit[idx])])
+
+
+def breed(pop: np.ndarray, fit: np.ndarray, children: int, rng: np.random.Generator, *, tournament_size: int = 3,
+          crossover: float = 0.9, mutation: float = 1.0) -> np.ndarray:
+    """``(children, n)`` child masks: parents by tournaments of ``tournament_size``; with
+    probability ``crossover`` an :func:`exact_k_crossover` of two parents, else a copy of one;
+    then ``Poisson(mutation)`` random swaps; a child equal to a member or an earlier child gets
+    one more swap."""
+    out = np.zeros((children, pop.shape[1]), dtype=bool)
+    known = {mask_key(m) for m in pop}
+    for c in range(children):
+        i = tournament(fit, tournament_size, rng)
+        if rng.random() < crossover:
+            j = tournament(fit, tournament_size, rng)
+            child = exact_k_crossover(pop[i], pop[j], rng)
+        else:
+            child = pop[i].copy()
+        child = random_swaps(child, int(rng.poisson(mutation)), rng)
+        key = mask_key(child)
+        if key in known:
+            child = random_swaps(child, 1, rng)
+            key = mask_key(child)
+        known.add(key)
+        out[c] = child
+    return out
+
+
+def survivors(masks: np.ndarray, values: np.ndarray, mu: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``mu`` best distinct masks of ``masks`` (ties: the earlier first) and their values,
+    best first."""
+    order = np.lexsort((np.arange(values.size), values))
+    keep, seen = [], set()
+    for idx in order:
+        key = mask_key(masks[idx])
+        if key not in seen:
+            seen.add(key)
+            keep.append(idx)
+        if len(keep) == mu:
+            break
+    return masks[keep], values[keep]
