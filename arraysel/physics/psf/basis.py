@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 
+import numpy as np
 import torch
 
 from arraysel.errors import check_number
@@ -374,11 +375,25 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     #: formed afresh from the basis
     swap_base_refresh = 64
 
+    def _all_rows(self):
+        """Every pair-image row on E as one numpy array (P, 2 Npix), on the CPU, when they are all
+        at hand (kept by :meth:`fill_pair_rows`, or ``V`` itself without compression); else None.
+        (numpy's gathers and float32 -> float64 sums of rows run several times faster than
+        torch's on one thread.)"""
+        if self.V.device.type != "cpu":
+            return None
+        if self.U is None:
+            return self.V.numpy()
+        store = self.__dict__.get("_swap_rows")
+        if store is None or not bool(store[1].all()):
+            return None
+        return store[0].numpy()
+
     def _swap_base(self, mask: torch.Tensor):
         """``(y, G)`` of the 0/1 selection ``mask``, float64: its image on E (1, 2 Npix) and the
         rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix). Kept for the last selection; a selection
-        one swap ``a -> b`` from it is updated by rows, when the pair rows are all kept
-        (``G -= H_.a; G += H_.b``; ``y`` is the neighbour's image), at most
+        one swap ``a -> b`` from it is updated by rows, when the pair rows are all at hand
+        (:meth:`_all_rows`: ``G -= H_.a; G += H_.b``; ``y`` is the neighbour's image), at most
         :attr:`swap_base_refresh` times in a row."""
         m = (mask.cpu() != 0)
         key = m.numpy().tobytes()
@@ -391,15 +406,19 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         if held is not None and held[4] < self.swap_base_refresh:
             prev = held[1]
             gone, new = torch.nonzero(prev & ~m).flatten(), torch.nonzero(m & ~prev).flatten()
-            store = self.__dict__.get("_swap_rows")
-            if gone.numel() == 1 and new.numel() == 1 and (self.U is None or (store is not None and bool(store[1].all()))):
+            H = self._all_rows() if gone.numel() == 1 and new.numel() == 1 else None
+            if H is not None:
                 a, b = int(gone), int(new)
-                y, G = held[2], held[3]  # owned here: updated in place
-                pair = self.pair_rows(torch.stack([look[b, b], look[a, b]]))
-                y.sub_(G[a]).add_(G[b]).add_(pair[0]).sub_(pair[1])
-                G.sub_(self.pair_rows(look[:, a])).add_(self.pair_rows(look[:, b]))
-                self._swap_base_held = (key, m, y, G, held[4] + 1)
-                return y, G
+                y, G = held[2].numpy(), held[3].numpy()  # owned here: updated in place
+                ln = look.numpy()
+                y -= G[a]
+                y += G[b]
+                y += H[ln[b, b]]
+                y -= H[ln[a, b]]
+                G -= np.take(H, ln[:, a], axis=0)
+                G += np.take(H, ln[:, b], axis=0)
+                self._swap_base_held = (key, m, held[2], held[3], held[4] + 1)
+                return held[2], held[3]
         sel = look[:, on]                                                         # (Ne, k)
         if self.U is not None:
             R = self.U[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)   # (Ne, rank)
@@ -409,8 +428,8 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         else:
             G = self.V[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)
             y = ((G[on.to(dev)].sum(0) + self.V[look[on, on].to(dev)].double().sum(0)) / 2)[None]
-        self._swap_base_held = (key, m, y, G, 0)
-        return y, G
+        self._swap_base_held = (key, m, y.contiguous(), G.contiguous(), 0)
+        return self._swap_base_held[2], self._swap_base_held[3]
 
     def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
         """:meth:`images` ``(w, with_error=True)`` of the one-swap neighbours ``w`` (B, Ne) of the 0/1
@@ -428,10 +447,20 @@ class PairBasis(BasisBuild, Certificates, Refinement):
             y, G = self._swap_base(mask)
             a, b = out.cpu(), into.cpu()
             look = self.pair_lookup()
-            dev = G.device
-            yb = (y - G[a.to(dev)]).add_(G[b.to(dev)])
-            yb.add_(self.pair_rows(look[b, b])).sub_(self.pair_rows(look[a, b]))
-            yb = yb.to(self.V.dtype)
+            H = self._all_rows()
+            if H is not None:  # numpy: gathers and mixed-precision sums of kept rows
+                an, bn, ln, Gn = a.numpy(), b.numpy(), look.numpy(), G.numpy()
+                yb = np.take(Gn, bn, axis=0)
+                yb -= np.take(Gn, an, axis=0)
+                yb += y.numpy()
+                yb += np.take(H, ln[bn, bn], axis=0)
+                yb -= np.take(H, ln[an, bn], axis=0)
+                yb = torch.from_numpy(yb.astype(H.dtype))
+            else:
+                dev = G.device
+                yb = (y - G[a.to(dev)]).add_(G[b.to(dev)])
+                yb.add_(self.pair_rows(look[b, b])).sub_(self.pair_rows(look[a, b]))
+                yb = yb.to(self.V.dtype)
             img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
 
