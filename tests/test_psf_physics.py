@@ -182,7 +182,7 @@ def test_block_bounds_cover_the_exact_image(paper_objective, exact_grid_images, 
     fast = paper_objective.psf.basis
     w = _certificate_masks()
     with torch.no_grad():
-        bounds = fast.bound(w, tier, per_block=True)  # (nQ, B)
+        bounds = fast.certificates.bound(w, tier, per_block=True)  # (nQ, B)
     blocks = fast.blocks1 if tier == 1 else fast.blocks2
     truth = _block_max(exact_grid_images, paper_objective.psf.block)[:, blocks[:, 0], blocks[:, 1]].T
     assert bool((truth > 0).any())
@@ -256,7 +256,7 @@ def test_strip_low_rank_bounds_cover_the_exact_image(paper_objective, exact_grid
     whole = torch.nonzero(fast.strip_block_col >= 0).flatten()
     slots = fast.strip_block_col[whole] // (2 * b * b)
     with torch.no_grad():
-        bounds = fast.strip_bounds(fast._pairs(w), slots)  # (n, B)
+        bounds = fast.refinement.strip_bounds(fast._pairs(w), slots)  # (n, B)
     blocks = fast.blocks1[whole]
     truth = _block_max(exact_grid_images, b)[:, blocks[:, 0], blocks[:, 1]].T.double()
     assert bool((bounds >= truth * (1 - 1e-5)).all()), float((truth / bounds).max())
