@@ -126,9 +126,6 @@ class PairBasis:
         #: the certified kernels (:class:`~arraysel.physics.psf.refinement.Refinement`)
         self.refinement: Refinement | None = None
         self._row_energy = None
-        self._pair_lookup = None  # (Ne, Ne) pair indices (:meth:`pair_lookup`)
-        self._swap_rows = None  # the pair-image rows kept (:meth:`pair_rows`)
-        self._swap_base = None  # (selection key, its image rows) of :meth:`swap_images`
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path
         self.finer = None
@@ -225,7 +222,6 @@ class PairBasis:
         out.U, out.V, out.rank, out.error = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
         out.rank_tail = self.rank_tail + float(sig.sum()) / total
         out.finer = self
-        out._swap_rows = out._swap_base = None
         out._attach_refinement(shared=self.refinement)
         return out
 
@@ -337,7 +333,7 @@ class PairBasis:
 
     def pair_lookup(self) -> torch.Tensor:
         """(Ne, Ne) long: the index of pair (e, j) (either order) among :attr:`pairs_e`, :attr:`pairs_j`."""
-        look = self._pair_lookup
+        look = self.__dict__.get("_pair_lookup")
         if look is None:
             ne = self.model.n_elements
             look = torch.empty(ne, ne, dtype=torch.long)
@@ -353,7 +349,7 @@ class PairBasis:
         :meth:`swap_rows_cap`: a search's next neighbourhood needs mostly the same rows."""
         if self.U is None:
             return self.V[pairs.to(self.V.device)]
-        store = self._swap_rows
+        store = self.__dict__.get("_swap_rows")
         if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_cap():
             store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
                                                    device=self.V.device),
@@ -383,7 +379,7 @@ class PairBasis:
             eps, win_err = self._image_errors(c, cu)
             on = torch.nonzero(mask.cpu() != 0).flatten()
             key = (mask.cpu() != 0).numpy().tobytes()
-            held = self._swap_base
+            held = self.__dict__.get("_swap_base")
             if held is None or held[0] != key:
                 look = self.pair_lookup()[:, on]                                  # (Ne, k)
                 dev = self.V.device

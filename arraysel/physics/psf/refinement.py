@@ -4,10 +4,25 @@ delay-and-sum at the tied pixels), and loose blocks cleared by the strips' low-r
 their exact pair images, or block-wise delay-and-sum.
 
 :class:`Refinement` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`
-(``basis.refinement``), made with explicit inputs (the basis's images and stored tensors, its
-:class:`~arraysel.physics.psf.certificate.Certificates`, the kernel tolerance); it owns the
-certified :meth:`Refinement.kernels` that :meth:`PairBasis.kernels
-<arraysel.physics.psf.basis.PairBasis.kernels>` runs, and the DAS plans and counts they keep.
+(``basis.refinement``); :meth:`PairBasis.kernels <arraysel.physics.psf.basis.PairBasis.kernels>`
+runs its :meth:`Refinement.kernels`. Its inputs (constructor arguments):
+
+* ``basis``, of which it reads this interface only: ``model`` (its public interface),
+  ``layout``, the images (:meth:`~arraysel.physics.psf.basis.PairBasis.images`, ``band_images``,
+  ``channels``, the pair products ``_pairs`` and the rounding allowance ``_rounding``), the
+  stored ``strip_images``, ``strip_left``, ``strip_right``, ``strip_sigma``,
+  ``strip_sigma_next`` and ``core_images``, and ``finer`` (the full-rank basis a truncated one
+  retries on);
+* ``certificates``, the basis's :class:`~arraysel.physics.psf.certificate.Certificates` (block
+  bounds, envelopes, the pair channels and their windows);
+* ``kernel_tol`` (default :attr:`Refinement.kernel_tol`);
+* ``shared``: another basis's refinement whose caches and counts this one shares (a truncated
+  view and the basis it comes from).
+
+It owns ``kernel_tol``, the counts ``settled`` (kernels that reached each costly step since
+the basis was made: ``"finer"``, the stored rank's tighter bound, and ``"exact_windows"``, their
+window delay-and-summed exactly) and its caches: the block DAS plans and transmit distances,
+E's DAS plan and the core's pixel positions.
 """
 from __future__ import annotations
 
@@ -53,24 +68,20 @@ def _runs(slots: torch.Tensor, most: int = 32) -> list[tuple[int, int]] | None:
     return [(int(s[i]), int(s[j - 1]) + 1) for i, j in zip(starts, ends)]
 
 
+def _windows(setup, pz, px, rows, cols):
+    """Grid offsets (z0, x0) of the kernel windows of peaks (pz, px) and whether each fits in the
+    region (rows, cols)."""
+    z0 = window_start(pz, setup.window, setup.n_z)
+    x0 = window_start(px, setup.window, setup.n_x)
+    fits = (z0 >= rows.start) & (z0 + setup.window <= rows.stop) & (x0 >= cols.start) & \
+        (x0 + setup.window <= cols.stop)
+    return z0, x0, fits
+
+
 class Refinement:
     """Peak location, refinement and the certified kernels of a
-    :class:`~arraysel.physics.psf.basis.PairBasis` (see the module): ``basis.refinement``.
-
-    Inputs (constructor): ``basis``, of which it reads this interface only: ``model`` (its
-    public interface), ``layout``, the images (:meth:`~arraysel.physics.psf.basis.PairBasis.images`,
-    ``band_images``, ``channels``, the pair products ``_pairs`` and the rounding allowance
-    ``_rounding``), the stored ``strip_images``, ``strip_left``, ``strip_right``,
-    ``strip_sigma``, ``strip_sigma_next`` and ``core_images``, and ``finer`` (the full-rank basis
-    a truncated one retries on); ``certificates``, the basis's
-    :class:`~arraysel.physics.psf.certificate.Certificates` (block bounds, envelopes, the pair
-    channels and their windows); ``kernel_tol`` (default :attr:`kernel_tol`); and ``shared``,
-    another basis's refinement whose caches and counts this one shares (a truncated view and
-    the basis it comes from).
-
-    It owns ``kernel_tol``, the counts ``settled`` and its caches: the block DAS plans and
-    transmit distances, E's DAS plan and the core's pixel positions.
-    """
+    :class:`~arraysel.physics.psf.basis.PairBasis` (``basis.refinement``; its inputs and what it
+    owns: see the module)."""
 
     def __init__(self, basis, certificates, kernel_tol: float | None = None, shared: "Refinement | None" = None):
         self.basis = basis
@@ -83,10 +94,7 @@ class Refinement:
             self._block_plans: dict = {}  # block -> its DAS plan (:meth:`_plans_for_blocks`)
             self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
             self._e_plan_holder: dict = {}  # E's DAS plan (:meth:`_e_plans`)
-            #: kernels that reached each costly step since the basis was made (shared with truncated
-            #: views): ``"finer"`` (the stored rank's tighter bound), ``"exact_windows"`` (their
-            #: window delay-and-summed exactly)
-            self.settled = {"finer": 0, "exact_windows": 0}
+            self.settled = {"finer": 0, "exact_windows": 0}  #: kernels that reached each costly step
         else:
             self._block_plans, self._block_dtx = shared._block_plans, shared._block_dtx
             self._e_plan_holder, self.settled = shared._e_plan_holder, shared.settled
@@ -416,14 +424,6 @@ class Refinement:
             arg[sel] = union[mag2.argmax(dim=1)]
         return amb[~inside]
 
-    def _windows(self, pz, px, rows, cols):
-        s = self.model.setup
-        z0 = window_start(pz, s.window, s.n_z)
-        x0 = window_start(px, s.window, s.n_x)
-        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
-               (x0 + s.window <= cols.stop)
-        return z0, x0, fits
-
     def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
         ``env``: the envelopes of ``w`` (:meth:`~arraysel.physics.psf.certificate.Certificates.envelopes`), ``images``: its images on E with
@@ -443,7 +443,7 @@ class Refinement:
                 env = self.certificates.envelopes(wd)
         img, eps, win_err = self.basis.images(w, with_error=True) if images is None else images
         pz, px, thr, ok = self._locate(img, eps, w, self.layout.rows.start, self.layout.cols.start)
-        z0, x0, fits = self._windows(pz, px, self.layout.rows, self.layout.cols)
+        z0, x0, fits = _windows(s, pz, px, self.layout.rows, self.layout.cols)
         with torch.no_grad():
             # the per-block bounds serve the peaks that the largest of them does not certify too
             # (forming them again for those selections, from a copy of their envelopes' columns,
@@ -469,7 +469,7 @@ class Refinement:
             w2 = w[todo]
             band = self.basis.band_images(w2, img[todo])
             pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.layout.rows.start, 0)
-            z02, x02, fits2 = self._windows(pz2, px2, self.layout.rows, slice(0, s.n_x))
+            z02, x02, fits2 = _windows(s, pz2, px2, self.layout.rows, slice(0, s.n_x))
             with torch.no_grad():
                 ok2 = ok2 & fits2
                 bounds = self.certificates.bound(wd[todo], 2, per_block=True, env=env[:, todo])
