@@ -88,8 +88,7 @@ class Refinement:
         self.model = basis.model
         self.layout = basis.layout
         self.certificates = certificates
-        if kernel_tol is not None:
-            self.kernel_tol = float(kernel_tol)
+        self.kernel_tol = self.kernel_tol if kernel_tol is None else float(kernel_tol)
         if shared is None:
             self._block_plans: dict = {}  # block -> its DAS plan (:meth:`_plans_for_blocks`)
             self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
@@ -148,7 +147,8 @@ class Refinement:
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
             dtx = self._block_transmit_distances(missing, xs, zs)
-            per_tx = list(zip(*window_plans(self.model, self.certificates.window_offset, torch.cat(xs), torch.cat(zs), dtx)))
+            offset = self.certificates.window_offset
+            per_tx = list(zip(*window_plans(self.model, offset, torch.cat(xs), torch.cat(zs), dtx)))
             stacked = (torch.stack(per_tx[0]).to(model.device, self.plan_index_dtype),
                        torch.stack(per_tx[1]).to(model.device, model.dtype),
                        torch.stack(per_tx[2]).to(model.device, model.cdtype))
@@ -247,7 +247,8 @@ class Refinement:
         # |c_perp|, widened for the rounding of |c W_r|^2 (float32)
         cperp = ((cn2 - cw2).clamp(min=0) + 1e-6 * cn2).sqrt()
         # rounding of the two float32 products: 2 sqrt(P) u |c| S_1, on top of strip_images' own
-        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * self.basis.strip_sigma[sl][:, :1].double()
+        sigma = self.basis.strip_sigma[sl]
+        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * sigma[:, :1].double()
         return peak.double() * (1 + 1e-4) + cperp * self.basis.strip_sigma_next[sl][:, None] + rnd + 2 * slack.double()
 
     def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None, tier: int = 2,
@@ -258,10 +259,10 @@ class Refinement:
 
         Blocks wholly inside the strips (tier 1) take their values from the precomputed strip
         pair images, one small product per block for all selections at once (block-major
-        columns of ``strip_images``); other blocks are delay-and-summed from the selection's I/Q channels
-        (:meth:`~arraysel.physics.psf.basis.PairBasis.channels`). Either way a selection with a few loose blocks costs far less than
-        a whole-grid exact image. ``env``: the envelopes of w; ``bounds``: its per-block bounds
-        (:meth:`~arraysel.physics.psf.certificate.Certificates.bound` with ``per_block``), when the caller has them.
+        columns of ``strip_images``); other blocks are delay-and-summed from the selection's I/Q
+        channels (``basis.channels``). Either way a selection with a few loose blocks costs far
+        less than a whole-grid exact image. ``env``: the envelopes of w; ``bounds``: its
+        per-block bounds (``certificates.bound`` with ``per_block``), when the caller has them.
         """
         B = w.shape[0]
         out = torch.zeros(B, dtype=torch.bool)
@@ -426,10 +427,9 @@ class Refinement:
 
     def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
-        ``env``: the envelopes of ``w`` (:meth:`~arraysel.physics.psf.certificate.Certificates.envelopes`), ``images``: its images on E with
-        their error bounds (:meth:`~arraysel.physics.psf.basis.PairBasis.images` with ``with_error``), when the caller has them (the
-        one-swap neighbours of a selection: :meth:`~arraysel.physics.psf.certificate.Certificates.swap_envelopes`,
-        :meth:`~arraysel.physics.psf.basis.PairBasis.swap_images`).
+        ``env``: the envelopes of ``w`` (``certificates.envelopes``), ``images``: its images on E
+        with their error bounds (``basis.images`` with ``with_error``), when the caller has them
+        (one-swap neighbours: ``certificates.swap_envelopes``, ``basis.swap_images``).
 
         Certified: the exact peak is located (pixels tied with the approximate peak within the
         error bound are evaluated exactly), its window fits in the region, and the lower bound of
@@ -492,13 +492,13 @@ class Refinement:
         if self.basis.finer is not None:
             # located, only the error bound too loose: the full stored rank's tighter bound, on the
             # certified window (when it lies in E)
-            n = s.window
-            inside = ~ok & located & (win_z >= self.layout.rows.start) & (win_z + n <= self.layout.rows.stop) & \
-                (win_x >= self.layout.cols.start) & (win_x + n <= self.layout.cols.stop)
+            n, rows, cols = s.window, self.layout.rows, self.layout.cols
+            inside = ~ok & located & (win_z >= rows.start) & (win_z + n <= rows.stop) & \
+                (win_x >= cols.start) & (win_x + n <= cols.stop)
             todo = torch.nonzero(inside).flatten()
             if todo.numel():
                 img_f, _, werr_f = self.basis.finer.images(w[todo], with_error=True)
-                k_f, norm_f = cut_windows(img_f, win_z[todo] - self.layout.rows.start, win_x[todo] - self.layout.cols.start, n)
+                k_f, norm_f = cut_windows(img_f, win_z[todo] - rows.start, win_x[todo] - cols.start, n)
                 sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
                 self.settled["finer"] += todo.numel()
                 if sel.numel():
@@ -529,7 +529,7 @@ class Refinement:
     #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
     exact_windows_max = 4096
     #: block delay-and-sums without gradient read :class:`RawChannels` (False: the complex channels
-    #: of :meth:`~arraysel.physics.psf.basis.PairBasis.channels`, the same values; ``benchmarks/bench_certificate.py`` compares the two)
+    #: of ``basis.channels``, the same values; ``benchmarks/bench_certificate.py`` compares the two)
     raw_channels = True
     #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`,
     #: for :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of
@@ -554,7 +554,8 @@ class Refinement:
             Z, X = torch.meshgrid(model.z_grid[self.layout.rows], model.x_grid[self.layout.cols], indexing="ij")
             plans = [(i0.to(torch.int32).contiguous().numpy(), w.to(model.dtype).contiguous().numpy(),
                       torch.view_as_real(rot.to(model.cdtype)).contiguous().numpy())
-                     for i0, w, rot in window_plans(self.model, self.certificates.window_offset, X.reshape(-1), Z.reshape(-1))]
+                     for i0, w, rot in window_plans(model, self.certificates.window_offset, X.reshape(-1),
+                                                    Z.reshape(-1))]
             self._e_plan_holder["plans"] = plans
         return plans
 
