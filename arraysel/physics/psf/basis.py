@@ -133,10 +133,13 @@ class PairBasis:
     def _attach_refinement(self, shared: Refinement | None = None):
         """Make :attr:`refinement` on this basis's images and certificates, with the kernel
         tolerance of its build (:attr:`sketch_kernel_tol` for a sketched one); ``shared``: the
-        refinement whose caches and counts it shares."""
+        refinement of the basis this view comes from, whose caches and counts it shares (the
+        view's certificates are then a :meth:`~arraysel.physics.psf.certificate.Certificates.view`
+        of that basis's)."""
         tol = self.sketch_kernel_tol if self.missed > 0 else None
         if shared is not None:
             tol = shared.kernel_tol
+            self.certificates = self.certificates.view()
         self.refinement = Refinement(self, self.certificates, kernel_tol=tol, shared=shared)
 
     @classmethod

@@ -76,6 +76,15 @@ class Certificates:
         self._swap_sums = None  # (selection key, its channel sums) of :meth:`swap_envelopes`
         self._small_calls: dict = {}  # per compiled pass, the small batches seen (:meth:`_warm`)
 
+    def view(self) -> "Certificates":
+        """These certificates for another view of the same basis (a truncated one): the same
+        tensors and block entries, its own counts of small batches and neighbourhood sums."""
+        import copy
+
+        out = copy.copy(self)
+        out._swap_sums, out._small_calls = None, {}
+        return out
+
     @classmethod
     def build(cls, model, layout, X: np.ndarray, lo: torch.Tensor, hi: torch.Tensor, window_offset: torch.Tensor,
               window_samples: int) -> "Certificates":
