@@ -224,6 +224,14 @@ def test_truncated_basis_error_bounds_hold(paper_objective, exact_grid_images, r
     full = fast.finer or fast
     tr = full.truncated(rank)
     assert tr.rank == rank and tr.finer is full
+    # its parts: its own refinement on its own images, sharing the full basis's caches, counts
+    # and kernel tolerance; certificates with the same tensors and their own small-batch counts
+    assert tr.refinement.basis is tr and full.refinement.basis is full
+    assert tr.refinement.settled is full.refinement.settled and tr.refinement.kernel_tol == full.refinement.kernel_tol
+    assert tr.refinement._block_plans is full.refinement._block_plans
+    assert tr.certificates is not full.certificates and tr.refinement.certificates is tr.certificates
+    assert tr.certificates.pair_channels is full.certificates.pair_channels
+    assert tr.certificates._small_calls is not full.certificates._small_calls
     w = _certificate_masks()
     with torch.no_grad():
         img, eps, win_err = tr.images(w, with_error=True)
