@@ -98,12 +98,12 @@ def run_one(name: str, masks: int, steps: int) -> dict:
     obj.evaluate(rand[:warm])
     obj.fallbacks = 0
     basis = obj.psf.basis
-    before = dict(basis.settled) if basis is not None else {}
+    before = dict(basis.refinement.settled) if basis is not None else {}
     t0 = time.perf_counter()
     obj.evaluate(rand)
     per_mask = (time.perf_counter() - t0) / masks
     fallbacks = obj.fallbacks / masks
-    settled = {key: (basis.settled[key] - before[key]) / masks for key in before}
+    settled = {key: (basis.refinement.settled[key] - before[key]) / masks for key in before}
     # gradient steps (as the ste selector takes them)
     logits = torch.zeros(ne, k, requires_grad=True)
     opt = torch.optim.Adam([logits], lr=1e-3)
@@ -113,7 +113,7 @@ def run_one(name: str, masks: int, steps: int) -> dict:
     # untimed steps first: a loop of single masks switches to the compiled block bounds and
     # envelopes after Certificates.compiled_bound_warm of them, and loading those once takes up
     # to a second (256 elements); the column is the steady rate
-    warm_steps = getattr(basis, "compiled_bound_warm", 0) + 2
+    warm_steps = (basis.certificates.compiled_bound_warm if basis is not None else 0) + 2
     for i in range(steps + warm_steps):
         if i == warm_steps:
             t0 = time.perf_counter()
@@ -135,7 +135,7 @@ def run_one(name: str, masks: int, steps: int) -> dict:
             "load_s": precompute, "grad_steps_per_min": steps_per_min, "fallback_fraction": fallbacks,
             "si_mse_vs_exact": fid, "exact_path_for": [n for i, n in enumerate(special) if bool(fb[i])],
             "fast_path": fast is not None, "rank": getattr(fast, "rank", None),
-            "strips": getattr(fast, "strips", None), "kernel_tol": getattr(fast, "kernel_tol", None),
+            "strips": getattr(fast, "strips", None), "kernel_tol": fast.refinement.kernel_tol if fast is not None else None,
             "settled_fraction": settled}
 
 

@@ -5,8 +5,8 @@ full-rank basis it is truncated from (``basis.finer``; tensors that share
 storage are counted once): ``U``/``V`` the compressed pair images on the
 window + margin region, ``strip_images`` the strips' pair images (and their
 block factors ``strip_left``/``strip_right``), ``core_images`` the core's,
-``pair_channels`` the pair I/Q signals of the certificate,
-``block_envelopes_e``/``block_envelopes_band`` the sparse block matrices,
+``certificates.pair_channels`` the pair I/Q signals of the certificates,
+``certificates.block_envelopes_e``/``_band`` the sparse block matrices,
 with shape, dtype and size, plus the
 exact-path DAS plans cached by ``PSFModel`` after one exact evaluation.
 
@@ -60,6 +60,7 @@ def main(argv=None):
     seen = set()  # storages counted once: the run-time basis is a truncated view of the stored one
     views = ([("basis.finer", fast.finer)] if getattr(fast, "finer", None) is not None else []) + [("basis", fast)]
     views.append(("basis.layout", fast.layout))  # the regions, pairs and blocks (a part of the basis)
+    views.append(("basis.certificates", fast.certificates))  # the pair channels and block matrices
     for prefix, obj_ in views:
         for name, val in sorted(vars(obj_).items()):
             if isinstance(val, torch.Tensor) and (val.numel() > 0 or val.layout != torch.strided):
@@ -72,8 +73,8 @@ def main(argv=None):
                 record[f"{prefix}.{name}"] = b
     total = sum(record.values())
     rows.append(["fast basis, total", "", f"{total / 2**20:.1f} MiB"])
-    info = {k: getattr(fast, k) for k in ("rank", "rank_tail", "window_samples", "max_run", "shape", "npix", "npix2")
-            if hasattr(fast, k)}
+    info = {k: getattr(fast, k) for k in ("rank", "rank_tail", "shape", "npix", "npix2")}
+    info.update({k: getattr(fast.certificates, k) for k in ("window_samples", "max_run")})
     if not args.no_exact:
         obj.psf.kernels_exact(torch.ones(1, obj.n_elements))
         plan_b = 0

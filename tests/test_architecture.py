@@ -262,6 +262,43 @@ def test_pair_basis_has_its_entry_points_and_parts():
     assert {"arraysel.physics.psf.layout", "arraysel.physics.psf.state"} <= GRAPH["arraysel.physics.psf.basis"]
 
 
+def _foreign_self_reads(cls: ast.ClassDef) -> set[str]:
+    """Attributes a class's methods read from ``self`` that the class neither defines (in its
+    body) nor assigns (``self.x = ...`` in a method): what a mixin reads from a shared ``self``."""
+    own = {t.id for n in cls.body if isinstance(n, (ast.Assign, ast.AnnAssign))
+           for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
+    own |= {n.name for n in cls.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+    attrs = [n for n in ast.walk(cls) if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)
+             and n.value.id == "self"]
+    own |= {a.attr for a in attrs if isinstance(a.ctx, ast.Store)}
+    return {a.attr for a in attrs if isinstance(a.ctx, ast.Load)} - own
+
+
+#: the pair basis's parts: module -> the class that is the part
+PSF_PARTS = {"arraysel.physics.psf.certificate": "Certificates", "arraysel.physics.psf.refinement": "Refinement",
+             "arraysel.physics.psf.build": "BasisBuilder"}
+
+
+def test_pair_basis_is_built_from_parts_not_mixins():
+    """``PairBasis`` inherits from nothing: its certificates, refinement and build are objects
+    made from explicit constructor arguments, and each reads from ``self`` only what it defines
+    or assigns itself (its inputs are named, not shared through a common ``self``)."""
+    basis = next(n for n in ast.walk(_tree("arraysel.physics.psf.basis"))
+                 if isinstance(n, ast.ClassDef) and n.name == "PairBasis")
+    assert all(isinstance(b, ast.Name) and b.id == "object" for b in basis.bases), ast.dump(basis)
+    held = {a.attr for a in ast.walk(basis) if isinstance(a, ast.Attribute) and isinstance(a.ctx, ast.Store)}
+    assert {"layout", "certificates", "refinement"} <= held
+    for module, name in PSF_PARTS.items():
+        cls = next(n for n in _tree(module).body if isinstance(n, ast.ClassDef) and n.name == name)
+        assert not cls.bases, (module, name)
+        init = next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == "__init__")
+        assert len(init.args.args) >= 2, (module, "__init__ takes its inputs")
+        assert not _foreign_self_reads(cls), (module, name, _foreign_self_reads(cls))
+    # the check sees a mixin's read of an attribute another class sets
+    mixin = ast.parse("class M:\n    k = 1\n    def f(self):\n        self.y = self.k + self.window\n").body[0]
+    assert _foreign_self_reads(mixin) == {"window"}
+
+
 def test_no_benchmark_history_in_psf_code():
     """Timings and dates of measurements live in ``docs/performance.md``, not in comments."""
     import re

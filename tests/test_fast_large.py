@@ -12,6 +12,9 @@ import torch
 from arraysel.objective.metrics import si_mse
 from arraysel.physics.probes import Acquisition, get_probe
 from arraysel.physics.psf import PairBasis, PSFModel, PSFSetup
+from arraysel.physics.psf.build import BasisBuilder
+from arraysel.physics.psf.certificate import Certificates
+from arraysel.physics.psf.refinement import Refinement
 
 
 def _setup(n_elements=8, probe="P4-2v", fc=3.5e6, n=24, pixel=1e-4, depth=2e-3, window=8):
@@ -37,13 +40,13 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
     """With fewer sketch columns than pairs (36 here) the basis is compressed from the sketch;
     its per-pixel and window error bounds still cover the exact image on E, whether the second
     pass reads the pair images kept from the first or computes them again."""
-    monkeypatch.setattr(PairBasis, "sketch_columns", columns)
+    monkeypatch.setattr(BasisBuilder, "sketch_columns", columns)
     if not keep:
-        monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
+        monkeypatch.setattr(BasisBuilder, "keep_images_max_bytes", 0)
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4, rank_tol=1e-12)
     fast = model.basis.finer or model.basis
     assert fast.missed >= 0 and fast.rank <= columns
-    assert fast.keeps_images(fast.pairs_e.numel(), fast.npix, model.dtype) is keep
+    assert BasisBuilder.keeps_images(fast.pairs_e.numel(), fast.npix, model.dtype) is keep
     w = _weights(8, 6)
     with torch.no_grad():
         img, eps, win_err = fast.images(w, with_error=True)
@@ -57,7 +60,7 @@ def test_sketched_basis_matches_exact_and_bounds_hold(no_cache, monkeypatch, col
     ke = model.kernels_exact(w)
     for i in range(w.shape[0]):
         if bool(ok[i]):
-            assert float(si_mse(k[i], ke[i])) <= fast.kernel_tol ** 2
+            assert float(si_mse(k[i], ke[i])) <= fast.refinement.kernel_tol ** 2
 
 
 def test_missed_spectral_bound_lies_between_the_exact_norm_and_frobenius():
@@ -127,15 +130,15 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
     for n, t in enumerate(model.transmits):
         p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber, fc=s.probe.fc)
         valid = p.rot.abs() > 0
-        local = p.i0 - fast.window_offset[n][None, :]
-        assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.window_samples - 1).all())
+        local = p.i0 - fast.certificates.window_offset[n][None, :]
+        assert bool((local[valid] >= 0).all()) and bool((local[valid] + 1 <= fast.certificates.window_samples - 1).all())
         spec = t.rx_factor[:, None, :] * t.tx_field[None, :, :]
         iq = spectra_to_rf(spec, t.grid).to(torch.complex128) @ iq_matrix(t.grid.n_time, *t.iq_band).T  # (e, j, T)
         ne = model.n_elements
         Ac = fast.pair_iq()
         for e in range(ne):
-            o = int(fast.window_offset[n, e])
-            k = min(fast.window_samples, iq.shape[-1] - o)
+            o = int(fast.certificates.window_offset[n, e])
+            k = min(fast.certificates.window_samples, iq.shape[-1] - o)
             ref = iq[e, :, o:o + k]
             assert float((Ac[:, n, e, :k] - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
         # the channels of a selection are its weighted sums of the pair signals
@@ -196,20 +199,20 @@ def test_exact_windows_settle_kernels_whose_error_bound_fails(no_cache, monkeypa
     path's; beyond ``exact_windows_max`` selections the exact path still takes over."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "channel_group", 2)  # channels formed 2 selections at a time
+    monkeypatch.setattr(Refinement, "channel_group", 2)  # channels formed 2 selections at a time
     w = _weights(8, 5, seed=11)
     ke = model.kernels_exact(w)
     for basis in (fast, fast.finer):
         if basis is not None:
-            monkeypatch.setattr(basis, "kernel_tol", 0.0)
+            monkeypatch.setattr(basis.refinement, "kernel_tol", 0.0)
     called = []
-    real = type(fast)._exact_windows
+    real = Refinement._exact_windows
 
     def spy(self, *a):
         called.append(a[0].shape[0])
         return real(self, *a)
 
-    monkeypatch.setattr(type(fast), "_exact_windows", spy)
+    monkeypatch.setattr(Refinement, "_exact_windows", spy)
     k, fallback = model.kernels(w, return_info=True)
     assert sum(called) == 5 and not bool(fallback.any())
     for i in range(5):
@@ -218,7 +221,7 @@ def test_exact_windows_settle_kernels_whose_error_bound_fails(no_cache, monkeypa
     w1 = w[:1].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v: torch.view_as_real(model.kernels(v)), (w1,), eps=1e-6, atol=1e-6,
                                     rtol=1e-4)
-    monkeypatch.setattr(type(fast), "exact_windows_max", 2)
+    monkeypatch.setattr(Refinement, "exact_windows_max", 2)
     called.clear()
     k, fallback = model.kernels(w, return_info=True)
     assert not called and bool(fallback.all())
@@ -273,21 +276,21 @@ def test_block_sums_in_chunks_with_kept_transmit_distances_equal_the_exact_image
     channels, complex channels without gradient and complex channels with one."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "das_blocks", 2)
+    monkeypatch.setattr(Refinement, "das_blocks", 2)
     b = model.block
     w = _weights(8, 1, seed=5)
     ref = model.image(w)[0]
     blocks = [(0, 0), (5, 1), (2, 4), (1, 5), (3, 3)]
     want = torch.cat([ref[qz * b:(qz + 1) * b, qx * b:(qx + 1) * b].reshape(-1) for qz, qx in blocks])
     X = fast.channels(w)[0]
-    raw = next(iter(fast._grouped_channels(w, [0], raw=True)))[1]
+    raw = next(iter(fast.refinement._grouped_channels(w, [0], raw=True)))[1]
     first = None
     for attempt in range(3):
         if attempt == 1:
-            fast._block_plans.clear()  # evicted: made again from the kept transmit distances
-            assert set(blocks) <= set(fast._block_dtx)
+            fast.refinement._block_plans.clear()  # evicted: made again from the kept transmit distances
+            assert set(blocks) <= set(fast.refinement._block_dtx)
         for chan in (raw, X, X.clone().requires_grad_(True)):
-            got = fast._das(chan, blocks).detach()
+            got = fast.refinement._das(chan, blocks).detach()
             first = got if first is None else first
             torch.testing.assert_close(got, first, rtol=1e-12, atol=1e-12 * float(ref.abs().max()))
     # the windowed pair I/Q signals are stored in single precision
@@ -302,13 +305,15 @@ def test_certified_peak_whose_window_leaves_e_gets_an_exact_window(no_cache, mon
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
     assert not fast.strips
-    real = type(fast)._windows
+    from arraysel.physics.psf import refinement
 
-    def never_fits(self, *a):
-        z0, x0, fits = real(self, *a)
+    real = refinement._windows
+
+    def never_fits(*a):
+        z0, x0, fits = real(*a)
         return z0, x0, torch.zeros_like(fits)
 
-    monkeypatch.setattr(type(fast), "_windows", never_fits)
+    monkeypatch.setattr(refinement, "_windows", never_fits)
     w = _weights(8, 4, seed=5)
     k, fallback = model.kernels(w, return_info=True)
     assert not bool(fallback.any())
@@ -336,28 +341,28 @@ def test_band_images_only_for_peaks_tier_one_cannot_certify(no_cache, monkeypatc
         return real_band(self, *a, **kw)
 
     monkeypatch.setattr(cls, "band_images", band_spy)
-    monkeypatch.setattr(fast, "kernel_tol", 0.0)  # every error bound fails, every peak is certified
+    monkeypatch.setattr(fast.refinement, "kernel_tol", 0.0)  # every error bound fails, every peak is certified
     k, fallback = model.kernels(w, return_info=True)
     assert not band_calls and not bool(fallback.any())
     for i in range(5):
         assert float(si_mse(k[i], ke[i])) < 1e-12
     # tier 1 cannot certify any peak: the band is consulted for every selection
-    monkeypatch.setattr(fast, "kernel_tol", cls.kernel_tol)
-    real_bound = cls.bound
+    monkeypatch.setattr(fast.refinement, "kernel_tol", Refinement.kernel_tol)
+    real_bound = Certificates.bound
 
     def tier1_fails(self, w_, tier=1, per_block=False, env=None):
         b = real_bound(self, w_, tier, per_block=per_block, env=env)
         return b + float("inf") if tier == 1 else b
 
-    real_refine = cls.refine
+    real_refine = Refinement.refine
 
     def refine_tier1_fails(self, w_, threshold, env=None, tier=2, bounds=None):
         if tier == 1:
             return torch.zeros(w_.shape[0], dtype=torch.bool)
         return real_refine(self, w_, threshold, env=env, tier=tier, bounds=bounds)
 
-    monkeypatch.setattr(cls, "bound", tier1_fails)
-    monkeypatch.setattr(cls, "refine", refine_tier1_fails)
+    monkeypatch.setattr(Certificates, "bound", tier1_fails)
+    monkeypatch.setattr(Refinement, "refine", refine_tier1_fails)
     k, fallback = model.kernels(w, return_info=True)
     assert sum(band_calls) == 5
     for i in torch.nonzero(~fallback).flatten().tolist():
@@ -429,17 +434,20 @@ def test_dense_pair_images_equal_the_tiles_in_both_layouts(no_cache, monkeypatch
 
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    X = fast._windowed_pair_iq()
-    plan = fast._local_plan(fast.rows, torch.arange(fast.cols.start, fast.cols.stop))
+    builder = BasisBuilder(model, fast.layout, fast.certificates.segment)
+    builder.sample_ranges()
+    assert torch.equal(builder.window_offset, fast.certificates.window_offset)
+    X = builder.windowed_pair_iq()
+    plan = builder.local_plan(fast.rows, torch.arange(fast.cols.start, fast.cols.stop))
     ref = torch.from_numpy(pair_images(X, plan))  # (2, Npix, P)
     ref = torch.cat([ref[0].T, ref[1].T], dim=1)
-    monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * 50)  # 50 pixels a call
-    tiled = fast._dense_pair_images(X, plan)
+    monkeypatch.setattr(BasisBuilder, "build_tile_bytes", 36 * 16 * 50)  # 50 pixels a call
+    tiled = builder.dense_pair_images(X, plan)
     assert tiled.shape == ref.shape == (36, 2 * fast.npix) and fast.npix > 100
     assert float(ref.abs().max()) > 0
     torch.testing.assert_close(tiled, ref, rtol=0, atol=0)
-    torch.testing.assert_close(fast._dense_pair_images(X, plan, transposed=True), ref.T.contiguous(), rtol=0, atol=0)
-    single = fast._dense_pair_images(X, plan, torch.float32)
+    torch.testing.assert_close(builder.dense_pair_images(X, plan, transposed=True), ref.T.contiguous(), rtol=0, atol=0)
+    single = builder.dense_pair_images(X, plan, torch.float32)
     torch.testing.assert_close(single.double(), ref, rtol=1e-6, atol=1e-6 * float(ref.abs().max()))
     # tiles of pixels (the sketched build's passes), each yielded in a reused buffer: several
     # tiles a kernel call, and tiles larger than a call's share
@@ -447,8 +455,8 @@ def test_dense_pair_images_equal_the_tiles_in_both_layouts(no_cache, monkeypatch
 
     tiles = _tile_pixels(fast.shape, 4)
     for pixels_a_call in (40, 10):
-        monkeypatch.setattr(type(fast), "build_tile_bytes", 36 * 16 * pixels_a_call)
-        got = [(G, Ht.clone()) for G, Ht in fast._pair_image_tiles(X, plan, tiles)]
+        monkeypatch.setattr(BasisBuilder, "build_tile_bytes", 36 * 16 * pixels_a_call)
+        got = [(G, Ht.clone()) for G, Ht in builder.pair_image_tiles(X, plan, tiles)]
         assert [G for G, _ in got] == tiles
         for G, Ht in got:
             torch.testing.assert_close(Ht, ref[:, _tile_rows(G, fast.npix)].T, rtol=0, atol=0)
@@ -457,17 +465,17 @@ def test_dense_pair_images_equal_the_tiles_in_both_layouts(no_cache, monkeypatch
 def test_build_time_estimate_counts_the_delay_and_sum_passes(monkeypatch):
     """The first-run message's time estimate follows the pair images' delay-and-sum work: a
     sketched build that cannot keep its pair images computes those on E twice."""
-    monkeypatch.setattr(PairBasis, "sketch_columns", 12)  # 36 pairs: sketched
+    monkeypatch.setattr(BasisBuilder, "sketch_columns", 12)  # 36 pairs: sketched
     model = PSFModel(_setup(), dtype=torch.float32, fast=False, margin=2, block=4)
     kept = model.basis_build_seconds()
-    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
+    monkeypatch.setattr(BasisBuilder, "keep_images_max_bytes", 0)
     twice = model.basis_build_seconds()
     assert 0 < kept < twice < 2 * kept
     assert model.basis_stored_bytes() > 0
     # the memory estimate holds the kept images only when they are kept
-    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 2 << 30)
+    monkeypatch.setattr(BasisBuilder, "keep_images_max_bytes", 2 << 30)
     with_kept = model.basis_bytes()
-    monkeypatch.setattr(PairBasis, "keep_images_max_bytes", 0)
+    monkeypatch.setattr(BasisBuilder, "keep_images_max_bytes", 0)
     assert model.basis_bytes() < with_kept
 
 
@@ -488,17 +496,17 @@ def test_block_sums_from_raw_channels_equal_those_from_the_channels(no_cache, dt
     w[:, unused] = 0
     nb = -(-24 // model.block)
     blocks = [(0, 0), (nb - 1, 0), (nb // 2, nb - 1)]
-    raws = list(basis._grouped_channels(w, [0, 1, 2], raw=True))
+    raws = list(basis.refinement._grouped_channels(w, [0, 1, 2], raw=True))
     assert all(isinstance(x, RawChannels) for _, x in raws)
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     for (i, raw), x in zip(raws, basis.channels(w)):
         for rows in (None, [torch.tensor([0, 5]), torch.tensor([3]), torch.tensor([1, 2])]):
-            a = basis._das(raw, blocks, rows)
-            b = basis._das(x, blocks, rows)
+            a = basis.refinement._das(raw, blocks, rows)
+            b = basis.refinement._das(x, blocks, rows)
             assert a.dtype == b.dtype
             assert torch.allclose(a, b, rtol=tol, atol=tol * float(b.abs().max()))
     # with a gradient the channels stay complex tensors
-    assert not any(isinstance(x, RawChannels) for _, x in basis._grouped_channels(w.requires_grad_(), [0], raw=True))
+    assert not any(isinstance(x, RawChannels) for _, x in basis.refinement._grouped_channels(w.requires_grad_(), [0], raw=True))
 
 
 def _mixed_weights(ne, seed):
@@ -522,16 +530,17 @@ def test_envelopes_are_the_running_maxima_of_the_channels(no_cache, monkeypatch,
     for batches mixing soft weights, masks and empty selections."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
+    cert = fast.certificates
     rows = step_bytes == "rows"
-    monkeypatch.setattr(type(fast), "_channels_from_rows", lambda self, w: rows)
-    monkeypatch.setattr(type(fast), "receive_step_bytes", 0 if rows else step_bytes)
-    monkeypatch.setattr(type(fast), "receive_subset_min", 2)
-    ntx, ne, sg = len(model.transmits), model.n_elements, fast.segment
-    nS, M = fast.window_samples // sg, fast.max_run
+    monkeypatch.setattr(Certificates, "_channels_from_rows", lambda self, w: rows)
+    monkeypatch.setattr(Certificates, "receive_step_bytes", 0 if rows else step_bytes)
+    monkeypatch.setattr(Certificates, "receive_subset_min", 2)
+    ntx, ne, sg = len(model.transmits), model.n_elements, cert.segment
+    nS, M = cert.window_samples // sg, cert.max_run
     mixed = _mixed_weights(ne, seed=2)
     for w in (mixed[:1], mixed[2:3], mixed):
         B = w.shape[0]
-        env = fast.envelopes(w).view(ntx, ne, M, nS, B)
+        env = cert.envelopes(w).view(ntx, ne, M, nS, B)
         seg = fast.channels(w).abs().view(B, ntx, ne, nS, sg).amax(-1)  # (B, ntx, ne, nS)
         for m in range(M):
             for a in range(nS):
@@ -550,8 +559,8 @@ def test_envelopes_of_a_few_selections_from_their_rows(no_cache, monkeypatch, dt
     from arraysel.physics import compiled
 
     model = PSFModel(_setup(n_elements=16), dtype=dtype, fast=True, margin=2, block=4)
-    fast = model.basis
-    cls = type(fast)
+    fast = model.basis.certificates
+    cls = Certificates
     real = cls._channels_from_rows
     ne = model.n_elements
     mask = torch.zeros(1, ne, dtype=dtype)
@@ -569,7 +578,7 @@ def test_envelopes_of_a_few_selections_from_their_rows(no_cache, monkeypatch, dt
         torch.testing.assert_close(got[True], got[False], rtol=rtol, atol=rtol * scale, equal_nan=True)
         assert bool(got[True].isnan().any()) is (w is nan)
     monkeypatch.setattr(cls, "_channels_from_rows", real)
-    fast.__dict__.pop("_small_calls", None)
+    fast._small_calls.clear()
     seen = [real(fast, mask) for _ in range(fast.compiled_bound_warm + 2)]
     assert seen == [False] * fast.compiled_bound_warm + [True, True]
     assert not real(fast, torch.ones(1, ne, dtype=dtype))  # every row of every receive element
@@ -586,14 +595,15 @@ def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeyp
     the elements any of them uses (and no element none uses)."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
-    monkeypatch.setattr(type(fast), "receive_step_bytes", step_bytes)
-    monkeypatch.setattr(type(fast), "receive_subset_min", subset_min)
+    cert = fast.certificates
+    monkeypatch.setattr(Certificates, "receive_step_bytes", step_bytes)
+    monkeypatch.setattr(Certificates, "receive_subset_min", subset_min)
     ne = model.n_elements
     w = _mixed_weights(ne, seed=3)
     w[:, 4] = 0  # an element no selection uses
-    whole = (w @ fast.pair_channels).view(w.shape[0], ne, -1)
+    whole = (w @ cert.pair_channels).view(w.shape[0], ne, -1)
     seen = torch.zeros(w.shape[0], ne, dtype=torch.long)
-    for e0, e1, s, y in fast._receive_products(w):
+    for e0, e1, s, y in cert._receive_products(w):
         rows = torch.arange(w.shape[0]) if s is None else s
         seen[rows, e0:e1] += 1
         torch.testing.assert_close(y.reshape(rows.numel(), e1 - e0, -1), whole[rows, e0:e1], rtol=1e-12, atol=1e-14)
@@ -610,17 +620,18 @@ def test_refine_with_the_batch_per_block_bounds_settles_as_from_the_envelopes(no
     on both tiers, with thresholds that leave some blocks loose and some selections unsettled."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
+    cert, refinement = fast.certificates, fast.refinement
     w = _mixed_weights(model.n_elements, seed=7)
-    env = fast.envelopes(w)
-    for tier in ([1, 2] if fast.block_envelopes_band.shape[0] else [1]):
-        bounds = fast.bound(w, tier, per_block=True, env=env)
+    env = cert.envelopes(w)
+    for tier in ([1, 2] if cert.block_envelopes_band.shape[0] else [1]):
+        bounds = cert.bound(w, tier, per_block=True, env=env)
         if not bounds.shape[0]:
             continue
         rows = torch.tensor([3, 0, 1])
         for q in (0.2, 0.5, 1.0):
             thr = bounds[:, rows].quantile(q, dim=0) * 1.0001
-            want = fast.refine(w[rows], thr, env=env[:, rows], tier=tier)
-            got = fast.refine(w[rows], thr, tier=tier, bounds=bounds[:, rows])
+            want = refinement.refine(w[rows], thr, env=env[:, rows], tier=tier)
+            got = refinement.refine(w[rows], thr, tier=tier, bounds=bounds[:, rows])
             assert torch.equal(got, want)
 
 
@@ -638,9 +649,9 @@ def test_strip_bounds_read_runs_of_slots_in_place_as_the_gathered_factors(paper_
              torch.cat([torch.arange(10, 40), torch.arange(100, 180), torch.arange(300, 301)]), torch.arange(0, n, 2)]
     real = refinement._runs
     for slots in cases:
-        got = fast.strip_bounds(c, slots)
+        got = fast.refinement.strip_bounds(c, slots)
         monkeypatch.setattr(refinement, "_runs", lambda s, most=32: None)
-        want = fast.strip_bounds(c, slots)
+        want = fast.refinement.strip_bounds(c, slots)
         monkeypatch.setattr(refinement, "_runs", real)
         assert torch.equal(got, want)
     assert refinement._runs(torch.tensor([2, 3, 4, 7, 9, 10])) == [(2, 5), (7, 8), (9, 11)]
@@ -684,7 +695,7 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     envelopes, on both tiers, per block and as the maximum, for one selection and for a mixed
     batch."""
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
-    fast = model.basis
+    fast = model.basis.certificates
     ne = model.n_elements
     mixed = _mixed_weights(ne, seed=6)
     mixed[:, 3] = 0
@@ -711,7 +722,7 @@ def test_compiled_block_bounds_equal_the_sparse_product(no_cache, monkeypatch):
     calls = []
     real = pairkernels.block_bound_sums
     monkeypatch.setattr(pairkernels, "block_bound_sums", lambda *a, **k: calls.append(1) or real(*a, **k))
-    fresh = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4).basis
+    fresh = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4).basis.certificates
     env = fresh.envelopes(mixed[2:3])
     want = fresh.bound(mixed[2:3], 1, env=env)
     seen = [len(calls)]
@@ -741,7 +752,7 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
         got = {}
         for name, least in (("compiled", 1), ("torch", 1 << 62)):
             monkeypatch.setattr(compiled, "MIN_BATCH", least)
-            got[name] = fast._locate(img, e, w, r0, c0)
+            got[name] = fast.refinement._locate(img, e, w, r0, c0)
         (pz, px, thr, ok), (qz, qx, thr_t, ok_t) = got["compiled"], got["torch"]
         assert torch.equal(ok, ok_t)
         assert torch.equal(pz[ok], qz[ok]) and torch.equal(px[ok], qx[ok])
@@ -754,5 +765,5 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
     bad[2, 1, 1] = complex(float("nan"), 0)
     for least in (1, 1 << 62):
         monkeypatch.setattr(compiled, "MIN_BATCH", least)
-        ok = fast._locate(bad, eps, w, r0, c0)[3]
+        ok = fast.refinement._locate(bad, eps, w, r0, c0)[3]
         assert not bool(ok[2]) and bool(ok[[0, 1, 3]].all())

@@ -191,8 +191,8 @@ def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, 
     m = _mask(10, [0, 1, 4, 5, 7, 9])
     out, into = swap_pairs(m)
     w = torch.as_tensor(swap_masks(m, out, into), dtype=dtype)
-    got = basis.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
-    ref = basis.envelopes(w)
+    got = basis.certificates.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
+    ref = basis.certificates.envelopes(w)
     assert got.shape == ref.shape and got.dtype == ref.dtype
     scale = float(ref.abs().max())
     np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * scale)

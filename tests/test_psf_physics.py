@@ -182,7 +182,7 @@ def test_block_bounds_cover_the_exact_image(paper_objective, exact_grid_images, 
     fast = paper_objective.psf.basis
     w = _certificate_masks()
     with torch.no_grad():
-        bounds = fast.bound(w, tier, per_block=True)  # (nQ, B)
+        bounds = fast.certificates.bound(w, tier, per_block=True)  # (nQ, B)
     blocks = fast.blocks1 if tier == 1 else fast.blocks2
     truth = _block_max(exact_grid_images, paper_objective.psf.block)[:, blocks[:, 0], blocks[:, 1]].T
     assert bool((truth > 0).any())
@@ -224,6 +224,14 @@ def test_truncated_basis_error_bounds_hold(paper_objective, exact_grid_images, r
     full = fast.finer or fast
     tr = full.truncated(rank)
     assert tr.rank == rank and tr.finer is full
+    # its parts: its own refinement on its own images, sharing the full basis's caches, counts
+    # and kernel tolerance; certificates with the same tensors and their own small-batch counts
+    assert tr.refinement.basis is tr and full.refinement.basis is full
+    assert tr.refinement.settled is full.refinement.settled and tr.refinement.kernel_tol == full.refinement.kernel_tol
+    assert tr.refinement._block_plans is full.refinement._block_plans
+    assert tr.certificates is not full.certificates and tr.refinement.certificates is tr.certificates
+    assert tr.certificates.pair_channels is full.certificates.pair_channels
+    assert tr.certificates._small_calls is not full.certificates._small_calls
     w = _certificate_masks()
     with torch.no_grad():
         img, eps, win_err = tr.images(w, with_error=True)
@@ -256,7 +264,7 @@ def test_strip_low_rank_bounds_cover_the_exact_image(paper_objective, exact_grid
     whole = torch.nonzero(fast.strip_block_col >= 0).flatten()
     slots = fast.strip_block_col[whole] // (2 * b * b)
     with torch.no_grad():
-        bounds = fast.strip_bounds(fast._pairs(w), slots)  # (n, B)
+        bounds = fast.refinement.strip_bounds(fast._pairs(w), slots)  # (n, B)
     blocks = fast.blocks1[whole]
     truth = _block_max(exact_grid_images, b)[:, blocks[:, 0], blocks[:, 1]].T.double()
     assert bool((bounds >= truth * (1 - 1e-5)).all()), float((truth / bounds).max())

@@ -432,12 +432,12 @@ def test_fast_path_matches_exact_path(case):
     PSFModel's kernel_tol (5e-3) to the exact path, so every kernel is within 5e-3 in L2: a weak
     selection in the near field (a quarter wavelength from the probe, 5 elements) has a truncation
     error of 3.5e-2 and must be recomputed. Measured on certified kernels: <= 1.4e-3."""
-    from arraysel.physics.psf import PairBasis
+    from arraysel.physics.psf.refinement import Refinement
     masks = torch.cat([selections(16, 5), selections(16, 2), torch.ones(1, 16)])
     kf = model(ne=16, fast=True, dtype=torch.float64, **case).kernels(masks)
     ke = model(ne=16, fast=False, dtype=torch.float64, **case).kernels(masks)
     err = torch.linalg.vector_norm((kf - ke).reshape(len(masks), -1), dim=1)
-    assert (err <= PairBasis.kernel_tol).all(), err
+    assert (err <= Refinement.kernel_tol).all(), err
 
 
 # ---------------------------------------------------------------------------

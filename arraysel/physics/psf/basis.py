@@ -2,18 +2,21 @@
 :meth:`PairBasis.from_state`), the truncation to a run-time rank, and the images of a batch of
 selections on E and the band.
 
-It is built from parts, each in its own module (see :mod:`arraysel.physics.psf.operator` for the
-method):
+It is built from parts, each an object in its own module made from explicit inputs (see
+:mod:`arraysel.physics.psf.operator` for the method); ``PairBasis`` inherits from none of them:
 
 * the **layout** (:class:`~arraysel.physics.psf.layout.BasisLayout`, ``basis.layout``): regions,
   pairs, blocks and the strips' column order, from the grid alone;
-* the **build** (:mod:`~arraysel.physics.psf.build`): sample ranges, windowed pair I/Q, pair
-  images, their compression and the strips' factors;
+* the **build** (:class:`~arraysel.physics.psf.build.BasisBuilder`, used by :meth:`PairBasis.build`
+  only): sample ranges, windowed pair I/Q, pair images, their compression and the strips'
+  factors, each step returning what it makes;
 * the **state** (:mod:`~arraysel.physics.psf.state`): the stored tensors, their error constants
   and their serialisation (the disk cache is :mod:`~arraysel.physics.psf.store`);
-* the **certificates** (:mod:`~arraysel.physics.psf.certificate`): envelopes and block bounds;
-* the **refinement** (:mod:`~arraysel.physics.psf.refinement`): the certified kernels, peak
-  location, ties and loose blocks.
+* the **certificates** (:class:`~arraysel.physics.psf.certificate.Certificates`,
+  ``basis.certificates``): the pair I/Q signals on their windows, envelopes and block bounds;
+* the **refinement** (:class:`~arraysel.physics.psf.refinement.Refinement`, ``basis.refinement``):
+  the certified kernels (:meth:`PairBasis.kernels` runs them), peak location, ties and loose
+  blocks; it reads the basis's images and stored tensors and the certificates.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import check_number
-from arraysel.physics.psf.build import BasisBuild, combined_tail, pixel_norms
+from arraysel.physics.psf.build import BasisBuilder, combined_tail, pixel_norms
 from arraysel.physics.psf.certificate import Certificates
 from arraysel.physics.psf.layout import LAYOUT_FIELDS, BasisLayout, pair_index
 from arraysel.physics.psf.refinement import Refinement
@@ -68,7 +71,7 @@ def _layout_attribute(name: str) -> property:
     return property(lambda self: getattr(self.layout, name), doc=f"``layout.{name}`` (:class:`BasisLayout`)")
 
 
-class PairBasis(BasisBuild, Certificates, Refinement):
+class PairBasis:
     """Precomputed pair images and peak certificates of the fast path.
 
     Make one with :meth:`build` (from the model's physics) or :meth:`from_state` (from the stored
@@ -85,12 +88,14 @@ class PairBasis(BasisBuild, Certificates, Refinement):
     (P, 2 Npix) real pair images ([re | im]); tier 1 is stored as a truncated
     SVD ``U @ V`` when that saves work (discarded energy <= ``rank_tol``).
 
-    Certificates (:mod:`~arraysel.physics.psf.certificate`): the envelopes of a selection's I/Q
-    channels bound ``|I|`` on every grid block outside E (tier 1, ``block_envelopes_e``) or outside
-    the band (tier 2, ``block_envelopes_band``). A selection is done at tier 1 when its peak in E
+    Certificates (``certificates``, :mod:`~arraysel.physics.psf.certificate`): the envelopes of
+    a selection's I/Q channels bound ``|I|`` on every grid block outside E (tier 1,
+    ``certificates.block_envelopes_e``) or outside the band (tier 2,
+    ``certificates.block_envelopes_band``). A selection is done at tier 1 when its peak in E
     beats the tier-1 bound (and its window fits in E), or when the blocks whose bound reaches the
-    peak are settled exactly and stay below it (:meth:`refine`); at tier 2 likewise on the band;
-    otherwise the exact path recomputes it.
+    peak are settled exactly and stay below it (``refinement.refine``,
+    :mod:`~arraysel.physics.psf.refinement`); at tier 2 likewise on the band; otherwise the exact
+    path recomputes it.
 
     Stored tensors: :mod:`~arraysel.physics.psf.state`.
 
@@ -113,22 +118,30 @@ class PairBasis(BasisBuild, Certificates, Refinement):
 
     def __init__(self, model, layout: BasisLayout | None = None):
         """A basis of ``model`` on ``layout`` (default :meth:`BasisLayout.of
-        <arraysel.physics.psf.layout.BasisLayout.of>`) holding no tensors yet: :meth:`build` and
-        :meth:`from_state` fill it."""
+        <arraysel.physics.psf.layout.BasisLayout.of>`) holding no tensors and no parts yet:
+        :meth:`build` and :meth:`from_state` fill it."""
         self.model = model
         self.layout = layout if layout is not None else BasisLayout.of(model, self.core)
-        self._block_plans: dict = {}
-        self._e_plan_holder: dict = {}  # E's DAS plan (Refinement._e_plans), shared with truncated views
-        self._block_dtx: dict = {}  # blocks' transmit distances (Refinement._block_transmit_distances)
-        self._block_index: dict = {}  # per tier, the blocks' envelope entries (Certificates._bound_index)
-        #: kernels that reached each costly step since the basis was made (shared with truncated
-        #: views): ``"finer"`` (the stored rank's tighter bound), ``"exact_windows"`` (their
-        #: window delay-and-summed exactly)
-        self.settled = {"finer": 0, "exact_windows": 0}
+        #: the peak certificates (:class:`~arraysel.physics.psf.certificate.Certificates`)
+        self.certificates: Certificates | None = None
+        #: the certified kernels (:class:`~arraysel.physics.psf.refinement.Refinement`)
+        self.refinement: Refinement | None = None
         self._row_energy = None
         #: the full-rank basis this one was truncated from (:meth:`truncated`): kernels whose
         #: error bound fails here are retried there before the exact path
         self.finer = None
+
+    def _attach_refinement(self, shared: Refinement | None = None):
+        """Make :attr:`refinement` on this basis's images and certificates, with the kernel
+        tolerance of its build (:attr:`sketch_kernel_tol` for a sketched one); ``shared``: the
+        refinement of the basis this view comes from, whose caches and counts it shares (the
+        view's certificates are then a :meth:`~arraysel.physics.psf.certificate.Certificates.view`
+        of that basis's)."""
+        tol = self.sketch_kernel_tol if self.missed > 0 else None
+        if shared is not None:
+            tol = shared.kernel_tol
+            self.certificates = self.certificates.view()
+        self.refinement = Refinement(self, self.certificates, kernel_tol=tol, shared=shared)
 
     @classmethod
     def build(cls, model, rank_tol: float = BUILD_RANK_TOL) -> "PairBasis":
@@ -137,35 +150,38 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         of E compressed to ``rank_tol``, the strips' pair images and factors, the error constants
         and the certificates (logged step by step at INFO)."""
         self = cls(model)
-        if self.layout.strip_bytes(torch.finfo(model.dtype).bits // 8, self.strip_rank) > self.strip_max_bytes:
+        if self.layout.strip_bytes(torch.finfo(model.dtype).bits // 8, BasisBuilder.strip_rank) > \
+                self.strip_max_bytes:
             self.layout = self.layout.without_strips()
         progress = BuildProgress(model, self)
-        lo, hi = self._sample_ranges()
+        builder = BasisBuilder(model, self.layout, Certificates.segment)
+        lo, hi = builder.sample_ranges()
         progress.step("sample ranges")
-        X = self._windowed_pair_iq()
+        X = builder.windowed_pair_iq()
         progress.step("pair I/Q signals")
-        plan1 = self._local_plan(self.rows, torch.arange(self.cols.start, self.cols.stop))
-        svd = self._compress(X, plan1, rank_tol, progress)
+        plan1 = builder.local_plan(self.rows, torch.arange(self.cols.start, self.cols.stop))
+        svd = builder.compress(X, plan1, rank_tol, progress)
         del plan1
         self.U, self.V, self.rank, self.rank_tail = svd.U, svd.V, svd.rank, svd.rank_tail
         self.core_images, self.missed = svd.core_images, svd.missed
         if self.npix2:
-            H2 = self._dense_pair_images(X, self._local_plan(self.rows, self.strip_cols))
+            H2 = builder.dense_pair_images(X, builder.local_plan(self.rows, self.strip_cols))
             col2 = float(pixel_norms(H2).max())
             H2 = H2[:, self.h2_cols]
-            self._strip_factors(H2)
+            factors = builder.strip_factors(H2)
             self.strip_images = H2.to(model.device, model.dtype)
             del H2
             progress.step("strip pair images")
         else:
             col2 = 0.0
             self.strip_images = torch.zeros(self.pairs_e.numel(), 0, dtype=model.dtype, device=model.device)
-            self._strip_factors(self.strip_images.double())
+            factors = builder.strip_factors(self.strip_images.double())
+        self.strip_left, self.strip_right, self.strip_sigma, self.strip_sigma_next = factors
         self.error = ErrorConstants(pixel_residual=svd.pixel_residual, column_e=svd.column_norm,
                                     column_strips=col2, spectral_tail=svd.spectral_tail)
-        self._build_certificates(X, lo, hi)
-        if self.missed > 0:
-            self.kernel_tol = self.sketch_kernel_tol
+        self.certificates = Certificates.build(model, self.layout, X, lo, hi, builder.window_offset,
+                                               builder.window_samples)
+        self._attach_refinement()
         progress.close()
         return self
 
@@ -174,6 +190,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         """``model``'s basis from its stored tensors (:meth:`state`)."""
         self = cls(model)
         restore_state(self, state)
+        self._attach_refinement()
         return self
 
     def state(self) -> dict:
@@ -190,6 +207,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         out = copy.copy(self)
         r = int(check_number("rank", rank, lo=1, integer=True))
         if self.U is None or r >= self.rank:
+            out._attach_refinement(shared=self.refinement)
             return out
         n = self.npix
         # sum of the dropped rows' squares per pixel, a few rows at a time (the rows of V beyond
@@ -208,6 +226,7 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         out.U, out.V, out.rank, out.error = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
         out.rank_tail = self.rank_tail + float(sig.sum()) / total
         out.finer = self
+        out._attach_refinement(shared=self.refinement)
         return out
 
     @property
@@ -248,13 +267,23 @@ class PairBasis(BasisBuild, Certificates, Refinement):
         envelopes (every run of segments of every channel), its image on E and that image's
         complex copy, its per-block bounds (float64 sums and their cast) and its kernel window
         twice (the cut window and the metrics' copy)."""
-        m = self.model
+        m, cert = self.model, self.certificates
         item = m.dtype.itemsize
-        env = len(m.transmits) * m.n_elements * self.max_run * (self.window_samples // self.segment) * item
+        env = len(m.transmits) * m.n_elements * cert.max_run * (cert.window_samples // cert.segment) * item
         images = 2 * 2 * self.npix * item
-        bounds = self.block_envelopes_e.shape[0] * (8 + item)
+        bounds = self.certificates.block_envelopes_e.shape[0] * (8 + item)
         kernels = 2 * 2 * m.setup.window ** 2 * item
         return env + images + bounds + kernels
+
+    def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
+        """Kernels (B, win, win) of selections ``w`` and a (B,) bool tensor, True where certified
+        (else the caller recomputes them): :meth:`Refinement.kernels
+        <arraysel.physics.psf.refinement.Refinement.kernels>`. ``env``: the envelopes of ``w``
+        (:meth:`Certificates.envelopes <arraysel.physics.psf.certificate.Certificates.envelopes>`
+        or, for one-swap neighbours, ``swap_envelopes``), ``images``: its images on E with their
+        error bounds (:meth:`images` with ``with_error``, or :meth:`swap_images`), when the caller
+        has them."""
+        return self.refinement.kernels(w, env=env, images=images)
 
     # ------------------------------------------------------------------ evaluation
     def _pairs(self, w):
@@ -483,25 +512,24 @@ class PairBasis(BasisBuild, Certificates, Refinement):
 
     def channels(self, w: torch.Tensor) -> torch.Tensor:
         """I/Q channel signals (B, ntx, Ne, T) complex of selections w: ``m_e sum_j m_j A_nej``."""
-        x = self._complex_channels(w @ self.pair_channels, w.shape[0]).transpose(1, 2)
+        x = self._complex_channels(w @ self.certificates.pair_channels, w.shape[0]).transpose(1, 2)
         return x * w.to(x.dtype)[:, None, :, None]
 
     def _complex_channels(self, y: torch.Tensor, n: int) -> torch.Tensor:
         """(n, Ne, ntx, T) complex, samples in time order, from rows of ``pair_channels``' layout
         (n, Ne * 2 * ntx * T)."""
-        ne, sg = self.model.n_elements, self.segment
-        y = y.view(n, ne, 2, len(self.model.transmits), sg, self.window_samples // sg)
+        ne, sg, T = self.model.n_elements, self.certificates.segment, self.certificates.window_samples
+        y = y.view(n, ne, 2, len(self.model.transmits), sg, T // sg)
         x = torch.complex(y[:, :, 0], y[:, :, 1])
-        return x.transpose(-1, -2).reshape(n, ne, len(self.model.transmits), self.window_samples)
+        return x.transpose(-1, -2).reshape(n, ne, len(self.model.transmits), T)
 
     def pair_iq(self) -> torch.Tensor:
         """The windowed pair I/Q signals (Ne tx j, ntx, Ne rx e, T) complex (sample t of the window
         of (n, e) is sample ``off[n, e] + t`` of the record)."""
-        return self._complex_channels(self.pair_channels, self.model.n_elements).transpose(1, 2)
+        return self._complex_channels(self.certificates.pair_channels, self.model.n_elements).transpose(1, 2)
 
 
-# the layout's fields read as the basis's own attributes (the build, certificates and refinement
-# use them so)
+# the layout's fields read as the basis's own attributes (``basis.rows`` for ``basis.layout.rows``)
 for _name in LAYOUT_FIELDS:
     setattr(PairBasis, _name, _layout_attribute(_name))
 del _name

@@ -2,10 +2,14 @@
 signals, the pair images and their compression (exact Gram or randomised sketch), and the
 low-rank factors of the strip blocks.
 
-:class:`BasisBuild` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`; it reads from
+:class:`BasisBuilder` is the build part of :class:`~arraysel.physics.psf.basis.PairBasis`: an
+object made from its inputs alone (the model, the layout and the envelope segment) whose steps
+return what they make (sample ranges, pair I/Q, a :class:`Compression`, :class:`StripFactors`)
+for :meth:`PairBasis.build <arraysel.physics.psf.basis.PairBasis.build>` to keep. It reads from
 the model only its public interface (``setup``, ``n_elements``, ``transmits``, ``x_grid``,
-``z_grid``, ``block``, ``dtype``, ``device``) and from the basis its layout (``rows``, ``cols``,
-``shape``, ``npix``, ``pairs_e``/``pairs_j``, ``core_pix``, ``segment``).
+``z_grid``, ``block``, ``dtype``, ``device``) and from the layout ``rows``, ``cols``, ``shape``,
+``npix``, ``pairs_e``, ``core_pix`` and ``strip_block_col``. :func:`window_plans` (the DAS plans
+local to the channel windows) serves the refinement too.
 """
 from __future__ import annotations
 
@@ -96,8 +100,23 @@ def _missed_spectral(grams: torch.Tensor, grams_b: torch.Tensor, pairs: int, ske
     return math.sqrt(float((lam + slack).clamp(min=0).sum())) * (1 + 1e-6)
 
 
+def window_plans(model, window_offset: torch.Tensor, X: torch.Tensor, Z: torch.Tensor,
+                 dtx: torch.Tensor | None = None):
+    """Yield, transmit by transmit (so that callers converting them hold one float64 plan at a
+    time), the DAS plan ``(i0, w, rot)`` ((Npix, Ne) each, float64) of ``model``'s pixels at (X,
+    Z) with sample indices local to the channel windows starting at ``window_offset`` (ntx, Ne)
+    (:meth:`BasisBuilder.sample_ranges`; 0 where the rotation is 0: outside the aperture or the
+    record). ``dtx`` (ntx, Npix): the pixels' transmit distances, if known."""
+    s = model.setup
+    for n, t in enumerate(model.transmits):
+        p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
+                     fc=s.probe.fc, dtx=None if dtx is None else dtx[n])
+        i0 = torch.where(p.rot.abs() > 0, p.i0 - window_offset[n][None, :], torch.zeros_like(p.i0))
+        yield i0, p.w, p.rot
+
+
 class Compression(NamedTuple):
-    """The truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E (:meth:`BasisBuild._compress`)."""
+    """The truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E (:meth:`BasisBuilder.compress`)."""
 
     #: (P, rank) orthonormal, or None when no compression pays (then ``V`` is ``H`` itself)
     U: torch.Tensor | None
@@ -121,13 +140,42 @@ class Compression(NamedTuple):
     core_images: torch.Tensor
 
 
-class BasisBuild:
-    """The precomputation steps of :class:`~arraysel.physics.psf.basis.PairBasis` (see there)."""
+class StripFactors(NamedTuple):
+    """Per-block rank-``strip_rank`` factors of the strips' pair images (:meth:`BasisBuilder.strip_factors`)."""
 
-    #: rank of the per-block factors of the strip pair images (:meth:`_strip_factors`)
+    #: (nw, P, r) ``W_r S_r`` of each whole strip block
+    left: torch.Tensor
+    #: (nw, r, 2 b^2) ``Z_r^T``
+    right: torch.Tensor
+    #: (nw, r) ``S_r``
+    sigma: torch.Tensor
+    #: (nw,) float64, a safe upper bound of ``S_{r+1}``
+    sigma_next: torch.Tensor
+
+
+class BasisBuilder:
+    """The precomputation steps of a :class:`~arraysel.physics.psf.basis.PairBasis` (see the
+    module), for ``model`` on ``layout``; :meth:`PairBasis.build
+    <arraysel.physics.psf.basis.PairBasis.build>` runs them in order and keeps what they return.
+
+    It owns only the channel windows it finds (:meth:`sample_ranges`: ``window_offset``,
+    ``window_samples``), which the later steps read; ``segment`` is the certificates' envelope
+    segment, a divisor of the window length.
+    """
+
+    #: rank of the per-block factors of the strip pair images (:meth:`strip_factors`)
     strip_rank = 16
 
-    def _strip_factors(self, H2: torch.Tensor):
+    def __init__(self, model, layout, segment: int):
+        self.model = model
+        self.layout = layout
+        self.segment = int(segment)
+        #: (ntx, Ne) first record sample of each channel's window, and the windows' length
+        #: (:meth:`sample_ranges`)
+        self.window_offset: torch.Tensor | None = None
+        self.window_samples: int | None = None
+
+    def strip_factors(self, H2: torch.Tensor) -> StripFactors:
         """Rank-``strip_rank`` factors of the pair images of every whole strip block (block-major
         ``H2`` in float64): ``M_q = W S Z^T`` (SVD from the 2 b^2 x 2 b^2 Gram matrix) gives
         ``SF[q] = W_r S_r`` (P, r), ``SG[q] = Z_r^T`` (r, 2 b^2), ``SS[q] = S_r`` and ``Snext[q]``
@@ -136,15 +184,14 @@ class BasisBuild:
         a block's image that clears most loose blocks without reading its ``2 b^2`` columns."""
         model = self.model
         bb2 = 2 * model.block ** 2
-        nw = int((self.strip_block_col >= 0).sum())
+        nw = int((self.layout.strip_block_col >= 0).sum())
         r = min(self.strip_rank, bb2)
         P = H2.shape[0]
         if nw == 0:
-            self.strip_left = torch.zeros(0, P, r, dtype=model.dtype, device=model.device)
-            self.strip_right = torch.zeros(0, r, bb2, dtype=model.dtype, device=model.device)
-            self.strip_sigma = torch.zeros(0, r, dtype=model.dtype, device=model.device)
-            self.strip_sigma_next = torch.zeros(0, dtype=torch.float64, device=model.device)
-            return
+            return StripFactors(left=torch.zeros(0, P, r, dtype=model.dtype, device=model.device),
+                                right=torch.zeros(0, r, bb2, dtype=model.dtype, device=model.device),
+                                sigma=torch.zeros(0, r, dtype=model.dtype, device=model.device),
+                                sigma_next=torch.zeros(0, dtype=torch.float64, device=model.device))
         SF, SG, SS, SN = [], [], [], []
         for q0 in range(0, nw, 64):
             q1 = min(nw, q0 + 64)
@@ -160,13 +207,13 @@ class BasisBuild:
             # eigenvalues of the Gram matrix are accurate to ~eps * sigma_1^2
             tail = sig[:, r] if r < bb2 else torch.zeros_like(sig[:, 0])
             SN.append((tail * (1 + 1e-6) + 1e-7 * sig[:, 0]))
-        self.strip_left = torch.cat(SF).to(model.device, model.dtype)
-        self.strip_right = torch.cat(SG).to(model.device, model.dtype)
-        self.strip_sigma = torch.cat(SS).to(model.device, model.dtype)
-        self.strip_sigma_next = torch.cat(SN).to(model.device)
+        return StripFactors(left=torch.cat(SF).to(model.device, model.dtype),
+                            right=torch.cat(SG).to(model.device, model.dtype),
+                            sigma=torch.cat(SS).to(model.device, model.dtype),
+                            sigma_next=torch.cat(SN).to(model.device))
 
     # -- sample ranges and windowed pair I/Q -------------------------------------------------
-    def _sample_ranges(self):
+    def sample_ranges(self):
         """Samples read by the grid's pixels, block by block, from the block centres.
 
         The transmit distance (a minimum of 1-Lipschitz distances) and each receive distance
@@ -216,7 +263,7 @@ class BasisBuild:
         self.window_samples = -(-max(span, 2) // self.segment) * self.segment
         return lo, hi
 
-    def _windowed_pair_iq(self) -> np.ndarray:
+    def windowed_pair_iq(self) -> np.ndarray:
         """I/Q of every (rx e, tx j) pair on each channel's window: ``X[n, e, t, 0 | 1, j]``
         (ntx, Ne, T, 2, Ne) float32, the real | imaginary part of sample ``off[n, e] + t`` of the
         record (zero past its end).
@@ -260,27 +307,13 @@ class BasisBuild:
                 out[n, e0:e1] = y.to(torch.float32).numpy()
         return out
 
-    def _window_plans(self, X: torch.Tensor, Z: torch.Tensor, dtx: torch.Tensor | None = None):
-        """Yield, transmit by transmit (so that callers converting them hold one float64 plan at
-        a time), the DAS plan ``(i0, w, rot)`` ((Npix, Ne) each, float64) of the pixels at (X, Z)
-        with sample indices local to the channel windows (:meth:`_sample_ranges`; 0 where the
-        rotation is 0: outside the aperture or the record). ``dtx`` (ntx, Npix): the pixels'
-        transmit distances, if known."""
-        model = self.model
-        s = model.setup
-        for n, t in enumerate(model.transmits):
-            p = das_plan(X, Z, t.delays, s.probe, s.acq.fs, s.acq.c, t.grid.n_time, fnumber=s.fnumber,
-                         fc=s.probe.fc, dtx=None if dtx is None else dtx[n])
-            i0 = torch.where(p.rot.abs() > 0, p.i0 - self.window_offset[n][None, :], torch.zeros_like(p.i0))
-            yield i0, p.w, p.rot
-
-    def _local_plan(self, rows: slice, cols: torch.Tensor):
+    def local_plan(self, rows: slice, cols: torch.Tensor):
         """DAS plan of the pixels (rows x cols) for the pair-image kernel: (i0 local to the
         channel windows, weight, rotation re, im), each (ntx, Ne, Npix) numpy."""
         model = self.model
         Z, X = torch.meshgrid(model.z_grid[rows], model.x_grid[cols], indexing="ij")
         out = [[], [], [], []]
-        for i0, w, rot in self._window_plans(X, Z):
+        for i0, w, rot in window_plans(model, self.window_offset, X, Z):
             out[0].append(i0.T.to(torch.int32))
             out[1].append(w.T.to(torch.float32))
             out[2].append(rot.real.T.to(torch.float32))
@@ -290,7 +323,7 @@ class BasisBuild:
     #: memory (bytes) of the kernel's output for one call (a group of pixels with every pair)
     build_tile_bytes = 256 << 20
 
-    def _pair_image_tiles(self, X: np.ndarray, plan: tuple, tiles):
+    def pair_image_tiles(self, X: np.ndarray, plan: tuple, tiles):
         """Yield ``(G, Ht)`` for each pixel-index tensor ``G`` of ``tiles`` (indices into the
         plan's pixels): ``Ht`` (2 |G|, P) float64, the symmetric pair images of every pair on
         those pixels, real rows then imaginary rows (the pixels' [re | im] columns of the pair
@@ -301,7 +334,7 @@ class BasisBuild:
         256-element build."""
         from arraysel.physics.pairkernels import pair_images
 
-        P = self.pairs_e.numel()
+        P = self.layout.pairs_e.numel()
         per_call = max(1, self.build_tile_bytes // (P * 16))
         tiles = list(tiles)
         largest = max(G.numel() for G in tiles)
@@ -336,15 +369,15 @@ class BasisBuild:
         if group:
             yield from run(group)
 
-    def _dense_pair_images(self, X: np.ndarray, plan: tuple, dtype=torch.float64,
+    def dense_pair_images(self, X: np.ndarray, plan: tuple, dtype=torch.float64,
                            transposed: bool = False) -> torch.Tensor:
         """All symmetric pair images on the plan's pixels: (P, 2 Npix) [re | im] in ``dtype``,
         or its transpose (2 Npix, P), stored row-major, if ``transposed``."""
-        P = self.pairs_e.numel()
+        P = self.layout.pairs_e.numel()
         npix = plan[0].shape[2]
         out = torch.empty(2 * npix, P, dtype=dtype) if transposed else torch.empty(P, 2 * npix, dtype=dtype)
         per_call = max(1, self.build_tile_bytes // (P * 16))
-        for G, Ht in self._pair_image_tiles(X, plan, torch.arange(npix).split(per_call)):
+        for G, Ht in self.pair_image_tiles(X, plan, torch.arange(npix).split(per_call)):
             p0, p1 = int(G[0]), int(G[-1]) + 1
             if transposed:
                 out[p0:p1] = Ht[:p1 - p0]
@@ -375,7 +408,7 @@ class BasisBuild:
         of E, in ``dtype``, for its second pass (:attr:`keep_images_max_bytes`)."""
         return pairs * 2 * npix * (torch.finfo(dtype).bits // 8) <= cls.keep_images_max_bytes
 
-    def _compress(self, X: np.ndarray, plan: tuple, rank_tol: float, progress=None) -> Compression:
+    def compress(self, X: np.ndarray, plan: tuple, rank_tol: float, progress=None) -> Compression:
         """Truncated SVD ``H ~ U V`` of the pair images ``H`` (P, 2 Npix) on E, with ``U``
         orthonormal (P, r) and ``V = U^T H``.
 
@@ -391,11 +424,11 @@ class BasisBuild:
         Returns a :class:`Compression` record.
         """
         model = self.model
-        P = self.pairs_e.numel()
-        npix = self.npix
-        core = torch.cat([self.core_pix, npix + self.core_pix])
+        P = self.layout.pairs_e.numel()
+        npix = self.layout.npix
+        core = torch.cat([self.layout.core_pix, npix + self.layout.core_pix])
         if P <= self.sketch_columns:
-            H = self._dense_pair_images(X, plan)
+            H = self.dense_pair_images(X, plan)
             if progress is not None:
                 progress.step("pair images on E")
             col = pixel_norms(H)
@@ -423,7 +456,7 @@ class BasisBuild:
         from arraysel.physics.pairkernels import sparse_sketch_add
 
         tile = self.missed_tile
-        tiles = _tile_pixels(self.shape, tile)
+        tiles = _tile_pixels(self.layout.shape, tile)
         # sparse sign sketch: each real column of H adds, with a random sign, to ``zeta``
         # random columns of the sketch (a sparse random embedding, applied a tile of pixels at
         # a time in ``zeta P`` adds a column; on the built-in probes it misses as little as the
@@ -438,14 +471,14 @@ class BasisBuild:
         # norms and the basis then describe those rounded images, which differ from the float64
         # ones by less than the rounding allowance of an evaluation); else each pass
         # delay-and-sums them again, a tile at a time
-        kept = self._dense_pair_images(X, plan, model.dtype, transposed=True) \
+        kept = self.dense_pair_images(X, plan, model.dtype, transposed=True) \
             if self.keeps_images(P, npix, model.dtype) else None
 
         def tile_images():
-            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`_pair_image_tiles`),
+            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`pair_image_tiles`),
             # each written over the previous one (reused buffers: no fresh pages for each tile)
             if kept is None:
-                yield from self._pair_image_tiles(X, plan, tiles)
+                yield from self.pair_image_tiles(X, plan, tiles)
                 return
             rows_max = 2 * max(G.numel() for G in tiles)
             b32 = torch.empty(rows_max, P, dtype=kept.dtype)
@@ -497,7 +530,7 @@ class BasisBuild:
         total = float(col2.sum())
         missed = max(0.0, total - float(evals.sum()))
         frob = math.sqrt(missed) * (1 + 1e-6)
-        missed = min(frob, _missed_spectral(grams, _tile_grams(B, self.shape, tile), P, Q.shape[1]))
+        missed = min(frob, _missed_spectral(grams, _tile_grams(B, self.layout.shape, tile), P, Q.shape[1]))
         _log.info("  what the sketch missed: spectral norm <= %.3g (Frobenius %.3g) of |H|_F %.3g",
                   missed, frob, math.sqrt(total))
         tail = total - torch.cumsum(evals, 0)

@@ -13,7 +13,10 @@ the envelope of every run of 1 .. ``max_run`` consecutive segments is formed onc
 rows of A they use), so a block's bound sums one entry per (transmit, element): the right run
 (:meth:`Certificates.bound`: compiled on the CPU, a sparse product elsewhere).
 
-:class:`Certificates` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`.
+:class:`Certificates` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`
+(``basis.certificates``): it owns the pair I/Q signals on their windows, the block matrices and
+the caches of the bounds, and reads only the model's public interface (its constructor's
+arguments); the basis, its refinement and its stored state read the channels and bounds from it.
 """
 from __future__ import annotations
 
@@ -38,34 +41,79 @@ def sparse_csr(crow, col, val, size):
 
 
 class Certificates:
-    """Block bounds of :class:`~arraysel.physics.psf.basis.PairBasis` (see the module)."""
+    """The peak certificates of a :class:`~arraysel.physics.psf.basis.PairBasis` (see the module):
+    ``basis.certificates``.
+
+    Inputs (constructor): ``model`` (reads ``n_elements``, ``transmits``, ``dtype``,
+    ``device``) and the stored tensors it owns: ``pair_channels`` (Ne, Ne 2 ntx T) the windowed
+    pair I/Q signals, ``window_offset`` (ntx, Ne) the first record sample of each channel's
+    window, ``window_samples`` (T) its length, ``max_run`` the longest run of segments a block
+    reads, ``block_envelopes_e`` / ``block_envelopes_band`` the sparse block matrices of the two
+    tiers, and ``segment``. :meth:`build` forms them from the pair I/Q signals and the sample
+    ranges of the blocks (the layout's ``outside1``, ``outside2`` and ``strips``). It owns its
+    caches too: the blocks' envelope entries per tier (:meth:`_bound_index`), the channel sums of
+    the last neighbourhood's selection (:meth:`swap_envelopes`) and the counts of small batches
+    (:meth:`_warm`). Nothing else of the basis is read.
+    """
 
     #: samples per aligned envelope segment of the certificates
     segment = 4
 
-    def _build_certificates(self, X: np.ndarray, lo: torch.Tensor, hi: torch.Tensor):
-        model = self.model
+    def __init__(self, model, pair_channels: torch.Tensor, window_offset: torch.Tensor, window_samples: int,
+                 max_run: int, block_envelopes_e: torch.Tensor, block_envelopes_band: torch.Tensor,
+                 segment: int | None = None):
+        self.model = model
+        self.pair_channels = pair_channels
+        self.window_offset = window_offset
+        self.window_samples = int(window_samples)
+        #: longest run of consecutive segments a block reads
+        self.max_run = int(max_run)
+        self.block_envelopes_e = block_envelopes_e
+        self.block_envelopes_band = block_envelopes_band
+        if segment is not None:
+            self.segment = int(segment)
+        self._block_index: dict = {}  # per tier, the blocks' envelope entries (:meth:`_bound_index`)
+        self._swap_sums = None  # (selection key, its channel sums) of :meth:`swap_envelopes`
+        self._small_calls: dict = {}  # per compiled pass, the small batches seen (:meth:`_warm`)
+
+    def view(self) -> "Certificates":
+        """These certificates for another view of the same basis (a truncated one): the same
+        tensors and block entries, its own counts of small batches and neighbourhood sums."""
+        import copy
+
+        out = copy.copy(self)
+        out._swap_sums, out._small_calls = None, {}
+        return out
+
+    @classmethod
+    def build(cls, model, layout, X: np.ndarray, lo: torch.Tensor, hi: torch.Tensor, window_offset: torch.Tensor,
+              window_samples: int) -> "Certificates":
+        """The certificates of the pair I/Q signals ``X`` (ntx, Ne, T, 2, Ne) on the channel
+        windows (``window_offset``, ``window_samples``) for blocks reading the samples ``lo``,
+        ``hi`` (ntx, nbz, nbx, Ne) (:meth:`~arraysel.physics.psf.build.BasisBuilder.sample_ranges`)
+        outside E and outside the band (``layout.outside1``, ``layout.outside2``; the band's
+        matrix is empty without ``layout.strips``)."""
         ne = model.n_elements
-        T = self.window_samples
+        T = int(window_samples)
+        sg = cls.segment
         # A[j, (e, c, n, r, a)] = part c (0: re, 1: im) of sample t = a segment + r of (rx e, tx j)
         # on transmit n: the channels of receive e on every transmit are m_e sum_j m_j A[j, (e, ...)],
         # one contiguous block of columns (:meth:`_receive_products`); samples are stored
         # segment-offset major so that the envelopes reduce over contiguous slabs (:meth:`envelopes`)
-        A = torch.from_numpy(X).unflatten(2, (T // self.segment, self.segment))  # (n, e, a, r, c, j)
-        self.pair_channels = A.permute(5, 1, 4, 0, 3, 2).reshape(ne, -1).to(model.device, model.dtype)
-        off = self.window_offset[:, None, None, :]
+        A = torch.from_numpy(X).unflatten(2, (T // sg, sg))  # (n, e, a, r, c, j)
+        pair_channels = A.permute(5, 1, 4, 0, 3, 2).reshape(ne, -1).to(model.device, model.dtype)
+        off = window_offset[:, None, None, :]
         read = hi >= lo
         lo = torch.where(read, lo - off, torch.full_like(lo, T))
         hi = torch.where(read, (hi - off).clamp(max=T - 1), torch.full_like(hi, -1))
-        outside1, outside2 = self.layout.outside1, self.layout.outside2
         has_all = hi >= lo
-        runs = torch.where(has_all, hi // self.segment - lo // self.segment + 1, torch.zeros_like(lo))
-        #: longest run of consecutive segments a block reads
-        self.max_run = max(1, int(runs.max()))
-        self.block_envelopes_e = self._block_matrix(lo, hi, outside1)
-        self.block_envelopes_band = self._block_matrix(lo, hi, outside2) if self.strips else \
+        runs = torch.where(has_all, hi // sg - lo // sg + 1, torch.zeros_like(lo))
+        self = cls(model, pair_channels, window_offset, T, max(1, int(runs.max())), None, None)
+        self.block_envelopes_e = self._block_matrix(lo, hi, layout.outside1)
+        self.block_envelopes_band = self._block_matrix(lo, hi, layout.outside2) if layout.strips else \
             sparse_csr(torch.zeros(1, dtype=torch.long), torch.zeros(0, dtype=torch.long),
                  torch.zeros(0, dtype=model.dtype), (0, self.block_envelopes_e.shape[1])).to(model.device)
+        return self
 
     def _block_matrix(self, lo, hi, outside):
         """Sparse (nQ, ntx*Ne*M*nS) matrix summing, per block, the envelope of the run of
@@ -212,7 +260,7 @@ class Certificates:
         A = self.pair_channels.numpy()
         # the selection's channel sums, kept for the next batch of the same neighbourhood
         key = on.tobytes()
-        held = self.__dict__.get("_swap_sums")
+        held = self._swap_sums
         if held is None or held[0] != key:
             held = self._swap_sums = (key, row_sums(A, np.flatnonzero(on)).reshape(ne, -1))
         env = torch.empty(ntx * ne, self.max_run, nS, B, dtype=self.pair_channels.dtype)
@@ -240,7 +288,7 @@ class Certificates:
     def _warm(self, what: str) -> bool:
         """Count a batch smaller than :data:`~arraysel.physics.compiled.MIN_BATCH` for the
         compiled pass ``what``; True from the call after :attr:`compiled_bound_warm` of them."""
-        counts = self.__dict__.setdefault("_small_calls", {})
+        counts = self._small_calls
         counts[what] = counts.get(what, 0) + 1
         return counts[what] > self.compiled_bound_warm
 

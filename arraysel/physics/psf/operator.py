@@ -390,9 +390,9 @@ class PSFModel:
         w[rows, a.to(w.device)] = 0
         w[rows, b.to(w.device)] = 1
         with torch.no_grad():
-            if self.basis is None or not a.numel() or not self.basis.swaps_compiled(m):
+            if self.basis is None or not a.numel() or not self.basis.certificates.swaps_compiled(m):
                 return self.kernels(w, return_info=return_info)
-            return self._fast_or_exact(w, return_info, env=self.basis.swap_envelopes(m, a, b),
+            return self._fast_or_exact(w, return_info, env=self.basis.certificates.swap_envelopes(m, a, b),
                                        images=self.basis.swap_images(m, a, b, w))
 
     def reference_kernel(self) -> torch.Tensor:

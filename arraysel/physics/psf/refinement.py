@@ -3,7 +3,26 @@ fast path, the peak located among near-ties (settled from the core's exact pair 
 delay-and-sum at the tied pixels), and loose blocks cleared by the strips' low-rank factors,
 their exact pair images, or block-wise delay-and-sum.
 
-:class:`Refinement` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`.
+:class:`Refinement` is a part of :class:`~arraysel.physics.psf.basis.PairBasis`
+(``basis.refinement``); :meth:`PairBasis.kernels <arraysel.physics.psf.basis.PairBasis.kernels>`
+runs its :meth:`Refinement.kernels`. Its inputs (constructor arguments):
+
+* ``basis``, of which it reads this interface only: ``model`` (its public interface),
+  ``layout``, the images (:meth:`~arraysel.physics.psf.basis.PairBasis.images`, ``band_images``,
+  ``channels``, the pair products ``_pairs`` and the rounding allowance ``_rounding``), the
+  stored ``strip_images``, ``strip_left``, ``strip_right``, ``strip_sigma``,
+  ``strip_sigma_next`` and ``core_images``, and ``finer`` (the full-rank basis a truncated one
+  retries on);
+* ``certificates``, the basis's :class:`~arraysel.physics.psf.certificate.Certificates` (block
+  bounds, envelopes, the pair channels and their windows);
+* ``kernel_tol`` (default :attr:`Refinement.kernel_tol`);
+* ``shared``: another basis's refinement whose caches and counts this one shares (a truncated
+  view and the basis it comes from).
+
+It owns ``kernel_tol``, the counts ``settled`` (kernels that reached each costly step since
+the basis was made: ``"finer"``, the stored rank's tighter bound, and ``"exact_windows"``, their
+window delay-and-summed exactly) and its caches: the block DAS plans and transmit distances,
+E's DAS plan and the core's pixel positions.
 """
 from __future__ import annotations
 
@@ -15,6 +34,7 @@ import torch
 
 from arraysel.physics import compiled
 from arraysel.physics.beamform import das_apply
+from arraysel.physics.psf.build import window_plans
 from arraysel.physics.psf.certificate import largest_bound
 from arraysel.physics.psf.window import cut_windows, window_start
 
@@ -48,16 +68,43 @@ def _runs(slots: torch.Tensor, most: int = 32) -> list[tuple[int, int]] | None:
     return [(int(s[i]), int(s[j - 1]) + 1) for i, j in zip(starts, ends)]
 
 
+def _windows(setup, pz, px, rows, cols):
+    """Grid offsets (z0, x0) of the kernel windows of peaks (pz, px) and whether each fits in the
+    region (rows, cols)."""
+    z0 = window_start(pz, setup.window, setup.n_z)
+    x0 = window_start(px, setup.window, setup.n_x)
+    fits = (z0 >= rows.start) & (z0 + setup.window <= rows.stop) & (x0 >= cols.start) & \
+        (x0 + setup.window <= cols.stop)
+    return z0, x0, fits
+
+
 class Refinement:
-    """Peak location, refinement and the certified kernels of
-    :class:`~arraysel.physics.psf.basis.PairBasis` (see the module)."""
+    """Peak location, refinement and the certified kernels of a
+    :class:`~arraysel.physics.psf.basis.PairBasis` (``basis.refinement``; its inputs and what it
+    owns: see the module)."""
+
+    def __init__(self, basis, certificates, kernel_tol: float | None = None, shared: "Refinement | None" = None):
+        self.basis = basis
+        self.model = basis.model
+        self.layout = basis.layout
+        self.certificates = certificates
+        self.kernel_tol = self.kernel_tol if kernel_tol is None else float(kernel_tol)
+        if shared is None:
+            self._block_plans: dict = {}  # block -> its DAS plan (:meth:`_plans_for_blocks`)
+            self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
+            self._e_plan_holder: dict = {}  # E's DAS plan (:meth:`_e_plans`)
+            self.settled = {"finer": 0, "exact_windows": 0}  #: kernels that reached each costly step
+        else:
+            self._block_plans, self._block_dtx = shared._block_plans, shared._block_dtx
+            self._e_plan_holder, self.settled = shared._e_plan_holder, shared.settled
+        self._core_pos = None  # E pixel -> its column among the core's (:meth:`_settle_in_core`)
 
     #: at most this many pixels tied with the peak (within the error bound) are settled exactly
     max_ties = 256
 
     #: largest bound of the relative L2 error of a fast-path kernel window (else: exact path);
     #: a sketched basis (large probes) carries the sketch's term in every bound and uses
-    #: :data:`self.sketch_kernel_tol` instead
+    #: :attr:`~arraysel.physics.psf.basis.PairBasis.sketch_kernel_tol` instead
     kernel_tol = 5e-3
 
     #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
@@ -72,7 +119,7 @@ class Refinement:
         """Integer type of the block plans' sample indices (local to the channel windows): 16
         bits where the windows allow, so that the plan cache holds more blocks (256 elements:
         167 blocks in :attr:`plan_cache_bytes` instead of 117 with 64-bit indices)."""
-        return torch.int16 if self.window_samples < 2 ** 15 else torch.int32
+        return torch.int16 if self.certificates.window_samples < 2 ** 15 else torch.int32
 
     @property
     def plan_cache_blocks(self) -> int:
@@ -100,7 +147,8 @@ class Refinement:
                 xs.append(X.reshape(-1))
                 sizes.append(Z.numel())
             dtx = self._block_transmit_distances(missing, xs, zs)
-            per_tx = list(zip(*self._window_plans(torch.cat(xs), torch.cat(zs), dtx)))
+            offset = self.certificates.window_offset
+            per_tx = list(zip(*window_plans(self.model, offset, torch.cat(xs), torch.cat(zs), dtx)))
             stacked = (torch.stack(per_tx[0]).to(model.device, self.plan_index_dtype),
                        torch.stack(per_tx[1]).to(model.device, model.dtype),
                        torch.stack(per_tx[2]).to(model.device, model.cdtype))
@@ -178,29 +226,30 @@ class Refinement:
         order in ``strip_images``) for pair products ``c`` (B, P), from the rank-r factors
         (:meth:`_strip_factors`): ``|(c SF) SG| + |c_perp| S_{r+1}`` plus rounding allowances."""
         if slack is None:
-            slack = self._rounding(c)
+            slack = self.basis._rounding(c)
         bb = self.model.block ** 2
         sl = slots.to(c.device)
         runs = _runs(slots)
         if runs is None:
-            cf = torch.matmul(c[None], self.strip_left[sl])                              # (n, B, r)
-            v = torch.matmul(cf, self.strip_right[sl])
+            cf = torch.matmul(c[None], self.basis.strip_left[sl])                              # (n, B, r)
+            v = torch.matmul(cf, self.basis.strip_right[sl])
         else:
             # the factors of each run of consecutive slots read in place: gathering them copied
             # (n, P, r) floats, more than the products read; each run costs a little more, hence
             # at most 32 of them (``docs/performance.md``, "Tuning constants")
-            cfs = [torch.matmul(c[None], self.strip_left[a:b]) for a, b in runs]
+            cfs = [torch.matmul(c[None], self.basis.strip_left[a:b]) for a, b in runs]
             cf = torch.cat(cfs)
-            v = torch.cat([torch.matmul(f, self.strip_right[a:b]) for f, (a, b) in zip(cfs, runs)])
+            v = torch.cat([torch.matmul(f, self.basis.strip_right[a:b]) for f, (a, b) in zip(cfs, runs)])
         v = v.view(sl.numel(), c.shape[0], 2, bb)
         peak = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(-1).sqrt()
-        cw2 = (cf / self.strip_sigma[sl][:, None, :]).square().sum(-1).double()
+        cw2 = (cf / self.basis.strip_sigma[sl][:, None, :]).square().sum(-1).double()
         cn2 = (c.double() ** 2).sum(1)[None]
         # |c_perp|, widened for the rounding of |c W_r|^2 (float32)
         cperp = ((cn2 - cw2).clamp(min=0) + 1e-6 * cn2).sqrt()
         # rounding of the two float32 products: 2 sqrt(P) u |c| S_1, on top of strip_images' own
-        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * self.strip_sigma[sl][:, :1].double()
-        return peak.double() * (1 + 1e-4) + cperp * self.strip_sigma_next[sl][:, None] + rnd + 2 * slack.double()
+        sigma = self.basis.strip_sigma[sl]
+        rnd = 2 * math.sqrt(c.shape[1]) * torch.finfo(c.dtype).eps * cn2.sqrt() * sigma[:, :1].double()
+        return peak.double() * (1 + 1e-4) + cperp * self.basis.strip_sigma_next[sl][:, None] + rnd + 2 * slack.double()
 
     def refine(self, w: torch.Tensor, threshold: torch.Tensor, env=None, tier: int = 2,
                bounds: torch.Tensor | None = None) -> torch.Tensor:
@@ -210,29 +259,29 @@ class Refinement:
 
         Blocks wholly inside the strips (tier 1) take their values from the precomputed strip
         pair images, one small product per block for all selections at once (block-major
-        columns of ``strip_images``); other blocks are delay-and-summed from the selection's I/Q channels
-        (:meth:`channels`). Either way a selection with a few loose blocks costs far less than
-        a whole-grid exact image. ``env``: the envelopes of w; ``bounds``: its per-block bounds
-        (:meth:`bound` with ``per_block``), when the caller has them.
+        columns of ``strip_images``); other blocks are delay-and-summed from the selection's I/Q
+        channels (``basis.channels``). Either way a selection with a few loose blocks costs far
+        less than a whole-grid exact image. ``env``: the envelopes of w; ``bounds``: its
+        per-block bounds (``certificates.bound`` with ``per_block``), when the caller has them.
         """
         B = w.shape[0]
         out = torch.zeros(B, dtype=torch.bool)
-        S = self.block_envelopes_e if tier == 1 else self.block_envelopes_band
+        S = self.certificates.block_envelopes_e if tier == 1 else self.certificates.block_envelopes_band
         if S.shape[0] == 0 or B == 0:
             return out
-        blocks = self.blocks1 if tier == 1 else self.blocks2
+        blocks = self.layout.blocks1 if tier == 1 else self.layout.blocks2
         w = w.detach()
         if bounds is None:
-            bounds = self.bound(w, tier, per_block=True, env=env)
+            bounds = self.certificates.bound(w, tier, per_block=True, env=env)
         clear = bounds < threshold[None]  # (nQ, B)
         strip = torch.zeros(S.shape[0], dtype=torch.bool)
-        if tier == 1 and self.npix2:
+        if tier == 1 and self.layout.npix2:
             # blocks wholly inside the strips: their pair images are precomputed (exact to rounding)
-            col0 = self.strip_block_col
+            col0 = self.layout.strip_block_col
             strip = col0 >= 0
             todo = torch.nonzero(strip & ~clear.all(1).cpu()).flatten()
-            c = self._pairs(w)
-            slack = self._rounding(c)
+            c = self.basis._pairs(w)
+            slack = self.basis._rounding(c)
             bb = self.model.block ** 2
             if todo.numel():
                 # first the rank-r factors: their bound below the threshold clears a block
@@ -248,7 +297,7 @@ class Refinement:
                 cut = torch.nonzero(slot[1:] - slot[:-1] > 3).flatten() + 1
                 for run in torch.tensor_split(todo, cut.tolist()):
                     first, last = int(col0[run[0]]), int(col0[run[-1]]) + 2 * bb
-                    v = (c @ self.strip_images[:, first:last]).view(B, -1, 2, bb)
+                    v = (c @ self.basis.strip_images[:, first:last]).view(B, -1, 2, bb)
                     peak2 = torch.addcmul(v[:, :, 1].square(), v[:, :, 0], v[:, :, 0]).amax(2)  # (B, blocks)
                     at = (col0[run] - first) // (2 * bb)
                     clear[run] |= (peak2[:, at.to(peak2.device)] < limit[:, None]).T
@@ -282,18 +331,18 @@ class Refinement:
             part = index[g:g + group]
             wg = w[torch.tensor(part, dtype=torch.long, device=w.device)]
             if not raw:
-                yield from zip(part, self.channels(wg))
+                yield from zip(part, self.basis.channels(wg))
                 continue
-            shape = (len(part), ne, 2, ntx, self.window_samples)
+            shape = (len(part), ne, 2, ntx, self.certificates.window_samples)
             if bool((wg != 0).any(0).all()):
-                y = (wg @ self.pair_channels).view(shape)  # every receive element is used
+                y = (wg @ self.certificates.pair_channels).view(shape)  # every receive element is used
             else:
                 y = torch.empty(shape, dtype=wg.dtype)
-                for e0, e1, _, ys in self._receive_products(wg, subsets=False):
+                for e0, e1, _, ys in self.certificates._receive_products(wg, subsets=False):
                     y[:, e0:e1] = ys
             y = y.numpy()
             we = wg.numpy().astype(y.dtype)
-            yield from ((i, RawChannels(y[k], we[k], self.segment)) for k, i in enumerate(part))
+            yield from ((i, RawChannels(y[k], we[k], self.certificates.segment)) for k, i in enumerate(part))
 
     def _exact_pixels(self, X, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
@@ -344,7 +393,7 @@ class Refinement:
             amb = torch.nonzero(ok & (n > 1)).flatten()
             if amb.numel():
                 arg = arg.clone()
-                if (h, wd) == self.shape and (row0, col0) == (self.rows.start, self.cols.start):
+                if (h, wd) == self.layout.shape and (row0, col0) == (self.layout.rows.start, self.layout.cols.start):
                     amb = self._settle_in_core(cand, amb, arg, w)
             for b, x in self._grouped_channels(w.detach(), amb.tolist(), raw=True):
                 idx = torch.nonzero(cand[b]).flatten()
@@ -357,10 +406,10 @@ class Refinement:
         all lie in the core, from the core's exact pair images (one product for all of them);
         writes their peak index into ``arg`` and returns the selections left (candidates
         outside the core)."""
-        pos = getattr(self, "_core_pos", None)
+        pos = self._core_pos
         if pos is None or pos.device != cand.device:
-            pos = torch.full((self.npix,), -1, dtype=torch.long)
-            pos[self.core_pix] = torch.arange(self.core_pix.numel())
+            pos = torch.full((self.layout.npix,), -1, dtype=torch.long)
+            pos[self.layout.core_pix] = torch.arange(self.layout.core_pix.numel())
             pos = self._core_pos = pos.to(cand.device)
         ca = cand[amb]
         inside = ~(ca & (pos < 0)[None]).any(1)
@@ -368,27 +417,19 @@ class Refinement:
         if sel.numel():
             union = torch.nonzero(ca[inside].any(0)).flatten()
             cols = pos[union]
-            nc = self.core_images.shape[1] // 2
-            v = self._pairs(w[sel].detach()) @ self.core_images[:, torch.cat([cols, cols + nc])]
+            nc = self.basis.core_images.shape[1] // 2
+            v = self.basis._pairs(w[sel].detach()) @ self.basis.core_images[:, torch.cat([cols, cols + nc])]
             nu = union.numel()
             mag2 = torch.addcmul(v[:, nu:].square(), v[:, :nu], v[:, :nu])
             mag2 = torch.where(ca[inside][:, union], mag2, torch.full_like(mag2, -1.0))
             arg[sel] = union[mag2.argmax(dim=1)]
         return amb[~inside]
 
-    def _windows(self, pz, px, rows, cols):
-        s = self.model.setup
-        z0 = window_start(pz, s.window, s.n_z)
-        x0 = window_start(px, s.window, s.n_x)
-        fits = (z0 >= rows.start) & (z0 + s.window <= rows.stop) & (x0 >= cols.start) & \
-               (x0 + s.window <= cols.stop)
-        return z0, x0, fits
-
     def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
-        ``env``: the envelopes of ``w`` (:meth:`envelopes`), ``images``: its images on E with
-        their error bounds (:meth:`images` with ``with_error``), when the caller has them (the
-        one-swap neighbours of a selection: :meth:`swap_envelopes`, :meth:`swap_images`).
+        ``env``: the envelopes of ``w`` (``certificates.envelopes``), ``images``: its images on E
+        with their error bounds (``basis.images`` with ``with_error``), when the caller has them
+        (one-swap neighbours: ``certificates.swap_envelopes``, ``basis.swap_images``).
 
         Certified: the exact peak is located (pixels tied with the approximate peak within the
         error bound are evaluated exactly), its window fits in the region, and the lower bound of
@@ -399,15 +440,15 @@ class Refinement:
         with torch.no_grad():
             wd = w.detach()
             if env is None:
-                env = self.envelopes(wd)
-        img, eps, win_err = self.images(w, with_error=True) if images is None else images
-        pz, px, thr, ok = self._locate(img, eps, w, self.rows.start, self.cols.start)
-        z0, x0, fits = self._windows(pz, px, self.rows, self.cols)
+                env = self.certificates.envelopes(wd)
+        img, eps, win_err = self.basis.images(w, with_error=True) if images is None else images
+        pz, px, thr, ok = self._locate(img, eps, w, self.layout.rows.start, self.layout.cols.start)
+        z0, x0, fits = _windows(s, pz, px, self.layout.rows, self.layout.cols)
         with torch.no_grad():
             # the per-block bounds serve the peaks that the largest of them does not certify too
             # (forming them again for those selections, from a copy of their envelopes' columns,
             # cost more than the first time)
-            bounds = self.bound(wd, 1, per_block=True, env=env)
+            bounds = self.certificates.bound(wd, 1, per_block=True, env=env)
             passed = ok & (largest_bound(bounds) < thr)
             retry = torch.nonzero(ok & ~passed).flatten()
             if retry.numel():
@@ -416,22 +457,22 @@ class Refinement:
             # whether or not the window fits in E
             located, win_z, win_x = passed.clone(), torch.where(passed, z0, -1), torch.where(passed, x0, -1)
             ok = passed & fits
-        z0e = torch.where(ok, z0 - self.rows.start, torch.zeros_like(z0))
-        x0e = torch.where(ok, x0 - self.cols.start, torch.zeros_like(x0))
+        z0e = torch.where(ok, z0 - self.layout.rows.start, torch.zeros_like(z0))
+        x0e = torch.where(ok, x0 - self.layout.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
         ok = ok & (win_err <= self.kernel_tol * norm)
         # tier 2 (the band) for the selections whose peak tier 1 could not certify; a certified
         # peak whose window leaves E or whose error bound is too loose gets an exact window below
         # (cheaper than the band's product, which reads every strip pair image, and exact)
         todo = torch.nonzero(~ok & ~located).flatten()
-        if todo.numel() and self.npix2:
+        if todo.numel() and self.layout.npix2:
             w2 = w[todo]
-            band = self.band_images(w2, img[todo])
-            pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.rows.start, 0)
-            z02, x02, fits2 = self._windows(pz2, px2, self.rows, slice(0, s.n_x))
+            band = self.basis.band_images(w2, img[todo])
+            pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.layout.rows.start, 0)
+            z02, x02, fits2 = _windows(s, pz2, px2, self.layout.rows, slice(0, s.n_x))
             with torch.no_grad():
                 ok2 = ok2 & fits2
-                bounds = self.bound(wd[todo], 2, per_block=True, env=env[:, todo])
+                bounds = self.certificates.bound(wd[todo], 2, per_block=True, env=env[:, todo])
                 passed = ok2 & (largest_bound(bounds) < thr2)
                 retry = torch.nonzero(ok2 & ~passed).flatten()
                 if retry.numel():
@@ -440,7 +481,7 @@ class Refinement:
                 sel = torch.nonzero(passed).flatten()
                 located[todo[sel]] = True
                 win_z[todo[sel]], win_x[todo[sel]] = z02[sel], x02[sel]
-            z0b = torch.where(passed, z02 - self.rows.start, torch.zeros_like(z02))
+            z0b = torch.where(passed, z02 - self.layout.rows.start, torch.zeros_like(z02))
             k2, norm2 = cut_windows(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
             passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
             sel = torch.nonzero(passed).flatten()
@@ -448,16 +489,16 @@ class Refinement:
                 out = out.index_put((todo[sel],), k2[sel])
                 ok = ok.clone()
                 ok[todo[sel]] = True
-        if self.finer is not None:
+        if self.basis.finer is not None:
             # located, only the error bound too loose: the full stored rank's tighter bound, on the
             # certified window (when it lies in E)
-            n = s.window
-            inside = ~ok & located & (win_z >= self.rows.start) & (win_z + n <= self.rows.stop) & \
-                (win_x >= self.cols.start) & (win_x + n <= self.cols.stop)
+            n, rows, cols = s.window, self.layout.rows, self.layout.cols
+            inside = ~ok & located & (win_z >= rows.start) & (win_z + n <= rows.stop) & \
+                (win_x >= cols.start) & (win_x + n <= cols.stop)
             todo = torch.nonzero(inside).flatten()
             if todo.numel():
-                img_f, _, werr_f = self.finer.images(w[todo], with_error=True)
-                k_f, norm_f = cut_windows(img_f, win_z[todo] - self.rows.start, win_x[todo] - self.cols.start, n)
+                img_f, _, werr_f = self.basis.finer.images(w[todo], with_error=True)
+                k_f, norm_f = cut_windows(img_f, win_z[todo] - rows.start, win_x[todo] - cols.start, n)
                 sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
                 self.settled["finer"] += todo.numel()
                 if sel.numel():
@@ -465,9 +506,9 @@ class Refinement:
                     ok = ok.clone()
                     ok[todo[sel]] = True
         todo = torch.nonzero(~ok & ~located).flatten()
-        if todo.numel() and self.finer is not None:
+        if todo.numel() and self.basis.finer is not None:
             # a tighter error bound (the full stored rank) settles most of the rest
-            k3, ok3 = self.finer.kernels(w[todo])
+            k3, ok3 = self.basis.finer.kernels(w[todo])
             sel = torch.nonzero(ok3.to(todo.device)).flatten()
             self.settled["finer"] += todo.numel()
             if sel.numel():
@@ -488,7 +529,7 @@ class Refinement:
     #: each costs a window's delay-and-sum, a fraction of the whole-grid exact path's
     exact_windows_max = 4096
     #: block delay-and-sums without gradient read :class:`RawChannels` (False: the complex channels
-    #: of :meth:`channels`, the same values; ``benchmarks/bench_certificate.py`` compares the two)
+    #: of ``basis.channels``, the same values; ``benchmarks/bench_certificate.py`` compares the two)
     raw_channels = True
     #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`,
     #: for :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of
@@ -499,7 +540,7 @@ class Refinement:
     @property
     def channel_group(self) -> int:
         """Selections whose channels are formed at once (from :attr:`channel_group_bytes`)."""
-        per = 2 * len(self.model.transmits) * self.model.n_elements * self.window_samples * \
+        per = 2 * len(self.model.transmits) * self.model.n_elements * self.certificates.window_samples * \
             (torch.finfo(self.model.dtype).bits // 8)
         return max(1, self.channel_group_bytes // per)
 
@@ -510,10 +551,11 @@ class Refinement:
         plans = self._e_plan_holder.get("plans")
         if plans is None:
             model = self.model
-            Z, X = torch.meshgrid(model.z_grid[self.rows], model.x_grid[self.cols], indexing="ij")
+            Z, X = torch.meshgrid(model.z_grid[self.layout.rows], model.x_grid[self.layout.cols], indexing="ij")
             plans = [(i0.to(torch.int32).contiguous().numpy(), w.to(model.dtype).contiguous().numpy(),
                       torch.view_as_real(rot.to(model.cdtype)).contiguous().numpy())
-                     for i0, w, rot in self._window_plans(X.reshape(-1), Z.reshape(-1))]
+                     for i0, w, rot in window_plans(model, self.certificates.window_offset, X.reshape(-1),
+                                                    Z.reshape(-1))]
             self._e_plan_holder["plans"] = plans
         return plans
 
@@ -531,10 +573,10 @@ class Refinement:
         for i, x in self._grouped_channels(w, list(range(w.shape[0]))):
             zi = (int(z0[i]) + ar)[:, None].expand(n, n).reshape(-1)
             xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
-            inside = (self.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.rows.stop
-                      and self.cols.start <= int(x0[i]) and int(x0[i]) + n <= self.cols.stop)
+            inside = (self.layout.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.layout.rows.stop
+                      and self.layout.cols.start <= int(x0[i]) and int(x0[i]) + n <= self.layout.cols.stop)
             if inside:
-                pix = (zi - self.rows.start) * self.shape[1] + (xi - self.cols.start)
+                pix = (zi - self.layout.rows.start) * self.layout.shape[1] + (xi - self.layout.cols.start)
                 if grad:
                     img = 0
                     for t, (i0, wt, rot) in enumerate(self._e_plans()):

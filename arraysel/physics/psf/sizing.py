@@ -17,6 +17,7 @@ import torch
 from arraysel.errors import ParameterError
 from arraysel.physics.beamform import das_apply, das_plan, das_positions
 from arraysel.physics.psf.basis import PairBasis
+from arraysel.physics.psf.build import BasisBuilder
 
 __all__ = ["basis_bytes", "basis_stored_bytes", "basis_build_seconds", "basis_estimate", "window_estimate",
            "estimate_window", "plan_cache_bytes", "plan_cache_limit", "model_bytes", "exact_bytes",
@@ -51,7 +52,7 @@ def basis_stored_bytes(model) -> int:
 def basis_build_seconds(model) -> float:
     """Estimated wall time (s) of building the fast path's basis: the delay-and-sum of the
     pair images (``ntx Ne^2`` complex multiply-adds per pixel of E, once or twice: see
-    :attr:`PairBasis.keep_images_max_bytes`, and per pixel of the strips), the float64
+    :attr:`BasisBuilder.keep_images_max_bytes`, and per pixel of the strips), the float64
     products (the exact Gram matrix, or a sketched build's projection, QR and tile Gram
     matrices), the pair I/Q signals and the write of the stored basis, at rates measured on two
     cores (``docs/performance.md``), scaled by the torch threads."""
@@ -71,22 +72,22 @@ def basis_estimate(model) -> tuple[int, float, int]:
     T = window_estimate(model)
     X = ntx * ne * T * ne * 8
     A = 2 * ntx * ne * T * ne * size
-    sketch = PairBasis.sketch_columns
+    sketch = BasisBuilder.sketch_columns
     passes = 1  # delay-and-sums of the pair images on E
     if pairs <= sketch:
         work = pairs * 2 * npix * 8 * 2 + pairs * pairs * 8 * 3
         flops = 2 * pairs * pairs * 2 * npix  # the Gram matrix (float64)
         rank = pairs
     else:
-        tile = PairBasis.missed_tile
+        tile = BasisBuilder.missed_tile
         groups = -(-rows // tile) * -(-cols // tile)
-        call = max(PairBasis.build_tile_bytes // (pairs * 16), tile * tile)  # pixels a kernel call
+        call = max(BasisBuilder.build_tile_bytes // (pairs * 16), tile * tile)  # pixels a kernel call
         work = pairs * sketch * 8 * 2 + sketch * 2 * npix * 8 * 2 + 3 * call * 16 * pairs + \
             groups * (2 * tile * tile) ** 2 * 8
         # float64: the projection B = Q^T H, the sketch's QR (counted twice: slower than a
         # product) and the tiles' Gram matrices (symmetric updates)
         flops = 2 * pairs * sketch * 2 * npix + 8 * pairs * sketch ** 2 + 2 * pairs * groups * (2 * tile * tile) ** 2
-        if PairBasis.keeps_images(pairs, npix, model.dtype):  # kept between the passes
+        if BasisBuilder.keeps_images(pairs, npix, model.dtype):  # kept between the passes
             work += pairs * 2 * npix * size
         else:
             passes = 2
@@ -102,7 +103,7 @@ def basis_estimate(model) -> tuple[int, float, int]:
 
 
 def window_estimate(model) -> int:
-    """Samples per channel window (:meth:`PairBasis._sample_ranges`), estimated from the
+    """Samples per channel window (:meth:`BasisBuilder.sample_ranges`), estimated from the
     DAS plans of a subsampled grid (every 8th row and column and the grid's edges); computed
     once per model (the memory guard and the cache's size hint both ask)."""
     if getattr(model, "_window_samples", None) is None:

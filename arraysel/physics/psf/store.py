@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from arraysel.physics.psf.basis import BUILD_RANK_TOL, PairBasis
-from arraysel.physics.psf.state import DENSE, SPARSE
+from arraysel.physics.psf.state import CERTIFICATE_DENSE, DENSE, SPARSE
 
 #: version of the stored state (:meth:`PairBasis.state` plus ``window_estimate``); bump it when
 #: its keys or meaning change (11: ``window_estimate`` added; 13: sketched bases from a sparse
@@ -39,7 +39,7 @@ def stored_window_estimate(model) -> int | None:
 
 
 #: tensors every stored basis has (besides ``U``, present when V holds singular vectors)
-_REQUIRED = (tuple(DENSE) + tuple(f"{k}_{part}" for k in SPARSE
+_REQUIRED = (tuple(DENSE) + tuple(CERTIFICATE_DENSE) + tuple(f"{k}_{part}" for k in SPARSE
                                      for part in ("crow", "col", "val", "shape"))
              + ("err", "core_pix", "Snext", "meta", "rank_tail", "off", "row_energy", "missed", WINDOW_KEY))
 
