@@ -1,9 +1,10 @@
 """``swap``: iterated local search by one-in-one-out element swaps (exact k, batched).
 
-From a start selection (``uniform``, ``random``, the ``greedy`` backward
+From a start selection (``uniform``, the default, ``random``, the ``greedy`` backward
 elimination, or a given element list) the search improves the selection by
-swapping one active and one inactive element, with first improvement (random
-neighbour order, ``chunk`` neighbours per call) or best improvement (all
+swapping one active and one inactive element, with first improvement (chunks of
+``chunk`` neighbours per call, a share ``guide`` of each in the order the loss's
+gradient predicts, the rest in a random order) or best improvement (all
 ``k (Ne - k)`` neighbours per step, scored in one call). At a local optimum it
 perturbs the best selection by ``perturb`` random swaps and descends again
 (iterated local search), and after ``restart_after`` non-improving
@@ -22,7 +23,7 @@ class SwapSelector(Selector):
     name = "swap"
     description = "iterated swap local search (first/best improvement, perturbation, restarts) from any start"
     options = {
-        **start_options("greedy"),
+        **start_options(),
         "mode": Option(str, "first", "first: move at the first chunk holding an improvement (random "
                        "order); best: score all k(Ne-k) neighbours per move", choices=("first", "best")),
         "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
