@@ -20,7 +20,7 @@ import numpy as np
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.population import POPULATION_OPTIONS, breed, initial_population, survivors
+from arraysel.selectors.population import POPULATION_OPTIONS, first_population, next_generation
 
 class GeneticSelector(Selector):
     name = "genetic"
@@ -30,17 +30,12 @@ class GeneticSelector(Selector):
 
     def select(self, objective, k, seed):
         o = self.options
-        n = int(objective.n_elements)
         rng = numpy_rng(seed)
-        pop = initial_population(rng, o["population"], n, k)
-        if k in (0, n):
+        pop, fit = first_population(objective, k, rng, o)
+        if fit is None:  # k = 0 or Ne: nothing to search
             return [int(i) for i in np.flatnonzero(pop[0])]
-        fit = objective.score(pop)
         while True:
-            children = breed(pop, fit, o["children"], rng, tournament_size=o["tournament"],
-                             crossover=o["crossover"], mutation=o["mutation"])
-            cfit = objective.score(children)
-            pop, fit = survivors(np.concatenate([pop, children]), np.concatenate([fit, cfit]), o["population"])
+            pop, fit = next_generation(objective, pop, fit, rng, o)
 
 
 @hookimpl

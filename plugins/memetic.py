@@ -17,7 +17,8 @@ import numpy as np
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.localsearch import SwapSearch
-from arraysel.selectors.population import POPULATION_OPTIONS, breed, initial_population, mask_key, survivors
+from arraysel.selectors.population import (POPULATION_OPTIONS, first_population, mask_key, next_generation,
+                                           survivors)
 
 
 class MemeticSelector(Selector):
@@ -36,19 +37,14 @@ class MemeticSelector(Selector):
 
     def select(self, objective, k, seed):
         o = self.options
-        n = int(objective.n_elements)
         rng = numpy_rng(seed)
-        pop = initial_population(rng, o["population"], n, k)
-        if k in (0, n):
+        pop, fit = first_population(objective, k, rng, o)
+        if fit is None:  # k = 0 or Ne: nothing to search
             return [int(i) for i in np.flatnonzero(pop[0])]
         search = SwapSearch(objective, k, rng, chunk=o["chunk"], scan=o["scan"], guide=o["guide"])
-        fit = objective.score(pop)
         improved: set[bytes] = set()
         while True:
-            children = breed(pop, fit, o["children"], rng, tournament_size=o["tournament"],
-                             crossover=o["crossover"], mutation=o["mutation"])
-            cfit = objective.score(children)  # every generation spends budget (as genetic's)
-            pop, fit = survivors(np.concatenate([pop, children]), np.concatenate([fit, cfit]), o["population"])
+            pop, fit = next_generation(objective, pop, fit, rng, o)
             for i in range(pop.shape[0]):  # the best survivor not improved yet
                 key = mask_key(pop[i])
                 if key in improved or not np.isfinite(fit[i]):

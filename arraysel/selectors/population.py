@@ -6,7 +6,10 @@ and ``memetic`` selectors), in the framework so that a plugin calls it instead o
 * :func:`exact_k_crossover`: a child with exactly ``k`` elements from two parents;
 * :func:`breed`: ``children`` new selections by tournaments, crossover and swap mutation, none
   equal to a member of the population or to an earlier child;
-* :func:`survivors`: the ``mu`` best distinct selections of parents and children (elitist).
+* :func:`survivors`: the ``mu`` best distinct selections of parents and children (elitist);
+* :func:`first_population`: a search's initial population, scored in one call;
+* :func:`next_generation`: one generation (breed, score the children in one call, survive) under
+  the :data:`POPULATION_OPTIONS` of a selector.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.localsearch import random_swaps
 from arraysel.selectors.starts import random_subsets
 
-__all__ = ["POPULATION_OPTIONS", "initial_population", "exact_k_crossover", "tournament", "breed", "survivors",
+__all__ = ["POPULATION_OPTIONS", "first_population", "next_generation", "initial_population", "exact_k_crossover", "tournament", "breed", "survivors",
            "mask_key"]
 
 #: the declared options of a population search (a selector's ``options`` include them)
@@ -99,3 +102,26 @@ def survivors(masks: np.ndarray, values: np.ndarray, mu: int) -> tuple[np.ndarra
         if len(keep) == mu:
             break
     return masks[keep], values[keep]
+
+
+def next_generation(objective, pop: np.ndarray, fit: np.ndarray, rng: np.random.Generator,
+                    options: dict) -> tuple[np.ndarray, np.ndarray]:
+    """One generation of a population search with the :data:`POPULATION_OPTIONS` ``options``:
+    :func:`breed` ``children`` selections, score them in one ``objective.score`` call (it spends
+    budget every generation, and raises :class:`~arraysel.selectors.contract.BudgetExhausted` when
+    the budget ends) and keep the :func:`survivors`."""
+    children = breed(pop, fit, options["children"], rng, tournament_size=options["tournament"],
+                     crossover=options["crossover"], mutation=options["mutation"])
+    cfit = objective.score(children)
+    return survivors(np.concatenate([pop, children]), np.concatenate([fit, cfit]), options["population"])
+
+
+def first_population(objective, k: int, rng: np.random.Generator, options: dict) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(population, scores)``: the :func:`initial_population` of ``options["population"]``
+    selections of ``k`` of the objective's elements, scored in one call; the scores are ``None``
+    (nothing scored) when ``k`` is 0 or ``Ne``: there is one selection, the population's first."""
+    n = int(objective.n_elements)
+    pop = initial_population(rng, options["population"], n, k)
+    if k in (0, n):
+        return pop, None
+    return pop, objective.score(pop)
