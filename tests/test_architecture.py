@@ -222,6 +222,22 @@ def test_training_settings_speak_the_scene_names():
                 assert not (node.value.attr == "weights" and node.attr in FORMER_WEIGHT_NAMES), (m, node.lineno)
 
 
+
+def _dataclass_fields(module: str, cls: str) -> set[str]:
+    node = next(n for n in ast.walk(_tree(module)) if isinstance(n, ast.ClassDef) and n.name == cls)
+    return {n.target.id for n in node.body if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name)}
+
+
+def test_training_settings_have_one_home():
+    """``TrainConfig`` is the one home of the trainer's settings: the pipeline's ``E2ESettings``
+    holds one (``train``) and declares none of its fields again (nor ``steps``, its
+    ``max_steps``)."""
+    train = _dataclass_fields("arraysel.e2e.config", "TrainConfig")
+    pipeline = _dataclass_fields("arraysel.e2e.pipeline", "E2ESettings")
+    assert {"batch_size", "lr_mask", "tau_steps", "seed", "max_steps"} <= train  # the parse works
+    assert "train" in pipeline and "image_size" in pipeline
+    assert not pipeline & (train | {"steps"}), sorted(pipeline & (train | {"steps"}))
+
 #: largest module of ``physics.psf`` (lines) and largest class there: the operator, the sizing,
 #: the basis and each of its parts stay files a reader takes in at once
 PSF_MODULE_LINES = 600

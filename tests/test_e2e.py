@@ -126,13 +126,54 @@ def test_settings_profiles():
 
     scene = load_scene("paper-e2e")
     full = resolve_settings(scene, full=True)
-    assert (full.image_size, full.batch_size, full.epochs, full.steps) == (128, 64, 100, None)
-    assert (full.lr_mask, full.lr_ista, full.lr_head, full.tau_steps, full.ista_layers) == (
-        1e-4, 5e-4, 1e-4, 1500, 8)
+    t = full.train
+    assert (full.image_size, t.batch_size, t.epochs, t.max_steps) == (128, 64, 100, None)
+    assert (t.lr_mask, t.lr_ista, t.lr_head, t.tau_steps, full.ista_layers) == (1e-4, 5e-4, 1e-4, 1500, 8)
     quick = resolve_settings(scene)
-    assert quick.image_size <= 64 and quick.steps is not None and quick.source == "sample"
-    assert resolve_settings(scene, epochs=2).steps is None
+    assert quick.image_size <= 64 and quick.train.max_steps is not None and quick.source == "sample"
+    assert resolve_settings(scene, epochs=2).train.max_steps is None
     assert resolve_settings(scene, dataset="fashion", seed=3).dataset == "fashion"
+
+
+#: the keys of ``settings.json``'s ``settings`` (a resumed run compares them with the old file's)
+RECORDED_SETTINGS = {
+    "profile", "dataset", "source", "image_size", "depth_min", "depth_max", "scatterers",
+    "scatterers_per_pixel", "batch_size", "epochs", "steps", "lr_mask", "lr_ista", "lr_head",
+    "tau_start", "tau_end", "tau_steps", "ista_layers", "base_channels", "finetune_steps",
+    "finetune_epochs", "n_train", "n_test", "seed", "convolution", "kernel_stride", "target",
+    "random_phase", "noise_std", "balance", "reblur", "psf_warmup", "joint_lr_mask", "recon_steps",
+    "sample_selection", "warm_start_margin", "reblur_mode", "head_init"}
+
+
+def test_settings_route_the_trainers_names_to_its_config_and_keep_their_record():
+    from arraysel.e2e.pipeline import QUICK_PROFILE, _jsonable, resolve_settings
+    from arraysel.errors import ParameterError
+    from arraysel.objective.losses import LOSS_KEYS
+
+    scene = load_scene("paper-e2e")
+    s = resolve_settings(scene, seed=3, steps=7, noise_std=0.02, image_size=32)
+    assert (s.train.seed, s.train.max_steps, s.train.noise_std, s.image_size) == (3, 7, 0.02, 32)
+    assert s.train.weights == {key: scene.weights.get(key, 0.0) for key in LOSS_KEYS}  # the scene's
+    assert s.train.weights["L_rec"] == scene.weights["L_rec"] > 0
+    record = _jsonable(s)
+    assert set(record) == RECORDED_SETTINGS  # the keys files of earlier versions hold
+    assert (record["steps"], record["seed"], record["kernel_stride"]) == (7, 3, QUICK_PROFILE["kernel_stride"])
+    json.dumps(record)
+    clipped = _jsonable(resolve_settings(scene, grad_clip=1.0, balance_batches=2))
+    assert set(clipped) - RECORDED_SETTINGS == {"grad_clip", "balance_batches"}
+    assert resolve_settings(scene, grad_clip=1.0).train.grad_clip == 1.0
+    with pytest.raises(ParameterError, match="'steps'"):
+        resolve_settings(scene, max_steps=3)
+    with pytest.raises(ParameterError, match=r"\[weights\]"):
+        resolve_settings(scene, weights={"L_rec": 1.0})
+    with pytest.raises(ParameterError, match="unknown training setting 'lr'"):
+        resolve_settings(scene, lr=1e-3)
+    with pytest.raises(ParameterError, match="steps = -1"):
+        resolve_settings(scene, steps=-1)
+    with pytest.raises(ParameterError, match="kernel_stride = 17"):
+        resolve_settings(scene, kernel_stride=17)
+    with pytest.raises(ParameterError, match="seed = -1"):
+        resolve_settings(scene, seed=-1)
 
 
 def test_paper_scene_is_refused():

@@ -38,7 +38,7 @@ class TrainConfig:
       on the kernel :func:`fit_kernel` to the scene size) or ``'linear'``
       (:class:`~arraysel.e2e.recon.LinearConvolutionOperator`: the whole
       kernel, the scene zero outside its field, nothing wraps around).
-    * ``kernel_stride``: the data terms use :func:`decimate_kernel` of the
+    * ``kernel_stride`` (1 to 16): the data terms use :func:`decimate_kernel` of the
       kernel (one scene pixel = ``kernel_stride`` PSF pixels); the PSF terms
       always see the full-resolution kernel.
     * ``target``: ``'scene'`` (the scene maker's ``I_ref``) or ``'envelope'``:
@@ -109,7 +109,7 @@ class TrainConfig:
         check_number("seed", self.seed, integer=True)
         check_choice("conv_reduction", self.conv_reduction, ("mean", "sum"))
         check_choice("convolution", self.convolution, ("circular", "linear"))
-        check_number("kernel_stride", self.kernel_stride, lo=1, integer=True)
+        check_number("kernel_stride", self.kernel_stride, lo=1, hi=16, integer=True)
         check_choice("target", self.target, ("scene", "envelope"))
         check_choice("balance", self.balance, ("none", "initial"))
         check_number("balance_batches", self.balance_batches, lo=1, integer=True)

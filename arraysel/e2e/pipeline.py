@@ -24,11 +24,12 @@ and writes to ``out_dir``:
 
 Two profiles. ``full=True`` takes the scene's ``[data]`` and ``[training]``
 sections as they are (the paper: 128 x 128 images, batch 64, 100 epochs).
-The default *quick* profile is sized for a CPU: 64 x 64 images, batch 8, 300
-steps, head widths 16/32/64, the bundled data sample, the temperature decay
-shortened to half the run, and learning rates raised (mask 1e-2, ISTA 5e-3,
-head 1e-3) so the selection moves within a few hundred steps. Any value can
-be overridden (``overrides=``, or the command's flags).
+The default *quick* profile (:data:`QUICK_PROFILE`) is sized for a CPU: 64 x 64 images, batch 8,
+300 PSF-only warm-up steps then 150 joint ones, head widths 8/16/32, the bundled data sample, the
+temperature decay over the warm-up, and learning rates raised (mask 3e-3, 1e-4 after the
+warm-up; ISTA 5e-3, head 1e-3) so the selection moves within a few hundred steps. Any value can
+be overridden (``overrides=``, or the command's flags). The settings are one set
+(:class:`E2ESettings`): the trainer's are its ``train``, a :class:`arraysel.e2e.config.TrainConfig`.
 
 Files are written atomically. Nothing here is imported by the PSF objective:
 the ``paper`` scene builds no network and loads no data set.
@@ -44,11 +45,12 @@ import math
 import os
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
 
+from arraysel.e2e.config import TrainConfig
 from arraysel.errors import ParameterError, SelectionError, check_choice, check_number
 from arraysel.io.atomic import atomic_write_bytes
 from arraysel.objective.losses import LOSS_KEYS, PSF_WEIGHT_KEYS
@@ -58,7 +60,7 @@ from arraysel.selection import masks_from_indices
 from arraysel.scenes.schema import Scene, load_scene
 from arraysel.scenes.schema import training_default as _T
 
-__all__ = ["E2ESettings", "resolve_settings", "run_training", "baseline_masks", "comparison_rows",
+__all__ = ["E2ESettings", "resolve_settings", "setting_names", "run_training", "baseline_masks", "comparison_rows",
            "format_comparison", "OUTPUT_FILES", "HELD_FILES", "check_out_folder"]
 
 #: the files a finished run leaves in its output folder
@@ -82,19 +84,37 @@ def check_out_folder(out_dir: str, *, resume: bool = False, force: bool = False)
                         resume_needs="checkpoint.pt")
 
 
+#: the :class:`TrainConfig` fields the pipeline sets itself, not settings: why, for the error
+_PIPELINE_SETS = {"max_steps": "give 'steps' (the run's step count is derived from it)",
+                  "weights": "the scene's [weights] section sets the loss weights",
+                  "checkpoint_every": "the pipeline checkpoints at every progress line",
+                  "progress": "the pipeline reports through log="}
+#: the trainer's settings every ``settings.json`` records (``steps``: ``TrainConfig.max_steps``);
+#: another :class:`TrainConfig` field is recorded when it differs from its default
+_RECORDED_TRAIN_KEYS = ("batch_size", "epochs", "steps", "lr_mask", "lr_ista", "lr_head", "tau_start",
+                        "tau_end", "tau_steps", "seed", "convolution", "kernel_stride", "target",
+                        "noise_std", "balance", "reblur", "psf_warmup", "joint_lr_mask",
+                        "warm_start_margin")
+
+
 @dataclass
 class E2ESettings:
-    """Everything a training run depends on besides the scene's physics.
+    """Everything a training run depends on besides the scene's physics: ``train``, the trainer's
+    settings (:class:`arraysel.e2e.config.TrainConfig`, the one home of the batch size, epochs,
+    learning rates, temperature schedule, seed, data model, balance and warm-up, their defaults
+    and their docs), and the pipeline's own settings below.
 
-    ``steps`` (when set) overrides ``epochs``. ``scatterers``: ``'points'``
+    ``train.max_steps`` is the run's ``steps`` (when set it overrides ``epochs``) and
+    ``train.weights`` the scene's ``[weights]`` (:func:`resolve_settings`); the pipeline trains
+    with a copy whose ``max_steps`` and ``tau_steps`` are the resolved counts, ``psf_warmup`` at
+    most two thirds of the run and no progress bar.
+
+    ``scatterers``: ``'points'``
     (genscat-like speckle, ``scatterers_per_pixel`` on average, placed in
     ``[depth_min, depth_max]``) or ``'image'`` (the image itself).
     ``n_train`` / ``n_test``: keep only that many images (``None``: all).
     ``finetune_steps`` (per selection, before the reconstruction metrics)
     defaults to ``finetune_epochs`` epochs, or 100 steps when that is 0.
-
-    ``convolution``, ``kernel_stride``, ``target``, ``noise_std``,
-    ``balance``, ``reblur``, ``psf_warmup``, ``joint_lr_mask``, ``warm_start_margin``: as :class:`arraysel.e2e.trainer.TrainConfig`;
     ``sample_selection``: the HARD-STE columns are sampled from ``p_j`` in
     training (``True``, the documented default) or taken as their arg-max
     (``False``, like the ``ste`` selector's default ``draw='argmax'``: less
@@ -105,7 +125,7 @@ class E2ESettings:
     reconstructor (same initialisation) trained ``recon_steps`` steps on the
     same batches, so the selections are compared under the same
     reconstruction budget. ``reblur_mode`` (``'image'`` or ``'correct'``): what
-    the head sees with ``reblur``, :class:`arraysel.e2e.recon.Reconstructor`'s
+    the head sees with ``train.reblur``, :class:`arraysel.e2e.recon.Reconstructor`'s
     option of that name. ``head_init``: ``'magnitude'`` (the head's base
     starts as ``|z|``, the residual branch with ``eta = 0.1``; the full
     profile's) or ``'identity'`` (also ``eta = 0``: ``I_hat = |z|`` exactly at
@@ -121,38 +141,25 @@ class E2ESettings:
     depth_max: float = 0.15
     scatterers: str = "points"
     scatterers_per_pixel: float = 1.25
-    batch_size: int = _T("batch_size")
-    epochs: int = _T("epochs")
-    steps: int | None = None
-    lr_mask: float = _T("lr_mask")
-    lr_ista: float = _T("lr_ista")
-    lr_head: float = _T("lr_head")
-    tau_start: float = _T("tau_start")
-    tau_end: float = _T("tau_end")
-    tau_steps: int | None = _T("tau_steps")
     ista_layers: int = _T("ista_layers")
     base_channels: int = 32
     finetune_steps: int | None = None
     finetune_epochs: int = _T("finetune_epochs")
     n_train: int | None = None
     n_test: int | None = None
-    seed: int = 0
-    convolution: str = "circular"
-    kernel_stride: int = 1
-    target: str = "scene"
     random_phase: bool = False
-    noise_std: float = 0.0
-    balance: str = "none"
-    reblur: bool = False
-    psf_warmup: int = 0
-    joint_lr_mask: float | None = None
     recon_steps: int = 0
     sample_selection: bool = True
-    warm_start_margin: float = 0.0
     reblur_mode: str = "image"
     head_init: str = "magnitude"
+    train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
+        if isinstance(self.train, Mapping):
+            self.train = TrainConfig(**self.train)
+        elif not isinstance(self.train, TrainConfig):
+            raise ParameterError(f"train must be a TrainConfig or a mapping of its fields, "
+                                 f"got {type(self.train).__name__}")
         check_choice("profile", self.profile, ("quick", "full"))
         check_choice("dataset", self.dataset, ("mnist", "fashion"))
         check_choice("source", self.source, ("auto", "sample", "idx"))
@@ -162,34 +169,27 @@ class E2ESettings:
         if not self.depth_max > self.depth_min:
             raise ParameterError(f"depth_max ({self.depth_max}) must be > depth_min ({self.depth_min})")
         check_number("scatterers_per_pixel", self.scatterers_per_pixel, lo=0, lo_open=True)
-        check_number("batch_size", self.batch_size, lo=1, integer=True)
-        check_number("epochs", self.epochs, lo=0, integer=True)
-        for name in ("steps", "tau_steps", "finetune_steps"):
-            if getattr(self, name) is not None:
-                check_number(name, getattr(self, name), lo=0, integer=True)
-        for name in ("lr_mask", "lr_ista", "lr_head"):
-            check_number(name, getattr(self, name), lo=0)
-        check_number("tau_start", self.tau_start, lo=0, lo_open=True)
-        check_number("tau_end", self.tau_end, lo=0, lo_open=True)
+        if self.finetune_steps is not None:
+            check_number("finetune_steps", self.finetune_steps, lo=0, integer=True)
         check_number("finetune_epochs", self.finetune_epochs, lo=0, integer=True)
         check_number("ista_layers", self.ista_layers, lo=1, integer=True)
         check_number("base_channels", self.base_channels, lo=1, integer=True)
         for name in ("n_train", "n_test"):
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), lo=1, integer=True)
-        check_number("seed", self.seed, lo=0, integer=True)
-        check_choice("convolution", self.convolution, ("circular", "linear"))
-        check_number("kernel_stride", self.kernel_stride, lo=1, hi=16, integer=True)
-        check_choice("target", self.target, ("scene", "envelope"))
-        check_number("noise_std", self.noise_std, lo=0)
-        check_choice("balance", self.balance, ("none", "initial"))
+        check_number("seed", self.train.seed, lo=0, integer=True)  # also the baselines' numpy seed
         check_choice("reblur_mode", self.reblur_mode, ("image", "correct"))
         check_choice("head_init", self.head_init, ("magnitude", "identity"))
         check_number("recon_steps", self.recon_steps, lo=0, integer=True)
-        check_number("warm_start_margin", self.warm_start_margin, lo=0)
-        check_number("psf_warmup", self.psf_warmup, lo=0, integer=True)
-        if self.joint_lr_mask is not None:
-            check_number("joint_lr_mask", self.joint_lr_mask, lo=0)
+
+
+def setting_names() -> list[str]:
+    """The names :func:`resolve_settings` (``run_training(**overrides)``) takes: the pipeline's
+    :class:`E2ESettings` fields, ``steps`` and the :class:`TrainConfig` fields the pipeline does
+    not set itself (they go to ``train``)."""
+    own = [f.name for f in dataclasses.fields(E2ESettings) if f.name != "train"]
+    trainer = ["steps"] + [f.name for f in dataclasses.fields(TrainConfig) if f.name not in _PIPELINE_SETS]
+    return sorted(own + trainer)
 
 
 #: the quick (CPU) profile's values; see the module docstring
@@ -204,7 +204,9 @@ QUICK_PROFILE = dict(image_size=64, kernel_stride=2, convolution="linear", targe
 
 def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E2ESettings:
     """The run's settings: the scene's ``[data]``/``[training]``, then the quick
-    profile unless ``full``, then ``overrides`` (``None`` values are ignored)."""
+    profile unless ``full``, then ``overrides`` (``None`` values are ignored), one flat namespace
+    (:func:`setting_names`): a :class:`TrainConfig` field goes to ``train`` (``steps`` to
+    ``train.max_steps``), the scene's ``[weights]`` to ``train.weights``."""
     d, t = scene.section("data"), scene.section("training")
     base: dict[str, Any] = {"profile": "full" if full else "quick"}
     for key in ("dataset", "source", "image_size", "depth_min", "depth_max"):
@@ -220,17 +222,25 @@ def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E
         base["finetune_epochs"] = t["finetune_epochs"]
     if not full:
         base.update(QUICK_PROFILE)
-    fields = {f.name for f in dataclasses.fields(E2ESettings)}
+    names = setting_names()
     for key, value in overrides.items():
-        if key not in fields:
-            raise ParameterError(f"unknown training setting {key!r}; allowed: {sorted(fields)}")
+        if key in _PIPELINE_SETS:
+            raise ParameterError(f"training setting {key!r} is not taken here: {_PIPELINE_SETS[key]}")
+        if key not in names:
+            raise ParameterError(f"unknown training setting {key!r}; allowed: {names}")
         if value is not None:
             base[key] = value
             if key == "epochs" and overrides.get("steps") is None:
                 base["steps"] = None  # an explicit --epochs beats the profile's step count
             if key == "finetune_steps" and overrides.get("recon_steps") is None:
                 base["recon_steps"] = 0  # an explicit --finetune-steps asks for that protocol
-    return E2ESettings(**base)
+    if base.get("steps") is not None:
+        check_number("steps", base["steps"], lo=0, integer=True)
+    train_names = {f.name for f in dataclasses.fields(TrainConfig)}
+    train = {key: base.pop(key) for key in list(base) if key in train_names}
+    train["max_steps"] = base.pop("steps", None)
+    train["weights"] = {name: scene.weights.get(name, 0.0) for name in LOSS_KEYS}
+    return E2ESettings(**base, train=TrainConfig(**train))
 
 
 def baseline_masks(n_elements: int, k: int, seed: int = 0) -> dict[str, list[int]]:
@@ -260,7 +270,19 @@ def _write_csv(path: str, rows: list[dict[str, Any]]) -> None:
 
 
 def _jsonable(settings: E2ESettings) -> dict[str, Any]:
-    return dataclasses.asdict(settings)
+    """``settings.json``'s ``settings``: one flat mapping, the pipeline's fields and the trainer's
+    (:data:`_RECORDED_TRAIN_KEYS`, ``steps`` for ``max_steps``; any other :class:`TrainConfig`
+    field when it is not its default, so that records of runs that leave it keep their keys and
+    ``--resume`` still compares them; the loss weights are the scene's, recorded with it)."""
+    out = {f.name: getattr(settings, f.name) for f in dataclasses.fields(E2ESettings) if f.name != "train"}
+    for f in dataclasses.fields(TrainConfig):
+        key = "steps" if f.name == "max_steps" else f.name
+        if f.name in _PIPELINE_SETS and key != "steps":
+            continue
+        value = getattr(settings.train, f.name)
+        if key in _RECORDED_TRAIN_KEYS or value != f.default:
+            out[key] = value
+    return out
 
 
 def comparison_rows(table: list[dict[str, Any]], rec_rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -306,8 +328,8 @@ def run_training(scene: Scene | str | dict = "paper-e2e", *, out_dir: str = "res
                  extra_masks: dict[str, list[int]] | None = None, **overrides: Any) -> dict[str, Any]:
     """Train an end-to-end selection on ``scene`` and write the outputs to ``out_dir``.
 
-    ``overrides``: any :class:`E2ESettings` field (``dataset``, ``epochs``,
-    ``steps``, ``seed``, ``image_size``, ...; ``None`` means "not given").
+    ``overrides``: any setting :func:`resolve_settings` takes (:func:`setting_names`: ``dataset``,
+    ``epochs``, ``steps``, ``seed``, ``image_size``, ...; ``None`` means "not given").
     With ``resume=True`` a checkpoint in ``out_dir`` written with the same
     settings is continued (a different setting raises ``ParameterError``).
     A folder that already holds a training (:data:`HELD_FILES`: a checkpoint,
@@ -341,7 +363,7 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
          overrides):
     from arraysel.e2e.data import SceneMaker, load_dataset
     from arraysel.e2e.recon import Reconstructor
-    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection, TrainConfig
+    from arraysel.e2e.trainer import E2ETrainer, HardSTESelection
 
     say = log or (lambda _msg: None)
     t_start = time.perf_counter()
@@ -388,8 +410,6 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
         m = objective.metrics_of_kernels(kappa[None], terms=psf_needed)
         return {n: m[n][0] for n in psf_needed}
 
-    weights = {name: wts.get(name, 0.0) for name in LOSS_KEYS}
-
     # data ---------------------------------------------------------------------
     s = settings
     x_train, _ = load_dataset(s.dataset, "train", source=s.source, limit=s.n_train)
@@ -398,34 +418,30 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
     scene_fn = SceneMaker(n=n, mode=s.scatterers, depth_range=(s.depth_min, s.depth_max),
                           n_scatterers=max(1, round(s.scatterers_per_pixel * n * n)),
                           random_phase=s.random_phase)
-    steps_per_epoch = max(1, len(x_train) // s.batch_size)
-    total = s.steps if s.steps is not None else s.epochs * steps_per_epoch
-    tau_steps = s.tau_steps if s.tau_steps is not None else max(1, total // 2)
+    tc = s.train
+    steps_per_epoch = max(1, len(x_train) // tc.batch_size)
+    total = tc.max_steps if tc.max_steps is not None else tc.epochs * steps_per_epoch
     # the PSF-only warm-up takes at most two thirds of the run (a short run still trains jointly)
-    psf_warmup = min(s.psf_warmup, 2 * total // 3)
-    tau_steps = min(tau_steps, psf_warmup) if psf_warmup else tau_steps
+    psf_warmup = min(tc.psf_warmup, 2 * total // 3)
+    tau_steps = min(tc.tau_steps, psf_warmup) if psf_warmup else tc.tau_steps
     ft_steps = s.finetune_steps
     if ft_steps is None:
         ft_steps = s.finetune_epochs * steps_per_epoch or 100
-    config = TrainConfig(batch_size=s.batch_size, epochs=s.epochs, max_steps=total, lr_mask=s.lr_mask,
-                         lr_ista=s.lr_ista, lr_head=s.lr_head, tau_start=s.tau_start, tau_end=s.tau_end,
-                         tau_steps=tau_steps, seed=s.seed, checkpoint_every=0, progress=False,
-                         convolution=s.convolution, kernel_stride=s.kernel_stride, target=s.target,
-                         noise_std=s.noise_std, balance=s.balance, reblur=s.reblur,
-                         psf_warmup=psf_warmup, joint_lr_mask=s.joint_lr_mask,
-                         warm_start_margin=s.warm_start_margin if psf_warmup else 0.0, weights=weights)
-    selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(s.seed),
+    config = dataclasses.replace(tc, max_steps=total, tau_steps=tau_steps, psf_warmup=psf_warmup,
+                                 warm_start_margin=tc.warm_start_margin if psf_warmup else 0.0,
+                                 checkpoint_every=0, progress=False)
+    selection = HardSTESelection(ne, k, generator=torch.Generator().manual_seed(tc.seed),
                                  sample=s.sample_selection)
 
     def fresh_reconstructor() -> Reconstructor:
         # the same initialisation for the jointly trained model and every selection's own
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(s.seed)
+            torch.manual_seed(tc.seed)
             model = Reconstructor(s.ista_layers, base_channels=s.base_channels,
                                   reblur_mode=s.reblur_mode)
         if s.head_init == "identity":
             model.init_identity_head()
-        elif s.reblur:
+        elif tc.reblur:
             model.init_magnitude_base()
         return model
 
@@ -434,12 +450,12 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
                          reconstructor=fresh_reconstructor(),
                          base_channels=s.base_channels, scene_fn=scene_fn, checkpoint_path=ckpt_path,
                          device=device, image_size=n)
-    pix = objective.setup.pitch * s.kernel_stride
+    pix = objective.setup.pitch * tc.kernel_stride
     say(f"arraysel train: scene {sc.name!r} ({s.profile} profile), Ne = {ne}, k = {k}, "
         f"{s.dataset} ({len(x_train)} train / {len(x_test)} test images, {n}x{n} px of "
-        f"{pix * 1e6:.1f} um = {n * pix * 1e3:.2f} mm, {s.scatterers}, {s.convolution} convolution, "
-        f"target {s.target}, noise {s.noise_std:g}, balance {s.balance}), "
-        f"batch {s.batch_size}, {total} steps, device {device}")
+        f"{pix * 1e6:.1f} um = {n * pix * 1e3:.2f} mm, {s.scatterers}, {tc.convolution} convolution, "
+        f"target {tc.target}, noise {tc.noise_std:g}, balance {tc.balance}), "
+        f"batch {tc.batch_size}, {total} steps, device {device}")
 
     # training -----------------------------------------------------------------
     if resume and os.path.isfile(ckpt_path):
@@ -469,10 +485,10 @@ def _run(scene, *, out_dir, full, device, dtype, resume, force, figures, log, lo
                 f"(0-based element indices, k = {k} of {ne})\n" + ",".join(map(str, learned)) + "\n")
     _write_text(os.path.join(out_dir, "mask.json"),
                 json.dumps({"scene": sc.name, "n_elements": ne, "k": k, "elements": learned,
-                            "steps": trainer.step, "seed": s.seed}, indent=2) + "\n")
+                            "steps": trainer.step, "seed": tc.seed}, indent=2) + "\n")
 
     # Table 1 ------------------------------------------------------------------
-    masks = {"learned": learned, **baseline_masks(ne, k, s.seed)}
+    masks = {"learned": learned, **baseline_masks(ne, k, tc.seed)}
     for name, idx in (extra_masks or {}).items():
         if name in masks:
             raise ParameterError(f"extra mask name {name!r} is taken; taken: {sorted(masks)}")
