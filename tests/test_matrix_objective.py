@@ -188,6 +188,19 @@ def test_every_selector_runs_on_a_small_matrix_scene(name, tiny_path):
     assert np.isfinite(row["Mean"]) and "PSL_dB" in row
 
 
+def test_a_comparison_of_neighbourhood_searches_prepares_a_matrix_objective(tiny_path, tmp_path):
+    # swap, memetic and polish score neighbourhoods: the runner prepares the objective first,
+    # which a 3-D scene does by doing nothing (its neighbourhoods are its masks)
+    from arraysel.run.compare import compare
+
+    obj = build_objective(tiny_path)
+    assert obj.prepare_neighbourhoods() is True
+    res = compare(obj, ["swap", "memetic"], out_dir=tmp_path / "c", seeds=[0], budget=Budget(evaluations=30),
+                  progress=False, figures=False)
+    assert not res.failures
+    assert set(res.table["config"]) >= {"swap", "memetic"}
+
+
 def test_cli_psf_and_evaluate_write_every_plane_with_its_coordinates(tiny_path, tmp_path):
     from arraysel.cli.main import main
 

@@ -220,6 +220,11 @@ class MatrixObjective(Objective):
         return MatrixObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
                                       chunk=int(self.chunk))
 
+    def prepare_neighbourhoods(self) -> bool:
+        """Nothing to prepare: a 3-D scene scores a neighbourhood as its masks (:meth:`evaluate`),
+        with no pair-image rows to form. Returns True."""
+        return True
+
 
 class MatrixObjectiveFactory(SceneObjectiveFactory):
     """Builds the :class:`MatrixObjective` of a 3-D scene on a worker (fields as
