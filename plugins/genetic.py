@@ -16,11 +16,10 @@ The population machinery is the framework's (:mod:`arraysel.selectors.population
 """
 from __future__ import annotations
 
-import numpy as np
-
-from arraysel.selectors.contract import Option, Selector, numpy_rng
+from arraysel.selectors.contract import Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.population import POPULATION_OPTIONS, first_population, next_generation
+from arraysel.selectors.population import POPULATION_OPTIONS, evolve
+
 
 class GeneticSelector(Selector):
     name = "genetic"
@@ -29,13 +28,7 @@ class GeneticSelector(Selector):
     deterministic = False
 
     def select(self, objective, k, seed):
-        o = self.options
-        rng = numpy_rng(seed)
-        pop, fit = first_population(objective, k, rng, o)
-        if fit is None:  # k = 0 or Ne: nothing to search
-            return [int(i) for i in np.flatnonzero(pop[0])]
-        while True:
-            pop, fit = next_generation(objective, pop, fit, rng, o)
+        return evolve(objective, k, numpy_rng(seed), self.options)
 
 
 @hookimpl

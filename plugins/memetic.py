@@ -17,8 +17,7 @@ import numpy as np
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.localsearch import SwapSearch
-from arraysel.selectors.population import (POPULATION_OPTIONS, first_population, mask_key, next_generation,
-                                           survivors)
+from arraysel.selectors.population import POPULATION_OPTIONS, evolve, mask_key, survivors
 
 
 class MemeticSelector(Selector):
@@ -38,22 +37,21 @@ class MemeticSelector(Selector):
     def select(self, objective, k, seed):
         o = self.options
         rng = numpy_rng(seed)
-        pop, fit = first_population(objective, k, rng, o)
-        if fit is None:  # k = 0 or Ne: nothing to search
-            return [int(i) for i in np.flatnonzero(pop[0])]
         search = SwapSearch(objective, k, rng, chunk=o["chunk"], scan=o["scan"], guide=o["guide"])
         improved: set[bytes] = set()
-        while True:
-            pop, fit = next_generation(objective, pop, fit, rng, o)
-            for i in range(pop.shape[0]):  # the best survivor not improved yet
+
+        def improve(pop, fit):
+            """The best survivor not improved yet, descended; the result replaces it."""
+            for i in range(pop.shape[0]):
                 key = mask_key(pop[i])
                 if key in improved or not np.isfinite(fit[i]):
                     continue
                 mask, value = search.descend(pop[i], float(fit[i]))
                 improved.update((key, mask_key(mask)))
-                pop, fit = survivors(np.concatenate([mask[None], pop]), np.concatenate([[value], fit]),
-                                     o["population"])
-                break
+                return survivors(np.concatenate([mask[None], pop]), np.concatenate([[value], fit]), o["population"])
+            return pop, fit
+
+        return evolve(objective, k, rng, o, improve)
 
 
 @hookimpl

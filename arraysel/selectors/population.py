@@ -7,6 +7,7 @@ and ``memetic`` selectors), in the framework so that a plugin calls it instead o
 * :func:`breed`: ``children`` new selections by tournaments, crossover and swap mutation, none
   equal to a member of the population or to an earlier child;
 * :func:`survivors`: the ``mu`` best distinct selections of parents and children (elitist);
+* :func:`evolve`: the search itself (``genetic``; ``memetic`` with its improvement step);
 * :func:`first_population`: a search's initial population, scored in one call;
 * :func:`next_generation`: one generation (breed, score the children in one call, survive) under
   the :data:`POPULATION_OPTIONS` of a selector.
@@ -20,8 +21,8 @@ from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.localsearch import random_swaps
 from arraysel.selectors.starts import random_subsets
 
-__all__ = ["POPULATION_OPTIONS", "first_population", "next_generation", "initial_population", "exact_k_crossover", "tournament", "breed", "survivors",
-           "mask_key"]
+__all__ = ["POPULATION_OPTIONS", "evolve", "first_population", "next_generation", "initial_population",
+           "exact_k_crossover", "tournament", "breed", "survivors", "mask_key"]
 
 #: the declared options of a population search (a selector's ``options`` include them)
 POPULATION_OPTIONS = {
@@ -116,7 +117,8 @@ def next_generation(objective, pop: np.ndarray, fit: np.ndarray, rng: np.random.
     return survivors(np.concatenate([pop, children]), np.concatenate([fit, cfit]), options["population"])
 
 
-def first_population(objective, k: int, rng: np.random.Generator, options: dict) -> tuple[np.ndarray, np.ndarray | None]:
+def first_population(objective, k: int, rng: np.random.Generator,
+                     options: dict) -> tuple[np.ndarray, np.ndarray | None]:
     """``(population, scores)``: the :func:`initial_population` of ``options["population"]``
     selections of ``k`` of the objective's elements, scored in one call; the scores are ``None``
     (nothing scored) when ``k`` is 0 or ``Ne``: there is one selection, the population's first."""
@@ -125,3 +127,18 @@ def first_population(objective, k: int, rng: np.random.Generator, options: dict)
     if k in (0, n):
         return pop, None
     return pop, objective.score(pop)
+
+
+def evolve(objective, k: int, rng: np.random.Generator, options: dict, improve=None) -> list[int]:
+    """A population search with the :data:`POPULATION_OPTIONS` ``options``: the
+    :func:`first_population`, then :func:`next_generation` after generation, each followed by
+    ``improve(pop, scores) -> (pop, scores)`` when given (a memetic step), until the budget ends
+    (the objective's :class:`~arraysel.selectors.contract.BudgetExhausted`; the runner returns the
+    best selection scored). For ``k`` = 0 or ``Ne`` it returns the one selection there is."""
+    pop, fit = first_population(objective, k, rng, options)
+    if fit is None:
+        return [int(i) for i in np.flatnonzero(pop[0])]
+    while True:
+        pop, fit = next_generation(objective, pop, fit, rng, options)
+        if improve is not None:
+            pop, fit = improve(pop, fit)
