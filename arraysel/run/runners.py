@@ -134,17 +134,16 @@ class InProcessRunner(Runner):
     each, the objective must be as it was (:class:`_Fingerprint`): a run that changed it is
     yielded with an error, then the comparison stops (:class:`~arraysel.errors.ArrayselError`)."""
 
-    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False,
-                 neighbourhoods: bool = False):
+    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False):
         self.objective, self.budget, self.grace = objective, budget, grace
-        self.full_mean, self.progress, self.neighbourhoods = full_mean, progress, neighbourhoods
+        self.full_mean, self.progress = full_mean, progress
         self.fingerprint: _Fingerprint | None = None
 
     def prepare(self, todo: list[RunSpec]) -> dict | None:
         from arraysel.run.template import warm_objective
 
         warm = warm_objective(self.objective) if todo else None
-        if warm is not None and self.neighbourhoods and any(scores_neighbourhoods(s) for s in todo):
+        if warm is not None and any(scores_neighbourhoods(s) for s in todo):
             warm["neighbourhoods_s"] = prepare_neighbourhoods(self.objective)
         self.fingerprint = _Fingerprint(self.objective, self.full_mean)  # taken once warm
         return warm
@@ -283,10 +282,12 @@ def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, ex
                 isolate: bool = False, threads: int | None = None, progress: bool = False,
                 neighbourhoods: bool = False) -> Runner:
     """The runner of a comparison: on ``executor`` (unless it runs in this process), else isolated
-    child processes (``isolate``), else this process. ``neighbourhoods``: some run scores one-swap
-    neighbourhoods (:func:`scores_neighbourhoods`), so every objective is prepared for them
-    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before the runs' clocks start."""
-    local = InProcessRunner(objective, budget, grace, full_mean, progress, neighbourhoods)
+    child processes (``isolate``), else this process. A run that scores one-swap neighbourhoods
+    (:func:`scores_neighbourhoods`) gets an objective prepared for them
+    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before its clock starts: here
+    by :meth:`InProcessRunner.prepare`, on workers by the recipe :class:`PreparedForNeighbourhoods`
+    when ``neighbourhoods`` (some run of the comparison scores them)."""
+    local = InProcessRunner(objective, budget, grace, full_mean, progress)
     remote = executor is not None and not getattr(executor, "in_process", False)
     if not remote and not isolate:
         return local
