@@ -205,6 +205,8 @@ class PairBasis:
         import copy
 
         out = copy.copy(self)
+        # a neighbourhood base is updated in place along a walk: each basis holds its own
+        out.__dict__.pop("_swap_base_held", None)
         r = int(check_number("rank", rank, lo=1, integer=True))
         if self.U is None or r >= self.rank:
             out._attach_refinement(shared=self.refinement)
@@ -224,6 +226,7 @@ class PairBasis:
         total = float(self.row_energy.sum()) / max(1e-300, 1 - self.rank_tail)
         out.row_energy = self.row_energy[:r]
         out.U, out.V, out.rank, out.error = self.U[:, :r].contiguous(), self.V[:r].contiguous(), r, err
+        out.__dict__.pop("_swap_rows", None)  # rows of U V at the stored rank: not this view's
         out.rank_tail = self.rank_tail + float(sig.sum()) / total
         out.finer = self
         out._attach_refinement(shared=self.refinement)
@@ -354,7 +357,7 @@ class PairBasis:
         if self.U is None:
             return None
         store = self.__dict__.get("_swap_rows")
-        if store is None and self.pairs_e.numel() * self.V.shape[1] * self.V.element_size() <= self.swap_rows_cap():
+        if store is None and self.bytes_of_pair_rows() <= self.swap_rows_cap():
             store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
                                                    device=self.V.device),
                                        torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
