@@ -293,7 +293,7 @@ class Objective:
     def prepare_neighbourhoods(self) -> bool:
         """Form now the pair-image rows :meth:`evaluate_swaps` gathers (each field point's basis,
         :meth:`~arraysel.physics.psf.basis.PairBasis.fill_pair_rows`; a few seconds and
-        ``k``-independent memory: 0.3 GiB on the paper scene, 1.3 GiB for 128 elements), so that
+        ``k``-independent memory: 0.32 GiB on the paper scene, 1.3 GiB for 128 elements), so that
         a search's first neighbourhoods do not pay for them. Returns whether every basis keeps
         all its rows (False: beyond the memory cap, each neighbourhood forms the rows it needs)."""
         done = True
