@@ -5,7 +5,8 @@
 Each scene's PSF basis is built (or loaded from the cache) first, one process per scene; then
 ``--jobs`` worker processes (one torch thread each) run the planned selector runs, each a time
 budget of ``--seconds`` (``arraysel.run.experiment.Experiment``, the same runner ``compare``
-uses, so every run's best is scored again at its end). ``DIR/results.json`` holds every finished
+uses, so every run's best is scored again at its end; a selector that scores neighbourhoods gets
+its objective prepared for them before its clock, as in ``compare``). ``DIR/results.json`` holds every finished
 run (scene, selector, options, seed, Mean, elements, evaluations, seconds), rewritten after each
 one, and ``DIR/best.json`` the best run per scene. Re-score a found mask with ``arraysel evaluate``
 before storing it in ``arraysel/scenes/best_known.json``.
@@ -22,12 +23,11 @@ from pathlib import Path
 
 #: (selector, options) runs per scene, in order; seeds 0, 1, ... per entry (see _plan)
 RECIPES = {
-    "paper": [("ils", {"mode": "best", "starts": 7}), ("ils", {}), ("swap", {"start": "random", "mode": "best"}),
-              ("ils", {"relink": 0.6}), ("ils", {}), ("ils", {"mode": "best", "relink": 0.6})],
-    "l11-5v": [("ils", {}), ("ils", {"relink": 0.6}), ("swap", {"start": "uniform"}), ("ils", {}),
-               ("anneal", {})],
-    "c5-2v": [("ils", {}), ("ils", {"relink": 0.6}), ("swap", {"start": "uniform"}), ("ils", {}),
-              ("anneal", {})],
+    "paper": [("ils", {}), ("memetic", {}), ("ils", {"mode": "best", "starts": 7}),
+              ("swap", {"start": "random", "mode": "best"}), ("ils", {"relink": 0.6}),
+              ("ils", {"mode": "best", "relink": 0.6})],
+    "l11-5v": [("memetic", {}), ("ils", {}), ("anneal", {}), ("ils", {"relink": 0.6}), ("swap", {})],
+    "c5-2v": [("anneal", {}), ("memetic", {}), ("ils", {}), ("ils", {"relink": 0.6}), ("swap", {})],
 }
 
 
@@ -62,6 +62,7 @@ def _run(item) -> dict:
     import torch
 
     torch.set_num_threads(1)
+    from arraysel.objective.neighbours import prepare_neighbourhoods
     from arraysel.objective.psf_objective import build_objective
     from arraysel.run.experiment import Experiment
     from arraysel.selectors.contract import Budget
@@ -69,6 +70,8 @@ def _run(item) -> dict:
 
     reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
     obj = build_objective(scene)
+    if getattr(reg[name], "scores_neighbourhoods", False):
+        prepare_neighbourhoods(obj)  # as compare does, before the clock
     t0 = time.perf_counter()
     row = Experiment(obj, name, options=options, budget=Budget(seconds=seconds), seed=seed, registry=reg,
                      k=obj.k).run()
