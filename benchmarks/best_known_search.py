@@ -3,7 +3,7 @@
     python benchmarks/best_known_search.py --out DIR [--seconds 400] [--jobs 16] [--scenes paper,l11-5v,c5-2v]
 
 Each scene's PSF basis is built (or loaded from the cache) first, one process per scene; then
-``--jobs`` worker processes (one torch thread each) run the planned selector runs, each a time
+``--jobs`` worker processes (one thread each for torch, numba and BLAS) run the planned selector runs, each a time
 budget of ``--seconds`` (``arraysel.run.experiment.Experiment``, the same runner ``compare``
 uses, so every run's best is scored again at its end; a selector that scores neighbourhoods gets
 its objective prepared for them before its clock, as in ``compare``). ``DIR/results.json`` holds every finished
@@ -47,9 +47,9 @@ def _plan(scenes: list[str], jobs: int) -> list[tuple[str, str, dict, int]]:
 
 
 def _build(scene: str, threads: int) -> tuple[str, float]:
-    import torch
+    from arraysel.run.template import set_threads
 
-    torch.set_num_threads(threads)
+    set_threads(threads)
     from arraysel.objective.psf_objective import build_objective
 
     t0 = time.perf_counter()
@@ -59,9 +59,9 @@ def _build(scene: str, threads: int) -> tuple[str, float]:
 
 def _run(item) -> dict:
     scene, name, options, seed, seconds = item
-    import torch
+    from arraysel.run.template import set_threads
 
-    torch.set_num_threads(1)
+    set_threads(1)  # torch, numba's parallel loops and BLAS: one thread each, as compare's workers
     from arraysel.objective.neighbours import prepare_neighbourhoods
     from arraysel.objective.psf_objective import build_objective
     from arraysel.run.experiment import Experiment
