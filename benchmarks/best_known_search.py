@@ -59,9 +59,11 @@ def _build(scene: str, threads: int) -> tuple[str, float]:
 
 def _run(item) -> dict:
     scene, name, options, seed, seconds = item
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = "1"  # before numba and the BLAS libraries load in this worker
     from arraysel.run.template import set_threads
 
-    set_threads(1)  # torch, numba's parallel loops and BLAS: one thread each, as compare's workers
+    set_threads(1)  # one thread for each run, as compare's workers have
     from arraysel.objective.neighbours import prepare_neighbourhoods
     from arraysel.objective.psf_objective import build_objective
     from arraysel.run.experiment import Experiment
