@@ -15,13 +15,13 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
 def set_threads(n: int | None) -> None:
-    """Limit BLAS/OpenMP threads and tune the allocator as the ``arraysel`` command does
+    """Limit BLAS, OpenMP and numba threads and tune the allocator as the ``arraysel`` command does
     (:func:`arraysel.io.allocator.tune_malloc`; ``ARRAYSEL_MALLOC_TUNE=0`` disables it); call
-    before numpy and torch do any work."""
+    before numpy, torch and numba load."""
     from arraysel.io.allocator import tune_malloc
 
     tune_malloc()

@@ -21,6 +21,9 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import set_threads  # noqa: E402  (thread variables before numpy, torch and numba load)
+
 #: (selector, options) runs per scene, in order; seeds 0, 1, ... per entry (see _plan)
 RECIPES = {
     "paper": [("ils", {}), ("memetic", {}), ("ils", {"mode": "best", "starts": 7}),
@@ -47,8 +50,6 @@ def _plan(scenes: list[str], jobs: int) -> list[tuple[str, str, dict, int]]:
 
 
 def _build(scene: str, threads: int) -> tuple[str, float]:
-    from arraysel.run.template import set_threads
-
     set_threads(threads)
     from arraysel.objective.psf_objective import build_objective
 
@@ -59,20 +60,17 @@ def _build(scene: str, threads: int) -> tuple[str, float]:
 
 def _run(item) -> dict:
     scene, name, options, seed, seconds = item
-    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = "1"  # before numba and the BLAS libraries load in this worker
-    from arraysel.run.template import set_threads
-
     set_threads(1)  # one thread for each run, as compare's workers have
     from arraysel.objective.neighbours import prepare_neighbourhoods
     from arraysel.objective.psf_objective import build_objective
     from arraysel.run.experiment import Experiment
+    from arraysel.run.runners import RunSpec, scores_neighbourhoods
     from arraysel.selectors.contract import Budget
     from arraysel.selectors.registry import build_plugin_manager, get_registry
 
     reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
     obj = build_objective(scene)
-    if getattr(reg[name], "scores_neighbourhoods", False):
+    if scores_neighbourhoods(RunSpec(name, reg[name], options, seed)):
         prepare_neighbourhoods(obj)  # as compare does, before the clock
     t0 = time.perf_counter()
     row = Experiment(obj, name, options=options, budget=Budget(seconds=seconds), seed=seed, registry=reg,
