@@ -26,11 +26,14 @@ from _common import set_threads  # noqa: E402  (thread variables before numpy, t
 
 #: (selector, options) runs per scene, in order; seeds 0, 1, ... per entry (see _plan)
 RECIPES = {
-    "paper": [("ils", {}), ("memetic", {}), ("ils", {"mode": "best", "starts": 7}),
-              ("swap", {"start": "random", "mode": "best"}), ("ils", {"relink": 0.6}),
-              ("ils", {"mode": "best", "relink": 0.6})],
-    "l11-5v": [("memetic", {}), ("ils", {}), ("anneal", {}), ("ils", {"relink": 0.6}), ("swap", {})],
-    "c5-2v": [("anneal", {}), ("memetic", {}), ("ils", {}), ("ils", {"relink": 0.6}), ("swap", {})],
+    "paper": [("ils", {"start": "uniform", "fresh": "chirp", "starts": 3}), ("ils", {}), ("memetic", {}),
+              ("ils", {"mode": "best", "starts": 7}), ("swap", {"start": "random", "mode": "best"}),
+              ("ils", {"relink": 0.6}), ("ils", {"mode": "best", "relink": 0.6})],
+    "l11-5v": [("swap", {"start": "chirp"}), ("memetic", {"init": "chirp"}),
+               ("ils", {"start": "chirp", "fresh": "chirp"}), ("memetic", {}), ("ils", {}), ("anneal", {}),
+               ("ils", {"relink": 0.6}), ("swap", {})],
+    "c5-2v": [("anneal", {}), ("ils", {"start": "uniform", "fresh": "chirp", "starts": 3}), ("memetic", {}),
+              ("ils", {}), ("ils", {"relink": 0.6}), ("swap", {})],
 }
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import EliteSearch
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch
 from arraysel.selectors.starts import start_options, start_selection
 
 
@@ -35,6 +35,8 @@ class IteratedLocalSearch(Selector):
         "max_perturb": Option(int, 8, "most random swaps of a perturbation", lo=1),
         "restart_after": Option(int, 40, "rounds in a row without a new best before a fresh random start "
                                 "(0: never)", lo=0),
+        "fresh": Option(str, "random", "extra starts and restarts: random selections, or chirp (the best of "
+                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call)", choices=FRESH_CHOICES),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -45,7 +47,7 @@ class IteratedLocalSearch(Selector):
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = EliteSearch(objective, k, rng, starts=o["starts"], elite=o["elite"], relink=o["relink"],
                              mode=o["mode"], chunk=o["chunk"], guide=o["guide"], perturb=o["perturb"],
-                             max_perturb=o["max_perturb"], restart_after=o["restart_after"])
+                             max_perturb=o["max_perturb"], restart_after=o["restart_after"], fresh=o["fresh"])
         return search.run(start)[0]
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import SwapSearch
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch
 from arraysel.selectors.starts import start_options, start_selection
 
 
@@ -36,6 +36,8 @@ class SwapSelector(Selector):
                           "from a random selection at each local optimum)", lo=0),
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
                                 "a random selection (0: never restart)", lo=0),
+        "fresh": Option(str, "random", "restarts: random selections, or chirp (the best of "
+                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call)", choices=FRESH_CHOICES),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -45,7 +47,7 @@ class SwapSelector(Selector):
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
-                            perturb=o["perturb"], restart_after=o["restart_after"])
+                            perturb=o["perturb"], restart_after=o["restart_after"], fresh=o["fresh"])
         return search.run(start)[0]
 
 

@@ -8,7 +8,8 @@ import pytest
 from arraysel.errors import ParameterError
 from arraysel.objective.contract import HasLayout, check_element_grid, element_layout
 from arraysel.objective.toy import TOY_PITCH, ToyObjective, ToyObjectiveFactory
-from arraysel.selectors.layouts import (GOLDEN_ANGLE_DEG, TAPERS, fermat_spiral_layout, fermat_spiral_points,
+from arraysel.selectors.layouts import (CHIRP_PERIODS, GOLDEN_ANGLE_DEG, TAPERS, chirped_layouts,
+                                        fermat_spiral_layout, fermat_spiral_points,
                                         snap_to_elements, taper_density, tapered_line_layout, uniform_layout,
                                         uniform_subgrid)
 
@@ -283,3 +284,52 @@ def test_the_psf_objective_declares_a_1d_layout(paper_objective):
     assert pos.shape == (64, 3)
     np.testing.assert_allclose(np.diff(pos[:, 0]), paper_objective.setup.probe.pitch, rtol=1e-12)
     assert pos[:, 0].mean() == pytest.approx(0.0, abs=1e-15) and not pos[:, 1:].any()
+
+
+# ------------------------------------------------------------------ chirped
+
+
+@pytest.mark.parametrize("n,k,grid", [(64, 32, None), (128, 64, None), (128, 20, None), (7, 1, None), (7, 7, None),
+                                      (1, 1, None), (1024, 256, (32, 32)), (12, 5, (3, 4)), (9, 4, (1, 9))])
+def test_chirped_layouts_hold_exactly_k_distinct_elements(n, k, grid):
+    masks = chirped_layouts(np.random.default_rng(0), n, k, 16, grid)
+    assert masks.shape == (16, n) and masks.dtype == bool
+    assert (masks.sum(axis=1) == k).all()
+    again = chirped_layouts(np.random.default_rng(0), n, k, 16, grid)
+    assert (masks == again).all()  # reproducible from the generator
+
+
+def _mean_run(masks) -> float:
+    runs = [len(r) for m in masks for r in "".join("#" if v else "." for v in m).split(".") if r]
+    return float(np.mean(runs))
+
+
+def test_chirped_layouts_span_alternation_to_blocks():
+    """Half the elements: the family holds nearly alternating layouts (runs of one element, the
+    finest period of two pitches) and block layouts (runs of several adjacent elements), and
+    layouts whose runs grow from the centre to the edges."""
+    masks = chirped_layouts(np.random.default_rng(1), 128, 64, 256)
+    runs = np.array([_mean_run(m[None]) for m in masks])
+    assert runs.min() < 1.3 and runs.max() > 3.0
+    centre = np.array([_mean_run(m[None, 48:80]) for m in masks])
+    edges = np.array([_mean_run(np.concatenate([m[:24], m[-24:]])[None]) for m in masks])
+    assert (edges > 2 * centre).any() and (centre > 2 * edges).any()
+    assert CHIRP_PERIODS["centre"][0] == CHIRP_PERIODS["edge"][0] == 1.0  # the finest period is drawn too
+
+
+def test_chirped_layouts_scale_with_the_duty():
+    """The finest period is 1 / min(k/Ne, 1 - k/Ne): a quarter of the elements never sit closer
+    than the finest layout allows on average, three quarters leave gaps of the same kind."""
+    few = chirped_layouts(np.random.default_rng(2), 128, 32, 64)
+    many = chirped_layouts(np.random.default_rng(2), 128, 96, 64)
+    assert _mean_run(few) < 2.5 and _mean_run(~many) < 2.5
+    assert _mean_run(many) > _mean_run(few)
+
+
+def test_chirped_layouts_name_a_bad_parameter():
+    with pytest.raises(ParameterError, match="k"):
+        chirped_layouts(np.random.default_rng(0), 8, 9, 4)
+    with pytest.raises(ParameterError, match="m"):
+        chirped_layouts(np.random.default_rng(0), 8, 4, 0)
+    with pytest.raises(ParameterError):
+        chirped_layouts(np.random.default_rng(0), 12, 4, 4, (5, 5))

@@ -111,12 +111,16 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {}, (0, 1)),
     ("swap", {"start": "random", "mode": "best"}, (0,)),
     ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
+    ("swap", {"start": "chirp", "fresh": "chirp"}, (0, 1)),
     ("ils", {}, (0, 1, 2)),
     ("ils", {"mode": "best", "relink": 1.0}, (0, 1)),
+    ("ils", {"start": "chirp", "fresh": "chirp"}, (0, 1, 2)),
     ("anneal", {}, (0, 1)),
     ("genetic", {}, (0, 1)),
     ("memetic", {}, (0, 1, 2)),
     ("memetic", {"scan": 1.0, "guide": 0.0}, (0,)),
+    ("memetic", {"init": "chirp"}, (0, 1)),
+    ("genetic", {"init": "chirp"}, (0,)),
     ("nevergrad", {}, (0,)),
     ("nevergrad", {"encoding": "binary", "optimizer": "DiscreteOnePlusOne"}, (0, 1, 2)),
     ("uniform", {"polish": 0.9}, (0,)),
@@ -481,3 +485,66 @@ def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_cl
     res = compare(Prepared(12, 6), ["swap", "random"], out_dir=tmp_path / "c", seeds=[0],
                   budget=Budget(evaluations=60), registry=reg, progress=False, figures=False)
     assert Prepared.prepared == 1 and not res.failures
+
+
+# ---------------------------------------------------------------------------
+# chirped starts, restarts and populations
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("grid", [None, (4, 6)])
+def test_a_chirp_start_is_the_best_of_its_chirped_layouts(grid):
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, start_selection
+
+    obj = ToyObjective(24, 9, grid=grid)
+    budget = Budget(evaluations=10_000).start(obj)
+    view = BudgetedObjective(obj, budget, Recorder(obj, budget), 9)
+    start = start_selection("chirp", view, 9, numpy_rng(3))
+    assert view.evaluations == CHIRP_CANDIDATES  # one call of the budget, counted
+    masks = chirp_masks(obj, 9, numpy_rng(3), CHIRP_CANDIDATES)
+    means = obj.evaluate(masks)["Mean"]
+    assert start == np.flatnonzero(masks[int(np.argmin(means))]).tolist()
+
+
+def test_a_chirp_start_whose_budget_ends_first_is_the_first_layout(reg):
+    row = Experiment(ToyObjective(24, 9), "swap", options={"start": "chirp"}, budget=Budget(evaluations=10),
+                     seed=0, registry=reg).run()
+    assert row["error"] == "" and len(row["elements"].split()) == 9
+
+
+@pytest.mark.parametrize("name", ["swap", "ils", "memetic", "genetic"])
+@pytest.mark.parametrize("k", [1, 12])
+def test_chirped_searches_run_at_k_1_and_k_equal_ne(reg, name, k):
+    options = {"init": "chirp"} if name in ("memetic", "genetic") else {"start": "chirp", "fresh": "chirp"}
+    row = Experiment(ToyObjective(12, k), name, options=options, budget=Budget(evaluations=400), seed=0,
+                     registry=reg).run()
+    assert row["error"] == "" and len(row["elements"].split()) == k and np.isfinite(row["Mean"])
+
+
+def test_fresh_chirp_restarts_are_the_best_of_their_layouts():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import FRESH_CHIRPS, SwapSearch
+    from arraysel.selectors.starts import chirp_masks
+
+    obj, view, _ = _view(evaluations=10_000, k=10, n=20)
+    search = SwapSearch(view, 10, numpy_rng(0), fresh="chirp")
+    mask = search._fresh_mask(numpy_rng(5))
+    masks = chirp_masks(obj, 10, numpy_rng(5), FRESH_CHIRPS)
+    assert (mask == masks[int(np.argmin(obj.evaluate(masks)["Mean"]))]).all()
+    with pytest.raises(ParameterError, match="fresh"):
+        SwapSearch(view, 10, numpy_rng(0), fresh="sometimes")
+
+
+def test_a_chirp_population_keeps_the_best_distinct_layouts():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.population import CHIRP_POOL, POPULATION_OPTIONS, first_population
+    from arraysel.selectors.starts import chirp_masks
+
+    options = {name: opt.default for name, opt in POPULATION_OPTIONS.items()} | {"population": 6, "init": "chirp"}
+    obj, view, _ = _view(evaluations=10_000, k=10, n=20)
+    pop, fit = first_population(view, 10, numpy_rng(2), options)
+    pool = chirp_masks(obj, 10, numpy_rng(2), CHIRP_POOL * 6)
+    means = obj.evaluate(pool)["Mean"]
+    assert pop.shape == (6, 20) and (pop.sum(axis=1) == 10).all()
+    assert len({m.tobytes() for m in pop}) == 6 and (np.diff(fit) >= 0).all()
+    assert fit[0] == pytest.approx(means.min())

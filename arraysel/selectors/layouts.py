@@ -21,10 +21,16 @@ from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.contract import check_element_grid
 
 __all__ = ["GOLDEN_ANGLE_DEG", "TAPERS", "uniform_layout", "uniform_subgrid", "taper_density",
-           "fermat_spiral_points", "fermat_spiral_layout", "tapered_line_layout", "snap_to_elements"]
+           "fermat_spiral_points", "fermat_spiral_layout", "tapered_line_layout", "snap_to_elements",
+           "CHIRP_PERIODS", "chirped_layouts"]
 
 #: the golden angle, 180 (3 - sqrt 5) degrees = 137.5078 degrees, between successive spiral points
 GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))
+#: ranges of the draws of :func:`chirped_layouts`: local periods at the centre and at the edges
+#: (multiples of the finest period, ``1 / min(k/Ne, 1 - k/Ne)`` pitches, two for half the
+#: elements; drawn log-uniformly), the exponent of the period's change from the centre outwards
+#: and the centre's offset (normalised aperture, -1 to 1)
+CHIRP_PERIODS = {"centre": (1.0, 4.0), "edge": (1.0, 6.0), "growth": (0.5, 4.0), "offset": (-0.15, 0.15)}
 #: the density tapers of :func:`taper_density`
 TAPERS = ("none", "cosine", "blackman")
 
@@ -245,3 +251,57 @@ def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[
     order = np.argsort(np.abs(t), kind="stable")
     chosen = snap_to_elements(pts[order, None], np.arange(n, dtype=np.float64)[:, None])
     return sorted(chosen)
+
+
+# --------------------------------------------------------------------------
+# chirped (aperiodic) layouts
+# --------------------------------------------------------------------------
+
+def _chirp_phase(u: np.ndarray, p_centre: float, p_edge: float, growth: float, centre: float) -> np.ndarray:
+    """Phase (in cycles) along a line of elements at normalised positions ``u`` (in [-1, 1]) of a
+    square wave whose local period (in elements, ``n`` elements spanning 2) grows from
+    ``p_centre`` at ``centre`` to ``p_edge`` at a distance 1 as ``|u - centre| ** growth``."""
+    n = u.size
+    period = p_centre + (p_edge - p_centre) * np.minimum(np.abs(u - centre), 1.0) ** growth
+    phase = np.cumsum(1.0 / period)
+    return phase - np.interp(centre, u, phase) if n > 1 else phase
+
+
+def chirped_layouts(rng: np.random.Generator, n_elements: int, k: int, m: int, grid=None) -> np.ndarray:
+    """``m`` random *chirped* selections of ``k`` of ``n_elements``: a boolean array ``(m, Ne)``.
+
+    A chirped layout keeps the elements where a square wave along the array is high, the wave's
+    local period changing smoothly from the centre to the edges: aperiodic layouts of the kind
+    good sparse arrays take (for half the elements, say, nearly alternating elements in the
+    middle and blocks of adjacent elements towards the edges, or blocks throughout on a probe
+    whose pitch exceeds the wavelength), whose irregular spacing spreads the grating lobes of a
+    periodic thinning; equal periods give periodic block layouts, the uniform one among them.
+    Each layout draws its centre and edge periods, exponent, centre offset and phase from
+    :data:`CHIRP_PERIODS`; the ``k`` elements with the highest ``cos(2 pi phase)`` (a matrix
+    grid: the product of the row's and the column's) are kept, so any ``k`` gives exactly ``k``
+    (ties broken at random).
+
+    Used as start selections of the swap searches (``start = chirp``), never as a result.
+    """
+    n = int(check_number("n_elements", n_elements, lo=1, integer=True))
+    k = _check_k(k, n)
+    m = int(check_number("m", m, lo=1, integer=True))
+    if grid is not None:
+        ny, nx = check_element_grid(grid, n)
+        axes = [(np.linspace(-1.0, 1.0, ny) if ny > 1 else np.zeros(1)),
+                (np.linspace(-1.0, 1.0, nx) if nx > 1 else np.zeros(1))]
+    else:
+        axes = [np.linspace(-1.0, 1.0, n) if n > 1 else np.zeros(1)]
+    duty = min(k, n - k) / n
+    finest = 1.0 / duty if duty > 0 else 2.0
+    out = np.zeros((m, n), dtype=bool)
+    for j in range(m):
+        periods = [finest * math.exp(rng.uniform(*np.log(CHIRP_PERIODS[key]))) for key in ("centre", "edge")]
+        growth, offset = rng.uniform(*CHIRP_PERIODS["growth"]), rng.uniform(*CHIRP_PERIODS["offset"])
+        wave = np.ones(1)
+        for u in axes:
+            phase = _chirp_phase(u, periods[0], periods[1], growth, offset)
+            wave = np.multiply.outer(wave, np.cos(2.0 * np.pi * (phase + rng.uniform(0.0, 1.0))))
+        score = wave.reshape(-1) + 1e-9 * rng.random(n)
+        out[j, np.argpartition(-score, k - 1)[:k]] = True
+    return out

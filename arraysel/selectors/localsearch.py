@@ -25,7 +25,8 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    worse (better-or-equal acceptance);
 3. **restart**: after ``restart_after`` perturbations in a row that did not
    improve the best, the next descent starts from a fresh start selection
-   (``restart_from``: a random one by default).
+   (``restart_from``, or ``fresh``: a random one by default, or the best of
+   :data:`FRESH_CHIRPS` random chirped layouts, :func:`arraysel.selectors.starts.chirp_masks`).
 
 It runs until the objective raises :class:`~arraysel.selectors.contract.BudgetExhausted`
 or its budget is spent (or ``max_rounds`` perturbations when given, or when
@@ -43,9 +44,14 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import swap_masks, swap_pairs
-from arraysel.selectors.starts import random_mask
+from arraysel.selectors.starts import chirp_masks, random_mask
 
-__all__ = ["SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps", "random_swap_pairs"]
+#: where fresh selections (restarts, extra starts) come from
+FRESH_CHOICES = ("random", "chirp")
+#: chirped layouts a ``fresh = chirp`` restart scores (one call), keeping the best
+FRESH_CHIRPS = 32
+
+__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps", "random_swap_pairs"]
 
 
 def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +188,9 @@ class SwapSearch:
         selection counts as a local optimum (``first`` mode; 1: all of it)
     perturb : random swaps of a perturbation (0: no perturbation, restart instead)
     restart_after : non-improving perturbations in a row before a restart (0: never)
-    restart_from : callable ``rng -> mask`` giving restart selections (default: random)
+    restart_from : callable ``rng -> mask`` giving restart selections (default: by ``fresh``)
+    fresh : ``random`` (a uniformly random selection) or ``chirp`` (the best of
+        :data:`FRESH_CHIRPS` random chirped layouts, scored in one call): the restarts' selections
     guide : first share of each ``first``-mode chunk taken in the order the loss's gradient
         predicts (:class:`GuidedOrder`; 0: random order only, no gradient computed)
     max_rounds : stop after this many perturbations/restarts (None: until the budget ends)
@@ -195,7 +203,8 @@ class SwapSearch:
     def __init__(self, objective, k: int, rng: np.random.Generator, *, mode: str = "first", chunk: int = 64,
                  scan: float = 1.0, perturb: int = 2, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
-                 guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000):
+                 guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
+                 fresh: str = "random"):
         self.objective = objective
         self.n = int(objective.n_elements)
         self.k = int(k)
@@ -206,6 +215,7 @@ class SwapSearch:
         self.perturb = int(check_number("perturb", perturb, lo=0, integer=True))
         self.restart_after = int(check_number("restart_after", restart_after, lo=0, integer=True))
         self.restart_from = restart_from
+        self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
@@ -295,6 +305,17 @@ class SwapSearch:
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
         return random_mask(rng, self.n, self.k)
 
+    def _fresh_mask(self, rng: np.random.Generator) -> np.ndarray:
+        """A fresh selection for a restart or an extra start: ``restart_from``'s, else by ``fresh``
+        (a random one, or the best of :data:`FRESH_CHIRPS` chirped layouts, scored in one call)."""
+        if self.restart_from is not None:
+            return self.restart_from(rng)
+        if self.fresh == "chirp" and 0 < self.k < self.n:
+            masks = chirp_masks(self.objective, self.k, rng, FRESH_CHIRPS)
+            values = self.score(masks)
+            return masks[int(np.argmin(values))].copy()
+        return self._random_mask(rng)
+
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
         mask = np.asarray(start)
@@ -330,7 +351,7 @@ class SwapSearch:
             spent = len(self._cache)
             restart = (self.restart_after and stale >= self.restart_after) or self.perturb == 0
             if restart:
-                start_mask, stale = (self.restart_from or self._random_mask)(self.rng), 0
+                start_mask, stale = self._fresh_mask(self.rng), 0
             else:
                 start_mask = random_swaps(base, self.perturb, self.rng)
             v = float(self.score(start_mask[None])[0])
@@ -427,7 +448,7 @@ class EliteSearch(SwapSearch):
             self._note(mask, value)
             return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
         for s in range(self.starts):
-            m = mask if s == 0 else self._random_mask(self.rng)
+            m = mask if s == 0 else self._fresh_mask(self.rng)
             v = float(self.score(m[None])[0])
             self._note(m, v)
             m, v = self.descend(m, v)
@@ -442,7 +463,7 @@ class EliteSearch(SwapSearch):
             spent = len(self._cache)
             best_before = self.best_value
             if not self.pool or (self.restart_after and stale >= self.restart_after):
-                m, stale = self._random_mask(self.rng), 0  # (an empty pool: nothing finite scored yet)
+                m, stale = self._fresh_mask(self.rng), 0  # (an empty pool: nothing finite scored yet)
                 v = float(self.score(m[None])[0])
             elif len(self.pool) >= 2 and self.rng.random() < self.relink_p:
                 i, j = self.rng.choice(len(self.pool), 2, replace=False)

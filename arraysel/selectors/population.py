@@ -19,9 +19,13 @@ import numpy as np
 from arraysel.selectors.contract import Option
 from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.localsearch import random_swaps
-from arraysel.selectors.starts import random_subsets
+from arraysel.selectors.starts import chirp_masks, random_subsets
 
-__all__ = ["POPULATION_OPTIONS", "evolve", "first_population", "next_generation", "initial_population",
+#: a ``chirp`` initial population keeps the best ``population`` of ``CHIRP_POOL x population``
+#: random chirped layouts
+CHIRP_POOL = 4
+
+__all__ = ["POPULATION_OPTIONS", "CHIRP_POOL", "evolve", "first_population", "next_generation", "initial_population",
            "exact_k_crossover", "tournament", "breed", "survivors", "mask_key"]
 
 #: the declared options of a population search (a selector's ``options`` include them)
@@ -31,6 +35,9 @@ POPULATION_OPTIONS = {
     "tournament": Option(int, 3, "tournament size of parent selection", lo=1),
     "crossover": Option(float, 0.9, "probability that a child is a crossover (else a copy)", lo=0.0, hi=1.0),
     "mutation": Option(float, 1.0, "mean number of random swaps per child (Poisson)", lo=0.0),
+    "init": Option(str, "random", "initial population: random (the uniform layout and random selections) or "
+                   f"chirp (the best of {CHIRP_POOL} x population random chirped layouts)",
+                   choices=("random", "chirp")),
 }
 
 
@@ -120,12 +127,22 @@ def next_generation(objective, pop: np.ndarray, fit: np.ndarray, rng: np.random.
 def first_population(objective, k: int, rng: np.random.Generator,
                      options: dict) -> tuple[np.ndarray, np.ndarray | None]:
     """``(population, scores)``: the :func:`initial_population` of ``options["population"]``
-    selections of ``k`` of the objective's elements, scored in one call; the scores are ``None``
+    selections of ``k`` of the objective's elements, scored in one call (``init = chirp``: the
+    best distinct ``population`` of ``CHIRP_POOL x population`` chirped layouts,
+    :func:`~arraysel.selectors.starts.chirp_masks`, scored in one call); the scores are ``None``
     (nothing scored) when ``k`` is 0 or ``Ne``: there is one selection, the population's first."""
     n = int(objective.n_elements)
-    pop = initial_population(rng, options["population"], n, k)
+    mu = options["population"]
     if k in (0, n):
-        return pop, None
+        return initial_population(rng, mu, n, k), None
+    if options.get("init", "random") == "chirp":
+        pool = chirp_masks(objective, k, rng, CHIRP_POOL * mu)
+        pop, fit = survivors(pool, objective.score(pool), mu)
+        if pop.shape[0] < mu:  # duplicate layouts (a tiny array): random selections fill the rest
+            extra = initial_population(rng, mu - pop.shape[0], n, k)
+            pop, fit = np.concatenate([pop, extra]), np.concatenate([fit, objective.score(extra)])
+        return pop, fit
+    pop = initial_population(rng, mu, n, k)
     return pop, objective.score(pop)
 
 

@@ -23,13 +23,17 @@ from arraysel.errors import ParameterError, check_number
 from arraysel.io.masks import parse_elements
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.contract import BudgetExhausted, Option
-from arraysel.selectors.layouts import uniform_layout
+from arraysel.selectors.layouts import chirped_layouts, uniform_layout
 
-__all__ = ["START_CHOICES", "GREEDY_START_SHARE", "random_subsets", "random_mask", "greedy_selection", "start_selection",
+__all__ = ["START_CHOICES", "GREEDY_START_SHARE", "CHIRP_CANDIDATES", "random_subsets", "random_mask", "chirp_masks",
+           "greedy_selection", "start_selection",
            "start_options"]
 
 #: the start selections of :func:`start_selection`
-START_CHOICES = ("uniform", "random", "greedy", "elements")
+START_CHOICES = ("uniform", "random", "greedy", "chirp", "elements")
+
+#: chirped layouts (:func:`arraysel.selectors.layouts.chirped_layouts`) a ``chirp`` start scores
+CHIRP_CANDIDATES = 256
 
 #: share of a run's budget a ``greedy`` start may spend (:func:`greedy_selection`'s ``share``);
 #: the search it starts gets the rest
@@ -49,6 +53,26 @@ def random_mask(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     mask = np.zeros(n, dtype=bool)
     mask[rng.choice(n, k, replace=False)] = True
     return mask
+
+
+def chirp_masks(objective, k: int, rng: np.random.Generator, m: int) -> np.ndarray:
+    """``m`` random chirped selections (:func:`~arraysel.selectors.layouts.chirped_layouts`) of
+    ``k`` of the objective's elements, on its element grid when it has one: ``(m, Ne)`` bool."""
+    grid, _ = element_layout(objective)
+    return chirped_layouts(rng, int(objective.n_elements), k, m, grid)
+
+
+def chirp_selection(objective, k: int, rng: np.random.Generator, m: int = CHIRP_CANDIDATES) -> list[int]:
+    """The best of ``m`` random chirped layouts (:func:`chirp_masks`), scored in one call
+    (``m`` evaluations of the budget); when the budget ends first, the first layout."""
+    masks = chirp_masks(objective, k, rng, m)
+    try:
+        values = np.asarray(objective.score(masks), dtype=np.float64)
+        values = np.where(np.isfinite(values), values, np.inf)
+        best = masks[int(np.argmin(values))]
+    except BudgetExhausted:
+        best = masks[0]
+    return [int(i) for i in np.flatnonzero(best)]
 
 
 def _evenly(items: list[int], m: int) -> list[int]:
@@ -167,7 +191,9 @@ def start_options(default: str = "uniform") -> dict[str, Option]:
     return {
         "start": Option(str, default, "start selection: uniform, random, greedy (backward elimination, "
                         "up to about Ne^2/2 evaluations, at most half the budget: several elements a step "
-                        "when one a step does not fit) or elements (the list in the option elements)",
+                        f"when one a step does not fit), chirp (the best of {CHIRP_CANDIDATES} random chirped "
+                        "layouts: period growing from the centre to the edges) or elements (the list in the "
+                        "option elements)",
                         choices=START_CHOICES),
         "elements": Option(str, None, "start elements, e.g. '0 2 4 ...' (k distinct indices; implies "
                            "start=elements)"),
@@ -188,8 +214,8 @@ def start_selection(how: str, objective, k: int, rng: np.random.Generator, eleme
 
 def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str | None, option: str) -> list[int]:
     """The start selection ``how`` names: ``uniform`` (:func:`uniform_layout`, matrix arrays
-    included), ``random``, ``greedy`` (:func:`greedy_selection`, spends evaluations) or
-    ``elements`` (the text of the option ``elements``); ``elements`` given means ``elements``
+    included), ``random``, ``greedy`` (:func:`greedy_selection`, spends evaluations), ``chirp``
+    (:func:`chirp_selection`, spends :data:`CHIRP_CANDIDATES` evaluations) or ``elements`` (the text of the option ``elements``); ``elements`` given means ``elements``
     whatever ``how`` says."""
     n = int(objective.n_elements)
     if elements is not None:
@@ -201,6 +227,8 @@ def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str 
         return sorted(int(i) for i in rng.choice(n, k, replace=False))
     if how == "greedy":
         return greedy_selection(objective, k, backward=True, share=GREEDY_START_SHARE)
+    if how == "chirp":
+        return chirp_selection(objective, k, rng) if 0 < k < n else sorted(range(k))
     if how == "elements":
         if elements is None:
             raise ParameterError(f"option {option} = elements needs the option elements (e.g. -o "
