@@ -318,8 +318,8 @@ def test_chirped_layouts_span_alternation_to_blocks():
 
 
 def test_chirped_layouts_scale_with_the_duty():
-    """The finest period is 1 / min(k/Ne, 1 - k/Ne): a quarter of the elements never sit closer
-    than the finest layout allows on average, three quarters leave gaps of the same kind."""
+    """The finest period is 1 / min(k/Ne, 1 - k/Ne): with a quarter of the elements the active
+    runs stay short, and with three quarters the inactive runs do (the complement's pattern)."""
     few = chirped_layouts(np.random.default_rng(2), 128, 32, 64)
     many = chirped_layouts(np.random.default_rng(2), 128, 96, 64)
     assert _mean_run(few) < 2.5 and _mean_run(~many) < 2.5

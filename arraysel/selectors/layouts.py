@@ -259,8 +259,9 @@ def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[
 
 def _chirp_phase(u: np.ndarray, p_centre: float, p_edge: float, growth: float, centre: float) -> np.ndarray:
     """Phase (in cycles) along a line of elements at normalised positions ``u`` (in [-1, 1]) of a
-    square wave whose local period (in elements, ``n`` elements spanning 2) grows from
-    ``p_centre`` at ``centre`` to ``p_edge`` at a distance 1 as ``|u - centre| ** growth``."""
+    square wave whose local period (in elements, ``n`` elements spanning 2) goes from
+    ``p_centre`` at ``centre`` to ``p_edge`` at a distance 1 as ``|u - centre| ** growth``
+    (growing or shrinking)."""
     n = u.size
     period = p_centre + (p_edge - p_centre) * np.minimum(np.abs(u - centre), 1.0) ** growth
     phase = np.cumsum(1.0 / period)

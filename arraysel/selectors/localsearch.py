@@ -51,7 +51,8 @@ FRESH_CHOICES = ("random", "chirp")
 #: chirped layouts a ``fresh = chirp`` restart scores (one call), keeping the best
 FRESH_CHIRPS = 32
 
-__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps", "random_swap_pairs"]
+__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps",
+           "random_swap_pairs"]
 
 
 def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

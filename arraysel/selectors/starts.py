@@ -192,7 +192,7 @@ def start_options(default: str = "uniform") -> dict[str, Option]:
         "start": Option(str, default, "start selection: uniform, random, greedy (backward elimination, "
                         "up to about Ne^2/2 evaluations, at most half the budget: several elements a step "
                         f"when one a step does not fit), chirp (the best of {CHIRP_CANDIDATES} random chirped "
-                        "layouts: period growing from the centre to the edges) or elements (the list in the "
+                        "layouts: period changing from the centre to the edges) or elements (the list in the "
                         "option elements)",
                         choices=START_CHOICES),
         "elements": Option(str, None, "start elements, e.g. '0 2 4 ...' (k distinct indices; implies "
@@ -215,8 +215,8 @@ def start_selection(how: str, objective, k: int, rng: np.random.Generator, eleme
 def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str | None, option: str) -> list[int]:
     """The start selection ``how`` names: ``uniform`` (:func:`uniform_layout`, matrix arrays
     included), ``random``, ``greedy`` (:func:`greedy_selection`, spends evaluations), ``chirp``
-    (:func:`chirp_selection`, spends :data:`CHIRP_CANDIDATES` evaluations) or ``elements`` (the text of the option ``elements``); ``elements`` given means ``elements``
-    whatever ``how`` says."""
+    (:func:`chirp_selection`, spends :data:`CHIRP_CANDIDATES` evaluations) or ``elements`` (the
+    text of the option ``elements``); ``elements`` given means ``elements`` whatever ``how`` says."""
     n = int(objective.n_elements)
     if elements is not None:
         how = "elements"
