@@ -6,8 +6,9 @@ swapping one active and one inactive element, with first improvement (chunks of
 ``chunk`` neighbours per call, a share ``guide`` of each in the order the loss's
 gradient predicts, the rest in a random order) or best improvement (all
 ``k (Ne - k)`` neighbours per step, scored in one call). At a local optimum it
-perturbs the best selection by ``perturb`` random swaps and descends again
-(iterated local search), and after ``restart_after`` non-improving
+perturbs the best selection by ``perturb`` random swaps (growing by one swap after each
+perturbation without a new best, up to ``max_perturb``) and descends again (iterated local
+search), and after ``restart_after`` non-improving
 perturbations it restarts from a random selection, until the budget is spent.
 See :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
@@ -34,6 +35,9 @@ class SwapSelector(Selector):
                        "local optimum is declared (first mode)", lo=0.01, hi=1.0),
         "perturb": Option(int, 2, "random swaps of an iterated-local-search perturbation (0: restart "
                           "from a random selection at each local optimum)", lo=0),
+        "max_perturb": Option(int, 2, "most random swaps of a perturbation: the strength grows from perturb by "
+                              "one after each perturbation without a new best (variable strength; perturb "
+                              "or less: fixed)", lo=0),
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
                                 "a random selection (0: never restart)", lo=0),
         "fresh": Option(str, "random", "restarts: random selections, or chirp (the best of "
@@ -47,7 +51,8 @@ class SwapSelector(Selector):
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
-                            perturb=o["perturb"], restart_after=o["restart_after"], fresh=o["fresh"])
+                            perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
+                            restart_after=o["restart_after"], fresh=o["fresh"])
         return search.run(start)[0]
 
 

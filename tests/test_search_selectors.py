@@ -453,6 +453,34 @@ def test_a_guided_descent_without_a_usable_gradient_scores_like_an_unguided_one(
     assert got[0] == got[1]
 
 
+def test_perturbation_strength_grows_without_a_new_best_and_falls_back_after_one(monkeypatch):
+    from arraysel.selectors import localsearch
+    from arraysel.selectors.contract import numpy_rng
+
+    strengths = []
+    real = localsearch.random_swaps
+
+    def recording(mask, m, rng):
+        strengths.append(m)
+        return real(mask, m, rng)
+
+    monkeypatch.setattr(localsearch, "random_swaps", recording)
+    n, k = 30, 8
+    for max_perturb in (2, 6):
+        strengths.clear()
+        obj = ToyObjective(n, k)
+        budget = Budget(evaluations=200000).start(obj)
+        view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
+        search = localsearch.SwapSearch(view, k, numpy_rng(0), perturb=2, max_perturb=max_perturb, max_rounds=40)
+        search.run(list(range(k)))
+        assert strengths and min(strengths) == 2 and max(strengths) <= max_perturb
+        # consecutive strengths: one more after a round without a new best, else back to perturb
+        assert all(b in (2, min(max_perturb, a + 1)) for a, b in zip(strengths, strengths[1:]))
+        assert max(strengths) == max_perturb                     # 2: a fixed strength; 6: grown to it
+    with pytest.raises(ParameterError, match="max_perturb"):
+        localsearch.SwapSearch(view, k, numpy_rng(0), perturb=3, max_perturb=2)
+
+
 def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_clock(reg, tmp_path):
     from arraysel.run.runners import PreparedForNeighbourhoods, RunSpec, make_runner, scores_neighbourhoods
 

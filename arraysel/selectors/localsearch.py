@@ -22,7 +22,11 @@ neighbours. :class:`SwapSearch` is an iterated local search:
 
 2. **perturbation**: from the best local optimum found, ``perturb`` random
    swaps, then a new descent; the result replaces the base when it is no
-   worse (better-or-equal acceptance);
+   worse (better-or-equal acceptance). With ``max_perturb`` above ``perturb``
+   the strength grows by one swap after each perturbation that found no new
+   best, up to ``max_perturb``, and falls back to ``perturb`` after one that
+   did (variable-strength perturbation: a good selection's basin is often
+   wider than a two-swap step, which a descent undoes);
 3. **restart**: after ``restart_after`` perturbations in a row that did not
    improve the best, the next descent starts from a fresh start selection
    (``restart_from``, or ``fresh``: a random one by default, or the best of
@@ -188,6 +192,8 @@ class SwapSearch:
     scan : fraction of the neighbourhood scored without improvement before a
         selection counts as a local optimum (``first`` mode; 1: all of it)
     perturb : random swaps of a perturbation (0: no perturbation, restart instead)
+    max_perturb : most random swaps of a perturbation, its strength growing from ``perturb`` by
+        one after each perturbation without a new best (None: ``perturb``, a fixed strength)
     restart_after : non-improving perturbations in a row before a restart (0: never)
     restart_from : callable ``rng -> mask`` giving restart selections (default: by ``fresh``)
     fresh : ``random`` (a uniformly random selection) or ``chirp`` (the best of
@@ -202,7 +208,7 @@ class SwapSearch:
     MAX_IDLE_ROUNDS = 200
 
     def __init__(self, objective, k: int, rng: np.random.Generator, *, mode: str = "first", chunk: int = 64,
-                 scan: float = 1.0, perturb: int = 2, restart_after: int = 0,
+                 scan: float = 1.0, perturb: int = 2, max_perturb: int | None = None, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
                  fresh: str = "random"):
@@ -214,6 +220,8 @@ class SwapSearch:
         self.chunk = int(check_number("chunk", chunk, lo=1, integer=True))
         self.scan = float(check_number("scan", scan, lo=0.0, hi=1.0, lo_open=True))
         self.perturb = int(check_number("perturb", perturb, lo=0, integer=True))
+        self.max_perturb = self.perturb if max_perturb is None else \
+            int(check_number("max_perturb", max_perturb, lo=self.perturb, integer=True))
         self.restart_after = int(check_number("restart_after", restart_after, lo=0, integer=True))
         self.restart_from = restart_from
         self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
@@ -342,6 +350,7 @@ class SwapSearch:
         self.local_optima += 1
         stale = 0
         rounds = 0
+        strength = self.perturb
         idle = 0  # rounds in a row that scored nothing new (everything nearby is cached)
         if self.k in (0, self.n):
             return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
@@ -352,9 +361,9 @@ class SwapSearch:
             spent = len(self._cache)
             restart = (self.restart_after and stale >= self.restart_after) or self.perturb == 0
             if restart:
-                start_mask, stale = self._fresh_mask(self.rng), 0
+                start_mask, stale, strength = self._fresh_mask(self.rng), 0, self.perturb
             else:
-                start_mask = random_swaps(base, self.perturb, self.rng)
+                start_mask = random_swaps(base, strength, self.rng)
             v = float(self.score(start_mask[None])[0])
             cand, cand_value = self.descend(start_mask, v)
             self.local_optima += 1
@@ -363,6 +372,7 @@ class SwapSearch:
             if restart or cand_value <= base_value:
                 base, base_value = cand, cand_value
             stale = 0 if improved else stale + 1
+            strength = self.perturb if improved else min(self.max_perturb, strength + 1)
             idle = idle + 1 if len(self._cache) == spent else 0
             if idle >= self.MAX_IDLE_ROUNDS:
                 break  # the reachable selections are all scored (a tiny problem)
