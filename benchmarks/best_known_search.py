@@ -29,11 +29,12 @@ RECIPES = {
     "paper": [("ils", {"start": "uniform", "fresh": "chirp", "starts": 3}), ("ils", {}), ("memetic", {}),
               ("ils", {"mode": "best", "starts": 7}), ("swap", {"start": "random", "mode": "best"}),
               ("ils", {"relink": 0.6}), ("ils", {"mode": "best", "relink": 0.6})],
-    "l11-5v": [("swap", {"start": "chirp", "fresh": "chirp", "max_perturb": 8}), ("swap", {"start": "chirp"}), ("memetic", {"init": "chirp"}),
-               ("ils", {"start": "chirp", "fresh": "chirp"}), ("memetic", {}), ("ils", {}), ("anneal", {}),
-               ("ils", {"relink": 0.6}), ("swap", {})],
-    "c5-2v": [("swap", {"max_perturb": 8}), ("anneal", {}), ("ils", {"start": "uniform", "fresh": "chirp", "starts": 3}), ("memetic", {}),
-              ("ils", {}), ("ils", {"relink": 0.6}), ("swap", {})],
+    "l11-5v": [("swap", {"start": "chirp", "fresh": "chirp", "max_perturb": 8}), ("swap", {"start": "chirp"}),
+               ("memetic", {"init": "chirp"}), ("ils", {"start": "chirp", "fresh": "chirp"}), ("memetic", {}),
+               ("ils", {}), ("anneal", {}), ("ils", {"relink": 0.6}), ("swap", {})],
+    "c5-2v": [("swap", {"max_perturb": 8}), ("anneal", {}),
+              ("ils", {"start": "uniform", "fresh": "chirp", "starts": 3}), ("memetic", {}), ("ils", {}),
+              ("ils", {"relink": 0.6}), ("swap", {})],
 }
 
 

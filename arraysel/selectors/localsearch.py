@@ -412,6 +412,8 @@ class EliteSearch(SwapSearch):
         self.elite = int(check_number("elite", elite, lo=1, integer=True))
         self.relink_p = float(check_number("relink", relink, lo=0.0, hi=1.0))
         self.relink_batch = int(check_number("relink_batch", relink_batch, lo=1, integer=True))
+        # replaces SwapSearch's max_perturb (which must be >= perturb): here any count >= 0, used as
+        # at least 1 by the rounds' own strength schedule (run)
         self.max_perturb = int(check_number("max_perturb", max_perturb, lo=0, integer=True))
         self.pool: list[tuple[float, bytes, np.ndarray]] = []  # (value, key, mask), best first
         self.relinks = 0
