@@ -41,7 +41,12 @@ class SwapSelector(Selector):
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
                                 "a random selection (0: never restart)", lo=0),
         "fresh": Option(str, "random", "restarts: random selections, or chirp (the best of "
-                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call)", choices=FRESH_CHOICES),
+                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call) and the "
+                        "extra starts of a race", choices=FRESH_CHOICES),
+        "race": Option(int, 1, "searches raced by successive halving: the one from start and race - 1 "
+                       "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
+        "race_quota": Option(int, 500, "selections each raced search scores in the first turn (doubled "
+                             "each turn)", lo=1),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -52,7 +57,8 @@ class SwapSelector(Selector):
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
                             perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
-                            restart_after=o["restart_after"], fresh=o["fresh"])
+                            restart_after=o["restart_after"], fresh=o["fresh"],
+                            race=o["race"], race_quota=o["race_quota"])
         return search.run(start)[0]
 
 

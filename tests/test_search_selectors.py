@@ -112,6 +112,8 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {"start": "random", "mode": "best"}, (0,)),
     ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
     ("swap", {"start": "chirp", "fresh": "chirp"}, (0, 1)),
+    ("swap", {"race": 4, "race_quota": 50}, (0, 1)),
+    ("swap", {"race": 3, "race_quota": 20, "fresh": "chirp", "max_perturb": 4}, (0,)),
     ("ils", {}, (0, 1, 2)),
     ("ils", {"mode": "best", "relink": 1.0}, (0, 1)),
     ("ils", {"start": "chirp", "fresh": "chirp"}, (0, 1, 2)),
@@ -457,28 +459,99 @@ def test_perturbation_strength_grows_without_a_new_best_and_falls_back_after_one
     from arraysel.selectors import localsearch
     from arraysel.selectors.contract import numpy_rng
 
-    strengths = []
+    calls = []  # (strength, best value before the round)
     real = localsearch.random_swaps
+    holder = {}
 
     def recording(mask, m, rng):
-        strengths.append(m)
+        calls.append((m, holder["search"].best_value))
         return real(mask, m, rng)
 
     monkeypatch.setattr(localsearch, "random_swaps", recording)
-    n, k = 30, 8
+    n, k = 24, 8
+
+    class Rugged:  # a random landscape: local optima everywhere, so perturbations find new bests
+        n_elements = n
+
+        def score(self, masks):
+            return np.array([np.random.default_rng(list(np.packbits(m))).random() for m in masks])
+
+        def remaining(self):
+            return math.inf
+
     for max_perturb in (2, 6):
-        strengths.clear()
-        obj = ToyObjective(n, k)
-        budget = Budget(evaluations=200000).start(obj)
-        view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
-        search = localsearch.SwapSearch(view, k, numpy_rng(0), perturb=2, max_perturb=max_perturb, max_rounds=40)
+        calls.clear()
+        search = holder["search"] = localsearch.SwapSearch(Rugged(), k, numpy_rng(0), perturb=2,
+                                                           max_perturb=max_perturb, restart_after=0,
+                                                           max_rounds=60)
         search.run(list(range(k)))
-        assert strengths and min(strengths) == 2 and max(strengths) <= max_perturb
-        # consecutive strengths: one more after a round without a new best, else back to perturb
-        assert all(b in (2, min(max_perturb, a + 1)) for a, b in zip(strengths, strengths[1:]))
+        strengths = [m for m, _ in calls]
+        assert strengths and strengths[0] == 2 and max(strengths) <= max_perturb
+        # after a round that found a new best: back to perturb; after one that did not: one more
+        for (a, before), (b, after) in zip(calls, calls[1:]):
+            assert b == (2 if after < before else min(max_perturb, a + 1)), (a, b, before, after)
         assert max(strengths) == max_perturb                     # 2: a fixed strength; 6: grown to it
+        assert sum(after < before for (_, before), (_, after) in zip(calls, calls[1:])) >= 2  # new bests
+    obj = ToyObjective(n, k)
+    budget = Budget(evaluations=1000).start(obj)
+    view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
     with pytest.raises(ParameterError, match="max_perturb"):
         localsearch.SwapSearch(view, k, numpy_rng(0), perturb=3, max_perturb=2)
+
+
+def test_a_race_keeps_the_better_half_after_each_turn_and_doubles_the_quota(monkeypatch):
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+
+    obj, view, _ = _view(evaluations=1000, k=4, n=8)
+    search = SwapSearch(view, 4, numpy_rng(0), race=4, race_quota=20)
+    starts = [np.array([c == "1" for c in bits]) for bits in ("11110000", "01111000", "00111100", "00011110")]
+    paths = {"a": [5, 4, 3, 2, 1, 0.5], "b": [3, 2.5, 2.4, 2.3, 2.2, 2.1, 2.0], "c": [9, 8, 7], "d": [4, 1.0]}
+    names = dict(zip((m.tobytes() for m in starts), "abcd"))
+    steps = []
+
+    def descent(self, mask, value):  # a descent that scores 10 selections a move
+        name = names[mask.tobytes()]
+        for v in paths[name]:
+            self.scored += 10
+            steps.append(name)
+            yield mask, v
+
+    monkeypatch.setattr(SwapSearch, "_descent", descent)
+    winner = search.race_descents(starts)
+    # turn 1 (20 = 2 moves each): a 4, b 2.5, c 8, d 1.0 -> d, b; turn 2 (4 moves): d is at its
+    # local optimum (1.0, nothing scored), b 2.1 -> d wins; its descent is already finished
+    assert steps == list("aabbccdd") + list("bbbb")
+    assert winner is starts[3]
+
+
+def test_a_raced_search_descends_from_fresh_starts_and_returns_its_best(monkeypatch):
+    from arraysel.selectors import localsearch
+    from arraysel.selectors.contract import numpy_rng
+
+    obj, view, _ = _view(evaluations=400_000, k=10, n=40)
+    fresh = []
+    real = localsearch.SwapSearch._fresh_mask
+
+    def counted(self, rng):
+        fresh.append(1)
+        return real(self, rng)
+
+    monkeypatch.setattr(localsearch.SwapSearch, "_fresh_mask", counted)
+    search = localsearch.SwapSearch(view, 10, numpy_rng(3), race=6, race_quota=40, max_rounds=6,
+                                    restart_after=0)
+    elements, value = search.run(list(range(10)))
+    assert len(fresh) == 5 and len(elements) == 10
+    mask = np.zeros(40, dtype=bool)
+    mask[elements] = True
+    assert value == search.best_value == pytest.approx(float(obj.evaluate(mask[None])["Mean"][0]))
+    again = localsearch.SwapSearch(view, 10, numpy_rng(3), race=6, race_quota=40, max_rounds=6,
+                                   restart_after=0).run(list(range(10)))
+    assert again == (elements, value)  # reproducible per seed
+    with pytest.raises(ParameterError, match="race"):
+        localsearch.SwapSearch(view, 10, numpy_rng(0), race=0)
+    with pytest.raises(ParameterError, match="race_quota"):
+        localsearch.SwapSearch(view, 10, numpy_rng(0), race_quota=0)
 
 
 def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_clock(reg, tmp_path):
@@ -544,6 +617,8 @@ def test_a_chirp_start_whose_budget_ends_first_is_the_first_layout(reg):
 @pytest.mark.parametrize("k", [1, 12])
 def test_chirped_searches_run_at_k_1_and_k_equal_ne(reg, name, k):
     options = {"init": "chirp"} if name in ("memetic", "genetic") else {"start": "chirp", "fresh": "chirp"}
+    if name == "swap":
+        options["race"] = 3
     row = Experiment(ToyObjective(12, k), name, options=options, budget=Budget(evaluations=400), seed=0,
                      registry=reg).run()
     assert row["error"] == "" and len(row["elements"].split()) == k and np.isfinite(row["Mean"])
@@ -561,6 +636,26 @@ def test_fresh_chirp_restarts_are_the_best_of_their_layouts():
     assert (mask == masks[int(np.argmin(obj.evaluate(masks)["Mean"]))]).all()
     with pytest.raises(ParameterError, match="fresh"):
         SwapSearch(view, 10, numpy_rng(0), fresh="sometimes")
+
+
+def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+    from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks
+
+    obj, view, _ = _view(evaluations=100_000, k=10, n=20)
+    starts = SwapSearch(view, 10, numpy_rng(7), fresh="chirp", race=4)._race_starts(3)
+    masks = chirp_masks(obj, 10, numpy_rng(7), 3 * CHIRP_CANDIDATES)
+    values = obj.evaluate(masks)["Mean"]
+    expected, seen = [], set()
+    for i in np.argsort(values, kind="stable"):
+        key = masks[i].tobytes()
+        if key not in seen:
+            seen.add(key)
+            expected.append(masks[i])
+    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected[:3]))
+    randoms = SwapSearch(view, 10, numpy_rng(7), race=4)._race_starts(3)  # fresh = random
+    assert len(randoms) == 3 and all(int(m.sum()) == 10 for m in randoms)
 
 
 def test_a_chirp_population_keeps_the_best_distinct_layouts():

@@ -32,6 +32,14 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    (``restart_from``, or ``fresh``: a random one by default, or the best of
    :data:`FRESH_CHIRPS` random chirped layouts, :func:`arraysel.selectors.starts.chirp_masks`).
 
+With ``race`` above 1 the first descent is a **race** (successive halving): descents from the
+start and from ``race - 1`` fresh selections (``fresh = chirp``: the best distinct of
+``(race - 1) x`` :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts) move in
+turns of ``race_quota`` scored selections each, the better half going on after each turn with
+the quota doubled; the winner's local optimum is where the iterated local search goes on. Where
+a descent's outcome depends mostly on its start (a probe whose good selections are block
+layouts, such as l11-5v), this spends the budget on the promising starts.
+
 It runs until the objective raises :class:`~arraysel.selectors.contract.BudgetExhausted`
 or its budget is spent (or ``max_rounds`` perturbations when given, or when
 :attr:`SwapSearch.MAX_IDLE_ROUNDS` rounds in a row found nothing new to
@@ -48,7 +56,7 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import swap_masks, swap_pairs
-from arraysel.selectors.starts import chirp_masks, random_mask
+from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
 #: where fresh selections (restarts, extra starts) come from
 FRESH_CHOICES = ("random", "chirp")
@@ -202,6 +210,9 @@ class SwapSearch:
         predicts (:class:`GuidedOrder`; 0: random order only, no gradient computed)
     max_rounds : stop after this many perturbations/restarts (None: until the budget ends)
     cache_size : most scored selections remembered
+    race : descents raced by successive halving (:meth:`race_descents`) before the iterated local
+        search: the one from the start and ``race - 1`` from fresh selections (1: no race)
+    race_quota : selections each raced descent scores in the first turn (doubled each turn)
     """
 
     #: rounds in a row without a newly scored selection after which the search stops
@@ -211,7 +222,7 @@ class SwapSearch:
                  scan: float = 1.0, perturb: int = 2, max_perturb: int | None = None, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
-                 fresh: str = "random"):
+                 fresh: str = "random", race: int = 1, race_quota: int = 500):
         self.objective = objective
         self.n = int(objective.n_elements)
         self.k = int(k)
@@ -225,6 +236,8 @@ class SwapSearch:
         self.restart_after = int(check_number("restart_after", restart_after, lo=0, integer=True))
         self.restart_from = restart_from
         self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
+        self.race = int(check_number("race", race, lo=1, integer=True))
+        self.race_quota = int(check_number("race_quota", race_quota, lo=1, integer=True))
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
@@ -234,6 +247,7 @@ class SwapSearch:
         self.best_value = math.inf
         self.moves = 0
         self.local_optima = 0
+        self.scored = 0  # selections scored (cache misses)
 
     # -- scoring with a cache ----------------------------------------------------
     @staticmethod
@@ -267,6 +281,7 @@ class SwapSearch:
         if todo:
             idx = np.asarray(todo)
             values = scorer(idx)
+            self.scored += len(todo)
             out[idx] = values
             if len(self._cache) + len(todo) > self.cache_size:
                 self._cache.clear()
@@ -282,10 +297,17 @@ class SwapSearch:
     def descend(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float]:
         """Improve ``mask`` by swaps until it is a local optimum; return it and its value."""
         mask = mask.copy()
+        for mask, value in self._descent(mask, value):
+            pass
+        return mask, value
+
+    def _descent(self, mask: np.ndarray, value: float):
+        """:meth:`descend` one move at a time: yields ``(mask, value)`` after each improving swap
+        and ends at a local optimum."""
         while True:
             a, b = swap_pairs(mask, self.rng)
             if a.size == 0:
-                return mask, value
+                return
             moved = False
             if self.mode == "best":
                 cands, values = self.score_swaps(mask, a, b)
@@ -306,9 +328,10 @@ class SwapSearch:
                         self.guide.credit(None if g is None else bool(i < ng))
                         break
             if not moved:
-                return mask, value
+                return
             self.moves += 1
             self._note(mask, value)
+            yield mask, value
 
     # -- iterated local search ---------------------------------------------------------
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
@@ -325,6 +348,17 @@ class SwapSearch:
             return masks[int(np.argmin(values))].copy()
         return self._random_mask(rng)
 
+    def _race_starts(self, m: int) -> list[np.ndarray]:
+        """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
+        selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x
+        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call."""
+        if self.restart_from is not None or self.fresh != "chirp":
+            return [self._fresh_mask(self.rng) for _ in range(m)]
+        masks = chirp_masks(self.objective, self.k, self.rng, m * CHIRP_CANDIDATES)
+        order = np.argsort(self.score(masks), kind="stable")
+        _, first = np.unique(np.packbits(masks[order], axis=1), axis=0, return_index=True)
+        return [masks[order[i]].copy() for i in np.sort(first)[:m]]
+
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
         mask = np.asarray(start)
@@ -340,43 +374,83 @@ class SwapSearch:
 
     def run(self, start) -> tuple[list[int], float]:
         """Search from ``start`` (element indices or a boolean mask); return the best
-        selection and its Mean. Ends by the objective's BudgetExhausted (propagated)
-        or after ``max_rounds`` rounds."""
+        selection and its Mean. With ``race`` above 1, descents from it and ``race - 1``
+        fresh selections are raced (:meth:`race_descents`) and the search goes on from the
+        winner's local optimum. Ends by the objective's BudgetExhausted (propagated) or after
+        ``max_rounds`` rounds."""
         mask = self._start_mask(start)
+        if self.k in (0, self.n):
+            self._note(mask, float(self.score(mask[None])[0]))
+        else:
+            if self.race > 1:
+                mask = self.race_descents([mask] + self._race_starts(self.race - 1))
+            self.iterate(mask)
+        return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
+
+    def race_descents(self, starts: list[np.ndarray]) -> np.ndarray:
+        """Successive halving of descents (:meth:`descend`) from ``starts``: each in turn moves
+        until ``race_quota`` more selections were scored (or it reaches its local optimum), then
+        the better half by value goes on with the quota doubled, until one is left; its descent
+        is finished and its local optimum returned. A descent that has reached its local optimum
+        scores nothing more while it stays in the race."""
+        racers = []
+        for m in starts:
+            v = float(self.score(m[None])[0])
+            self._note(m, v)
+            racers.append([self._descent(m, v), m, v, False])
+        quota = self.race_quota
+        while len(racers) > 1:
+            for r in racers:
+                stop = self.scored + quota
+                while not r[3] and self.scored < stop:
+                    try:
+                        r[1], r[2] = next(r[0])
+                    except StopIteration:
+                        r[3] = True
+            racers.sort(key=lambda r: r[2])
+            racers = racers[:len(racers) // 2]
+            quota *= 2
+        descent, mask, _, _ = racers[0]
+        for mask, _ in descent:
+            pass
+        self.local_optima += len(starts) - 1
+        return mask
+
+    def iterate(self, mask: np.ndarray) -> None:
+        """The iterated local search from ``mask`` (see the module): descent, then rounds of
+        perturbation (or restart) and descent; ends after ``max_rounds`` rounds, when the budget
+        is spent or when nothing new is left to score (BudgetExhausted propagates). The best
+        selection is ``best_mask``."""
         value = float(self.score(mask[None])[0])
         self._note(mask, value)
         base, base_value = self.descend(mask, value)
-        self._note(base, base_value)
         self.local_optima += 1
-        stale = 0
-        rounds = 0
+        best = base_value
+        stale = rounds = idle = 0  # idle: rounds in a row that scored nothing new
         strength = self.perturb
-        idle = 0  # rounds in a row that scored nothing new (everything nearby is cached)
-        if self.k in (0, self.n):
-            return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
         while self.max_rounds is None or rounds < self.max_rounds:
             rounds += 1
             if self.objective.remaining() <= 0:  # also stops a time budget when all is cached
-                break
-            spent = len(self._cache)
+                return
+            spent = self.scored
             restart = (self.restart_after and stale >= self.restart_after) or self.perturb == 0
             if restart:
                 start_mask, stale, strength = self._fresh_mask(self.rng), 0, self.perturb
             else:
                 start_mask = random_swaps(base, strength, self.rng)
             v = float(self.score(start_mask[None])[0])
+            self._note(start_mask, v)
             cand, cand_value = self.descend(start_mask, v)
             self.local_optima += 1
-            improved = cand_value < self.best_value
-            self._note(cand, cand_value)
+            improved = cand_value < best  # (the descent's moves are noted: compare with the best before)
+            best = min(best, cand_value)
             if restart or cand_value <= base_value:
                 base, base_value = cand, cand_value
             stale = 0 if improved else stale + 1
             strength = self.perturb if improved else min(self.max_perturb, strength + 1)
-            idle = idle + 1 if len(self._cache) == spent else 0
+            idle = idle + 1 if self.scored == spent else 0
             if idle >= self.MAX_IDLE_ROUNDS:
-                break  # the reachable selections are all scored (a tiny problem)
-        return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
+                return  # the reachable selections are all scored (a tiny problem)
 
 
 class EliteSearch(SwapSearch):
@@ -473,7 +547,7 @@ class EliteSearch(SwapSearch):
             rounds += 1
             if self.objective.remaining() <= 0:
                 break
-            spent = len(self._cache)
+            spent = self.scored
             best_before = self.best_value
             if not self.pool or (self.restart_after and stale >= self.restart_after):
                 m, stale = self._fresh_mask(self.rng), 0  # (an empty pool: nothing finite scored yet)
@@ -483,7 +557,7 @@ class EliteSearch(SwapSearch):
                 found = self.relink(self.pool[i][2], self.pool[j][2])
                 self.relinks += 1
                 if found is None:
-                    idle = idle + 1 if len(self._cache) == spent else 0
+                    idle = idle + 1 if self.scored == spent else 0
                     continue
                 m, v = found
             else:
@@ -499,7 +573,7 @@ class EliteSearch(SwapSearch):
             else:
                 stale += 1
                 strength = min(max(1, self.max_perturb), strength + 1)
-            idle = idle + 1 if len(self._cache) == spent else 0
+            idle = idle + 1 if self.scored == spent else 0
             if idle >= self.MAX_IDLE_ROUNDS:
                 break
         return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
