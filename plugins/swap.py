@@ -9,8 +9,10 @@ gradient predicts, the rest in a random order) or best improvement (all
 perturbs the best selection by ``perturb`` random swaps (growing by one swap after each
 perturbation without a new best, up to ``max_perturb``) and descends again (iterated local
 search), and after ``restart_after`` non-improving
-perturbations it restarts from a random selection, until the budget is spent.
-See :mod:`arraysel.selectors.localsearch` for the algorithm.
+perturbations it restarts from a random selection, until the budget is spent. With ``race``
+above 1 the first descent is a race of descents from the start and ``race - 1`` fresh
+selections (successive halving in turns of ``race_quota`` scored selections); the search goes
+on from the winner. See :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations
 
