@@ -45,9 +45,9 @@ class SwapSelector(Selector):
         "fresh": Option(str, "random", "restarts: random selections, or chirp (the best of "
                         f"{FRESH_CHIRPS} random chirped layouts each, scored in one call) and the "
                         "extra starts of a race", choices=FRESH_CHOICES),
-        "race": Option(int, 1, "searches raced by successive halving: the one from start and race - 1 "
+        "race": Option(int, 1, "first descents raced by successive halving: the one from start and race - 1 "
                        "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
-        "race_quota": Option(int, 500, "selections each raced search scores in the first turn (doubled "
+        "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "
                              "each turn)", lo=1),
     }
     deterministic = False

@@ -352,12 +352,12 @@ class SwapSearch:
         """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
         selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x
         :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call."""
+        from arraysel.selectors.population import survivors  # (population imports this module)
+
         if self.restart_from is not None or self.fresh != "chirp":
             return [self._fresh_mask(self.rng) for _ in range(m)]
         masks = chirp_masks(self.objective, self.k, self.rng, m * CHIRP_CANDIDATES)
-        order = np.argsort(self.score(masks), kind="stable")
-        _, first = np.unique(np.packbits(masks[order], axis=1), axis=0, return_index=True)
-        return [masks[order[i]].copy() for i in np.sort(first)[:m]]
+        return list(survivors(masks, self.score(masks), m)[0])
 
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
@@ -408,12 +408,12 @@ class SwapSearch:
                     except StopIteration:
                         r[3] = True
             racers.sort(key=lambda r: r[2])
+            self.local_optima += sum(r[3] for r in racers[len(racers) // 2:])  # the winner's: in iterate
             racers = racers[:len(racers) // 2]
             quota *= 2
         descent, mask, _, _ = racers[0]
         for mask, _ in descent:
             pass
-        self.local_optima += len(starts) - 1
         return mask
 
     def iterate(self, mask: np.ndarray) -> None:
