@@ -352,12 +352,12 @@ class SwapSearch:
         """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
         selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x
         :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call."""
-        from arraysel.selectors.population import survivors  # (population imports this module)
-
         if self.restart_from is not None or self.fresh != "chirp":
             return [self._fresh_mask(self.rng) for _ in range(m)]
         masks = chirp_masks(self.objective, self.k, self.rng, m * CHIRP_CANDIDATES)
-        return list(survivors(masks, self.score(masks), m)[0])
+        order = np.argsort(self.score(masks), kind="stable")
+        _, first = np.unique(np.packbits(masks[order], axis=1), axis=0, return_index=True)
+        return [masks[order[i]].copy() for i in np.sort(first)[:m]]
 
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
