@@ -190,3 +190,48 @@ def test_a_template_that_ended_between_runs_is_replaced(template):
     template.proc.join(10)
     again = template.run(_who, 0)
     assert again["ppid"] != first["ppid"] and len(template.warm_ups) == 2
+
+
+class _ThreadProbe(Selector):
+    """Records the torch and numba thread counts its run sees (in this process)."""
+    name = "thread_probe"
+    description = "records thread counts"
+    seen: list = []
+
+    def select(self, objective, k, seed):
+        import numba
+        import torch
+        type(self).seen.append((torch.get_num_threads(), numba.get_num_threads()))
+        return list(range(k))
+
+
+def test_a_run_in_this_process_gets_the_threads_asked_for_and_they_are_restored_after(tmp_path):
+    """``--in-process --threads 1``: each run (and the warm-up) has one torch and one numba thread;
+    the counts the process had are back after the comparison."""
+    import numba
+    import torch
+
+    from arraysel.objective.toy import ToyObjective
+    from arraysel.run.compare import compare
+    from arraysel.selectors.registry import SelectorRegistry
+
+    if int(numba.config.NUMBA_NUM_THREADS) < 2:
+        pytest.skip("numba has one thread here: nothing to restrict")
+    reg = SelectorRegistry()
+    reg.register(_ThreadProbe)
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(2)
+    numba.set_num_threads(2)
+    _ThreadProbe.seen.clear()
+    try:
+        compare(ToyObjective(16, 8), ["thread_probe"], out_dir=tmp_path, seeds=[0, 1], budget=Budget(evaluations=5),
+                registry=reg, progress=False, figures=False, isolate=False, threads=1)
+        assert _ThreadProbe.seen == [(1, 1), (1, 1)]
+        assert (torch.get_num_threads(), numba.get_num_threads()) == (2, 2)
+        _ThreadProbe.seen.clear()  # without threads: the runs see the process's own counts
+        compare(ToyObjective(16, 8), ["thread_probe"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=5),
+                registry=reg, progress=False, figures=False, isolate=False, force=True)
+        assert _ThreadProbe.seen == [(2, 2)]
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])

@@ -166,8 +166,11 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
         A selector class that cannot be sent to a child process runs in this process.
     grace_s : seconds past the time budget before an isolated run is stopped (default
         :data:`arraysel.run.isolation.DEFAULT_GRACE_S`)
-    threads : threads of each isolated local run (default: this process's torch threads); an
-        executor sets its own (``threads=`` of :func:`arraysel.run.executors.make_executor`)
+    threads : threads of each local run (torch, numba, BLAS): an isolated run's child has them;
+        with ``isolate=False`` they are set in this process for each run (and its warm-up) and
+        restored after it (default: an isolated run gets this process's torch threads, a run in
+        this process the counts as they are); an executor sets its own (``threads=`` of
+        :func:`arraysel.run.executors.make_executor`)
 
     Returns
     -------

@@ -130,21 +130,25 @@ class Runner:
 
 
 class InProcessRunner(Runner):
-    """The runs one after another in this process, on ``objective`` itself (warmed first). After
-    each, the objective must be as it was (:class:`_Fingerprint`): a run that changed it is
-    yielded with an error, then the comparison stops (:class:`~arraysel.errors.ArrayselError`)."""
+    """The runs one after another in this process, on ``objective`` itself (warmed first), each
+    with ``threads`` threads (torch, numba, BLAS; :func:`~arraysel.run.template.thread_counts`,
+    restored after it; ``None``: as they are). After each, the objective must be as it was
+    (:class:`_Fingerprint`): a run that changed it is yielded with an error, then the comparison
+    stops (:class:`~arraysel.errors.ArrayselError`)."""
 
-    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False):
+    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False,
+                 threads: int | None = None):
         self.objective, self.budget, self.grace = objective, budget, grace
-        self.full_mean, self.progress = full_mean, progress
+        self.full_mean, self.progress, self.threads = full_mean, progress, threads
         self.fingerprint: _Fingerprint | None = None
 
     def prepare(self, todo: list[RunSpec]) -> dict | None:
-        from arraysel.run.template import warm_objective
+        from arraysel.run.template import thread_counts, warm_objective
 
-        warm = warm_objective(self.objective) if todo else None
-        if warm is not None and any(scores_neighbourhoods(s) for s in todo):
-            warm["neighbourhoods_s"] = prepare_neighbourhoods(self.objective)
+        with thread_counts(self.threads):  # warmed as the runs will use it
+            warm = warm_objective(self.objective) if todo else None
+            if warm is not None and any(scores_neighbourhoods(s) for s in todo):
+                warm["neighbourhoods_s"] = prepare_neighbourhoods(self.objective)
         self.fingerprint = _Fingerprint(self.objective, self.full_mean)  # taken once warm
         return warm
 
@@ -160,10 +164,13 @@ class InProcessRunner(Runner):
     def run_one(self, spec: RunSpec) -> tuple[dict, list, str]:
         """``(row, trace, why)``: ``why`` is ``''`` unless the run changed the objective (then
         its row holds the error too)."""
+        from arraysel.run.template import thread_counts
+
         exp = Experiment(self.objective, spec.selector, options=spec.options, budget=self.budget, seed=spec.seed,
                          config=spec.config, progress=self.progress)
         try:
-            row, trace = exp.execute(), exp.trace
+            with thread_counts(self.threads):
+                row, trace = exp.execute(), exp.trace
         except BudgetExceededError as exc:
             row, trace = failure_row(self.objective, spec, exc, self.budget, self.grace), []
         changed = self.fingerprint.changed() if self.fingerprint is not None else ""
@@ -287,7 +294,7 @@ def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, ex
     (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before its clock starts: here
     by :meth:`InProcessRunner.prepare`, on workers by the recipe :class:`PreparedForNeighbourhoods`
     when ``neighbourhoods`` (some run of the comparison scores them)."""
-    local = InProcessRunner(objective, budget, grace, full_mean, progress)
+    local = InProcessRunner(objective, budget, grace, full_mean, progress, threads)
     remote = executor is not None and not getattr(executor, "in_process", False)
     if not remote and not isolate:
         return local

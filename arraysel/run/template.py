@@ -81,6 +81,42 @@ def set_threads(threads: int) -> None:
         threadpool_limits(threads, user_api="blas")
 
 
+@contextlib.contextmanager
+def thread_counts(threads: int | None):
+    """:func:`set_threads` ``(threads)`` for the ``with`` block, in this process; the torch and
+    numba counts and the BLAS limits it found are restored after it (``None`` or ``0``: nothing
+    is changed). A run in this process uses it, so that ``--threads`` holds there as it does in
+    a worker."""
+    threads = int(threads or 0)
+    if threads <= 0:
+        yield
+        return
+    import torch
+    numba = _loaded("numba")
+    before_torch = torch.get_num_threads()
+    before_numba = None
+    if numba is not None:
+        with contextlib.suppress(Exception):
+            before_numba = numba.get_num_threads()
+    limits = None
+    with contextlib.suppress(Exception):  # threadpoolctl missing: the BLAS limits stay as they are
+        from threadpoolctl import threadpool_limits
+        limits = threadpool_limits(threads, user_api="blas")
+    set_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before_torch)
+        numba = _loaded("numba")  # (a run may have imported it)
+        if numba is not None:
+            with contextlib.suppress(Exception):
+                numba.set_num_threads(before_numba if before_numba is not None else
+                                      int(numba.config.NUMBA_NUM_THREADS))
+        if limits is not None:
+            with contextlib.suppress(Exception):
+                limits.restore_original_limits()
+
+
 def _loaded(name: str):
     import sys
     return sys.modules.get(name)
