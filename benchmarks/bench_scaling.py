@@ -58,16 +58,17 @@ def main(argv=None) -> int:
     distributed_random_search(factory, min(masks, chunk), None, args.seed, None, chunk)  # build + warm
     ref = None
     # in-process twice: with torch's default intra-op threads, and with one thread (what each
-    # worker process gets when there are as many workers as cores)
+    # worker process gets when there are as many workers as cores: torch, numba and BLAS alike)
+    from arraysel.run.template import thread_counts
+
     for threads in dict.fromkeys([default_threads, 1]):
-        torch.set_num_threads(threads)
-        res = min((distributed_random_search(factory, masks, None, args.seed, None, chunk)
-                   for _ in range(args.repeat)), key=lambda r: r.seconds)
+        with thread_counts(threads):
+            res = min((distributed_random_search(factory, masks, None, args.seed, None, chunk)
+                       for _ in range(args.repeat)), key=lambda r: r.seconds)
         ref = ref or res
         rows.append({"executor": f"in-process/{threads}t", "workers": 1, "seconds": res.seconds,
                      "masks_per_second": res.masks_per_second, "startup_s": 0.0,
                      "best_mean": res.mean, "same_best": res.elements == ref.elements})
-    torch.set_num_threads(default_threads)
     for w in counts:
         t0 = time.perf_counter()
         ex = ProcessExecutor(workers=w) if args.executor == "process" else DaskExecutor(workers=w)
