@@ -12,6 +12,9 @@ Selectors return plain index lists; :func:`check_selection` validates what a sel
 and :func:`masks_from_indices` a batch of index lists given by a user. Every check raises
 :class:`~arraysel.errors.SelectionError` naming what is wrong. Numpy only (a torch tensor is
 accepted wherever a sequence is, through ``.detach()``).
+
+Batches of masks in a search: :func:`mask_key` is a mask's hashable key, :func:`survivors` the
+best distinct masks of a scored batch (a population's survivors, a race's starts).
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import numpy as np
 from arraysel.errors import SelectionError
 
 __all__ = ["Selection", "check_selection", "indices_to_mask", "mask_to_indices", "masks_from_indices", "format_elements",
-           "parse_element_text"]
+           "parse_element_text", "mask_key", "survivors"]
 
 
 def _plain(x: Any):
@@ -174,3 +177,23 @@ class Selection:
 
     def __str__(self) -> str:
         return self.text
+
+
+def mask_key(mask: np.ndarray) -> bytes:
+    """A hashable key of a boolean mask (its packed bits)."""
+    return np.packbits(mask).tobytes()
+
+
+def survivors(masks: np.ndarray, values: np.ndarray, mu: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``mu`` best distinct masks of ``masks`` (ties: the earlier first) and their values,
+    best first."""
+    order = np.lexsort((np.arange(values.size), values))
+    keep, seen = [], set()
+    for idx in order:
+        key = mask_key(masks[idx])
+        if key not in seen:
+            seen.add(key)
+            keep.append(idx)
+        if len(keep) == mu:
+            break
+    return masks[keep], values[keep]

@@ -64,12 +64,14 @@ def threads_per_worker(workers: int, cores: int | None = None) -> int:
     return max(1, cores // max(1, int(workers)))
 
 
-def set_threads(threads: int) -> None:
+def set_threads(threads: int):
     """Use ``threads`` threads in this process for torch (intra-op), numba's parallel loops and the
-    BLAS libraries numpy and scipy load (``threadpoolctl``); ``0``: leave them as they are."""
+    BLAS libraries numpy and scipy load (``threadpoolctl``); ``0``: leave them as they are.
+    Returns threadpoolctl's limiter (its ``restore_original_limits()`` undoes the BLAS limit), or
+    None (nothing set, or threadpoolctl unable to)."""
     threads = int(threads or 0)
     if threads <= 0:
-        return
+        return None
     import torch
     torch.set_num_threads(threads)
     numba = _loaded("numba")
@@ -78,7 +80,8 @@ def set_threads(threads: int) -> None:
             numba.set_num_threads(min(threads, int(numba.config.NUMBA_NUM_THREADS)))
     with contextlib.suppress(Exception):  # threadpoolctl missing or a library it cannot drive
         from threadpoolctl import threadpool_limits
-        threadpool_limits(threads, user_api="blas")
+        return threadpool_limits(threads, user_api="blas")
+    return None
 
 
 @contextlib.contextmanager
@@ -98,23 +101,19 @@ def thread_counts(threads: int | None):
     if numba is not None:
         with contextlib.suppress(Exception):
             before_numba = numba.get_num_threads()
-    limits = None
-    with contextlib.suppress(Exception):  # threadpoolctl missing: the BLAS limits stay as they are
-        from threadpoolctl import threadpool_limits
-        limits = threadpool_limits(threads, user_api="blas")
-    set_threads(threads)
+    limits = set_threads(threads)
     try:
         yield
-    finally:
+    finally:  # the BLAS limits first: restoring them may touch the library torch's threads read
+        if limits is not None:
+            with contextlib.suppress(Exception):
+                limits.restore_original_limits()
         torch.set_num_threads(before_torch)
         numba = _loaded("numba")  # (a run may have imported it)
         if numba is not None:
             with contextlib.suppress(Exception):
                 numba.set_num_threads(before_numba if before_numba is not None else
                                       int(numba.config.NUMBA_NUM_THREADS))
-        if limits is not None:
-            with contextlib.suppress(Exception):
-                limits.restore_original_limits()
 
 
 def _loaded(name: str):

@@ -56,6 +56,7 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import swap_masks, swap_pairs
+from arraysel.selection import mask_key, survivors
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
 #: where fresh selections (restarts, extra starts) come from
@@ -250,10 +251,6 @@ class SwapSearch:
         self.scored = 0  # selections scored (cache misses)
 
     # -- scoring with a cache ----------------------------------------------------
-    @staticmethod
-    def _key(mask: np.ndarray) -> bytes:
-        return np.packbits(mask).tobytes()
-
     def score(self, masks: np.ndarray) -> np.ndarray:
         """Mean of each mask (NaN as +inf); selections seen before are not scored again."""
         return self._cached(masks, lambda todo: self.objective.score(masks[todo]))
@@ -269,7 +266,7 @@ class SwapSearch:
         return cands, self._cached(cands, lambda todo: own(mask, a[todo], b[todo]))
 
     def _cached(self, masks: np.ndarray, scorer) -> np.ndarray:
-        keys = [self._key(m) for m in masks]
+        keys = [mask_key(m) for m in masks]
         out = np.full(len(keys), math.inf)
         todo = []
         for i, key in enumerate(keys):
@@ -355,9 +352,7 @@ class SwapSearch:
         if self.restart_from is not None or self.fresh != "chirp":
             return [self._fresh_mask(self.rng) for _ in range(m)]
         masks = chirp_masks(self.objective, self.k, self.rng, m * CHIRP_CANDIDATES)
-        order = np.argsort(self.score(masks), kind="stable")
-        _, first = np.unique(np.packbits(masks[order], axis=1), axis=0, return_index=True)
-        return [masks[order[i]].copy() for i in np.sort(first)[:m]]
+        return list(survivors(masks, self.score(masks), m)[0])
 
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
@@ -495,7 +490,7 @@ class EliteSearch(SwapSearch):
     def _enter(self, mask: np.ndarray, value: float) -> None:
         """Offer a local optimum to the elite pool (distinct selections, the best ``elite``)."""
         self._note(mask, value)
-        key = self._key(mask)
+        key = mask_key(mask)
         if any(key == kk for _, kk, _ in self.pool) or not math.isfinite(value):
             return
         if len(self.pool) >= self.elite:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.layouts import uniform_layout
 from arraysel.selectors.localsearch import random_swaps
@@ -39,11 +40,6 @@ POPULATION_OPTIONS = {
                    f"chirp (the best of {CHIRP_POOL} x population random chirped layouts)",
                    choices=("random", "chirp")),
 }
-
-
-def mask_key(mask: np.ndarray) -> bytes:
-    """A hashable key of a boolean mask (its packed bits)."""
-    return np.packbits(mask).tobytes()
 
 
 def initial_population(rng: np.random.Generator, mu: int, n: int, k: int) -> np.ndarray:
@@ -95,21 +91,6 @@ def breed(pop: np.ndarray, fit: np.ndarray, children: int, rng: np.random.Genera
         known.add(key)
         out[c] = child
     return out
-
-
-def survivors(masks: np.ndarray, values: np.ndarray, mu: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``mu`` best distinct masks of ``masks`` (ties: the earlier first) and their values,
-    best first."""
-    order = np.lexsort((np.arange(values.size), values))
-    keep, seen = [], set()
-    for idx in order:
-        key = mask_key(masks[idx])
-        if key not in seen:
-            seen.add(key)
-            keep.append(idx)
-        if len(keep) == mu:
-            break
-    return masks[keep], values[keep]
 
 
 def next_generation(objective, pop: np.ndarray, fit: np.ndarray, rng: np.random.Generator,
