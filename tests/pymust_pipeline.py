@@ -105,6 +105,51 @@ def si_mse(k: np.ndarray, ref: np.ndarray) -> float:
     return float(np.linalg.norm(a * k - ref) ** 2 / np.linalg.norm(ref) ** 2)
 
 
+def setup_param(setup):
+    """PyMUST's ``param`` for an arraysel 1-D PSF setup (``PSFSetup``): the probe's geometry
+    field by field (so any catalogue or custom probe, linear or convex), the acquisition's
+    sampling rate, speed of sound, attenuation and transmit cycles, the receive f-number."""
+    pm = _pymust()
+    probe, acq = setup.probe, setup.acq
+    param = pm.getparam("P4-2v")
+    param.fc, param.pitch, param.width = probe.fc, probe.pitch, probe.width
+    param.kerf = probe.pitch - probe.width
+    param.Nelements, param.bandwidth = probe.n_elements, probe.bandwidth
+    param.radius, param.height, param.focus = probe.radius, probe.height, probe.elevation_focus
+    if probe.baffle != "soft":
+        param.baffle = probe.baffle
+    param.fs, param.c = acq.fs, acq.c
+    param.attenuation, param.TXnow = acq.attenuation, acq.tx_cycles
+    param.fnumber = setup.fnumber
+    return param
+
+
+def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
+    """SPEC §1's kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
+    PyMUST (``txdelay``, ``simus``, ``rf2iq``, ``dasmtx`` on the setup's own grid), for scenes
+    unlike the paper's: another probe, a convex one, attenuation, a longer pulse, an f-number,
+    a point off the axis, other transmits."""
+    pm = _pymust()
+    param = setup_param(setup)
+    X, Z = np.meshgrid(np.asarray(setup.x, dtype=float), np.asarray(setup.z, dtype=float))
+    xs, zs = setup.scatterer_position
+    total = np.zeros((len(masks),) + X.shape, dtype=np.complex128)
+    for tilt in setup.tilts:
+        delays = pm.txdelay(param, float(tilt))
+        iqs = []
+        for m in masks:
+            param.TXapodization = np.asarray(m, dtype=np.float32).reshape(1, -1).copy()
+            RF, _ = pm.simus(np.array([xs]), np.array([zs]), np.array([setup.reflectivity]), delays, param)
+            iqs.append(pm.rf2iq(RF * np.asarray(m, dtype=RF.dtype).reshape(1, -1), param))
+        del param.TXapodization
+        n = max(iq.shape[0] for iq in iqs)
+        iqs = [np.pad(iq, ((0, n - iq.shape[0]), (0, 0))) for iq in iqs]
+        M = pm.dasmtx(iqs[0], X, Z, delays, param).tocsr()
+        for i, iq in enumerate(iqs):
+            total[i] += (M @ iq.flatten(order="F")).reshape(X.shape, order="F")
+    return [window_kernel(img, setup.window) for img in total]
+
+
 if __name__ == "__main__":
     s = PyMUSTScene()
     full = np.ones(64)
