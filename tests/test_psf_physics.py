@@ -272,72 +272,24 @@ def test_strip_low_rank_bounds_cover_the_exact_image(paper_objective, exact_grid
 
 
 # ------------------------------------------------------------------ scenes unlike the paper's
-#: small grids (160 x 160 pixels, 64-pixel window) keep PyMUST's DAS matrices and the fast
-#: path's basis quick to build; each scene changes what the paper scene leaves at its default
+#: what each scene changes from the paper scene; all of them use a small grid
+#: (:data:`HELD_OUT_GRID`), which keeps PyMUST's DAS matrices and the fast path's basis quick to build
 HELD_OUT_SCENES = {
     # convex probe, attenuation, a 2-cycle pulse, a receive f-number, a point off the axis
-    "convex-attenuated-offaxis": """
-        name = "held-out-convex"
-        base = "paper"
-        [probe]
-        name = "C5-2v"
-        fc = 3.57e6
-        [acquisition]
-        attenuation = 0.5
-        tx_cycles = 2
-        [transmit]
-        n_tx = 3
-        max_tilt_deg = 8
-        [receive]
-        fnumber = 1.5
-        [grid]
-        n_x = 160
-        n_z = 160
-        window = 64
-        [medium]
-        points = [["4 mm", "30 mm"]]
-        [selection]
-        k = 40
-    """,
+    "convex-attenuated-offaxis": {
+        "probe": {"name": "C5-2v", "fc": 3.57e6}, "acquisition": {"attenuation": 0.5, "tx_cycles": 2},
+        "transmit": {"n_tx": 3, "max_tilt_deg": 8}, "receive": {"fnumber": 1.5},
+        "medium": {"points": [["4 mm", "30 mm"]]}, "selection": {"k": 40}},
     # a linear 128-element probe at 7.6 MHz, a shallow point, steep plane waves, few elements
-    "linear-shallow": """
-        name = "held-out-shallow"
-        base = "paper"
-        [probe]
-        name = "L11-5v"
-        fc = 7.6e6
-        [transmit]
-        n_tx = 3
-        max_tilt_deg = 15
-        [grid]
-        n_x = 160
-        n_z = 160
-        window = 64
-        [medium]
-        points = [["-1 mm", "6 mm"]]
-        [selection]
-        k = 12
-    """,
+    "linear-shallow": {
+        "probe": {"name": "L11-5v", "fc": 7.6e6}, "transmit": {"n_tx": 3, "max_tilt_deg": 15},
+        "medium": {"points": [["-1 mm", "6 mm"]]}, "selection": {"k": 12}},
     # a phased array, a deep point to the side, five plane waves
-    "phased-deep": """
-        name = "held-out-phased"
-        base = "paper"
-        [probe]
-        name = "P6-3"
-        fc = 4.5e6
-        [transmit]
-        n_tx = 5
-        max_tilt_deg = 12
-        [grid]
-        n_x = 160
-        n_z = 160
-        window = 64
-        [medium]
-        points = [["-6 mm", "70 mm"]]
-        [selection]
-        k = 16
-    """,
+    "phased-deep": {
+        "probe": {"name": "P6-3", "fc": 4.5e6}, "transmit": {"n_tx": 5, "max_tilt_deg": 12},
+        "medium": {"points": [["-6 mm", "70 mm"]]}, "selection": {"k": 16}},
 }
+HELD_OUT_GRID = {"n_x": 160, "n_z": 160, "window": 64}
 
 
 @pytest.mark.slow
@@ -345,15 +297,13 @@ HELD_OUT_SCENES = {
 def test_fast_and_exact_psf_match_pymust_on_scenes_unlike_the_paper(name, monkeypatch):
     # measured SI-MSE 8e-11 to 8e-7 (fast path) on these scenes; 1e-5 leaves room for
     # PyMUST's float32 arithmetic (the paper scene's test allows 1e-4)
-    import textwrap
-    import tomllib
-
     from arraysel.objective.psf_objective import Objective
     from arraysel.scenes.schema import load_scene
     from pymust_pipeline import setup_kernels
 
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
-    obj = Objective(load_scene(tomllib.loads(textwrap.dedent(HELD_OUT_SCENES[name]))), dtype=torch.float64)
+    tree = {"name": f"held-out-{name}", "base": "paper", "grid": HELD_OUT_GRID, **HELD_OUT_SCENES[name]}
+    obj = Objective(load_scene(tree), dtype=torch.float64)
     ne, k = obj.n_elements, obj.k
     rng = np.random.default_rng(11)
     masks = np.zeros((3, ne), dtype=bool)
