@@ -59,32 +59,15 @@ class PyMUSTScene:
 
     def rf(self, mask: np.ndarray, tilt: float):
         """RF (n_t, Ne) of one plane-wave transmit for a 0/1 (or weight) mask."""
-        pm = _pymust()
         param = self.param()
-        delays = pm.txdelay(param, float(tilt))
-        param.TXapodization = np.asarray(mask, dtype=np.float32).reshape(1, -1).copy()
-        xs, zs = self.scatterer()
-        RF, _ = pm.simus(np.array([xs]), np.array([zs]), np.array([1.0]), delays, param)
-        RF = RF * np.asarray(mask, dtype=RF.dtype).reshape(1, -1)
-        return RF, delays, param
+        delays = _pymust().txdelay(param, float(tilt))
+        return transmit_rf(param, delays, self.scatterer(), 1.0, mask), delays, param
 
     def image(self, mask: np.ndarray, cache_das: bool = True) -> np.ndarray:
         """Coherently compounded complex image on the (n_grid, n_grid) grid, [iz, ix]."""
-        pm = _pymust()
-        x, z = self.grid()
-        X, Z = np.meshgrid(x, z)
-        total = np.zeros(X.shape, dtype=np.complex128)
-        for tilt in self.tilts():
-            RF, delays, param = self.rf(mask, tilt)
-            IQ = pm.rf2iq(RF, param)
-            key = (float(tilt), IQ.shape)
-            M = self._das_cache.get(key) if cache_das else None
-            if M is None:
-                M = pm.dasmtx(IQ, X, Z, delays, param).tocsr()
-                if cache_das:
-                    self._das_cache[key] = M
-            total += (M @ IQ.flatten(order="F")).reshape(X.shape, order="F")
-        return total
+        X, Z = np.meshgrid(*self.grid())
+        return compound_images(self.param(), self.tilts(), X, Z, self.scatterer(), 1.0, np.asarray(mask)[None],
+                               self._das_cache if cache_das else None)[0]
 
     def kernel(self, mask: np.ndarray) -> np.ndarray:
         return window_kernel(self.image(mask), self.window)
@@ -124,31 +107,51 @@ def setup_param(setup):
     return param
 
 
-def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
-    """SPEC §1's kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
-    PyMUST (``txdelay``, ``simus``, ``rf2iq``, ``dasmtx`` on the setup's own grid), for scenes
-    unlike the paper's: another probe, a convex one, attenuation, a longer pulse, an f-number,
-    a point off the axis, other transmits."""
+def transmit_rf(param, delays, point, reflectivity: float, mask: np.ndarray) -> np.ndarray:
+    """RF (n_t, Ne) of one transmit (``delays``) by the active elements of ``mask`` (their TX
+    apodization), received by them (the other channels zero), from one point scatterer."""
     pm = _pymust()
-    param = setup_param(setup)
-    X, Z = np.meshgrid(np.asarray(setup.x, dtype=float), np.asarray(setup.z, dtype=float))
-    xs, zs = setup.scatterer_position
-    total = np.zeros((len(masks),) + X.shape, dtype=np.complex128)
-    for tilt in setup.tilts:
-        delays = pm.txdelay(param, float(tilt))
-        iqs = []
-        for m in masks:
-            param.TXapodization = np.asarray(m, dtype=np.float32).reshape(1, -1).copy()
-            RF, _ = pm.simus(np.array([xs]), np.array([zs]), np.array([setup.reflectivity]), delays, param)
-            iqs.append(pm.rf2iq(RF * np.asarray(m, dtype=RF.dtype).reshape(1, -1), param))
+    w = np.asarray(mask, dtype=np.float32).reshape(1, -1)
+    param.TXapodization = w.copy()
+    try:
+        RF, _ = pm.simus(np.array([point[0]]), np.array([point[1]]), np.array([reflectivity]), delays, param)
+    finally:
         del param.TXapodization
+    return RF * np.asarray(mask, dtype=RF.dtype).reshape(1, -1)
+
+
+def compound_images(param, tilts, X, Z, point, reflectivity: float, masks: np.ndarray,
+                    das_cache: dict | None = None) -> np.ndarray:
+    """The coherently compounded complex images (B, *X.shape) of 0/1 ``masks`` (B, Ne): per
+    plane-wave ``tilt``, ``txdelay``, ``simus`` (:func:`transmit_rf`), ``rf2iq`` and the
+    ``dasmtx`` product on the pixels ``X``, ``Z``; ``das_cache`` keeps the DAS matrices."""
+    pm = _pymust()
+    total = np.zeros((len(masks),) + X.shape, dtype=np.complex128)
+    for tilt in tilts:
+        delays = pm.txdelay(param, float(tilt))
+        iqs = [pm.rf2iq(transmit_rf(param, delays, point, reflectivity, m), param) for m in masks]
         n = max(iq.shape[0] for iq in iqs)
         iqs = [np.pad(iq, ((0, n - iq.shape[0]), (0, 0))) for iq in iqs]
-        M = pm.dasmtx(iqs[0], X, Z, delays, param).tocsr()
+        key = (float(tilt), iqs[0].shape)
+        M = None if das_cache is None else das_cache.get(key)
+        if M is None:
+            M = pm.dasmtx(iqs[0], X, Z, delays, param).tocsr()
+            if das_cache is not None:
+                das_cache[key] = M
         for i, iq in enumerate(iqs):
             total[i] += (M @ iq.flatten(order="F")).reshape(X.shape, order="F")
-    return [window_kernel(img, setup.window) for img in total]
+    return total
 
+
+def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
+    """SPEC §1's kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
+    PyMUST (:func:`compound_images` on the setup's own grid), for scenes unlike the paper's:
+    another probe, a convex one, attenuation, a longer pulse, an f-number, a point off the axis,
+    other transmits."""
+    X, Z = np.meshgrid(np.asarray(setup.x, dtype=float), np.asarray(setup.z, dtype=float))
+    images = compound_images(setup_param(setup), setup.tilts, X, Z, setup.scatterer_position, setup.reflectivity,
+                             masks)
+    return [window_kernel(img, setup.window) for img in images]
 
 if __name__ == "__main__":
     s = PyMUSTScene()
