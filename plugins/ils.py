@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch, shift_options
 from arraysel.selectors.starts import start_options, start_selection
 
 
@@ -37,6 +37,7 @@ class IteratedLocalSearch(Selector):
                                 "(0: never)", lo=0),
         "fresh": Option(str, "random", "extra starts and restarts: random selections, or chirp (the best of "
                         f"{FRESH_CHIRPS} random chirped layouts each, scored in one call)", choices=FRESH_CHOICES),
+        **shift_options(),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -47,7 +48,8 @@ class IteratedLocalSearch(Selector):
         start = start_selection(o["start"], objective, k, rng, o["elements"])
         search = EliteSearch(objective, k, rng, starts=o["starts"], elite=o["elite"], relink=o["relink"],
                              mode=o["mode"], chunk=o["chunk"], guide=o["guide"], perturb=o["perturb"],
-                             max_perturb=o["max_perturb"], restart_after=o["restart_after"], fresh=o["fresh"])
+                             max_perturb=o["max_perturb"], restart_after=o["restart_after"], fresh=o["fresh"],
+                             shift=o["shift"], shift_len=o["shift_len"], shift_scan=o["shift_scan"])
         return search.run(start)[0]
 
 

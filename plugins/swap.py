@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch, shift_options
 from arraysel.selectors.starts import start_options, start_selection
 
 
@@ -49,6 +49,7 @@ class SwapSelector(Selector):
                        "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
         "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "
                              "each turn)", lo=1),
+        **shift_options(),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -60,7 +61,8 @@ class SwapSelector(Selector):
         search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
                             perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
                             restart_after=o["restart_after"], fresh=o["fresh"],
-                            race=o["race"], race_quota=o["race_quota"])
+                            race=o["race"], race_quota=o["race_quota"], shift=o["shift"],
+                            shift_len=o["shift_len"], shift_scan=o["shift_scan"])
         return search.run(start)[0]
 
 

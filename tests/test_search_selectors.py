@@ -671,3 +671,90 @@ def test_a_chirp_population_keeps_the_best_distinct_layouts():
     assert pop.shape == (6, 20) and (pop.sum(axis=1) == 10).all()
     assert len({m.tobytes() for m in pop}) == 6 and (np.diff(fit) >= 0).all()
     assert fit[0] == pytest.approx(means.min())
+
+
+# ---------------------------------------------------------------------------
+# segment shifts: the second neighbourhood of a descent
+# ---------------------------------------------------------------------------
+
+def test_shift_moves_rotate_one_segment_and_keep_k():
+    from arraysel.selectors.localsearch import shift_moves, shifted_masks
+
+    n, longest, most = 11, 5, 2
+    moves = shift_moves(n, longest, most)
+    # length 2: d = +-1; lengths 3..5: d = +-1, +-2
+    assert len(moves) == (n - 1) * 2 + sum((n - L + 1) * 4 for L in (3, 4, 5))
+    assert len({tuple(m) for m in moves}) == len(moves)
+    assert sorted(map(tuple, shift_moves(n, longest, most, np.random.default_rng(0)))) == sorted(map(tuple, moves))
+    mask = np.array([c == "1" for c in "11010001101"])
+    out = shifted_masks(mask, moves)
+    assert (out.sum(1) == mask.sum()).all()
+    for row, (s, length, d) in zip(out, moves):
+        want = mask.copy()
+        seg = list(mask[s:s + length])
+        for i in range(length):  # element i of the segment goes to i + d (mod length)
+            want[s + (i + d) % length] = seg[i]
+        assert (row == want).all() and (row[:s] == mask[:s]).all() and (row[s + length:] == mask[s + length:]).all()
+    assert "".join("1" if b else "0" for b in shifted_masks(mask, np.array([[0, 4, 1]]))[0]) == "11100001101"
+    assert shift_moves(1, 24, 6).shape == (0, 3) and shift_moves(5, 24, 0).shape == (0, 3)
+
+
+class _PhaseObjective(ToyObjective):
+    """Mean = 10 x (gaps between consecutive active elements other than 2) + |centre - target|:
+    the best selections are combs of pitch 2 centred on the target. From a comb of the wrong
+    phase no single swap improves (each breaks a gap); one segment shift re-phases the comb."""
+
+    def __init__(self, n, k, target):
+        super().__init__(n, k)
+        self.target = float(target)
+
+    def evaluate(self, masks):
+        out = super().evaluate(masks)
+        m = np.asarray(masks, dtype=bool).reshape(-1, self.n_elements)
+        vals = []
+        for row in m:
+            idx = np.flatnonzero(row)
+            vals.append(10.0 * np.count_nonzero(np.diff(idx) != 2) + abs(idx.mean() - self.target))
+        out["Mean"] = np.asarray(vals)
+        return out
+
+
+@pytest.mark.parametrize("mode", ["first", "best"])
+def test_a_shift_descent_re_phases_a_comb_that_swaps_cannot(mode):
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch, shift_moves, shifted_masks
+
+    n, k = 20, 4
+    start = np.zeros(n, dtype=bool)
+    start[[6, 8, 10, 12]] = True   # centre 9; the optimum is 7 9 11 13 (centre 10, Mean 0)
+    results = {}
+    for shift in (0, 2):
+        obj = _PhaseObjective(n, k, target=10)
+        budget = Budget(evaluations=100_000).start(obj)
+        view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
+        search = SwapSearch(view, k, numpy_rng(0), mode=mode, chunk=8, guide=0.0, shift=shift, shift_len=8,
+                            shift_scan=10_000)
+        mask, value = search.descend(start, float(obj.evaluate(start[None])["Mean"][0]))
+        results[shift] = (list(np.flatnonzero(mask)), value, search.shifts)
+        # the end is a local optimum of every move the descent uses
+        on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
+        swaps = np.repeat(mask[None], on.size * off.size, axis=0)
+        for r, (a, b) in enumerate(itertools.product(on, off)):
+            swaps[r, a], swaps[r, b] = False, True
+        assert obj.evaluate(swaps)["Mean"].min() >= value
+        if shift:
+            assert obj.evaluate(shifted_masks(mask, shift_moves(n, 8, shift)))["Mean"].min() >= value
+    assert results[0] == ([6, 8, 10, 12], 1.0, 0)            # swaps alone: stuck at the wrong phase
+    assert results[2][:2] == ([7, 9, 11, 13], 0.0) and results[2][2] >= 1
+
+
+def test_swap_and_ils_with_shifts_find_the_planted_optimum_and_check_their_options(reg):
+    best, best_mean = brute_force_optimum(14, 7)
+    for name in ("swap", "ils"):
+        for seed in (0, 1):
+            row = Experiment(ToyObjective(14, 7), name, options={"shift": 3, "shift_len": 6}, seed=seed,
+                             budget=Budget(evaluations=1500), registry=reg).run()
+            assert row["error"] == "" and row["elements"] == " ".join(map(str, best)), (name, seed, row["Mean"])
+    for key, bad in (("shift", -1), ("shift_len", 1), ("shift_scan", 0)):
+        with pytest.raises(ParameterError, match=key):
+            reg["swap"](**{key: bad})

@@ -20,6 +20,14 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    * ``best``: every neighbour is scored (one batched call, split in pieces
      by the objective) and the search moves to the best one while it improves;
 
+   with ``shift`` above 0, a selection no swap improves is tried with *segment shifts*
+   (:func:`shift_moves`: the active and inactive elements of a run of at most ``shift_len``
+   consecutive indices rotated by up to ``shift`` places, k kept), in a random order, ``chunk``
+   a call; the descent goes on swapping from the best of the first chunk that improves, and ends
+   when ``shift_scan`` shifts (or all) improve nothing. A shift moves a group of elements
+   together, such as a block of a periodic layout, which single swaps can only do through
+   worse selections;
+
 2. **perturbation**: from the best local optimum found, ``perturb`` random
    swaps, then a new descent; the result replaces the base when it is no
    worse (better-or-equal acceptance). With ``max_perturb`` above ``perturb``
@@ -57,6 +65,7 @@ import numpy as np
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import swap_masks, swap_pairs
 from arraysel.selection import mask_key, survivors
+from arraysel.selectors.contract import Option
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
 #: where fresh selections (restarts, extra starts) come from
@@ -64,8 +73,25 @@ FRESH_CHOICES = ("random", "chirp")
 #: chirped layouts a ``fresh = chirp`` restart scores (one call), keeping the best
 FRESH_CHIRPS = 32
 
-__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SwapSearch", "EliteSearch", "GuidedOrder", "loss_gradient", "random_swaps",
-           "random_swap_pairs"]
+#: longest segment a shift move displaces (``shift_len`` default)
+SHIFT_LEN = 24
+#: shift moves scored without improvement before a selection counts as a local optimum of them
+SHIFT_SCAN = 4096
+
+__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "SwapSearch", "EliteSearch", "GuidedOrder",
+           "loss_gradient", "random_swaps", "random_swap_pairs", "shift_moves", "shifted_masks", "shift_options"]
+
+
+def shift_options() -> dict[str, Option]:
+    """The segment-shift options of the selectors built on :class:`SwapSearch` (``shift``,
+    ``shift_len``, ``shift_scan``), passed on as keywords of the same names."""
+    return {
+        "shift": Option(int, 0, "largest displacement of a segment shift, the second neighbourhood a descent "
+                        "tries at a local optimum of swaps (0: swaps only)", lo=0),
+        "shift_len": Option(int, SHIFT_LEN, "longest segment (consecutive element indices) a shift moves", lo=2),
+        "shift_scan": Option(int, SHIFT_SCAN, "shifts scored without improvement before a local optimum is "
+                             "declared", lo=1),
+    }
 
 
 def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +111,35 @@ def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarr
         return out
     out[rng.choice(on, m, replace=False)] = False
     out[rng.choice(off, m, replace=False)] = True
+    return out
+
+
+def shift_moves(n: int, longest: int, most: int, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Every segment shift of an ``n``-element selection as rows ``(start, length, d)``: the
+    segment ``start .. start + length - 1`` (``2 <= length <= longest``) is rotated by ``d``
+    places (``1 <= |d| <= min(most, length - 1)``; positive: towards higher indices, the
+    elements pushed past its end coming back at its start), which keeps ``k``. A shift moves a
+    group of active elements together, which single swaps can only do through worse
+    selections. In a random order when ``rng`` is given; ``(0, 3)`` when there is none."""
+    rows = []
+    for length in range(2, min(int(longest), int(n)) + 1):
+        dmax = min(int(most), length - 1)
+        if dmax < 1:
+            continue
+        starts = np.arange(n - length + 1)
+        ds = np.concatenate([np.arange(1, dmax + 1), -np.arange(1, dmax + 1)])
+        st, dd = np.meshgrid(starts, ds, indexing="ij")
+        rows.append(np.stack([st.ravel(), np.full(st.size, length), dd.ravel()], axis=1))
+    moves = np.concatenate(rows) if rows else np.zeros((0, 3), dtype=np.int64)
+    return moves[rng.permutation(len(moves))] if rng is not None else moves
+
+
+def shifted_masks(mask: np.ndarray, moves: np.ndarray) -> np.ndarray:
+    """``(len(moves), Ne)`` copies of ``mask``, each with one segment shift of ``moves``
+    (rows ``(start, length, d)``, :func:`shift_moves`) applied."""
+    out = np.repeat(np.asarray(mask, dtype=bool)[None], len(moves), axis=0)
+    for row, (s, length, d) in zip(out, np.asarray(moves, dtype=np.int64)):
+        row[s:s + length] = np.roll(mask[s:s + length], d)
     return out
 
 
@@ -214,6 +269,12 @@ class SwapSearch:
     race : descents raced by successive halving (:meth:`race_descents`) before the iterated local
         search: the one from the start and ``race - 1`` from fresh selections (1: no race)
     race_quota : selections each raced descent scores in the first turn (doubled each turn)
+    shift : largest displacement of a segment shift (:func:`shift_moves`); above 0, a descent at
+        a local optimum of swaps scores segment shifts (random order, ``chunk`` a call) and
+        goes on swapping from the first improving one; after ``shift_scan`` shifts without
+        improvement (or all of them) the selection is a local optimum of both moves (0: swaps only)
+    shift_len : longest segment a shift moves
+    shift_scan : shifts scored without improvement before a local optimum is declared
     """
 
     #: rounds in a row without a newly scored selection after which the search stops
@@ -223,7 +284,8 @@ class SwapSearch:
                  scan: float = 1.0, perturb: int = 2, max_perturb: int | None = None, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
-                 fresh: str = "random", race: int = 1, race_quota: int = 500):
+                 fresh: str = "random", race: int = 1, race_quota: int = 500, shift: int = 0,
+                 shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN):
         self.objective = objective
         self.n = int(objective.n_elements)
         self.k = int(k)
@@ -239,6 +301,10 @@ class SwapSearch:
         self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
         self.race = int(check_number("race", race, lo=1, integer=True))
         self.race_quota = int(check_number("race_quota", race_quota, lo=1, integer=True))
+        self.shift = int(check_number("shift", shift, lo=0, integer=True))
+        self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
+        self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
+        self.shifts = 0  # improving segment shifts taken
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
@@ -324,11 +390,43 @@ class SwapSearch:
                         mask, value, moved = cands[i], float(values[i]), True
                         self.guide.credit(None if g is None else bool(i < ng))
                         break
+            if not moved and self.shift:
+                found = self._shift_step(mask, value)
+                if found is not None:
+                    (mask, value), moved = found, True
+                    self.shifts += 1
             if not moved:
                 return
             self.moves += 1
             self._note(mask, value)
             yield mask, value
+
+    def _shift_step(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float] | None:
+        """The best shift of the first chunk (random order) holding one that improves on
+        ``value``, or None after ``shift_scan`` shifts (or all) without improvement. Shifts that
+        leave the selection unchanged, or repeat one in the same chunk, are not scored."""
+        moves = shift_moves(self.n, self.shift_len, self.shift, self.rng)
+        tried = 0
+        key0 = mask_key(mask)
+        for s in range(0, len(moves), self.chunk):
+            if tried >= self.shift_scan:
+                return None
+            cands = shifted_masks(mask, moves[s:s + self.chunk])
+            keys = [mask_key(c) for c in cands]
+            keep, seen = [], {key0}
+            for i, key in enumerate(keys):
+                if key not in seen:
+                    seen.add(key)
+                    keep.append(i)
+            if not keep:
+                continue
+            cands = cands[keep]
+            values = self.score(cands)
+            tried += len(keep)
+            i = int(np.argmin(values))
+            if values[i] < value:
+                return cands[i], float(values[i])
+        return None
 
     # -- iterated local search ---------------------------------------------------------
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
