@@ -758,3 +758,11 @@ def test_swap_and_ils_with_shifts_find_the_planted_optimum_and_check_their_optio
     for key, bad in (("shift", -1), ("shift_len", 1), ("shift_scan", 0)):
         with pytest.raises(ParameterError, match=key):
             reg["swap"](**{key: bad})
+
+
+@pytest.mark.parametrize("name", ["swap", "ils"])
+@pytest.mark.parametrize("k", [1, 2, 11, 12])
+def test_shifting_searches_run_at_the_extremes_of_k(reg, name, k):
+    row = Experiment(ToyObjective(12, k), name, options={"shift": 4, "shift_scan": 50}, budget=Budget(evaluations=300),
+                     seed=0, registry=reg).run()
+    assert row["error"] == "" and len(row["elements"].split()) == k and np.isfinite(row["Mean"])
