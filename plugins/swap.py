@@ -12,7 +12,9 @@ search), and after ``restart_after`` non-improving
 perturbations it restarts from a random selection, until the budget is spent. With ``race``
 above 1 the first descent is a race of descents from the start and ``race - 1`` fresh
 selections (successive halving in turns of ``race_quota`` scored selections); the search goes
-on from the winner. See :mod:`arraysel.selectors.localsearch` for the algorithm.
+on from the winner. With ``shift`` above 0 a descent that no swap improves tries segment shifts
+(runs of consecutive elements rotated by up to ``shift`` places) before it ends. See
+:mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations
 
