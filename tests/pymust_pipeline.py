@@ -153,6 +153,7 @@ def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
                              masks)
     return [window_kernel(img, setup.window) for img in images]
 
+
 if __name__ == "__main__":
     s = PyMUSTScene()
     full = np.ones(64)

@@ -305,6 +305,7 @@ class SwapSearch:
         self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
         self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
         self.shifts = 0  # improving segment shifts taken
+        self._shift_moves: np.ndarray | None = None  # every shift, in shift_moves' order (formed once)
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
@@ -405,7 +406,9 @@ class SwapSearch:
         """The best shift of the first chunk (random order) holding one that improves on
         ``value``, or None after ``shift_scan`` shifts (or all) without improvement. Shifts that
         leave the selection unchanged, or repeat one in the same chunk, are not scored."""
-        moves = shift_moves(self.n, self.shift_len, self.shift, self.rng)
+        if self._shift_moves is None:
+            self._shift_moves = shift_moves(self.n, self.shift_len, self.shift)
+        moves = self._shift_moves[self.rng.permutation(len(self._shift_moves))]
         tried = 0
         key0 = mask_key(mask)
         for s in range(0, len(moves), self.chunk):
