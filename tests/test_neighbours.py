@@ -1,21 +1,40 @@
-"""One-swap neighbourhoods (arraysel.objective.neighbours): the pairs, the masks, the scores through an
-objective's own ``evaluate_swaps`` or by independent masks, and the runner's bookkeeping of them."""
+"""One-swap neighbourhoods and moves of several elements (arraysel.objective.neighbours): the pairs,
+the masks, the scores through an objective's own ``evaluate_swaps``/``evaluate_moves`` or by
+independent masks, and the runner's bookkeeping of them."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from arraysel.errors import SelectionError
-from arraysel.objective.contract import ScoresSwaps
-from arraysel.objective.neighbours import evaluate_swaps, swap_masks, swap_pairs
+from arraysel.objective.contract import ScoresMoves, ScoresSwaps
+from arraysel.objective.neighbours import evaluate_moves, evaluate_swaps, move_masks, swap_masks, swap_pairs
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder
 from arraysel.testing import ToyObjective
+
+
+@pytest.fixture(autouse=True)
+def _row_sums_always(monkeypatch):
+    # the small test scenes' bases have so few columns that swap_images would form the product
+    # (c U) V of each neighbour rather than sum its rows; these tests check the row sums (the
+    # product has a test of its own)
+    from arraysel.physics.psf.basis import PairBasis
+
+    monkeypatch.setattr(PairBasis, "move_row_cost", 0)
 
 
 def _mask(n, on):
     m = np.zeros(n, dtype=bool)
     m[list(on)] = True
     return m
+
+
+def _random_moves(m, size, rng, count):
+    """``count`` random moves of ``size`` elements of the selection ``m``: (count, size) each."""
+    on, off = np.flatnonzero(m), np.flatnonzero(~m)
+    out = np.stack([rng.choice(on, size, replace=False) for _ in range(count)])
+    into = np.stack([rng.choice(off, size, replace=False) for _ in range(count)])
+    return out, into
 
 
 def test_swap_pairs_list_every_neighbour_once():
@@ -97,6 +116,61 @@ def test_budgeted_neighbourhood_equals_budgeted_masks():
     assert results[0][1:] == results[1][1:]
 
 
+def test_move_masks_and_bad_moves_name_the_argument():
+    m = _mask(8, [0, 2, 4, 6])
+    got = move_masks(m, [[0, 2], [4, 6]], [[1, 3], [5, 7]])
+    assert got.tolist() == [_mask(8, [1, 3, 4, 6]).tolist(), _mask(8, [0, 2, 5, 7]).tolist()]
+    np.testing.assert_array_equal(move_masks(m, [0, 4], [1, 5]), swap_masks(m, [0, 4], [1, 5]))  # (B,): m = 1
+    assert move_masks(m, np.zeros((0, 2), int), np.zeros((0, 2), int)).shape == (0, 8)
+    with pytest.raises(SelectionError, match="out names an element twice"):
+        move_masks(m, [[0, 0]], [[1, 3]])
+    with pytest.raises(SelectionError, match="into names an element twice"):
+        move_masks(m, [[0, 2]], [[3, 3]])
+    with pytest.raises(SelectionError, match="one shape"):
+        move_masks(m, [[0, 2]], [[1]])
+    with pytest.raises(SelectionError, match="out must name active elements"):
+        move_masks(m, [[0, 1]], [[3, 5]])
+    with pytest.raises(SelectionError, match="into holds element indices outside"):
+        move_masks(m, [[0, 2]], [[3, 8]])
+
+
+def test_moves_are_scored_by_the_objective_s_own_scoring_or_as_masks():
+    m = _mask(14, [0, 2, 5, 7, 9, 12])
+    out, into = _random_moves(m, 3, np.random.default_rng(0), 20)
+    obj = ToyObjective(14, 6, dtype=torch.float64)
+    got, ref = evaluate_moves(obj, m, out, into), obj.evaluate(move_masks(m, out, into))
+    assert set(got) == set(ref) and all(np.array_equal(got[key], ref[key]) for key in ref)
+    # one element a move: the objective's evaluate_swaps, where it has only that
+    own = _OwnSwaps(14, 6)
+    _OwnSwaps.calls = 0
+    got = evaluate_moves(own, m, out[:, :1], into[:, :1])
+    assert _OwnSwaps.calls == 1
+    np.testing.assert_array_equal(got["Mean"], own.evaluate(swap_masks(m, out[:, 0], into[:, 0]))["Mean"])
+
+
+def test_budgeted_moves_equal_budgeted_masks():
+    # the same scores, counts and trace as scoring the moved masks with evaluate, and the budget
+    # ends a call part-way as it does for masks
+    m = _mask(10, [1, 4, 6, 8])
+    out, into = _random_moves(m, 2, np.random.default_rng(1), 30)
+    results = []
+    for how in ("moves", "masks"):
+        obj = ToyObjective(10, 4)
+        budget = Budget(evaluations=100).start(obj)
+        rec = Recorder(obj, budget)
+        view = BudgetedObjective(obj, budget, rec, 4, piece=8)
+        v = view.score_moves(m, out, into) if how == "moves" else view.score(move_masks(m, out, into))
+        results.append((v, obj.evaluations, rec.best, [r["evaluations"] for r in rec.rows]))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    assert results[0][1:] == results[1][1:]
+    obj = ToyObjective(10, 4)
+    budget = Budget(evaluations=20).start(obj)
+    view = BudgetedObjective(obj, budget, Recorder(obj, budget), 4, piece=8)
+    with pytest.raises(BudgetExhausted, match="20 of 30 masks"):
+        view.score_moves(m, out, into)
+    assert obj.evaluations == 20
+
+
 # ---------------------------------------------------------------- the PSF objective's own neighbourhoods
 import tomllib  # noqa: E402
 
@@ -131,7 +205,7 @@ def _spy_swap_envelopes(monkeypatch):
     real = Certificates.swap_envelopes
 
     def spy(self, mask, out, into):
-        calls.append(int(out.numel()))
+        calls.append(int(out.shape[0]))
         return real(self, mask, out, into)
 
     monkeypatch.setattr(Certificates, "swap_envelopes", spy)
@@ -204,6 +278,103 @@ def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, 
     assert bool((env[:, ~unused].amax(-1) > 0).all())
 
 
+def _padded(moves):
+    """One (B, m) pair of arrays from moves of different sizes, rows padded with -1."""
+    width = max(o.shape[1] for o, _ in moves)
+    pad = [np.pad(v, ((0, 0), (0, width - v.shape[1])), constant_values=-1) for o, i in moves for v in (o, i)]
+    return np.concatenate(pad[0::2]), np.concatenate(pad[1::2])
+
+
+@pytest.mark.parametrize("rows", ["kept", "formed", "product", "mixed"])
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_psf_objective_moves_equal_independent_masks(monkeypatch, dtype, rtol, rows):
+    # moves of 1 to 3 elements on a 12-element scene with two field points, every key and kernel
+    # as the masks scored alone: the images summed from kept pair-image rows, from rows formed
+    # for the call, the product (c U) V of each neighbour, or each where it costs less; then moves
+    # of 0 to 4 elements in one call (rows padded with -1)
+    from arraysel.physics.psf.basis import PairBasis
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 5},
+                          medium={"points": [[0.0, 0.02], [0.001, 0.021]]})
+    assert isinstance(obj, ScoresMoves)
+    if rows == "formed":
+        for p in obj.psfs:
+            p.basis.swap_rows_max_bytes = 0
+    else:
+        assert obj.prepare_neighbourhoods() is True
+    if rows == "product":
+        monkeypatch.setattr(PairBasis, "move_row_cost", 10 ** 9)
+    elif rows == "mixed":   # rows for moves of one element, the product for wider ones
+        monkeypatch.setattr(PairBasis, "move_row_cost", obj.psf.basis.U.shape[1] // 4 if obj.psf.basis.U is not None
+                            else 0)
+    calls = _spy_swap_envelopes(monkeypatch)
+    rng = np.random.default_rng(6)
+    m = _mask(12, [0, 3, 4, 8, 11])
+    for size in (1, 2, 3):
+        out, into = _random_moves(m, size, rng, 12)
+        got = obj.evaluate_moves(m, out, into, return_kernels=True)
+        ref = obj.evaluate(move_masks(m, out, into), return_kernels=True)
+        _assert_same_scores(got, ref, rtol)
+        m = move_masks(m, out[:1], into[:1])[0]        # a search's step: the next base
+    assert calls == [12] * 6                            # one call a field point and size
+    if rows == "formed":
+        assert all("_swap_rows" not in p.basis.__dict__ for p in obj.psfs)
+    out, into = _padded([_random_moves(m, size, rng, 4) for size in (2, 4, 1, 3)] + [(-np.ones((1, 1), int),) * 2])
+    got = obj.evaluate_moves(m, out, into, return_kernels=True)
+    _assert_same_scores(got, obj.evaluate(move_masks(m, out, into), return_kernels=True), rtol)
+    assert calls[6:] == [17, 17]                        # 4 moves each of 1 to 4 elements and one of none
+    none = np.zeros((2, 0), dtype=int)
+    _assert_same_scores(obj.evaluate_moves(m, none, none), obj.evaluate(np.stack([m, m])), rtol)
+
+
+def test_moves_between_lists_the_switched_elements():
+    from arraysel.objective.neighbours import moves_between
+
+    m = _mask(8, [0, 2, 4, 6])
+    cands = np.stack([_mask(8, [1, 2, 4, 6]), _mask(8, [0, 2, 4, 6]), _mask(8, [1, 3, 5, 6])])
+    out, into = moves_between(m, cands)
+    assert out.tolist() == [[0, -1, -1], [-1, -1, -1], [0, 2, 4]]
+    assert into.tolist() == [[1, -1, -1], [-1, -1, -1], [1, 3, 5]]
+    np.testing.assert_array_equal(move_masks(m, out, into), cands)
+    with pytest.raises(SelectionError, match="as many active elements"):
+        moves_between(m, _mask(8, [0])[None])
+    with pytest.raises(SelectionError, match="as many elements in each row"):
+        move_masks(m, [[0, -1]], [[1, 3]])
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_move_envelopes_equal_the_envelopes_of_the_moved_masks(monkeypatch, dtype, rtol):
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
+    basis = obj.psf.basis
+    m = _mask(10, [0, 1, 4, 5, 7, 9])
+    for size in (2, 3, 4):
+        out, into = _random_moves(m, size, np.random.default_rng(size), 9)
+        w = torch.as_tensor(move_masks(m, out, into), dtype=dtype)
+        got = basis.certificates.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out),
+                                                torch.as_tensor(into))
+        ref = basis.certificates.envelopes(w)
+        assert got.shape == ref.shape and got.dtype == ref.dtype
+        np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
+
+
+def test_move_rows_sum_signed_rows_in_float64():
+    from arraysel.physics.pairkernels import move_rows
+
+    rng = np.random.default_rng(0)
+    C = 5000                                          # not a multiple of the column chunk
+    H = rng.standard_normal((30, C)).astype(np.float32)
+    y, G = rng.standard_normal(C), rng.standard_normal((10, C))
+    out, into = rng.integers(0, 10, (7, 3)), rng.integers(0, 10, (7, 3))
+    pidx, psign = rng.integers(0, 30, (7, 5)), np.array([1.0, 1.0, -1.0, 1.0, -1.0])
+    ref = y - G[out].sum(1) + G[into].sum(1) + (psign[None, :, None] * H[pidx].astype(np.float64)).sum(1)
+    got = move_rows(H, y, G, out, into, pidx, psign)
+    assert got.shape == (7, C) and got.dtype == np.float32
+    np.testing.assert_allclose(got, ref.astype(np.float32), rtol=1e-6, atol=1e-6)
+    assert move_rows(H, y, G, out[:0], into[:0], pidx[:0], psign).shape == (0, C)
+
+
 def test_empty_or_bad_neighbourhoods(monkeypatch):
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
     obj = _tiny_objective(torch.float64)
@@ -248,9 +419,12 @@ def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper
 @pytest.mark.slow
 @pytest.mark.parametrize("scene, dtype, rtol", [("paper", torch.float64, 1e-9), ("l11-5v", torch.float32, 2e-4)])
 def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
-    # the outer elements (moving peaks) and a random selection of a built-in scene: 64 neighbours
-    # each, every key and kernel as the masks scored alone (builds the scene's basis: minutes)
+    # the outer elements (moving peaks) and a random selection of a built-in scene: 64 one-swap
+    # neighbours and 64 segment shifts each, every key and kernel as the masks scored alone
+    # (builds the scene's basis: minutes)
+    from arraysel.objective.neighbours import moves_between
     from arraysel.objective.psf_objective import Objective
+    from arraysel.selectors.localsearch import shift_moves, shifted_masks
 
     obj = Objective(scene, dtype=dtype)
     n, k = obj.n_elements, obj.k
@@ -265,6 +439,12 @@ def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
         ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
         assert obj.fallbacks - fb == fb_swaps
         _assert_same_scores(got, ref, rtol=rtol, atol=1e-6 if dtype == torch.float32 else 1e-12)
+        # segment shifts of the selection, as moves of up to 12 elements in padded chunks
+        cands = shifted_masks(m, shift_moves(n, 24, 6, rng)[:96])
+        cands = cands[(cands != m).any(1)][:64]
+        got = obj.evaluate_moves(m, *moves_between(m, cands), return_kernels=True)
+        _assert_same_scores(got, obj.evaluate(cands, return_kernels=True), rtol=rtol,
+                            atol=1e-6 if dtype == torch.float32 else 1e-12)
 
 
 def _walk_images(obj, m, rng, moves, dtype, tol):

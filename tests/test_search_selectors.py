@@ -745,6 +745,43 @@ def test_a_shift_descent_re_phases_a_comb_that_swaps_cannot(mode):
     assert results[2][:2] == ([7, 9, 11, 13], 0.0) and results[2][2] >= 1
 
 
+class _PhaseMoves(_PhaseObjective):
+    """The comb problem with the move capability: scores moves as their masks, and notes each call's
+    shape."""
+
+    def __init__(self, n, k, target):
+        super().__init__(n, k, target)
+        self.calls = []
+
+    def evaluate_moves(self, mask, out, into):
+        from arraysel.objective.neighbours import move_masks
+
+        self.calls.append(np.asarray(out).shape)
+        return self.evaluate(move_masks(mask, out, into))
+
+
+def test_a_shift_descent_scores_its_shifts_as_moves():
+    # the same descent, values and count of evaluations whether the objective scores the shifts as
+    # moves (grouped by how many elements they switch) or as masks
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+
+    n, k = 20, 4
+    start = np.zeros(n, dtype=bool)
+    start[[6, 8, 10, 12]] = True
+    results = []
+    for cls in (_PhaseObjective, _PhaseMoves):
+        obj = cls(n, k, target=10)
+        budget = Budget(evaluations=100_000).start(obj)
+        view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
+        search = SwapSearch(view, k, numpy_rng(0), chunk=8, guide=0.0, shift=2, shift_len=8, shift_scan=10_000)
+        mask, value = search.descend(start, float(obj.evaluate(start[None])["Mean"][0]))
+        results.append((np.flatnonzero(mask).tolist(), value, obj.evaluations, search.scored))
+    assert results[0] == results[1] and results[1][:2] == ([7, 9, 11, 13], 0.0)
+    shapes = obj.calls
+    assert shapes and all(b >= 1 and m >= 1 for b, m in shapes) and len({m for _, m in shapes}) >= 2
+
+
 def test_swap_and_ils_with_shifts_find_the_planted_optimum_and_check_their_options(reg):
     best, best_mean = brute_force_optimum(14, 7)
     for name in ("swap", "ils"):

@@ -14,7 +14,9 @@ Capability: an objective may score the one-swap neighbours of a selection in one
 the masks ``mask`` with element ``out[i]`` switched off and ``into[i]`` switched on, the same
 values as scoring those masks independently, exploiting what they share.
 :func:`arraysel.objective.neighbours.evaluate_swaps` calls it, and scores the masks with
-``evaluate`` for an objective without it.
+``evaluate`` for an objective without it. More generally (:class:`ScoresMoves`),
+``evaluate_moves(mask, out, into)`` scores neighbours that switch ``m`` elements each (``out``,
+``into`` of shape ``(B, m)``; :func:`arraysel.objective.neighbours.evaluate_moves`).
 
 Capability: an objective may say how its elements are laid out (:class:`HasLayout`):
 ``element_grid`` is ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``) or ``None`` for a
@@ -33,8 +35,8 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_number
 
-__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "WorkerFactory", "dtype_name", "check_element_grid",
-           "element_layout"]
+__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "WorkerFactory", "dtype_name",
+           "check_element_grid", "element_layout"]
 
 
 @runtime_checkable
@@ -75,6 +77,20 @@ class ScoresSwaps(Protocol):
     ``B`` evaluations."""
 
     def evaluate_swaps(self, mask, out, into) -> dict:
+        ...
+
+
+@runtime_checkable
+class ScoresMoves(Protocol):
+    """An objective that scores a selection's neighbours of m-element moves in one call (optional
+    capability).
+
+    ``evaluate_moves(mask, out, into)``: ``mask`` a boolean ``(Ne,)`` selection, ``out`` and
+    ``into`` int arrays ``(B, m)`` with ``mask[out]`` all True, ``mask[into]`` all False and no
+    element twice in a row; returns ``{name: float64 array (B,)}`` equal to ``evaluate`` of the
+    ``B`` masks with ``out[i]`` switched off and ``into[i]`` on, and counts ``B`` evaluations."""
+
+    def evaluate_moves(self, mask, out, into) -> dict:
         ...
 
 

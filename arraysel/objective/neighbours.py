@@ -10,6 +10,14 @@ objective's own ``evaluate_swaps`` when it has the capability
 returns the values scoring them independently gives), otherwise by building the neighbour masks
 (:func:`swap_masks`) and calling ``evaluate``. Either way the result is what ``evaluate`` of the
 neighbour masks returns, in the order of the pairs.
+
+A *move* of ``m`` elements switches the active elements ``out[i, :]`` off and the inactive
+elements ``into[i, :]`` on at once (a segment shift is one: it moves a group of active elements
+together; rows of fewer elements are padded with ``-1``, :func:`moves_between`);
+:func:`evaluate_moves` scores the neighbours ``(out[i], into[i])`` (``(B, m)`` each)
+through the objective's own ``evaluate_moves`` when it has one
+(:class:`~arraysel.objective.contract.ScoresMoves`), else, for ``m = 1``, its ``evaluate_swaps``,
+else ``evaluate`` of the masks (:func:`move_masks`).
 """
 from __future__ import annotations
 
@@ -17,7 +25,8 @@ import numpy as np
 
 from arraysel.errors import SelectionError
 
-__all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "prepare_neighbourhoods"]
+__all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "check_moves", "move_masks", "moves_between",
+           "evaluate_moves", "prepare_neighbourhoods"]
 
 
 def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -31,11 +40,7 @@ def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tupl
     return out, into
 
 
-def check_swaps(mask, out, into) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``mask`` as a boolean ``(Ne,)`` array and ``out``, ``into`` as int64 ``(B,)`` arrays;
-    :class:`~arraysel.errors.SelectionError` naming the argument when ``mask`` is not 1-D
-    boolean (or 0/1), an index is out of range, ``mask[out]`` is not all active or
-    ``mask[into]`` not all inactive."""
+def _as_mask(mask) -> np.ndarray:
     m = np.asarray(mask)
     if m.ndim != 1:
         raise SelectionError(f"mask must be one selection of shape (Ne,), got shape {m.shape}")
@@ -43,11 +48,11 @@ def check_swaps(mask, out, into) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if m.dtype.kind not in "biuf" or not np.isin(m, (0, 1)).all():
             raise SelectionError("mask must hold booleans or 0/1")
         m = m != 0
+    return m
+
+
+def _check_elements(m: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     n = m.size
-    a = np.asarray(out, dtype=np.int64).reshape(-1)
-    b = np.asarray(into, dtype=np.int64).reshape(-1)
-    if a.shape != b.shape:
-        raise SelectionError(f"out and into must have the same length, got {a.size} and {b.size}")
     for name, idx in (("out", a), ("into", b)):
         if idx.size and (idx.min() < 0 or idx.max() >= n):
             raise SelectionError(f"{name} holds element indices outside [0, {n - 1}]")
@@ -55,6 +60,47 @@ def check_swaps(mask, out, into) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise SelectionError("out must name active elements of mask")
     if b.size and m[b].any():
         raise SelectionError("into must name inactive elements of mask")
+
+
+def check_swaps(mask, out, into) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``mask`` as a boolean ``(Ne,)`` array and ``out``, ``into`` as int64 ``(B,)`` arrays;
+    :class:`~arraysel.errors.SelectionError` naming the argument when ``mask`` is not 1-D
+    boolean (or 0/1), an index is out of range, ``mask[out]`` is not all active or
+    ``mask[into]`` not all inactive."""
+    m = _as_mask(mask)
+    a = np.asarray(out, dtype=np.int64).reshape(-1)
+    b = np.asarray(into, dtype=np.int64).reshape(-1)
+    if a.shape != b.shape:
+        raise SelectionError(f"out and into must have the same length, got {a.size} and {b.size}")
+    _check_elements(m, a, b)
+    return m, a, b
+
+
+def check_moves(mask, out, into) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``mask`` as a boolean ``(Ne,)`` array and ``out``, ``into`` as int64 ``(B, m)`` arrays (a
+    ``(B,)`` array is read as ``m = 1``; ``-1`` pads a row that switches fewer than m elements);
+    :class:`~arraysel.errors.SelectionError` naming the argument when they differ in shape, an
+    index is out of range, ``mask[out]`` is not all active, ``mask[into]`` not all inactive, a
+    row names an element twice, or a row of ``out`` and ``into`` switch different numbers of
+    elements."""
+    m = _as_mask(mask)
+    a, b = (np.asarray(v, dtype=np.int64) for v in (out, into))
+    a, b = (v.reshape(-1, 1) if v.ndim < 2 else v for v in (a, b))
+    if a.ndim != 2 or a.shape != b.shape:
+        raise SelectionError(f"out and into must be (B, m) arrays of one shape, got {a.shape} and {b.shape}")
+    n = m.size
+    for name, idx in (("out", a), ("into", b)):
+        if idx.size and (idx.min() < -1 or idx.max() >= n):
+            raise SelectionError(f"{name} holds element indices outside [0, {n - 1}] (-1: no element)")
+    va, vb = a >= 0, b >= 0
+    if (va.sum(1) != vb.sum(1)).any():
+        raise SelectionError("out and into must switch as many elements in each row (-1 pads a row)")
+    _check_elements(m, a[va], b[vb])
+    if a.shape[1] > 1:
+        for name, idx in (("out", a), ("into", b)):
+            s = np.sort(idx, axis=1)
+            if ((s[:, 1:] == s[:, :-1]) & (s[:, 1:] >= 0)).any():
+                raise SelectionError(f"{name} names an element twice in one move")
     return m, a, b
 
 
@@ -76,6 +122,49 @@ def evaluate_swaps(objective, mask, out, into) -> dict[str, np.ndarray]:
     if callable(own):
         return own(m, a, b)
     return objective.evaluate(swap_masks(m, a, b))
+
+
+def move_masks(mask, out, into) -> np.ndarray:
+    """The neighbour masks ``(B, Ne)``: ``mask`` with the elements ``out[i]`` off and ``into[i]``
+    on (``(B, m)`` each, ``-1`` for none; :func:`check_moves`)."""
+    m, a, b = check_moves(mask, out, into)
+    cands = np.repeat(m[None], a.shape[0], axis=0)
+    for idx, on in ((a, False), (b, True)):
+        r, c = np.nonzero(idx >= 0)
+        cands[r, idx[r, c]] = on
+    return cands
+
+
+def moves_between(mask, cands) -> tuple[np.ndarray, np.ndarray]:
+    """``(out, into)``, int64 ``(B, m)`` each, of the moves that take ``mask`` (Ne,) to each of the
+    selections ``cands`` (B, Ne) of as many elements: the elements switched off and on, in
+    increasing order, rows padded with ``-1`` to the widest move (m = 0 for no selection)."""
+    m = _as_mask(mask)
+    c = np.asarray(cands, dtype=bool).reshape(-1, m.size)
+    if (c.sum(1) != m.sum()).any():
+        raise SelectionError("cands must hold as many active elements as mask")
+    moves = []
+    for diff in (m[None] & ~c, c & ~m[None]):
+        count = diff.sum(1)
+        idx = np.full((c.shape[0], int(count.max(initial=0))), -1, dtype=np.int64)
+        r, e = np.nonzero(diff)
+        idx[r, np.arange(r.size) - np.repeat(np.cumsum(count) - count, count)] = e
+        moves.append(idx)
+    return moves[0], moves[1]
+
+
+def evaluate_moves(objective, mask, out, into) -> dict[str, np.ndarray]:
+    """What ``objective.evaluate`` returns for the neighbours of ``mask`` that switch the elements
+    ``out[i]`` off and ``into[i]`` on (``(B, m)`` each; ``{name: float64 (B,)}``): through the
+    objective's ``evaluate_moves`` when it has one, for ``m = 1`` its ``evaluate_swaps``, else
+    ``evaluate`` of the masks."""
+    m, a, b = check_moves(mask, out, into)
+    own = getattr(objective, "evaluate_moves", None)
+    if callable(own):
+        return own(m, a, b)
+    if a.shape[1] == 1 and (a >= 0).all() and callable(getattr(objective, "evaluate_swaps", None)):
+        return objective.evaluate_swaps(m, a[:, 0], b[:, 0])
+    return objective.evaluate(move_masks(m, a, b))
 
 
 def prepare_neighbourhoods(objective) -> float:

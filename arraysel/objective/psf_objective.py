@@ -269,25 +269,38 @@ class Objective:
     def evaluate_swaps(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
         """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element
         ``out[i]`` switched off and ``into[i]`` on (:class:`~arraysel.objective.contract.ScoresSwaps`;
-        :func:`arraysel.objective.neighbours.evaluate_swaps` calls it). The same values, to rounding,
-        as scoring the neighbour masks independently, and counted as as many evaluations; the
-        certificates' channel envelopes of the neighbours are corrected from the selection's own
-        (:meth:`~arraysel.physics.psf.PSFModel.swap_kernels`), a neighbour they do not settle
-        goes on to the refinement and the exact path as in :meth:`evaluate`."""
-        from arraysel.objective.neighbours import check_swaps, swap_masks
+        :func:`arraysel.objective.neighbours.evaluate_swaps` calls it): :meth:`evaluate_moves`
+        with one element a move."""
+        from arraysel.objective.neighbours import check_swaps
 
         m, a, b = check_swaps(mask, out, into)
+        return self.evaluate_moves(m, a[:, None], b[:, None], return_kernels=return_kernels)
+
+    def evaluate_moves(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` of the neighbours of a 0/1 selection ``mask`` (Ne,) that switch the
+        elements ``out[i]`` off and ``into[i]`` on (int ``(B, m)`` each;
+        :class:`~arraysel.objective.contract.ScoresMoves`;
+        :func:`arraysel.objective.neighbours.evaluate_moves` calls it). The same values, to
+        rounding, as scoring the neighbour masks independently, and counted as as many
+        evaluations; the certificates' channel envelopes and the images of the neighbours are
+        corrected from the selection's own (:meth:`~arraysel.physics.psf.PSFModel.swap_kernels`),
+        a neighbour they do not settle goes on to the refinement and the exact path as in
+        :meth:`evaluate`. Rows of ``out`` and ``into`` may be padded with ``-1`` (moves of
+        different sizes in one call)."""
+        from arraysel.objective.neighbours import check_moves, move_masks
+
+        m, a, b = check_moves(mask, out, into)
         if type(self).evaluate is not Objective.evaluate:
             # a subclass that scores masks its own way (MatrixObjective): its evaluate of the masks
-            return self.evaluate(swap_masks(m, a, b))
+            return self.evaluate(move_masks(m, a, b))
         if m.size != self.n_elements:
             raise SelectionError(f"mask must have shape ({self.n_elements},), got ({m.size},)")
         if not m.any():
             raise SelectionError("empty selection (no active element): mask")
         with torch.no_grad(), self._timed():
             base = self.as_masks(m[None])[0]
-            return self._score(int(a.size), lambda model, i, n: model.swap_kernels(base, a[i:i + n], b[i:i + n],
-                                                                                     return_info=True),
+            return self._score(int(a.shape[0]), lambda model, i, n: model.swap_kernels(base, a[i:i + n], b[i:i + n],
+                                                                                         return_info=True),
                                return_kernels)
 
     def prepare_neighbourhoods(self) -> bool:

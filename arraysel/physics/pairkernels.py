@@ -373,18 +373,71 @@ def row_sums(A: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
+def _move_rows_kernel(H, y, G, out, into, pidx, psign, step, res):
+    """``res[b] = y - sum_i G[out[b, i]] + sum_i G[into[b, i]] + sum_t psign[b, t] H[pidx[b, t]]``
+    (entries ``-1`` of out and into, and terms of sign 0, left out), summed in float64 over chunks
+    of ``step`` columns (the chunk's sums stay in cache while the rows are read) and written in
+    ``res``'s dtype; parallel over the rows b. H: (P, C) float; y: (C,) float64; G: (Ne, C)
+    float64; out, into: (B, m) int64; pidx: (B, T) int64; psign: (B, T) float64; res: (B, C)."""
+    B = out.shape[0]
+    C = y.shape[0]
+    m = out.shape[1]
+    nchunk = (C + step - 1) // step
+    for q in numba.prange(B * nchunk):
+        b = q // nchunk
+        c0 = (q % nchunk) * step
+        c1 = min(C, c0 + step)
+        acc = y[c0:c1].copy()
+        for i in range(m):
+            if out[b, i] < 0:
+                continue
+            ga = G[out[b, i], c0:c1]
+            gb = G[into[b, i], c0:c1]
+            for c in range(c1 - c0):
+                acc[c] += gb[c] - ga[c]
+        for t in range(pidx.shape[1]):
+            sg = psign[b, t]
+            if sg == 0.0:
+                continue
+            row = H[pidx[b, t], c0:c1]
+            for c in range(c1 - c0):
+                acc[c] += sg * np.float64(row[c])
+        for c in range(c1 - c0):
+            res[b, c0 + c] = acc[c]
+
+
+def move_rows(H: np.ndarray, y: np.ndarray, G: np.ndarray, out: np.ndarray, into: np.ndarray, pidx: np.ndarray,
+              psign: np.ndarray) -> np.ndarray:
+    """(B, C) rows, in ``H``'s dtype, ``y - sum_i G[out[b, i]] + sum_i G[into[b, i]] + sum_t
+    psign[b, t] H[pidx[b, t]]`` summed in float64 (entries ``-1`` of out and into, and terms of
+    sign 0, left out): the images of a selection's neighbours from its
+    image ``y`` (C,), its element rows ``G`` (Ne, C) and pair-image rows ``H`` (P, C)
+    (:meth:`PairBasis.swap_images <arraysel.physics.psf.basis.PairBasis.swap_images>`); one pass
+    over each row read, where numpy's gathers and mixed-precision sums take three."""
+    B = out.shape[0]
+    res = np.empty((B, y.shape[0]), dtype=H.dtype)
+    _move_rows_kernel(H, np.ascontiguousarray(y, dtype=np.float64), G, np.ascontiguousarray(out, dtype=np.int64),
+                      np.ascontiguousarray(into, dtype=np.int64), np.ascontiguousarray(pidx, dtype=np.int64),
+                      np.ascontiguousarray(np.broadcast_to(psign, pidx.shape), dtype=np.float64), 2048, res)
+    return res
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
-    """``env[n * Ne + e, 0, a, b] = max_r |Y[e] - A[out[b], e] + A[into[b], e]|`` (over the
-    samples ``r`` of segment ``a`` of transmit ``n``) for the pairs ``(b, e) = (sel_b[q],
-    sel_e[q])``: the segment peaks of receive channel e of the one-swap neighbour b of a 0/1
-    selection whose channel sums over every receive element are ``Y`` (Ne, 2 ntx T) float64,
-    ``Y[e] = sum_{j in mask} A[j, e]``. A: ``pair_channels`` (as :func:`_channel_peaks_kernel`);
-    env: (ntx * Ne, M, nS, B). Each channel is corrected in float64 in a buffer that stays in
-    cache (three rows read where summing it afresh reads k); parallel over the pairs."""
+    """``env[n * Ne + e, 0, a, b] = max_r |Y[e] - sum_i A[out[b, i], e] + sum_i A[into[b, i], e]|``
+    (over the samples ``r`` of segment ``a`` of transmit ``n``) for the pairs ``(b, e) =
+    (sel_b[q], sel_e[q])``: the segment peaks of receive channel e of the neighbour b of a 0/1
+    selection that swaps the m elements ``out[b]`` for the m elements ``into[b]`` (out, into:
+    (B, m), ``-1`` for none), from the selection's channel sums over every receive element ``Y`` (Ne, 2 ntx T)
+    float64, ``Y[e] = sum_{j in mask} A[j, e]``. A: ``pair_channels`` (as
+    :func:`_channel_peaks_kernel`); env: (ntx * Ne, M, nS, B). Each channel is corrected in
+    float64 in a buffer that stays in cache (2 m + 1 rows read where summing it afresh reads k);
+    parallel over the pairs."""
     ne = Y.shape[0]
     ns = env.shape[2]
     half = Y.shape[1] // 2
     seg = half // (ntx * ns)
+    m = out.shape[1]
     for q in numba.prange(sel_b.shape[0]):
         b = sel_b[q]
         e = sel_e[q]
@@ -392,31 +445,44 @@ def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
         acc = np.empty(2 * half)
         mx = np.empty(ns)
         rowy = Y[e]
-        rowa = A[out[b], base:base + 2 * half]
-        rowb = A[into[b], base:base + 2 * half]
         for c in range(2 * half):
-            acc[c] = rowy[c] - np.float64(rowa[c]) + np.float64(rowb[c])
+            acc[c] = rowy[c]
+        for i in range(m):
+            if out[b, i] < 0:
+                continue
+            rowa = A[out[b, i], base:base + 2 * half]
+            for c in range(2 * half):
+                acc[c] -= np.float64(rowa[c])
+        for i in range(m):
+            if into[b, i] < 0:
+                continue
+            rowb = A[into[b, i], base:base + 2 * half]
+            for c in range(2 * half):
+                acc[c] += np.float64(rowb[c])
         _segment_peaks(acc, mx, ntx, seg, ns, half, 1.0, env, ne, e, b)
 
 
 def swap_peaks_into(A: np.ndarray, Y: np.ndarray, mask: np.ndarray, out: np.ndarray, into: np.ndarray,
                     env: np.ndarray) -> None:
-    """Write the segment peaks ``|X_ne|`` of the receive channels of the one-swap neighbours
-    ``(out[b], into[b])`` of the 0/1 selection ``mask`` (Ne,) bool into the first run of the
+    """Write the segment peaks ``|X_ne|`` of the receive channels of the neighbours of the 0/1
+    selection ``mask`` (Ne,) bool that swap the elements ``out[b]`` (off) for ``into[b]`` (on)
+    (int (B,) for one-swap neighbours, or (B, m): m elements each, ``-1`` for none) into the first run of the
     envelopes ``env`` (ntx * Ne, M, nS, B), from the selection's channel sums ``Y`` (Ne,
     2 ntx T) float64 over every receive element (``Y[e] = sum_{j in mask} A[j, e]``): a
-    neighbour's channel is ``Y[e] - A[out, e] + A[into, e]`` on the receive elements it uses
-    (the mask's less ``out``, and ``into``); the entries of the others are left as they are
+    neighbour's channel is ``Y[e] - sum A[out, e] + sum A[into, e]`` on the receive elements it
+    uses (the mask's less ``out``, and ``into``); the entries of the others are left as they are
     (zero). The same values, to rounding, as :func:`channel_peaks_into` of the neighbour masks."""
+    out, into = (np.asarray(v, dtype=np.int64) for v in (out, into))
+    out, into = (v.reshape(-1, 1) if v.ndim < 2 else v for v in (out, into))
     B = out.shape[0]
-    keep = np.flatnonzero(mask)
-    k = keep.size
-    # per neighbour: the mask's receive elements with ``out`` replaced by ``into``
-    sel_e = np.repeat(keep[None, :], B, axis=0)
-    sel_e[sel_e == out[:, None]] = into  # one match a row, rows in order
-    sel_b = np.repeat(np.arange(B, dtype=np.int64), k)
-    _swap_peaks_kernel(A, Y, out.astype(np.int64), into.astype(np.int64), sel_b, sel_e.reshape(-1).astype(np.int64),
-                       env.shape[0] // Y.shape[0], env)
+    # per neighbour: the receive elements it uses
+    on = np.repeat(np.asarray(mask, dtype=bool)[None], B, axis=0)
+    for idx, val in ((out, False), (into, True)):
+        r, c = np.nonzero(idx >= 0)
+        on[r, idx[r, c]] = val
+    sel_b, sel_e = np.nonzero(on)
+    _swap_peaks_kernel(A, Y, out, into, sel_b.astype(np.int64), sel_e.astype(np.int64), env.shape[0] // Y.shape[0],
+                       env)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

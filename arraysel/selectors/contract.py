@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
-from arraysel.objective.neighbours import check_swaps, evaluate_swaps, swap_masks
+from arraysel.objective.neighbours import check_moves, check_swaps, evaluate_moves, move_masks
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 
 __all__ = [
@@ -385,7 +385,8 @@ class BudgetedObjective:
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
     :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
     ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
-    one call: :mod:`arraysel.objective.neighbours`), ``best`` / ``best_mean`` (best recorded so far),
+    one call: :mod:`arraysel.objective.neighbours`), :meth:`score_moves` (the same for moves of m
+    elements each), ``best`` / ``best_mean`` (best recorded so far),
     ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
     :meth:`remaining` (evaluations the budget allows now).
     """
@@ -401,7 +402,7 @@ class BudgetedObjective:
         self._per_mask = 0.0  # running estimate of the seconds one mask costs
         self._closed = False
         #: seconds into the budget at which the run first called the objective (``evaluate``,
-        #: ``evaluate_swaps``, ``mask_loss`` or ``selection_loss``); ``None`` before that
+        #: ``evaluate_swaps``, ``evaluate_moves``, ``mask_loss`` or ``selection_loss``); ``None`` before that
         self.first_call_s: float | None = None
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
@@ -513,18 +514,30 @@ class BudgetedObjective:
         """:func:`arraysel.objective.neighbours.evaluate_swaps` of the wrapped objective (its own
         neighbourhood scoring where it has one), counted, clipped and recorded like
         :meth:`evaluate` of the neighbour masks."""
+        m, a, b = check_swaps(mask, out, into)
+        return self.evaluate_moves(m, a[:, None], b[:, None])
+
+    def evaluate_moves(self, mask, out, into) -> dict[str, np.ndarray]:
+        """:func:`arraysel.objective.neighbours.evaluate_moves` of the wrapped objective: the
+        neighbours of ``mask`` that switch the elements ``out[i]`` off and ``into[i]`` on
+        (``(B, m)`` each), counted, clipped and recorded like :meth:`evaluate` of their masks."""
         self._check_open()
         self._started()
-        m, a, b = check_swaps(mask, out, into)
-        if a.size == 0:
+        m, a, b = check_moves(mask, out, into)
+        if a.shape[0] == 0:
             return self._inner.evaluate(np.zeros((0, m.size), dtype=bool))
-        return self._in_pieces(a.size, lambda sl: evaluate_swaps(self._inner, m, a[sl], b[sl]),
-                               lambda sl: swap_masks(m, a[sl], b[sl]))
+        return self._in_pieces(a.shape[0], lambda sl: evaluate_moves(self._inner, m, a[sl], b[sl]),
+                               lambda sl: move_masks(m, a[sl], b[sl]))
 
     def score_swaps(self, mask, out, into) -> np.ndarray:
         """``Mean`` of the one-swap neighbours ``(out[i], into[i])`` of ``mask`` (:meth:`evaluate_swaps`),
         float64 with NaN/Inf as ``+inf``."""
         return finite_or_inf(self.evaluate_swaps(mask, out, into)["Mean"])
+
+    def score_moves(self, mask, out, into) -> np.ndarray:
+        """``Mean`` of the neighbours of ``mask`` that switch ``out[i]`` off and ``into[i]`` on
+        (:meth:`evaluate_moves`), float64 with NaN/Inf as ``+inf``."""
+        return finite_or_inf(self.evaluate_moves(mask, out, into)["Mean"])
 
     def score(self, masks) -> np.ndarray:
         """``Mean`` of each mask ``(B, Ne)`` as float64, NaN/Inf replaced by ``+inf``."""

@@ -63,7 +63,7 @@ from typing import Callable
 import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
-from arraysel.objective.neighbours import swap_masks, swap_pairs
+from arraysel.objective.neighbours import moves_between, swap_masks, swap_pairs
 from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
@@ -332,6 +332,15 @@ class SwapSearch:
             return cands, self.score(cands)
         return cands, self._cached(cands, lambda todo: own(mask, a[todo], b[todo]))
 
+    def score_moved(self, mask: np.ndarray, cands: np.ndarray) -> np.ndarray:
+        """Means of the selections ``cands`` (B, Ne), each with as many elements as ``mask``: the
+        ones not seen before are scored as moves from ``mask`` in one call of the objective's
+        ``score_moves`` (:mod:`arraysel.objective.neighbours`) when it has one."""
+        own = getattr(self.objective, "score_moves", None)
+        if own is None:
+            return self.score(cands)
+        return self._cached(cands, lambda todo: own(mask, *moves_between(mask, cands[todo])))
+
     def _cached(self, masks: np.ndarray, scorer) -> np.ndarray:
         keys = [mask_key(m) for m in masks]
         out = np.full(len(keys), math.inf)
@@ -424,7 +433,7 @@ class SwapSearch:
             if not keep:
                 continue
             cands = cands[keep]
-            values = self.score(cands)
+            values = self.score_moved(mask, cands)
             tried += len(keep)
             i = int(np.argmin(values))
             if values[i] < value:

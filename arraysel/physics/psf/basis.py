@@ -463,38 +463,83 @@ class PairBasis:
         self._swap_base_held = (key, m, y.contiguous(), G.contiguous(), 0)
         return self._swap_base_held[2], self._swap_base_held[3]
 
+    #: the cost of summing one pair-image row into a neighbour's image, in columns of the product
+    #: ``(c U) V`` (measured on one CPU thread: a row about 20 us, the product about 1 us a column
+    #: of ``U``): :meth:`swap_images` sums rows while a neighbour's ``2 m (m + 1)`` of them cost
+    #: less than the product, and forms the product beyond
+    move_row_cost = 20
+
     def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
-        """:meth:`images` ``(w, with_error=True)`` of the one-swap neighbours ``w`` (B, Ne) of the 0/1
-        selection ``mask`` (Ne,): element ``out[b]`` off, ``into[b]`` on. The image is bilinear in
-        the selection, so a neighbour's image on E is the selection's, less the image rows
-        ``G_a = sum_{j in mask} H_aj`` of ``a = out[b]``, plus those of ``b = into[b]``, plus
-        ``H_bb`` and less ``H_ab`` (``H`` the pair images, :meth:`pair_rows`; ``G`` and the image
-        from :meth:`_swap_base`, in float64): sums of rows where :meth:`images` forms the
-        product ``(c U) V`` of every neighbour. The error bounds are :meth:`images`' own (from
-        ``c U``). No gradient."""
+        """:meth:`images` ``(w, with_error=True)`` of the neighbours ``w`` (B, Ne) of the 0/1
+        selection ``mask`` (Ne,) that switch the elements ``out[b]`` off and ``into[b]`` on (int
+        (B,): one-swap neighbours, or (B, m): m elements each, ``-1`` for none). The image is bilinear in the
+        selection: with ``G_e = sum_{j in mask} H_ej`` the image rows of element e (``H`` the pair
+        images, :meth:`pair_rows`; ``G`` and the image from :meth:`_swap_base`, in float64), a
+        neighbour's image on E is the selection's, less ``G_a`` of each ``a`` in ``out[b]``, plus
+        ``G_c`` of each ``c`` in ``into[b]``, plus ``H_cc'`` of each pair ``c <= c'`` of ``into[b]``
+        and ``H_aa'`` of each pair ``a < a'`` of ``out[b]``, less ``H_ac`` of every ``a``, ``c``
+        (for one swap: ``y - G_a + G_c + H_cc - H_ac``): 2 m (m + 1) sums of rows where
+        :meth:`images` forms the product ``(c U) V`` of every neighbour (which it still forms
+        while those rows cost more: :attr:`move_row_cost`). The error bounds are :meth:`images`'
+        own (from ``c U``). No gradient."""
         with torch.no_grad():
             c = self._pairs(w)
             cu = c @ self.U if self.U is not None else None
             eps, win_err = self._image_errors(c, cu)
-            y, G = self._swap_base(mask)
-            a, b = out.cpu(), into.cpu()
-            look = self.pair_lookup()
-            H = self._all_rows()
-            if H is not None:  # numpy: gathers and mixed-precision sums of kept rows
-                an, bn, ln, Gn = a.numpy(), b.numpy(), look.numpy(), G.numpy()
-                yb = np.take(Gn, bn, axis=0)
-                yb -= np.take(Gn, an, axis=0)
-                yb += y.numpy()
-                yb += np.take(H, ln[bn, bn], axis=0)
-                yb -= np.take(H, ln[an, bn], axis=0)
-                yb = torch.from_numpy(yb.astype(H.dtype))
+            a, b = (v.cpu().reshape(-1, 1) if v.ndim < 2 else v.cpu() for v in (out, into))
+            a, b = a.numpy(), b.numpy()
+            a, b = -np.sort(-a, axis=1), -np.sort(-b, axis=1)   # each row's elements first, then -1
+            count = (a >= 0).sum(1)
+            # many rows a neighbour: the product of its coefficients costs less
+            wide = torch.from_numpy(2 * count * (count + 1) * self.move_row_cost > cu.shape[1]) if cu is not None \
+                else torch.zeros(a.shape[0], dtype=torch.bool)
+            if bool(wide.all()):
+                yb = cu @ self.V
+            elif not bool(wide.any()):
+                yb = self._moved_rows(mask, a, b)
             else:
-                dev = G.device
-                yb = (y - G[a.to(dev)]).add_(G[b.to(dev)])
-                yb.add_(self.pair_rows(look[b, b])).sub_(self.pair_rows(look[a, b]))
-                yb = yb.to(self.V.dtype)
+                narrow = ~wide.numpy()
+                width = max(1, int(count[narrow].max()))
+                yb = torch.empty(a.shape[0], self.V.shape[1], dtype=self.V.dtype)
+                yb[~wide] = self._moved_rows(mask, a[narrow, :width], b[narrow, :width])
+                yb[wide] = (cu[wide.to(cu.device)] @ self.V).to(yb.device)
             img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
+
+    def _moved_rows(self, mask: torch.Tensor, a: np.ndarray, b: np.ndarray) -> torch.Tensor:
+        """(B, 2 Npix) images on E ([re | im], :attr:`V`'s dtype) of the neighbours of ``mask``
+        that switch ``a[i]`` off and ``b[i]`` on ((B, m) each, ``-1`` for none), from its image,
+        its element rows and the pair-image rows (:meth:`swap_images`)."""
+        y, G = self._swap_base(mask)
+        m = a.shape[1]
+        ln = self.pair_lookup().numpy()
+        # the pair-image rows each neighbour adds (sign 1) or takes away (-1); 0 where a pair
+        # names a padding entry
+        pairs = [(1.0, b[:, i], b[:, j]) for i in range(m) for j in range(i, m)]
+        pairs += [(1.0, a[:, i], a[:, j]) for i in range(m) for j in range(i + 1, m)]
+        pairs += [(-1.0, a[:, i], b[:, j]) for i in range(m) for j in range(m)]
+        sign, pidx = np.zeros((a.shape[0], 0)), np.zeros((a.shape[0], 0), dtype=np.int64)   # moves of none
+        if pairs:
+            sign = np.stack([s * ((p >= 0) & (q >= 0)) for s, p, q in pairs], axis=1)
+            pidx = np.stack([ln[np.maximum(p, 0), np.maximum(q, 0)] for _, p, q in pairs], axis=1)
+        H = self._all_rows()
+        if H is not None:  # compiled: one pass over the kept rows
+            from arraysel.physics.pairkernels import move_rows
+
+            return torch.from_numpy(move_rows(H, y.numpy()[0], G.numpy(), a, b, pidx, sign))
+        dev = G.device
+        Gz = torch.cat([G, torch.zeros_like(G[:1])])      # row Ne: the padding entries' (zero)
+        at, bt = (torch.from_numpy(np.where(v >= 0, v, G.shape[0])).to(dev) for v in (a, b))
+        yb = y.expand(a.shape[0], -1).clone()
+        for i in range(m):
+            yb.sub_(Gz[at[:, i]]).add_(Gz[bt[:, i]])
+        for t in range(pidx.shape[1]):
+            rows = self.pair_rows(torch.from_numpy(pidx[:, t]))
+            if (sign[:, t] == sign[0, t]).all():                # no padding in this term: one sign
+                yb.add_(rows, alpha=float(sign[0, t]))
+            else:
+                yb.add_(rows.to(yb.dtype) * torch.from_numpy(sign[:, t]).to(dev, yb.dtype)[:, None])
+        return yb.to(self.V.dtype)
 
     def _rounding(self, c: torch.Tensor, cn2: torch.Tensor | None = None) -> torch.Tensor:
         """(B,) rounding allowance of one image pixel ``c @ H_p``: ``2 sqrt(P) u |c| max_p |H_p|``."""

@@ -243,18 +243,19 @@ class Certificates:
         return mask.device.type == "cpu" and not mask.requires_grad and bool(((mask == 0) | (mask == 1)).all())
 
     def swap_envelopes(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor) -> torch.Tensor:
-        """:meth:`envelopes` of the one-swap neighbours of the 0/1 selection ``mask`` (Ne,): element
-        ``out[b]`` switched off and ``into[b]`` on (int (B,)), the same values to rounding, for
-        less work: the selection's channel sums over every receive element are formed once
-        (``Y[e] = sum_{j in mask} A_je``, float64), and a neighbour's channel on each receive
-        element it uses is ``Y[e] - A_out,e + A_into,e``, three rows read where summing it afresh
-        reads k (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
+        """:meth:`envelopes` of the neighbours of the 0/1 selection ``mask`` (Ne,) that switch the
+        elements ``out[b]`` off and ``into[b]`` on (int (B,): one-swap neighbours, or (B, m): m
+        elements each, ``-1`` for none), the same values to rounding, for less work: the selection's channel sums
+        over every receive element are formed once (``Y[e] = sum_{j in mask} A_je``, float64), and
+        a neighbour's channel on each receive element it uses is ``Y[e] - sum A_out,e + sum
+        A_into,e``, 2 m + 1 rows read where summing it afresh reads k
+        (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
         (:meth:`swaps_compiled`)."""
         from arraysel.physics.pairkernels import row_sums, swap_peaks_into
 
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
-        B = int(out.numel())
+        B = int(out.shape[0])
         nS = self.window_samples // self.segment
         on = (mask.detach().cpu() != 0).numpy()
         A = self.pair_channels.numpy()

@@ -374,23 +374,25 @@ class PSFModel:
         return (k, ~ok) if return_info else k
 
     def swap_kernels(self, mask, out, into, return_info: bool = False):
-        """:meth:`kernels` (no gradient) of the one-swap neighbours of the 0/1 selection ``mask``
-        (Ne,): element ``out[b]`` switched off and ``into[b]`` on (int (B,)). The same kernels, to
-        rounding: on the CPU the certificates' envelopes of the neighbours are corrected from the
-        selection's channel sums (:meth:`~arraysel.physics.psf.certificate.Certificates.swap_envelopes`)
-        instead of being summed afresh, and their images on E from the selection's image and
-        pair-image rows (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_images`) instead of the
-        product of every neighbour; everything after them (peaks, refinement, the exact path for a
-        neighbour the certificates do not settle) is what :meth:`kernels` does."""
+        """:meth:`kernels` (no gradient) of the neighbours of the 0/1 selection ``mask`` (Ne,) that
+        switch the elements ``out[b]`` off and ``into[b]`` on (int (B,): one-swap neighbours, or
+        (B, m): m elements each, ``-1`` for none). The same kernels, to rounding: on the CPU the certificates'
+        envelopes of the neighbours are corrected from the selection's channel sums
+        (:meth:`~arraysel.physics.psf.certificate.Certificates.swap_envelopes`) instead of being
+        summed afresh, and their images on E from the selection's image and pair-image rows
+        (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_images`) instead of the product of
+        every neighbour; everything after them (peaks, refinement, the exact path for a neighbour
+        the certificates do not settle) is what :meth:`kernels` does."""
         m = self._weights(mask)[0]
-        a = torch.as_tensor(np.asarray(out, dtype=np.int64)).reshape(-1)
-        b = torch.as_tensor(np.asarray(into, dtype=np.int64)).reshape(-1)
-        w = m.repeat(a.numel(), 1)
-        rows = torch.arange(a.numel())
-        w[rows, a.to(w.device)] = 0
-        w[rows, b.to(w.device)] = 1
+        a = torch.as_tensor(np.asarray(out, dtype=np.int64))
+        b = torch.as_tensor(np.asarray(into, dtype=np.int64))
+        a, b = (a.reshape(-1, 1) if a.ndim < 2 else a), (b.reshape(-1, 1) if b.ndim < 2 else b)
+        w = m.repeat(a.shape[0], 1)
+        for idx, val in ((a, 0), (b, 1)):
+            r, c = torch.nonzero(idx >= 0, as_tuple=True)
+            w[r.to(w.device), idx[r, c].to(w.device)] = val
         with torch.no_grad():
-            if self.basis is None or not a.numel() or not self.basis.certificates.swaps_compiled(m):
+            if self.basis is None or not a.shape[0] or not self.basis.certificates.swaps_compiled(m):
                 return self.kernels(w, return_info=return_info)
             return self._fast_or_exact(w, return_info, env=self.basis.certificates.swap_envelopes(m, a, b),
                                        images=self.basis.swap_images(m, a, b, w))
