@@ -449,8 +449,9 @@ def test_builtin_neighbourhoods_equal_independent_masks(scene, dtype, rtol):
 
 def _walk_images(obj, m, rng, moves, dtype, tol):
     """A search's walk: at each step the neighbours' images on E against the product of each
-    neighbour, then a move to one of them (every third step a two-swap jump, which the base is
-    formed afresh for); returns the selection reached."""
+    neighbour, then a move to one of them (every third step a further jump of two elements, and
+    every fifth of three: the base is carried by rows over moves of up to
+    ``swap_base_moved_max`` elements and formed afresh beyond); returns the selection reached."""
     basis = obj.psf.basis
     for step in range(moves):
         out, into = swap_pairs(m, rng)
@@ -466,6 +467,9 @@ def _walk_images(obj, m, rng, moves, dtype, tol):
         if step % 3 == 2:
             on, off = np.flatnonzero(m), np.flatnonzero(~m)
             m = swap_masks(m, on[:1], off[:1])[0]
+        if step % 5 == 4:
+            on, off = np.flatnonzero(m), np.flatnonzero(~m)
+            m = move_masks(m, on[None, -3:], off[None, :3])[0]
     return m
 
 
@@ -480,9 +484,20 @@ def test_neighbourhood_base_carried_by_rows_along_a_walk_equals_the_products(mon
     obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 6})
     basis = obj.psf.basis
     assert prepare_neighbourhoods(obj) >= 0
-    monkeypatch.setattr(type(basis), "swap_base_refresh", 4)
+    monkeypatch.setattr(type(basis), "swap_base_refresh", 6)
+    monkeypatch.setattr(type(basis), "swap_base_moved_max", 2)
+    updated = []
+    real = type(basis)._swap_base
+
+    def spy(self, mask):
+        out = real(self, mask)
+        updated.append(self._swap_base_held[4])
+        return out
+
+    monkeypatch.setattr(type(basis), "_swap_base", spy)
     rng = np.random.default_rng(4)
     m = _walk_images(obj, _mask(12, [0, 2, 3, 7, 9, 11]), rng, 14, dtype, tol)
+    assert 2 in np.diff(updated) and 0 in updated[1:]       # a two-element move by rows; bases formed afresh
     assert basis._swap_base_held[4] >= 1                      # the last bases were updated by rows
     out, into = swap_pairs(m, rng)
     _assert_same_scores(obj.evaluate_swaps(m, out, into, return_kernels=True),

@@ -23,10 +23,11 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    with ``shift`` above 0, a selection no swap improves is tried with *segment shifts*
    (:func:`shift_moves`: the active and inactive elements of a run of at most ``shift_len``
    consecutive indices rotated by up to ``shift`` places, k kept), in a random order, ``chunk``
-   a call; the descent goes on swapping from the best of the first chunk that improves, and ends
-   when ``shift_scan`` shifts (or all) improve nothing. A shift moves a group of elements
-   together, such as a block of a periodic layout, which single swaps can only do through
-   worse selections;
+   a call (scored as moves of several elements from the selection, :meth:`SwapSearch.score_moved`,
+   when the objective has ``score_moves``); the descent goes on swapping from the best of the
+   first chunk that improves, and ends when ``shift_scan`` shifts (or all) improve nothing. A
+   shift moves a group of elements together, such as a block of a periodic layout, which single
+   swaps can only do through worse selections;
 
 2. **perturbation**: from the best local optimum found, ``perturb`` random
    swaps, then a new descent; the result replaces the base when it is no
