@@ -408,9 +408,8 @@ class PairBasis:
     swap_base_refresh = 64
 
     #: the most elements a selection may differ by from the last base for :meth:`_swap_base` to
-    #: update that base by rows instead of forming it afresh (one thread, from the best-known
-    #: selections: a move of 2 elements 13-27 ms against 90-131 ms afresh on paper and l11-5v, 8
-    #: elements 48-111 ms against 92-128 ms)
+    #: update that base by rows instead of forming it afresh (2 m column gathers of the pair rows
+    #: against the product of the selection's coefficients: docs/performance.md, tuning constants)
     swap_base_moved_max = 8
 
     def _all_rows(self):
@@ -477,9 +476,8 @@ class PairBasis:
         return self._swap_base_held[2], self._swap_base_held[3]
 
     #: the cost of summing one pair-image row into a neighbour's image, in columns of the product
-    #: ``(c U) V`` (measured on one CPU thread: a row about 20 us, the product about 1 us a column
-    #: of ``U``): :meth:`swap_images` sums rows while a neighbour's ``2 m (m + 1)`` of them cost
-    #: less than the product, and forms the product beyond
+    #: ``(c U) V`` (docs/performance.md, tuning constants): :meth:`swap_images` sums rows while a
+    #: neighbour's ``2 m (m + 1)`` of them cost less than the product, and forms the product beyond
     move_row_cost = 20
 
     def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
