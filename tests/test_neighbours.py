@@ -258,7 +258,7 @@ def test_psf_objective_neighbourhood_equals_independent_masks(monkeypatch, dtype
 
 
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, dtype, rtol):
+def test_swap_and_move_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, dtype, rtol):
     monkeypatch.setenv("ARRAYSEL_CACHE", "off")
     obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
     basis = obj.psf.basis
@@ -276,6 +276,12 @@ def test_swap_envelopes_equal_the_envelopes_of_the_neighbour_masks(monkeypatch, 
     unused = w.T == 0
     assert bool(unused.any()) and float(env[:, unused].abs().sum()) == 0.0
     assert bool((env[:, ~unused].amax(-1) > 0).all())
+    # moves of 1 to 4 elements in one call, rows padded with -1
+    out, into = _padded([_random_moves(m, size, np.random.default_rng(size), 3) for size in (1, 2, 3, 4)])
+    w = torch.as_tensor(move_masks(m, out, into), dtype=dtype)
+    got = basis.certificates.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
+    ref = basis.certificates.envelopes(w)
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
 
 
 def _padded(moves):
@@ -341,22 +347,6 @@ def test_moves_between_lists_the_switched_elements():
         moves_between(m, _mask(8, [0])[None])
     with pytest.raises(SelectionError, match="as many elements in each row"):
         move_masks(m, [[0, -1]], [[1, 3]])
-
-
-@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_move_envelopes_equal_the_envelopes_of_the_moved_masks(monkeypatch, dtype, rtol):
-    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
-    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
-    basis = obj.psf.basis
-    m = _mask(10, [0, 1, 4, 5, 7, 9])
-    for size in (2, 3, 4):
-        out, into = _random_moves(m, size, np.random.default_rng(size), 9)
-        w = torch.as_tensor(move_masks(m, out, into), dtype=dtype)
-        got = basis.certificates.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out),
-                                                torch.as_tensor(into))
-        ref = basis.certificates.envelopes(w)
-        assert got.shape == ref.shape and got.dtype == ref.dtype
-        np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
 
 
 def test_move_rows_sum_signed_rows_in_float64():
