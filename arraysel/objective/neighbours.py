@@ -41,6 +41,7 @@ def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tupl
 
 
 def _as_mask(mask) -> np.ndarray:
+    """``mask`` as a boolean ``(Ne,)`` array (SelectionError when it is not one selection of 0/1)."""
     m = np.asarray(mask)
     if m.ndim != 1:
         raise SelectionError(f"mask must be one selection of shape (Ne,), got shape {m.shape}")
@@ -52,6 +53,8 @@ def _as_mask(mask) -> np.ndarray:
 
 
 def _check_elements(m: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """SelectionError naming ``out``/``into`` when an index of ``a``/``b`` is out of range, or an
+    element of ``a`` is inactive in ``m``, or one of ``b`` active."""
     n = m.size
     for name, idx in (("out", a), ("into", b)):
         if idx.size and (idx.min() < 0 or idx.max() >= n):
