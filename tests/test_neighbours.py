@@ -37,6 +37,13 @@ def _random_moves(m, size, rng, count):
     return out, into
 
 
+def _padded(moves):
+    """One (B, m) pair of arrays from moves of different sizes, rows padded with -1."""
+    width = max(o.shape[1] for o, _ in moves)
+    pad = [np.pad(v, ((0, 0), (0, width - v.shape[1])), constant_values=-1) for o, i in moves for v in (o, i)]
+    return np.concatenate(pad[0::2]), np.concatenate(pad[1::2])
+
+
 def test_swap_pairs_list_every_neighbour_once():
     m = _mask(7, [0, 3, 5])
     out, into = swap_pairs(m)
@@ -282,13 +289,6 @@ def test_swap_and_move_envelopes_equal_the_envelopes_of_the_neighbour_masks(monk
     got = basis.certificates.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
     ref = basis.certificates.envelopes(w)
     np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
-
-
-def _padded(moves):
-    """One (B, m) pair of arrays from moves of different sizes, rows padded with -1."""
-    width = max(o.shape[1] for o, _ in moves)
-    pad = [np.pad(v, ((0, 0), (0, width - v.shape[1])), constant_values=-1) for o, i in moves for v in (o, i)]
-    return np.concatenate(pad[0::2]), np.concatenate(pad[1::2])
 
 
 @pytest.mark.parametrize("rows", ["kept", "formed", "product", "mixed"])

@@ -407,15 +407,15 @@ def _move_rows_kernel(H, y, G, out, into, pidx, psign, step, res):
 
 
 def move_rows(H: np.ndarray, y: np.ndarray, G: np.ndarray, out: np.ndarray, into: np.ndarray, pidx: np.ndarray,
-              psign: np.ndarray) -> np.ndarray:
-    """(B, C) rows, in ``H``'s dtype, ``y - sum_i G[out[b, i]] + sum_i G[into[b, i]] + sum_t
-    psign[b, t] H[pidx[b, t]]`` summed in float64 (entries ``-1`` of out and into, and terms of
-    sign 0, left out): the images of a selection's neighbours from its
-    image ``y`` (C,), its element rows ``G`` (Ne, C) and pair-image rows ``H`` (P, C)
+              psign: np.ndarray, dtype=None) -> np.ndarray:
+    """(B, C) rows, in ``dtype`` (default ``H``'s), ``y - sum_i G[out[b, i]] + sum_i G[into[b, i]]
+    + sum_t psign[b, t] H[pidx[b, t]]`` summed in float64 (entries ``-1`` of out and into, and
+    terms of sign 0, left out): the images of a selection's neighbours from its image ``y``
+    (C,), its element rows ``G`` (Ne, C) and pair-image rows ``H`` (P, C)
     (:meth:`PairBasis.swap_images <arraysel.physics.psf.basis.PairBasis.swap_images>`); one pass
     over each row read, where numpy's gathers and mixed-precision sums take three."""
     B = out.shape[0]
-    res = np.empty((B, y.shape[0]), dtype=H.dtype)
+    res = np.empty((B, y.shape[0]), dtype=H.dtype if dtype is None else dtype)
     _move_rows_kernel(H, np.ascontiguousarray(y, dtype=np.float64), G, np.ascontiguousarray(out, dtype=np.int64),
                       np.ascontiguousarray(into, dtype=np.int64), np.ascontiguousarray(pidx, dtype=np.int64),
                       np.ascontiguousarray(np.broadcast_to(psign, pidx.shape), dtype=np.float64), 2048, res)

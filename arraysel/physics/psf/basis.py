@@ -448,15 +448,12 @@ class PairBasis:
             moved = gone.size
             H = self._all_rows() if moved == new.size and 0 < moved <= self.swap_base_moved_max else None
             if H is not None:
+                from arraysel.physics.pairkernels import move_rows
+
                 y, G = held[2].numpy(), held[3].numpy()  # owned here: updated in place
                 ln = look.numpy()
-                y[0] -= G[gone].sum(0)
-                y[0] += G[new].sum(0)
-                iu, ju = np.triu_indices(moved)
-                y[0] += H[ln[new[iu], new[ju]]].sum(0, dtype=np.float64)
-                iu, ju = np.triu_indices(moved, 1)
-                y[0] += H[ln[gone[iu], gone[ju]]].sum(0, dtype=np.float64)
-                y[0] -= H[ln[np.repeat(gone, moved), np.tile(new, moved)]].sum(0, dtype=np.float64)
+                y[:] = move_rows(H, y[0], G, gone[None], new[None], *self._move_terms(gone[None], new[None]),
+                                 dtype=np.float64)
                 for a in gone:
                     G -= np.take(H, ln[:, a], axis=0)
                 for b in new:
@@ -517,22 +514,29 @@ class PairBasis:
             img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
 
+    def _move_terms(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pidx, sign)``, (B, 2 m^2) each: the pair-image rows (indices into :attr:`pairs_e`)
+        that the moves ``a[i]`` off, ``b[i]`` on ((B, m) each, ``-1`` for none) add to an image
+        besides the element rows ``G``: the pairs within ``b`` (diagonal included) and within
+        ``a`` (sign 1), and the pairs between them (sign -1); sign 0 where a pair names a
+        padding entry."""
+        m = a.shape[1]
+        ln = self.pair_lookup().numpy()
+        pairs = [(1.0, b[:, i], b[:, j]) for i in range(m) for j in range(i, m)]
+        pairs += [(1.0, a[:, i], a[:, j]) for i in range(m) for j in range(i + 1, m)]
+        pairs += [(-1.0, a[:, i], b[:, j]) for i in range(m) for j in range(m)]
+        if not pairs:  # moves of none
+            return np.zeros((a.shape[0], 0), dtype=np.int64), np.zeros((a.shape[0], 0))
+        return (np.stack([ln[np.maximum(p, 0), np.maximum(q, 0)] for _, p, q in pairs], axis=1),
+                np.stack([s * ((p >= 0) & (q >= 0)) for s, p, q in pairs], axis=1))
+
     def _moved_rows(self, mask: torch.Tensor, a: np.ndarray, b: np.ndarray) -> torch.Tensor:
         """(B, 2 Npix) images on E ([re | im], :attr:`V`'s dtype) of the neighbours of ``mask``
         that switch ``a[i]`` off and ``b[i]`` on ((B, m) each, ``-1`` for none), from its image,
         its element rows and the pair-image rows (:meth:`swap_images`)."""
         y, G = self._swap_base(mask)
         m = a.shape[1]
-        ln = self.pair_lookup().numpy()
-        # the pair-image rows each neighbour adds (sign 1) or takes away (-1); 0 where a pair
-        # names a padding entry
-        pairs = [(1.0, b[:, i], b[:, j]) for i in range(m) for j in range(i, m)]
-        pairs += [(1.0, a[:, i], a[:, j]) for i in range(m) for j in range(i + 1, m)]
-        pairs += [(-1.0, a[:, i], b[:, j]) for i in range(m) for j in range(m)]
-        sign, pidx = np.zeros((a.shape[0], 0)), np.zeros((a.shape[0], 0), dtype=np.int64)   # moves of none
-        if pairs:
-            sign = np.stack([s * ((p >= 0) & (q >= 0)) for s, p, q in pairs], axis=1)
-            pidx = np.stack([ln[np.maximum(p, 0), np.maximum(q, 0)] for _, p, q in pairs], axis=1)
+        pidx, sign = self._move_terms(a, b)
         H = self._all_rows()
         if H is not None:  # compiled: one pass over the kept rows
             from arraysel.physics.pairkernels import move_rows
