@@ -762,7 +762,7 @@ class _PhaseMoves(_PhaseObjective):
 
 def test_a_shift_descent_scores_its_shifts_as_moves():
     # the same descent, values and count of evaluations whether the objective scores the shifts as
-    # moves (grouped by how many elements they switch) or as masks
+    # moves (one call a chunk, rows padded to its widest move) or as masks
     from arraysel.selectors.contract import numpy_rng
     from arraysel.selectors.localsearch import SwapSearch
 

@@ -15,8 +15,9 @@ the masks ``mask`` with element ``out[i]`` switched off and ``into[i]`` switched
 values as scoring those masks independently, exploiting what they share.
 :func:`arraysel.objective.neighbours.evaluate_swaps` calls it, and scores the masks with
 ``evaluate`` for an objective without it. More generally (:class:`ScoresMoves`),
-``evaluate_moves(mask, out, into)`` scores neighbours that switch ``m`` elements each (``out``,
-``into`` of shape ``(B, m)``; :func:`arraysel.objective.neighbours.evaluate_moves`).
+``evaluate_moves(mask, out, into)`` scores neighbours that switch up to ``m`` elements each
+(``out``, ``into`` of shape ``(B, m)``, padded with ``-1``;
+:func:`arraysel.objective.neighbours.evaluate_moves`).
 
 Capability: an objective may say how its elements are laid out (:class:`HasLayout`):
 ``element_grid`` is ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``) or ``None`` for a
@@ -87,8 +88,9 @@ class ScoresMoves(Protocol):
 
     ``evaluate_moves(mask, out, into)``: ``mask`` a boolean ``(Ne,)`` selection, ``out`` and
     ``into`` int arrays ``(B, m)`` with ``mask[out]`` all True, ``mask[into]`` all False and no
-    element twice in a row; returns ``{name: float64 array (B,)}`` equal to ``evaluate`` of the
-    ``B`` masks with ``out[i]`` switched off and ``into[i]`` on, and counts ``B`` evaluations."""
+    element twice in a row, a row of fewer elements padded with ``-1`` (as many in ``out[i]`` as
+    in ``into[i]``); returns ``{name: float64 array (B,)}`` equal to ``evaluate`` of the ``B``
+    masks with ``out[i]`` switched off and ``into[i]`` on, and counts ``B`` evaluations."""
 
     def evaluate_moves(self, mask, out, into) -> dict:
         ...
