@@ -179,3 +179,22 @@ def basis_source(before: set | None) -> str:
     if before is None:
         return "built (cache off)"
     return "built (now cached)" if cache_files() - before else "loaded from disk cache"
+
+
+def best_known_start(scene: str):
+    """``(objective, mask)``: built-in scene ``scene``'s objective with its neighbourhoods prepared,
+    and its best-known selection as a boolean mask (SystemExit when it has none)."""
+    import numpy as np
+
+    from arraysel.objective.neighbours import prepare_neighbourhoods
+    from arraysel.objective.psf_objective import build_objective
+    from arraysel.scenes.best_known import best_known
+
+    obj = build_objective(scene)
+    prepare_neighbourhoods(obj)
+    known = best_known(scene, int(obj.k))
+    if known is None:
+        raise SystemExit(f"{scene}: no best-known selection to start from")
+    base = np.zeros(int(obj.n_elements), dtype=bool)
+    base[known["elements"]] = True
+    return obj, base

@@ -23,7 +23,7 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import set_threads  # noqa: E402
+from _common import best_known_start, set_threads  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -36,21 +36,13 @@ def main(argv=None) -> int:
     set_threads(args.threads)
     import numpy as np
 
-    from arraysel.objective.neighbours import evaluate_moves, move_masks, moves_between, prepare_neighbourhoods
-    from arraysel.objective.psf_objective import build_objective
-    from arraysel.scenes.best_known import best_known
+    from arraysel.objective.neighbours import evaluate_moves, move_masks, moves_between
     from arraysel.selectors.localsearch import shift_moves, shifted_masks
 
     record = {"chunk": args.chunk, "shifts": args.shifts, "threads": args.threads, "scenes": {}}
     for scene in [s for s in args.scenes.split(",") if s]:
-        obj = build_objective(scene)
-        prepare_neighbourhoods(obj)
+        obj, base = best_known_start(scene)
         n = int(obj.n_elements)
-        known = best_known(scene, int(obj.k))
-        if known is None:
-            raise SystemExit(f"{scene}: no best-known selection to start from")
-        base = np.zeros(n, dtype=bool)
-        base[known["elements"]] = True
         cands = shifted_masks(base, shift_moves(n, 24, 6, np.random.default_rng(0))[:args.shifts])
         _, first = np.unique(cands, axis=0, return_index=True)
         cands = cands[np.sort(first)]

@@ -13,14 +13,16 @@ perturbations it restarts from a random selection, until the budget is spent. Wi
 above 1 the first descent is a race of descents from the start and ``race - 1`` fresh
 selections (successive halving in turns of ``race_quota`` scored selections); the search goes
 on from the winner. With ``shift`` above 0 a descent that no swap improves tries segment shifts
-(runs of consecutive elements rotated by up to ``shift`` places) before it ends. See
+(runs of consecutive elements rotated by up to ``shift`` places) before it ends. With
+``model = quadratic`` the guided share of each chunk is ranked by the loss's gradient and
+Hessian instead of its gradient alone, which lets a small ``scan`` confirm a local optimum. See
 :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch, shift_options
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch, model_options, shift_options
 from arraysel.selectors.starts import start_options, start_selection
 
 
@@ -52,6 +54,7 @@ class SwapSelector(Selector):
         "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "
                              "each turn)", lo=1),
         **shift_options(),
+        **model_options(),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -64,7 +67,8 @@ class SwapSelector(Selector):
                             perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
                             restart_after=o["restart_after"], fresh=o["fresh"],
                             race=o["race"], race_quota=o["race_quota"], shift=o["shift"],
-                            shift_len=o["shift_len"], shift_scan=o["shift_scan"])
+                            shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
+                            refresh=o["refresh"])
         return search.run(start)[0]
 
 

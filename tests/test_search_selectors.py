@@ -123,6 +123,8 @@ def test_time_budget_stops_a_large_batch():
     ("memetic", {"scan": 1.0, "guide": 0.0}, (0,)),
     ("memetic", {"init": "chirp"}, (0, 1)),
     ("genetic", {"init": "chirp"}, (0,)),
+    ("swap", {"model": "quadratic"}, (0, 1)),
+    ("swap", {"model": "quadratic", "refresh": 1, "scan": 0.2, "guide": 0.875, "race": 3, "race_quota": 40}, (0, 1)),
     ("nevergrad", {}, (0,)),
     ("nevergrad", {"encoding": "binary", "optimizer": "DiscreteOnePlusOne"}, (0, 1, 2)),
     ("uniform", {"polish": 0.9}, (0,)),
@@ -357,15 +359,16 @@ def test_guided_chunks_cover_each_swap_once_predicted_best_first():
     rng = np.random.default_rng(0)
     a, b = rng.integers(0, 12, 40), rng.integers(0, 12, 40)
     g = rng.normal(size=12)
+    pred = g[b] - g[a]                                        # the gradient's predicted change of each swap
     order = GuidedOrder(0.5)
-    picks = list(order.chunks(a, b, g, chunk=8, limit=40))
+    picks = list(order.chunks(a, b, pred, chunk=8, limit=40))
     seen = np.concatenate([p for p, _ in picks])
     assert sorted(seen.tolist()) == list(range(40))           # every swap once
     assert all(ng == 4 for _, ng in picks[:3])                # half of each chunk from the prediction
     first = picks[0][0][:4]
     assert first.tolist() == np.argsort(g[b] - g[a], kind="stable")[:4].tolist()
     # a limit stops the scan; no gradient: the random order alone
-    assert sum(len(p) for p, _ in order.chunks(a, b, g, chunk=8, limit=13)) == 13
+    assert sum(len(p) for p, _ in order.chunks(a, b, pred, chunk=8, limit=13)) == 13
     assert [p.tolist() for p, ng in order.chunks(a, b, None, chunk=16, limit=40)] == \
         [list(range(0, 16)), list(range(16, 32)), list(range(32, 40))]
 

@@ -36,7 +36,8 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_number
 
-__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "WorkerFactory", "dtype_name",
+__all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "HasHessian", "WorkerFactory",
+           "dtype_name", "hessian_by_rows",
            "check_element_grid", "element_layout"]
 
 
@@ -94,6 +95,38 @@ class ScoresMoves(Protocol):
 
     def evaluate_moves(self, mask, out, into) -> dict:
         ...
+
+
+@runtime_checkable
+class HasHessian(Protocol):
+    """An objective that gives the gradient and the Hessian of its ``mask_loss`` at a selection
+    (optional capability: the quadratic model by which swap descents rank swaps,
+    ``model = quadratic``).
+
+    ``mask_hessian(mask)``: ``mask`` a boolean or 0/1 ``(Ne,)`` selection; returns ``(g, H)``,
+    float64 arrays ``(Ne,)`` and ``(Ne, Ne)``, and counts ``Ne`` evaluations. An objective without
+    it gets the same from :func:`hessian_by_rows` on its ``mask_loss``."""
+
+    def mask_hessian(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        ...
+
+
+def hessian_by_rows(mask_loss, mask, dtype=None, device="cpu") -> tuple[np.ndarray, np.ndarray]:
+    """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64) of any differentiable
+    ``mask_loss`` (weights ``(B, Ne)`` to ``(total (B,), terms)``) at ``mask``: the loss of ``Ne``
+    copies of ``mask`` in one call, differentiated once, then row ``i``'s gradient element ``i``
+    differentiated again (row ``i`` of the Hessian). ``mask_loss`` sees, and counts, ``Ne`` weight
+    vectors."""
+    import torch
+
+    m = np.asarray(mask, dtype=np.float64).reshape(-1)
+    n = m.size
+    w = torch.tensor(np.repeat(m[None], n, axis=0), dtype=dtype or torch.float32,
+                     device=device).requires_grad_(True)
+    total, _terms = mask_loss(w)
+    (grads,) = torch.autograd.grad(total.sum(), w, create_graph=True)
+    (H,) = torch.autograd.grad(torch.diagonal(grads).sum(), w)
+    return grads.detach()[0].double().cpu().numpy(), H.detach().double().cpu().numpy()
 
 
 @runtime_checkable

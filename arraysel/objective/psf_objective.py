@@ -402,6 +402,28 @@ class Objective:
                 self.gradient_steps += 1
         return total, terms
 
+    def mask_hessian(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64) of :meth:`mask_loss` at
+        ``mask`` (weights ``(Ne,)``): the loss's quadratic model, by which swap descents with
+        ``model = quadratic`` rank swaps. One forward pass and ``Ne`` Hessian-vector products in one
+        batched backward pass; counted as ``Ne`` evaluations (about what the Hessian costs) and
+        one gradient step."""
+        n = self.n_elements
+        with self._timed():
+            w = torch.as_tensor(np.asarray(mask, dtype=np.float64), dtype=self.dtype,
+                                device=self.device).reshape(1, n).requires_grad_(True)
+            total, _terms = self._psf_loss(w)
+            (g,) = torch.autograd.grad(total.sum(), w, create_graph=True)
+            eye = torch.eye(n, dtype=self.dtype, device=self.device)[:, None, :]
+            (H,) = torch.autograd.grad(g, w, eye, is_grads_batched=True)
+            g = g.detach()[0].double().cpu().numpy()
+            H = H.detach()[:, 0, :].double().cpu().numpy()
+            if not (np.isfinite(g).all() and np.isfinite(H).all()):
+                raise NumericalError("mask_hessian is not finite (NaN/Inf) for this selection")
+            self.evaluations += n
+            self.gradient_steps += 1
+        return g, H
+
     def selection_loss(self, P: torch.Tensor, P_soft: torch.Tensor, step: int = 0):
         """Training loss of a (Ne, k) selection matrix: (scalar total, terms).
 

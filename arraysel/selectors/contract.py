@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
+from arraysel.objective.contract import hessian_by_rows
 from arraysel.objective.neighbours import check_moves, check_swaps, evaluate_moves, move_masks
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 
@@ -558,6 +559,22 @@ class BudgetedObjective:
         if self.budget.allowed(b) < b:
             raise self._exhausted(f"mask_loss of {b} weight vectors")
         return self._inner.mask_loss(weights, *args, **kwargs)
+
+    def mask_hessian(self, mask):
+        """``(g, H)`` of ``mask_loss`` at ``mask`` (:class:`~arraysel.objective.contract.HasHessian`):
+        the wrapped objective's own ``mask_hessian``, else
+        :func:`~arraysel.objective.contract.hessian_by_rows` through this budget; ``Ne``
+        evaluations either way."""
+        self._check_open()
+        self._started()
+        n = self.n_elements
+        if self.budget.allowed(n) < n:
+            raise self._exhausted(f"mask_hessian ({n} evaluations)")
+        own = getattr(self._inner, "mask_hessian", None)
+        if callable(own):
+            return own(mask)
+        return hessian_by_rows(self.mask_loss, mask, getattr(self._inner, "dtype", None),
+                               getattr(self._inner, "device", "cpu"))
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
         self._check_open()

@@ -1,0 +1,196 @@
+"""The quadratic model of the loss (gradient and Hessian) and the searches that rank swaps by it
+(``swap``'s descents with ``model = quadratic``)."""
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+import torch
+
+from arraysel.objective.contract import HasHessian, hessian_by_rows
+from arraysel.objective.neighbours import swap_masks, swap_pairs
+from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder
+from arraysel.selectors.localsearch import SwapSearch, loss_quadratic, swap_changes
+from arraysel.testing import ToyObjective
+from scene_texts import TINY_SCENE
+
+
+class Quadratic:
+    """``f(w) = c + q . w + w' Q w / 2`` on ``n`` elements: a loss whose quadratic model is exact."""
+
+    def __init__(self, n=9, k=4, seed=0, hessian=True):
+        rng = np.random.default_rng(seed)
+        a = rng.normal(size=(n, n))
+        self.Q, self.q, self.c = a + a.T, rng.normal(size=n), 3.0
+        self.n_elements, self.k, self.dtype = n, k, torch.float64
+        self.evaluations = self.gradient_steps = 0
+        self.seconds = 0.0
+        if not hessian:
+            self.mask_hessian = None
+
+    def f(self, w):
+        return self.c + w @ self.q + 0.5 * np.einsum("bi,ij,bj->b", w, self.Q, w)
+
+    def evaluate(self, masks):
+        masks = np.asarray(masks, dtype=np.float64)
+        self.evaluations += len(masks)
+        return {"Mean": self.f(masks)}
+
+    def mask_loss(self, weights):
+        w = weights if weights.dim() == 2 else weights[None]
+        Q, q = torch.as_tensor(self.Q), torch.as_tensor(self.q)
+        self.evaluations += w.shape[0]
+        self.gradient_steps += int(w.requires_grad)
+        return self.c + w @ q + 0.5 * ((w @ Q) * w).sum(1), {}
+
+
+def _budgeted(obj, evaluations):
+    """A budgeted view of ``obj``, as a run gives a selector."""
+    budget = Budget(evaluations=evaluations).start(obj)
+    return BudgetedObjective(obj, budget, Recorder(obj, budget), obj.k)
+
+
+def _tiny_objective(dtype):
+    from arraysel.objective.psf_objective import Objective
+    from arraysel.scenes.schema import load_scene
+
+    return Objective(load_scene(tomllib.loads(TINY_SCENE)), dtype=dtype)
+
+
+def test_quadratic_model_predicts_every_swap_of_a_quadratic_loss_exactly():
+    obj = Quadratic(hessian=False)
+    mask = np.zeros(obj.n_elements, dtype=bool)
+    mask[[0, 3, 4, 7]] = True
+    g, H = loss_quadratic(obj, mask)
+    np.testing.assert_allclose(H, obj.Q, rtol=1e-12)
+    np.testing.assert_allclose(g, obj.q + obj.Q @ mask, rtol=1e-12)
+    a, b = swap_pairs(mask)
+    exact = obj.f(swap_masks(mask, a, b).astype(float)) - obj.f(mask[None].astype(float))
+    np.testing.assert_allclose(swap_changes(g, H, a, b), exact, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(swap_changes(g, None, a, b), g[b] - g[a])
+
+
+def test_hessian_by_rows_counts_ne_evaluations_and_the_budget_checks_them():
+    obj = Quadratic(hessian=False)
+    mask = np.arange(obj.n_elements) < obj.k
+    g, H = hessian_by_rows(obj.mask_loss, mask, torch.float64)
+    np.testing.assert_allclose(H, obj.Q, rtol=1e-12)
+    assert obj.evaluations == obj.n_elements
+    obj.evaluations = 0
+    view = _budgeted(obj, obj.n_elements + 1)
+    loss_quadratic(view, mask)
+    assert obj.evaluations == obj.n_elements
+    with pytest.raises(BudgetExhausted):
+        loss_quadratic(view, mask)  # one evaluation left, the Hessian needs Ne
+
+
+def test_no_quadratic_model_without_a_finite_differentiable_loss():
+    class NoLoss:
+        n_elements, k = 6, 3
+    assert loss_quadratic(NoLoss(), np.arange(6) < 3) is None
+    obj = Quadratic(hessian=False)
+    obj.Q[0, 0] = np.nan
+    assert loss_quadratic(obj, np.arange(obj.n_elements) < obj.k) is None
+
+
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-9), (torch.float32, 2e-3)])
+def test_psf_objective_hessian_equals_the_hessian_of_its_mask_loss(dtype, rtol):
+    # the objective's own batched Hessian-vector products against rows differentiated twice and
+    # against torch's dense Hessian of the same loss, float64
+    obj = _tiny_objective(dtype)
+    assert isinstance(obj, HasHessian)
+    n = obj.n_elements
+    mask = np.zeros(n, dtype=bool)
+    mask[np.random.default_rng(1).choice(n, n // 2, replace=False)] = True
+    before = obj.evaluations
+    g, H = obj.mask_hessian(mask)
+    assert obj.evaluations - before == n
+    ref = _tiny_objective(torch.float64)
+    f = lambda w: ref.mask_loss(w[None])[0].sum()  # noqa: E731
+    w = torch.tensor(mask, dtype=torch.float64)
+    H_ref = torch.autograd.functional.hessian(f, w).numpy()
+    g_ref = torch.autograd.functional.jacobian(f, w).numpy()
+    scale = np.abs(H_ref).max()
+    np.testing.assert_allclose(H, H_ref, rtol=rtol, atol=rtol * scale)
+    np.testing.assert_allclose(g, g_ref, rtol=rtol, atol=rtol * np.abs(g_ref).max())
+    g2, H2 = hessian_by_rows(ref.mask_loss, mask, torch.float64)
+    np.testing.assert_allclose(H2, H_ref, rtol=1e-9, atol=1e-9 * scale)
+
+
+def test_psf_quadratic_model_ranks_swaps_better_than_the_gradient():
+    # why descents rank swaps by it: on a PSF objective the model's predicted changes of one swap
+    # correlate with the true ones more than the gradient's alone
+    obj = _tiny_objective(torch.float64)
+    n = obj.n_elements
+    mask = np.zeros(n, dtype=bool)
+    mask[np.random.default_rng(2).choice(n, n // 2, replace=False)] = True
+    g, H = loss_quadratic(obj, mask)
+    a, b = swap_pairs(mask)
+    true = obj.evaluate_swaps(mask, a, b)["Mean"] - obj.evaluate(mask[None])["Mean"][0]
+    r2 = np.corrcoef(swap_changes(g, H, a, b), true)[0, 1]
+    r1 = np.corrcoef(swap_changes(g, None, a, b), true)[0, 1]
+    assert r2 > max(r1, 0.5), (r1, r2)
+
+
+def test_quadratic_descents_without_a_loss_take_the_random_order():
+    class Plain:
+        def __init__(self):
+            self.inner = ToyObjective(12, 6)
+            self.n_elements, self.k = 12, 6
+            self.evaluations = self.gradient_steps = 0
+            self.seconds = 0.0
+
+        def evaluate(self, masks):
+            self.evaluations += len(masks)
+            return self.inner.evaluate(masks)
+
+    view = _budgeted(Plain(), 10_000)
+    search = SwapSearch(view, 6, np.random.default_rng(3), model="quadratic", scan=0.5)
+    start = np.arange(12) < 6
+    mask, value = search.descend(start, float(view.score(start[None])[0]))
+    assert search.hessians == 0 and not search._guided and value <= float(view.score(start[None])[0])
+
+
+@pytest.mark.parametrize("k", [1, 15, 16])
+def test_quadratic_descents_at_extreme_k(k):
+    obj = ToyObjective(16, k)
+    view = _budgeted(obj, 2000)
+    search = SwapSearch(view, k, np.random.default_rng(0), model="quadratic", refresh=2, scan=0.25, max_rounds=5)
+    sel, value = search.run(np.arange(16) < k)
+    assert len(sel) == k and np.isfinite(value)
+
+
+def test_swap_search_predictions_by_the_linear_and_the_quadratic_model():
+    obj = Quadratic(n=10, k=5, hessian=False, seed=5)
+    mask = np.zeros(10, dtype=bool)
+    mask[[0, 2, 3, 6, 9]] = True
+    a, b = swap_pairs(mask)
+    exact = obj.f(swap_masks(mask, a, b).astype(float)) - obj.f(mask[None].astype(float))
+    g = obj.q + obj.Q @ mask
+    lin = SwapSearch(obj, 5, np.random.default_rng(0))
+    np.testing.assert_allclose(lin._predict(mask, a, b), g[b] - g[a], rtol=1e-12)
+    quad = SwapSearch(obj, 5, np.random.default_rng(0), model="quadratic", refresh=3)
+    for _ in range(7):
+        np.testing.assert_allclose(quad._predict(mask, a, b), exact, rtol=1e-10, atol=1e-12)
+    assert quad.hessians == 3  # formed at calls 1, 4 and 7
+
+
+def test_quadratic_descents_confirm_local_optima_from_a_small_scan():
+    # a descent that scans only the best predicted fifth of the neighbourhood ends where a full scan
+    # would: on a quadratic loss the model is exact, so no improving swap is left outside that fifth
+    obj = Quadratic(n=14, k=7, hessian=False, seed=6)
+    view = _budgeted(obj, 100_000)
+    search = SwapSearch(view, 7, np.random.default_rng(1), model="quadratic", refresh=1, scan=0.2, guide=1.0)
+    mask, value = search.descend(np.arange(14) < 7, float(view.score((np.arange(14) < 7)[None])[0]))
+    a, b = swap_pairs(mask)
+    assert (view.score(swap_masks(mask, a, b)) >= value - 1e-12).all()
+    assert search.hessians >= 1
+
+
+def test_bad_model_options_name_the_option():
+    obj = ToyObjective(12, 6)
+    with pytest.raises(Exception, match="model"):
+        SwapSearch(obj, 6, np.random.default_rng(0), model="cubic")
+    with pytest.raises(Exception, match="refresh"):
+        SwapSearch(obj, 6, np.random.default_rng(0), model="quadratic", refresh=0)
