@@ -15,7 +15,8 @@ selections (successive halving in turns of ``race_quota`` scored selections); th
 on from the winner. With ``shift`` above 0 a descent that no swap improves tries segment shifts
 (runs of consecutive elements rotated by up to ``shift`` places) before it ends. With
 ``model = quadratic`` the guided share of each chunk is ranked by the loss's gradient and
-Hessian instead of its gradient alone, which lets a small ``scan`` confirm a local optimum. See
+Hessian instead of its gradient alone, which puts the best swaps first, so a small ``scan`` ends
+a descent more cheaply. See
 :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations

@@ -105,11 +105,11 @@ def shift_options() -> dict[str, Option]:
     }
 
 
-def model_options(default: str = "linear") -> dict[str, Option]:
+def model_options() -> dict[str, Option]:
     """The declared options ``model`` and ``refresh`` of a search whose descents order swaps by a
     model of the loss (:meth:`SwapSearch._predict`)."""
     return {
-        "model": Option(str, default, "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
+        "model": Option(str, "linear", "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
                         "and Hessian (quadratic; a Hessian costs Ne evaluations)", choices=MODEL_CHOICES),
         "refresh": Option(int, 8, "quadratic model: moves between Hessians (the gradient is taken at every "
                           "move)", lo=1),
@@ -236,6 +236,7 @@ def swap_changes(g: np.ndarray, H: np.ndarray | None, out: np.ndarray, into: np.
         diag = np.diagonal(H)
         d = d + 0.5 * (diag[out] + diag[into]) - H[out, into]
     return d
+
 
 class GuidedOrder:
     """Which one-swap neighbours a first-improvement descent scores next, chunk by chunk.
@@ -773,4 +774,3 @@ class EliteSearch(SwapSearch):
             if idle >= self.MAX_IDLE_ROUNDS:
                 break
         return [int(i) for i in np.flatnonzero(self.best_mask)], self.best_value
-
