@@ -135,9 +135,18 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
     # these writes leaves a run traced but not listed, which --resume runs again)
     traces = pd.DataFrame(trace, columns=list(TRACE_COLUMNS))
     write_csv(out / "trace.csv", traces)
-    write_ioh(out / "ioh", rows, trace, problem or "arraysel")
+    try:
+        write_ioh(out / "ioh", rows, trace, problem or "arraysel")
+        failed = None
+    except OSError as exc:  # an export the file system refuses must not cost the runs
+        failed = exc
     write_csv(out / "runs.csv", runs)
     table, stats = write_tables(out, runs, trace)
+    if failed is not None:
+        from arraysel.errors import ArrayselError
+
+        raise ArrayselError(f"the IOHprofiler files could not be written in {out / 'ioh'} ({failed}); runs.csv, "
+                            "trace.csv, table1.csv and stats.csv were written") from failed
     return WrittenTables(runs, traces, table, stats)
 
 
@@ -145,9 +154,22 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
 # IOHprofiler format
 # ---------------------------------------------------------------------------
 
+#: longest folder name of an IOHprofiler algorithm (file systems allow 255 bytes a name)
+SAFE_NAME_MAX = 96
+
+
 def _safe_name(text: str) -> str:
+    """``text`` as a file name: runs of other characters than letters, digits and ``_.+-`` as
+    ``_``; a name longer than :data:`SAFE_NAME_MAX` (a config with an ``elements`` list, say)
+    is cut and ends in a hash of the whole text, so distinct configs keep distinct folders."""
+    import hashlib
     import re
-    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", str(text)).strip("_") or "x"
+
+    name = re.sub(r"[^A-Za-z0-9_.+-]+", "_", str(text)).strip("_") or "x"
+    if len(name) <= SAFE_NAME_MAX:
+        return name
+    digest = hashlib.sha1(str(text).encode()).hexdigest()[:12]
+    return f"{name[:SAFE_NAME_MAX - 13].rstrip('_')}_{digest}"
 
 
 def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
