@@ -35,8 +35,9 @@ class IteratedLocalSearch(Selector):
         "max_perturb": Option(int, 8, "most random swaps of a perturbation", lo=1),
         "restart_after": Option(int, 40, "rounds in a row without a new best before a fresh random start "
                                 "(0: never)", lo=0),
-        "fresh": Option(str, "random", "extra starts and restarts: random selections, or chirp (the best of "
-                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call)", choices=FRESH_CHOICES),
+        "fresh": Option(str, "random", "extra starts and restarts: random selections, chirp (the best of "
+                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call), or mixed (chirped "
+                        "and random in turn)", choices=FRESH_CHOICES),
         **shift_options(),
     }
     deterministic = False

@@ -47,9 +47,10 @@ class SwapSelector(Selector):
                               "or less: fixed)", lo=0),
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
                                 "a random selection (0: never restart)", lo=0),
-        "fresh": Option(str, "random", "restarts: random selections, or chirp (the best of "
-                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call) and the "
-                        "extra starts of a race", choices=FRESH_CHOICES),
+        "fresh": Option(str, "random", "restarts and the extra starts of a race: random selections, chirp "
+                        f"(the best of {FRESH_CHIRPS} random chirped layouts each, scored in one call; a race's: "
+                        "the best distinct of one call), or mixed (chirped and random in turn; a race: half "
+                        "of its extra starts chirped, rounded up, the rest random)", choices=FRESH_CHOICES),
         "race": Option(int, 1, "first descents raced by successive halving: the one from start and race - 1 "
                        "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
         "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "

@@ -114,6 +114,8 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {"start": "chirp", "fresh": "chirp"}, (0, 1)),
     ("swap", {"race": 4, "race_quota": 50}, (0, 1)),
     ("swap", {"race": 3, "race_quota": 20, "fresh": "chirp", "max_perturb": 4}, (0,)),
+    ("swap", {"race": 5, "race_quota": 20, "fresh": "mixed", "restart_after": 3}, (0, 1)),
+    ("ils", {"fresh": "mixed"}, (0, 1)),
     ("ils", {}, (0, 1, 2)),
     ("ils", {"mode": "best", "relink": 1.0}, (0, 1)),
     ("ils", {"start": "chirp", "fresh": "chirp"}, (0, 1, 2)),
@@ -280,6 +282,40 @@ def test_ioh_files_load_in_iohinspector_and_match_runs(reg, tmp_path):
         assert g["evaluations"].min() == 1
     meta = json.loads(next((tmp_path / "ioh" / "swap").glob("IOHprofiler_*.json")).read_text())
     assert meta["maximization"] is False and len(meta["scenarios"][0]["runs"]) == 2
+
+
+def test_configs_with_long_element_lists_get_short_distinct_ioh_folders(reg, tmp_path):
+    # a config label that names its start elements is longer than a file name may be: its IOH
+    # folder is cut and ends in a hash of the label, so two such configs keep their own folders
+    n, k = 300, 150
+    lists = [" ".join(map(str, range(0, 2 * k, 2))), " ".join(map(str, range(1, 2 * k, 2)))]
+    configs = [("swap", {"start": "elements", "elements": e}) for e in lists]
+    compare(ToyObjective(n, k), configs, out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=30),
+            registry=reg, progress=False, figures=False)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert set(runs["error"].fillna("")) == {""} and len(runs[runs["config"] != "full"]) == 2
+    folders = sorted(p for p in (tmp_path / "ioh").iterdir())
+    assert len(folders) == 2 and all(len(p.name) <= 96 for p in folders)
+    names = {json.loads(next(p.glob("IOHprofiler_*.json")).read_text())["algorithm"]["name"] for p in folders}
+    assert names == set(runs[runs["config"] != "full"]["config"])
+
+
+def test_a_refused_ioh_export_keeps_the_runs_and_names_the_export(reg, tmp_path, monkeypatch):
+    from arraysel.errors import ArrayselError
+    from arraysel.report import tables
+
+    def refuse(folder, rows, *args, **kwargs):
+        if any(r.get("config") != "full" for r in rows):  # once a selector's run is there to save
+            raise OSError(36, "File name too long", str(folder))
+        return []
+
+    monkeypatch.setattr(tables, "write_ioh", refuse)
+    with pytest.raises(ArrayselError, match="IOHprofiler files could not be written"):
+        compare(ToyObjective(12, 6), ["uniform"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=10),
+                registry=reg, progress=False, figures=False)
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    assert list(runs["config"]) == ["full", "uniform"]
+    assert (tmp_path / "table1.csv").exists() and (tmp_path / "stats.csv").exists()
 
 
 def test_anytime_figure_shows_every_selector(reg, tmp_path):
@@ -659,6 +695,27 @@ def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
     assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected[:3]))
     randoms = SwapSearch(view, 10, numpy_rng(7), race=4)._race_starts(3)  # fresh = random
     assert len(randoms) == 3 and all(int(m.sum()) == 10 for m in randoms)
+
+
+def test_mixed_fresh_selections_are_chirped_and_random_in_turn():
+    # fresh = mixed: a race's extra starts are the best distinct chirped layouts for half of them
+    # (rounded up) and random selections for the rest; restarts alternate, chirped first
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import FRESH_CHIRPS, SwapSearch
+    from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
+
+    obj, view, _ = _view(evaluations=100_000, k=10, n=20)
+    starts = SwapSearch(view, 10, numpy_rng(7), fresh="mixed", race=6)._race_starts(5)
+    chirped = SwapSearch(view, 10, numpy_rng(7), fresh="chirp", race=4)._race_starts(3)
+    rng = numpy_rng(7)
+    masks = chirp_masks(obj, 10, rng, 3 * CHIRP_CANDIDATES)
+    randoms = [random_mask(rng, 20, 10) for _ in range(2)]
+    assert len(starts) == 5 and all((a == b).all() for a, b in zip(starts, chirped + randoms))
+    search = SwapSearch(view, 10, numpy_rng(0), fresh="mixed")
+    first, second = search._fresh_mask(numpy_rng(5)), search._fresh_mask(numpy_rng(5))
+    layouts = chirp_masks(obj, 10, numpy_rng(5), FRESH_CHIRPS)
+    assert (first == layouts[int(np.argmin(obj.evaluate(layouts)["Mean"]))]).all()
+    assert (second == random_mask(numpy_rng(5), 20, 10)).all()
 
 
 def test_a_chirp_population_keeps_the_best_distinct_layouts():

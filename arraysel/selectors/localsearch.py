@@ -43,16 +43,20 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    wider than a two-swap step, which a descent undoes);
 3. **restart**: after ``restart_after`` perturbations in a row that did not
    improve the best, the next descent starts from a fresh start selection
-   (``restart_from``, or ``fresh``: a random one by default, or the best of
-   :data:`FRESH_CHIRPS` random chirped layouts, :func:`arraysel.selectors.starts.chirp_masks`).
+   (``restart_from``, or ``fresh``: a random one by default, the best of
+   :data:`FRESH_CHIRPS` random chirped layouts, :func:`arraysel.selectors.starts.chirp_masks`,
+   or with ``fresh = mixed`` chirped and random in turn, chirped first).
 
 With ``race`` above 1 the first descent is a **race** (successive halving): descents from the
 start and from ``race - 1`` fresh selections (``fresh = chirp``: the best distinct of
-``(race - 1) x`` :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts) move in
+``(race - 1) x`` :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts; ``fresh =
+mixed``: half of them, rounded up, chosen so, the rest random) move in
 turns of ``race_quota`` scored selections each, the better half going on after each turn with
 the quota doubled; the winner's local optimum is where the iterated local search goes on. Where
 a descent's outcome depends mostly on its start (a probe whose good selections are block
-layouts, such as l11-5v), this spends the budget on the promising starts.
+layouts, such as l11-5v), this spends the budget on the promising starts. Mixed extra starts let
+one race hold both kinds of funnel: chirped block layouts, and the nearly alternating layouts a
+descent from a random selection reaches (c5-2v's best), for half the cost of choosing chirped ones.
 
 It runs until the objective raises :class:`~arraysel.selectors.contract.BudgetExhausted`
 or its budget is spent (or ``max_rounds`` perturbations when given, or when
@@ -75,8 +79,8 @@ from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
-#: where fresh selections (restarts, extra starts) come from
-FRESH_CHOICES = ("random", "chirp")
+#: where fresh selections (restarts, extra starts) come from (``mixed``: chirped and random in turn)
+FRESH_CHOICES = ("random", "chirp", "mixed")
 #: chirped layouts a ``fresh = chirp`` restart scores (one call), keeping the best
 FRESH_CHIRPS = 32
 
@@ -325,8 +329,10 @@ class SwapSearch:
         one after each perturbation without a new best (None: ``perturb``, a fixed strength)
     restart_after : non-improving perturbations in a row before a restart (0: never)
     restart_from : callable ``rng -> mask`` giving restart selections (default: by ``fresh``)
-    fresh : ``random`` (a uniformly random selection) or ``chirp`` (the best of
-        :data:`FRESH_CHIRPS` random chirped layouts, scored in one call): the restarts' selections
+    fresh : ``random`` (a uniformly random selection), ``chirp`` (the best of
+        :data:`FRESH_CHIRPS` random chirped layouts, scored in one call) or ``mixed`` (the two in
+        turn, chirped first): the restarts' selections, and a race's extra starts
+        (:meth:`_race_starts`)
     guide : first share of each ``first``-mode chunk taken in the order the loss's gradient
         predicts (:class:`GuidedOrder`; 0: random order only, no gradient computed)
     max_rounds : stop after this many perturbations/restarts (None: until the budget ends)
@@ -373,6 +379,7 @@ class SwapSearch:
         self.restart_after = int(check_number("restart_after", restart_after, lo=0, integer=True))
         self.restart_from = restart_from
         self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
+        self._fresh_count = 0  # fresh selections drawn (fresh = mixed alternates chirped and random)
         self.race = int(check_number("race", race, lo=1, integer=True))
         self.race_quota = int(check_number("race_quota", race_quota, lo=1, integer=True))
         self.shift = int(check_number("shift", shift, lo=0, integer=True))
@@ -541,7 +548,11 @@ class SwapSearch:
         (a random one, or the best of :data:`FRESH_CHIRPS` chirped layouts, scored in one call)."""
         if self.restart_from is not None:
             return self.restart_from(rng)
-        if self.fresh == "chirp" and 0 < self.k < self.n:
+        chirp = self.fresh == "chirp"
+        if self.fresh == "mixed":  # chirped and random in turn
+            self._fresh_count += 1
+            chirp = self._fresh_count % 2 == 1
+        if chirp and 0 < self.k < self.n:
             masks = chirp_masks(self.objective, self.k, rng, FRESH_CHIRPS)
             values = self.score(masks)
             return masks[int(np.argmin(values))].copy()
@@ -550,11 +561,15 @@ class SwapSearch:
     def _race_starts(self, m: int) -> list[np.ndarray]:
         """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
         selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x
-        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call."""
-        if self.restart_from is not None or self.fresh != "chirp":
+        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call;
+        by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen so from ``c`` x that many, then
+        ``m - c`` random selections."""
+        if self.restart_from is not None or self.fresh == "random":
             return [self._fresh_mask(self.rng) for _ in range(m)]
-        masks = chirp_masks(self.objective, self.k, self.rng, m * CHIRP_CANDIDATES)
-        return list(survivors(masks, self.score(masks), m)[0])
+        c = m if self.fresh == "chirp" else (m + 1) // 2
+        masks = chirp_masks(self.objective, self.k, self.rng, c * CHIRP_CANDIDATES)
+        chirped = list(survivors(masks, self.score(masks), c)[0])
+        return chirped + [self._random_mask(self.rng) for _ in range(m - c)]
 
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
