@@ -291,6 +291,68 @@ def test_swap_and_move_envelopes_equal_the_envelopes_of_the_neighbour_masks(monk
     np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
 
 
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_refinement_channels_of_neighbours_from_the_held_sums_equal_the_product(monkeypatch, dtype, rtol):
+    # the I/Q channels the refinement delay-and-sums, for selections 0 to 2 elements away from the
+    # one whose neighbourhood is scored: corrected from its held channel sums, the same values (on
+    # the receive elements each uses) as the product with every pair channel
+    from arraysel.physics.psf.certificate import Certificates
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
+    basis = obj.psf.basis
+    cert, ref = basis.certificates, basis.refinement
+    m = _mask(10, [0, 1, 4, 5, 7, 9])
+    out, into = _padded([_random_moves(m, size, np.random.default_rng(size), 3) for size in (1, 2)])
+    w = torch.as_tensor(np.concatenate([move_masks(m, out, into), m[None]]), dtype=dtype)
+    idx = list(range(w.shape[0]))
+    cert._swap_sums = None
+    want = [x for _, x in ref._grouped_channels(w, idx, raw=True)]
+    assert cert.swap_moves(w) is None                         # no sums held
+    cert.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out[:1]), torch.as_tensor(into[:1]))
+    before = cert.corrected
+    got = [x for _, x in ref._grouped_channels(w, idx, raw=True)]
+    assert cert.corrected - before == len(idx)
+    for b, (g, x) in enumerate(zip(got, want)):
+        used = w[b].numpy() != 0
+        assert g.y.dtype == x.y.dtype and np.array_equal(g.we, x.we) and g.segment == x.segment
+        scale = float(np.abs(x.y[used]).max())
+        np.testing.assert_allclose(g.y[used], x.y[used], rtol=rtol, atol=rtol * scale)
+    # formed afresh: soft weights, a gradient, selections further away than swap_channels_most,
+    # or so far that the correction reads as many rows as the product (3 elements of 6)
+    assert cert.swap_moves(w * 0.5) is None
+    assert cert.swap_moves(w.clone().requires_grad_(True)) is None
+    far = torch.as_tensor(move_masks(m, *_random_moves(m, 3, np.random.default_rng(0), 1)), dtype=dtype)
+    assert cert.swap_moves(far) is None
+    monkeypatch.setattr(Certificates, "swap_channels_most", 1)
+    assert cert.swap_moves(w) is None and cert.swap_moves(w[:3]) is not None
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_neighbourhood_refined_block_by_block_equals_independent_masks(monkeypatch, dtype, rtol):
+    # block bounds made loose (x 1000): every neighbour's peak is settled by the refinement's block
+    # delay-and-sums, from channels corrected from the selection's sums; the scores are those
+    # of the masks scored alone (whose channels are the product)
+    from arraysel.physics.psf.certificate import Certificates
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    real = Certificates.bound
+
+    def loose(self, *a, **kw):
+        return real(self, *a, **kw) * 1000
+
+    monkeypatch.setattr(Certificates, "bound", loose)
+    obj = _tiny_objective(dtype, probe={"n_elements": 12}, selection={"k": 5})
+    ref_ = obj.psf.basis.refinement
+    m = _mask(12, [0, 3, 4, 8, 11])
+    out, into = swap_pairs(m, np.random.default_rng(3))
+    got = obj.evaluate_swaps(m, out, into, return_kernels=True)
+    assert obj.psf.basis.certificates.corrected > 0
+    obj.psf.basis.certificates._swap_sums = None
+    ref = obj.evaluate(swap_masks(m, out, into), return_kernels=True)
+    _assert_same_scores(got, ref, rtol)
+
+
 @pytest.mark.parametrize("rows", ["kept", "formed", "product", "mixed"])
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
 def test_psf_objective_moves_equal_independent_masks(monkeypatch, dtype, rtol, rows):

@@ -462,6 +462,47 @@ def _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, ntx, env):
         _segment_peaks(acc, mx, ntx, seg, ns, half, 1.0, env, ne, e, b)
 
 
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _swap_channels_kernel(A, Y, out, into, sel_b, sel_e, res):
+    """``res[b, e] = Y[e] - sum_i A[out[b, i], e] + sum_i A[into[b, i], e]`` (entries ``-1`` left
+    out; summed in float64, written in res's dtype) for the pairs ``(b, e) = (sel_b[q],
+    sel_e[q])``: receive channel e of the neighbour b of a selection whose channel sums are Y (the
+    layouts of :func:`_swap_peaks_kernel`; res: (B, Ne, 2 ntx T)). Sample by sample: one pass over
+    the output, where :func:`_swap_peaks_kernel` adds row by row into a buffer it reduces next.
+    Parallel over the pairs."""
+    width = Y.shape[1]
+    m = out.shape[1]
+    for q in numba.prange(sel_b.shape[0]):
+        b = sel_b[q]
+        e = sel_e[q]
+        base = e * width
+        rowy = Y[e]
+        dst = res[b, e]
+        for c in range(width):
+            v = rowy[c]
+            for i in range(m):
+                if out[b, i] >= 0:
+                    v -= np.float64(A[out[b, i], base + c])
+                if into[b, i] >= 0:
+                    v += np.float64(A[into[b, i], base + c])
+            dst[c] = v
+
+
+def swap_channels(A: np.ndarray, Y: np.ndarray, out: np.ndarray, into: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """(B, Ne, 2 ntx T) receive channels, in ``A``'s dtype and its samples' order, of the selections
+    that switch the elements ``out[b]`` off and ``into[b]`` on ((B, m) int, ``-1`` for none) in a
+    selection whose channel sums over every receive element are ``Y`` (Ne, 2 ntx T) float64
+    (:func:`swap_peaks_into`), formed on the receive elements each uses (``on`` (B, Ne) bool)
+    only: ``2 m + 1`` rows read a channel where the product with ``pair_channels`` reads k. The
+    entries of the other receive elements are undefined."""
+    on = np.asarray(on, dtype=bool)
+    res = np.empty((on.shape[0],) + Y.shape, dtype=A.dtype)
+    sel_b, sel_e = np.nonzero(on)
+    _swap_channels_kernel(A, Y, np.ascontiguousarray(out, dtype=np.int64), np.ascontiguousarray(into, dtype=np.int64),
+                          sel_b.astype(np.int64), sel_e.astype(np.int64), res)
+    return res
+
+
 def swap_peaks_into(A: np.ndarray, Y: np.ndarray, mask: np.ndarray, out: np.ndarray, into: np.ndarray,
                     env: np.ndarray) -> None:
     """Write the segment peaks ``|X_ne|`` of the receive channels of the neighbours of the 0/1

@@ -21,6 +21,7 @@ arguments); the basis, its refinement and its stored state read the channels and
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -38,6 +39,21 @@ def sparse_csr(crow, col, val, size):
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
         return torch.sparse_csr_tensor(crow, col, val, size=size, check_invariants=True)
+
+
+class RawChannels(NamedTuple):
+    """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
+    gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
+    order (``segment`` samples a segment: sample ``a segment + r`` at ``r nS + a``; 1: time
+    order), not yet weighted by the receive element's weight ``we`` (Ne,). The channels of the
+    receive elements whose weight is zero are not formed (their values are undefined; nothing
+    reads them). The compiled delay-and-sum reads them as they are
+    (``pairkernels.das_stacked_raw``): forming the complex, time-ordered, weighted channels of
+    :meth:`~arraysel.physics.psf.basis.PairBasis.channels` costs as much as the product."""
+
+    y: np.ndarray
+    we: np.ndarray
+    segment: int
 
 
 class Certificates:
@@ -74,6 +90,7 @@ class Certificates:
             self.segment = int(segment)
         self._block_index: dict = {}  # per tier, the blocks' envelope entries (:meth:`_bound_index`)
         self._swap_sums = None  # (selection key, its channel sums) of :meth:`swap_envelopes`
+        self.corrected = 0  #: selections whose raw channels :meth:`moved_channels` corrected
         self._small_calls: dict = {}  # per compiled pass, the small batches seen (:meth:`_warm`)
 
     def view(self) -> "Certificates":
@@ -268,6 +285,68 @@ class Certificates:
         env[:, 0].zero_()  # the channels a neighbour does not use; the longer runs come from the first
         swap_peaks_into(A, held[1], on, out.cpu().numpy(), into.cpu().numpy(), env.numpy())
         return self._segment_runs(env)
+
+    #: most elements switched each way for which :meth:`swap_channels` corrects the held sums
+    #: (:meth:`swap_moves`)
+    swap_channels_most = 8
+
+    def swap_moves(self, w: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(out, into, on)`` of the 0/1 selections ``w`` (B, Ne) relative to the selection whose
+        channel sums :meth:`swap_envelopes` holds (the one whose neighbourhood is being scored):
+        the elements each switches off and on ((B, m) int64, ``-1`` for none) and the receive
+        elements each uses ((B, Ne) bool), for :meth:`swap_channels`. None (form the channels
+        afresh) when no sums are held, ``w`` is not 0/1 on the CPU without gradient, or a
+        selection is more than :attr:`swap_channels_most` elements away each way, or so far that
+        correcting a channel (``2 m + 1`` rows) reads as many rows as summing it (the k it uses)."""
+        held = self._swap_sums
+        if held is None or w.device.type != "cpu" or w.requires_grad or not w.shape[0]:
+            return None
+        wn = w.detach().numpy()
+        on = wn != 0
+        if not np.array_equal(wn[on], np.ones(int(on.sum()), dtype=wn.dtype)):
+            return None  # soft weights
+        base = np.frombuffer(held[0], dtype=bool)
+        if base.shape[0] != on.shape[1]:
+            return None
+        outs, ins = base[None] & ~on, on & ~base[None]
+        m = int(max(outs.sum(1).max(), ins.sum(1).max()))
+        if m > self.swap_channels_most or 2 * m + 1 >= int(on.sum(1).min()):
+            return None
+        out = np.full((on.shape[0], max(m, 1)), -1, dtype=np.int64)
+        into = out.copy()
+        for idx, moved in ((out, outs), (into, ins)):
+            r, c = np.nonzero(moved)
+            idx[r, np.arange(r.size) - np.searchsorted(r, r)] = c
+        return out, into, on
+
+    def moved_channels(self, w: torch.Tensor, index: list):
+        """None, or a generator of ``(i, RawChannels)`` for the selections ``w[i]``, ``i`` in
+        ``index``, when :meth:`swap_moves` describes them all: the raw channels (as the
+        refinement's product forms them) corrected from the held sums, one selection at a time so
+        that they are still in cache when delay-and-summed. Counts them in ``corrected``."""
+        moves = self.swap_moves(w[torch.tensor(index, dtype=torch.long, device=w.device)]) if index else None
+        if moves is None:
+            return None
+
+        def each():
+            we = moves[2].astype(self.pair_channels.numpy().dtype)
+            for k, i in enumerate(index):
+                y = self.swap_channels(*(v[k:k + 1] for v in moves))
+                self.corrected += 1
+                yield i, RawChannels(y[0], we[k], self.segment)
+
+        return each()
+
+    def swap_channels(self, out: np.ndarray, into: np.ndarray, on: np.ndarray) -> np.ndarray:
+        """The receive products (B, Ne, 2, ntx, T) of the selections :meth:`swap_moves` describes,
+        as :meth:`_receive_products` forms them (stored sample order, not weighted by the receive
+        weight), on the receive elements each uses only (the others undefined): the held channel
+        sums corrected by the rows of the elements switched (``2 m + 1`` rows read a channel where
+        the product reads every row of ``pair_channels``)."""
+        from arraysel.physics.pairkernels import swap_channels
+
+        y = swap_channels(self.pair_channels.numpy(), self._swap_sums[1], out, into, on)
+        return y.reshape(on.shape[0], self.model.n_elements, 2, len(self.model.transmits), self.window_samples)
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
         """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of

@@ -27,7 +27,6 @@ E's DAS plan and the core's pixel positions.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -35,23 +34,8 @@ import torch
 from arraysel.physics import compiled
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.psf.build import window_plans
-from arraysel.physics.psf.certificate import largest_bound
+from arraysel.physics.psf.certificate import RawChannels, largest_bound
 from arraysel.physics.psf.window import cut_windows, window_start
-
-
-class RawChannels(NamedTuple):
-    """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
-    gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
-    order (``segment`` samples a segment: sample ``a segment + r`` at ``r nS + a``; 1: time
-    order), not yet weighted by the receive element's weight ``we`` (Ne,). The channels of the
-    receive elements whose weight is zero are not formed (their values are undefined; nothing
-    reads them). The compiled delay-and-sum reads them as they are
-    (``pairkernels.das_stacked_raw``): forming the complex, time-ordered, weighted channels of
-    :meth:`~arraysel.physics.psf.basis.PairBasis.channels` costs as much as the product."""
-
-    y: np.ndarray
-    we: np.ndarray
-    segment: int
 
 
 def _runs(slots: torch.Tensor, most: int = 32) -> list[tuple[int, int]] | None:
@@ -324,11 +308,14 @@ class Refinement:
         group uses only (:meth:`_receive_products`; a group of one selection: its own). Per
         receive element's selections would cost more: a group's product is bound by reading
         ``pair_channels``, which the whole product reads once."""
-        group = self.channel_group
         raw = raw and self.raw_channels and w.device.type == "cpu" and not w.requires_grad
+        moved = self.certificates.moved_channels(w, index) if raw else None
+        if moved is not None:  # neighbours of the selection being searched (Certificates.moved_channels)
+            yield from moved
+            return
         ne, ntx = self.model.n_elements, len(self.model.transmits)
-        for g in range(0, len(index), group):
-            part = index[g:g + group]
+        for g in range(0, len(index), self.channel_group):
+            part = index[g:g + self.channel_group]
             wg = w[torch.tensor(part, dtype=torch.long, device=w.device)]
             if not raw:
                 yield from zip(part, self.basis.channels(wg))
