@@ -11,7 +11,8 @@ import torch
 from arraysel.objective.contract import HasHessian, hessian_by_rows
 from arraysel.objective.neighbours import swap_masks, swap_pairs
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder
-from arraysel.selectors.localsearch import SwapSearch, loss_quadratic, swap_changes
+from arraysel.selectors.localsearch import (SwapSearch, loss_quadratic, move_changes, random_swaps, shift_moves,
+                                           shifted_masks, swap_changes)
 from arraysel.testing import ToyObjective
 from scene_texts import TINY_SCENE
 
@@ -171,9 +172,64 @@ def test_swap_search_predictions_by_the_linear_and_the_quadratic_model():
     lin = SwapSearch(obj, 5, np.random.default_rng(0))
     np.testing.assert_allclose(lin._predict(mask, a, b), g[b] - g[a], rtol=1e-12)
     quad = SwapSearch(obj, 5, np.random.default_rng(0), model="quadratic", refresh=3)
-    for _ in range(7):
+    rng = np.random.default_rng(1)
+    for _ in range(7):  # at seven selections in turn (a descent's moves)
+        other = random_swaps(mask, 2, rng)
+        c, d = swap_pairs(other)
+        want = obj.f(swap_masks(other, c, d).astype(float)) - obj.f(other[None].astype(float))
+        np.testing.assert_allclose(quad._predict(other, c, d), want, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(quad._predict(mask, a, b), exact, rtol=1e-10, atol=1e-12)
-    assert quad.hessians == 3  # formed at calls 1, 4 and 7
+    assert quad.hessians == 5  # formed at the 1st, 4th, 7th, 10th and 13th selection of 14
+    steps = obj.gradient_steps
+    quad._predict(mask, a, b)  # asked again at the same selection: the model is not formed again
+    assert obj.gradient_steps == steps
+
+
+def test_move_changes_of_any_move_are_exact_on_a_quadratic_loss():
+    obj = Quadratic(n=12, k=5, hessian=False, seed=7)
+    mask = np.zeros(12, dtype=bool)
+    mask[[1, 2, 5, 8, 11]] = True
+    g, H = obj.q + obj.Q @ mask, obj.Q
+    cands = shifted_masks(mask, shift_moves(12, 6, 3))
+    exact = obj.f(cands.astype(float)) - obj.f(mask[None].astype(float))
+    np.testing.assert_allclose(move_changes(g, H, mask, cands), exact, rtol=1e-10, atol=1e-12)
+    a, b = swap_pairs(mask)  # a swap is a move of two elements: the same change as swap_changes
+    np.testing.assert_allclose(move_changes(g, H, mask, swap_masks(mask, a, b)), swap_changes(g, H, a, b),
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(move_changes(g, None, mask, cands), (cands - mask.astype(float)) @ g, rtol=1e-12)
+
+
+def test_guided_shifts_take_the_best_predicted_shift_first_and_stop_at_shift_scan():
+    # on a quadratic loss the model is exact: with every chunk taken from the prediction, the
+    # first chunk holds the best shift, and a selection no shift improves is left after
+    # shift_scan shifts, not all of them
+    obj = Quadratic(n=16, k=7, hessian=False, seed=8)
+    view = _budgeted(obj, 1_000_000)
+    search = SwapSearch(view, 7, np.random.default_rng(2), model="quadratic", guide=1.0, shift=3, shift_len=8,
+                        shift_scan=40, chunk=16)
+    search.shift_guide.hi = 1.0
+    mask = np.arange(16) % 2 == 0
+    mask[14] = False
+    cands = np.unique(shifted_masks(mask, shift_moves(16, 8, 3)), axis=0)
+    cands = cands[(cands != mask).any(axis=1)]
+    values = obj.f(cands.astype(float))
+    value = float(obj.f(mask[None].astype(float))[0])
+    assert values.min() < value  # this start has an improving shift
+    before = search.scored
+    moved, moved_value = search._shift_step(mask, value)
+    assert moved_value == pytest.approx(values.min()) and search.scored - before == 16
+    # at a selection no shift improves, the step gives up after shift_scan scored shifts
+    best = cands[int(np.argmin(values))]
+    while True:
+        c = np.unique(shifted_masks(best, shift_moves(16, 8, 3)), axis=0)
+        v = obj.f(c.astype(float))
+        if v.min() >= obj.f(best[None].astype(float))[0]:
+            break
+        best = c[int(np.argmin(v))]
+    assert len(c) > 60
+    before = search.scored
+    assert search._shift_step(best, float(obj.f(best[None].astype(float))[0])) is None
+    assert search.scored - before <= 40
 
 
 def test_quadratic_descents_confirm_local_optima_from_a_small_scan():

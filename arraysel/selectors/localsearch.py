@@ -27,12 +27,16 @@ neighbours. :class:`SwapSearch` is an iterated local search:
 
    with ``shift`` above 0, a selection no swap improves is tried with *segment shifts*
    (:func:`shift_moves`: the active and inactive elements of a run of at most ``shift_len``
-   consecutive indices rotated by up to ``shift`` places, k kept), in a random order, ``chunk``
-   a call (scored as moves of several elements from the selection, :meth:`SwapSearch.score_moved`,
-   when the objective has ``score_moves``); the descent goes on swapping from the best of the
-   first chunk that improves, and ends when ``shift_scan`` shifts (or all) improve nothing. A
-   shift moves a group of elements together, such as a block of a periodic layout, which single
-   swaps can only do through worse selections;
+   consecutive indices rotated by up to ``shift`` places, k kept), the distinct ones that change
+   the selection, ``chunk`` a call (scored as moves of several elements from the selection,
+   :meth:`SwapSearch.score_moved`, when the objective has ``score_moves``); the descent goes on
+   swapping from the best of the first chunk that improves, and ends when ``shift_scan`` shifts
+   (or all) improve nothing. A shift moves a group of elements together, such as a block of a
+   periodic layout, which single swaps can only do through worse selections. In a guided descent
+   the shifts are ordered as the swaps are: a share of each chunk (its own :class:`GuidedOrder`)
+   in the order the model predicts (:func:`move_changes`), the rest in a random order. The
+   improving shifts are then mostly among the first few hundred, so a ``shift_scan`` of 512, say,
+   ends a descent for a fraction of a full scan's cost (several thousand shifts);
 
 2. **perturbation**: from the best local optimum found, ``perturb`` random
    swaps, then a new descent; the result replaces the base when it is no
@@ -93,8 +97,9 @@ SHIFT_SCAN = 4096
 MODEL_CHOICES = ("linear", "quadratic")
 
 __all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "MODEL_CHOICES", "SwapSearch", "EliteSearch",
-           "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "model_options", "random_swaps",
-           "random_swap_pairs", "shift_moves", "shifted_masks", "shift_options"]
+           "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "model_options",
+           "random_swaps", "random_swap_pairs", "shift_moves", "shift_permutations", "shifted_masks",
+           "shift_options"]
 
 
 def shift_options() -> dict[str, Option]:
@@ -105,7 +110,8 @@ def shift_options() -> dict[str, Option]:
                         "tries at a local optimum of swaps (0: swaps only)", lo=0),
         "shift_len": Option(int, SHIFT_LEN, "longest segment (consecutive element indices) a shift moves", lo=2),
         "shift_scan": Option(int, SHIFT_SCAN, "shifts scored without improvement before a local optimum is "
-                             "declared", lo=1),
+                             "declared (a guided descent scores them in its model's order: with the quadratic "
+                             "model 512 is enough)", lo=1),
     }
 
 
@@ -160,13 +166,21 @@ def shift_moves(n: int, longest: int, most: int, rng: np.random.Generator | None
     return moves[rng.permutation(len(moves))] if rng is not None else moves
 
 
+def shift_permutations(n: int, moves: np.ndarray) -> np.ndarray:
+    """``(len(moves), n)`` element indices ``P`` such that ``mask[P[i]]`` is ``mask`` after the
+    segment shift ``moves[i]`` (rows ``(start, length, d)``, :func:`shift_moves`): one gather
+    forms every shifted selection."""
+    out = np.tile(np.arange(int(n), dtype=np.int64), (len(moves), 1))
+    for row, (s, length, d) in zip(out, np.asarray(moves, dtype=np.int64)):
+        row[s:s + length] = np.roll(np.arange(s, s + length), d)
+    return out
+
+
 def shifted_masks(mask: np.ndarray, moves: np.ndarray) -> np.ndarray:
     """``(len(moves), Ne)`` copies of ``mask``, each with one segment shift of ``moves``
     (rows ``(start, length, d)``, :func:`shift_moves`) applied."""
-    out = np.repeat(np.asarray(mask, dtype=bool)[None], len(moves), axis=0)
-    for row, (s, length, d) in zip(out, np.asarray(moves, dtype=np.int64)):
-        row[s:s + length] = np.roll(mask[s:s + length], d)
-    return out
+    mask = np.asarray(mask, dtype=bool)
+    return mask[shift_permutations(mask.shape[0], moves)]
 
 
 def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
@@ -239,6 +253,17 @@ def swap_changes(g: np.ndarray, H: np.ndarray | None, out: np.ndarray, into: np.
     if H is not None:
         diag = np.diagonal(H)
         d = d + 0.5 * (diag[out] + diag[into]) - H[out, into]
+    return d
+
+
+def move_changes(g: np.ndarray, H: np.ndarray | None, mask: np.ndarray, cands: np.ndarray) -> np.ndarray:
+    """The change of the loss that the quadratic model ``g``, ``H`` (``H`` None: the linear model)
+    predicts for the move from the selection ``mask`` to each of ``cands`` ``(B, Ne)``: with
+    ``D = cands - mask``, ``D g + diag(D H D^T) / 2`` (for a swap, :func:`swap_changes`)."""
+    D = np.asarray(cands, dtype=np.float64) - np.asarray(mask, dtype=np.float64)
+    d = D @ g
+    if H is not None:
+        d = d + 0.5 * np.einsum("ij,ij->i", D @ H, D)
     return d
 
 
@@ -349,6 +374,8 @@ class SwapSearch:
     model : how a guided descent predicts the change of a swap: ``linear`` (the gradient) or
         ``quadratic`` (the gradient and the Hessian, :func:`loss_quadratic`)
     refresh : ``quadratic``: predictions between Hessians (the gradient is taken for each)
+    guide_shifts : in a guided descent, order the segment shifts by the model too (:meth:`_shift_step`;
+        False: a random order, as an unguided descent scores them)
     """
 
     #: rounds in a row without a newly scored selection after which the search stops
@@ -360,7 +387,7 @@ class SwapSearch:
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
                  fresh: str = "random", race: int = 1, race_quota: int = 500, shift: int = 0,
                  shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str = "linear",
-                 refresh: int = 8):
+                 refresh: int = 8, guide_shifts: bool = True):
         self.objective = objective
         self.model = check_choice("model", model, MODEL_CHOICES)
         self.refresh = int(check_number("refresh", refresh, lo=1, integer=True))
@@ -386,8 +413,11 @@ class SwapSearch:
         self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
         self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
         self.shifts = 0  # improving segment shifts taken
-        self._shift_moves: np.ndarray | None = None  # every shift, in shift_moves' order (formed once)
+        self._shift_perms: np.ndarray | None = None  # every shift as a gather (shift_permutations; formed once)
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
+        self.shift_guide = GuidedOrder(self.guide.share)  # the shifts' guided share adapts on its own
+        self.guide_shifts = bool(guide_shifts)
+        self._model_at: tuple[bytes, tuple[np.ndarray, np.ndarray | None] | None] | None = None
         self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
         self.max_rounds = max_rounds
         self.cache_size = int(cache_size)
@@ -443,10 +473,14 @@ class SwapSearch:
                 self._cache[keys[i]] = float(v)
         return out
 
-    def _predict(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-        """The predicted change of each swap ``(a[i], b[i])`` of ``mask`` (:func:`swap_changes`): by
-        the gradient (``model = linear``), or by the gradient and a Hessian formed afresh every
-        ``refresh`` calls (``quadratic``; :func:`loss_quadratic`). None without a usable loss."""
+    def _model(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """The model of the loss at ``mask``: ``(g, None)`` (``model = linear``) or ``(g, H)``
+        (``quadratic``: the gradient, and a Hessian formed afresh every ``refresh`` calls;
+        :func:`loss_quadratic`). None without a usable loss. Asked again at the same selection
+        (the shifts after the swaps of a local optimum), it is not formed again."""
+        key = mask_key(mask)
+        if self._model_at is not None and self._model_at[0] == key:
+            return self._model_at[1]
         if self.model == "quadratic":
             if self._hessian is None or self._hessian_age >= self.refresh:
                 q = loss_quadratic(self.objective, mask)
@@ -457,9 +491,18 @@ class SwapSearch:
             else:
                 g = loss_gradient(self.objective, mask)
             self._hessian_age += 1
-            return None if g is None else swap_changes(g, self._hessian, a, b)
-        g = loss_gradient(self.objective, mask)
-        return None if g is None else swap_changes(g, None, a, b)
+            out = None if g is None else (g, self._hessian)
+        else:
+            g = loss_gradient(self.objective, mask)
+            out = None if g is None else (g, None)
+        self._model_at = (key, out)
+        return out
+
+    def _predict(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """The predicted change of each swap ``(a[i], b[i])`` of ``mask`` (:func:`swap_changes`) by
+        the model of the loss at ``mask`` (:meth:`_model`). None without a usable loss."""
+        m = self._model(mask)
+        return None if m is None else swap_changes(m[0], m[1], a, b)
 
     def _note(self, mask: np.ndarray, value: float) -> None:
         if value < self.best_value or self.best_mask is None:
@@ -511,32 +554,30 @@ class SwapSearch:
             yield mask, value
 
     def _shift_step(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float] | None:
-        """The best shift of the first chunk (random order) holding one that improves on
-        ``value``, or None after ``shift_scan`` shifts (or all) without improvement. Shifts that
-        leave the selection unchanged, or repeat one in the same chunk, are not scored."""
-        if self._shift_moves is None:
-            self._shift_moves = shift_moves(self.n, self.shift_len, self.shift)
-        moves = self._shift_moves[self.rng.permutation(len(self._shift_moves))]
-        tried = 0
-        key0 = mask_key(mask)
-        for s in range(0, len(moves), self.chunk):
-            if tried >= self.shift_scan:
-                return None
-            cands = shifted_masks(mask, moves[s:s + self.chunk])
-            keys = [mask_key(c) for c in cands]
-            keep, seen = [], {key0}
-            for i, key in enumerate(keys):
-                if key not in seen:
-                    seen.add(key)
-                    keep.append(i)
-            if not keep:
-                continue
-            cands = cands[keep]
-            values = self.score_moved(mask, cands)
-            tried += len(keep)
+        """The best shift of the first chunk holding one that improves on ``value``, or None after
+        ``shift_scan`` shifts (or all) without improvement. Only the distinct shifted selections
+        that differ from ``mask`` are scored, in a random order or, in a guided descent, a share
+        of each chunk in the order the model predicts (:func:`move_changes`, :attr:`shift_guide`)."""
+        if self._shift_perms is None:
+            self._shift_perms = shift_permutations(self.n, shift_moves(self.n, self.shift_len, self.shift))
+        cands = mask[self._shift_perms[self.rng.permutation(len(self._shift_perms))]]
+        _, first = np.unique(np.packbits(cands, axis=1), axis=0, return_index=True)
+        first = np.sort(first)  # the random order, each selection once
+        cands = cands[first[(cands[first] != mask).any(axis=1)]]
+        if cands.shape[0] == 0:
+            return None
+        pred = None
+        if self._guided and self.guide_shifts and self.shift_guide.wants_gradient():
+            m = self._model(mask)
+            self._guided = m is not None
+            pred = None if m is None else move_changes(m[0], m[1], mask, cands)
+        index = np.arange(cands.shape[0])
+        for pick, ng in self.shift_guide.chunks(index, index, pred, self.chunk, min(self.shift_scan, index.size)):
+            values = self.score_moved(mask, cands[pick])
             i = int(np.argmin(values))
             if values[i] < value:
-                return cands[i], float(values[i])
+                self.shift_guide.credit(None if pred is None else bool(i < ng))
+                return cands[pick[i]].copy(), float(values[i])
         return None
 
     # -- iterated local search ---------------------------------------------------------
