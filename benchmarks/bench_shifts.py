@@ -7,7 +7,7 @@ Per scene, ``--starts`` chirped starts (each the best of 32 random chirped layou
 descended three ways by ``arraysel.selectors.localsearch.SwapSearch`` with the configuration of
 the 20 s and 120 s comparisons (``guide = 0.875``, ``model = quadratic``, ``scan = 0.125``,
 ``shift = 6``): the shifts at a local optimum of swaps scored in a random order with
-``shift_scan = 4096`` (``random-4096``: how descents scored them before they were guided), in the
+``shift_scan = 4096`` (``random-4096``: as an unguided descent scores them), in the
 predicted order with the same scan (``guided-4096``), and in the predicted order with a scan of
 512 (``guided-512``). Each descent has a generator of its own seed (the start's index), the same
 for the three ways. Printed per way: evaluations per descent as a run's budget counts them

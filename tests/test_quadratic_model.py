@@ -12,7 +12,7 @@ from arraysel.objective.contract import HasHessian, hessian_by_rows
 from arraysel.objective.neighbours import swap_masks, swap_pairs
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder
 from arraysel.selectors.localsearch import (SwapSearch, loss_quadratic, move_changes, random_swaps, shift_moves,
-                                           shifted_masks, swap_changes)
+                                           shift_segments, shifted_masks, swap_changes)
 from arraysel.testing import ToyObjective
 from scene_texts import TINY_SCENE
 
@@ -190,13 +190,22 @@ def test_move_changes_of_any_move_are_exact_on_a_quadratic_loss():
     mask = np.zeros(12, dtype=bool)
     mask[[1, 2, 5, 8, 11]] = True
     g, H = obj.q + obj.Q @ mask, obj.Q
-    cands = shifted_masks(mask, shift_moves(12, 6, 3))
+    moves = shift_moves(12, 6, 3)
+    cands = shifted_masks(mask, moves)
     exact = obj.f(cands.astype(float)) - obj.f(mask[None].astype(float))
-    np.testing.assert_allclose(move_changes(g, H, mask, cands), exact, rtol=1e-10, atol=1e-12)
+    # as the few elements a shift changes (padded with Ne), and as whole selections
+    at, source = shift_segments(12, moves)
+    ext = np.append(mask, False)
+    d = ext[source].astype(np.int8) - ext[at]
+    assert (at == 12).any()  # padded rows among them
+    np.testing.assert_allclose(move_changes(g, H, at, d, block=7), exact, rtol=1e-10, atol=1e-12)
+    whole = np.tile(np.arange(12), (len(cands), 1))
+    np.testing.assert_allclose(move_changes(g, H, whole, cands - mask.astype(float)), exact, rtol=1e-10, atol=1e-12)
     a, b = swap_pairs(mask)  # a swap is a move of two elements: the same change as swap_changes
-    np.testing.assert_allclose(move_changes(g, H, mask, swap_masks(mask, a, b)), swap_changes(g, H, a, b),
-                               rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(move_changes(g, None, mask, cands), (cands - mask.astype(float)) @ g, rtol=1e-12)
+    np.testing.assert_allclose(move_changes(g, H, np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1))),
+                               swap_changes(g, H, a, b), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(move_changes(g, None, at, d), (cands - mask.astype(float)) @ g, rtol=1e-10,
+                               atol=1e-12)
 
 
 def test_guided_shifts_take_the_best_predicted_shift_first_and_stop_at_shift_scan():

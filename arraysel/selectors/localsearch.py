@@ -98,7 +98,7 @@ MODEL_CHOICES = ("linear", "quadratic")
 
 __all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "MODEL_CHOICES", "SwapSearch", "EliteSearch",
            "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "model_options",
-           "random_swaps", "random_swap_pairs", "shift_moves", "shift_permutations", "shifted_masks",
+           "random_swaps", "random_swap_pairs", "shift_moves", "shift_segments", "shifted_masks",
            "shift_options"]
 
 
@@ -166,21 +166,35 @@ def shift_moves(n: int, longest: int, most: int, rng: np.random.Generator | None
     return moves[rng.permutation(len(moves))] if rng is not None else moves
 
 
-def shift_permutations(n: int, moves: np.ndarray) -> np.ndarray:
-    """``(len(moves), n)`` element indices ``P`` such that ``mask[P[i]]`` is ``mask`` after the
-    segment shift ``moves[i]`` (rows ``(start, length, d)``, :func:`shift_moves`): one gather
-    forms every shifted selection."""
-    out = np.tile(np.arange(int(n), dtype=np.int64), (len(moves), 1))
-    for row, (s, length, d) in zip(out, np.asarray(moves, dtype=np.int64)):
-        row[s:s + length] = np.roll(np.arange(s, s + length), d)
-    return out
+def shift_segments(n: int, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The segment shifts ``moves`` (rows ``(start, length, d)``, :func:`shift_moves`) as two
+    ``(len(moves), L)`` int32 arrays ``(at, source)``, ``L`` the longest segment: shift ``i`` puts
+    element ``source[i, j]`` of a selection at ``at[i, j]``. Rows of shorter segments are padded
+    with ``n``, a place past the selection's last element (extend the selection by one ``False``):
+    a few integers a shift, where a whole shifted selection would take ``n``."""
+    moves = np.asarray(moves, dtype=np.int64).reshape(-1, 3)
+    longest = int(moves[:, 1].max()) if len(moves) else 1
+    start, length, d = moves[:, 0:1], moves[:, 1:2], moves[:, 2:3]
+    j = np.arange(longest)[None]
+    inside = j < length
+    at = np.where(inside, start + j, n).astype(np.int32)
+    source = np.where(inside, start + (j - d) % np.maximum(length, 1), n).astype(np.int32)
+    return at, source
+
+
+def _shifted(extended: np.ndarray, at: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """The selections ``extended[:-1]`` with the shifts ``(at, source)`` of :func:`shift_segments`
+    applied, one a row: ``(len(at), Ne)``; ``extended`` is the selection with one ``False`` appended."""
+    out = np.repeat(extended[None], len(at), axis=0)
+    out[np.arange(len(at))[:, None], at] = extended[source]
+    return out[:, :-1]
 
 
 def shifted_masks(mask: np.ndarray, moves: np.ndarray) -> np.ndarray:
     """``(len(moves), Ne)`` copies of ``mask``, each with one segment shift of ``moves``
     (rows ``(start, length, d)``, :func:`shift_moves`) applied."""
     mask = np.asarray(mask, dtype=bool)
-    return mask[shift_permutations(mask.shape[0], moves)]
+    return _shifted(np.append(mask, False), *shift_segments(mask.shape[0], moves))
 
 
 def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
@@ -256,15 +270,26 @@ def swap_changes(g: np.ndarray, H: np.ndarray | None, out: np.ndarray, into: np.
     return d
 
 
-def move_changes(g: np.ndarray, H: np.ndarray | None, mask: np.ndarray, cands: np.ndarray) -> np.ndarray:
+def move_changes(g: np.ndarray, H: np.ndarray | None, at: np.ndarray, d: np.ndarray,
+                 block: int = 4096) -> np.ndarray:
     """The change of the loss that the quadratic model ``g``, ``H`` (``H`` None: the linear model)
-    predicts for the move from the selection ``mask`` to each of ``cands`` ``(B, Ne)``: with
-    ``D = cands - mask``, ``D g + diag(D H D^T) / 2`` (for a swap, :func:`swap_changes`)."""
-    D = np.asarray(cands, dtype=np.float64) - np.asarray(mask, dtype=np.float64)
-    d = D @ g
+    predicts for each move ``i`` that changes the selection by ``d[i, j]`` (+1 on, -1 off, 0
+    nothing) at element ``at[i, j]``: ``d.g + d.H.d / 2`` over the elements it changes (a swap:
+    :func:`swap_changes`). Entries at ``Ne`` or beyond are padding (``d`` 0 there). A few entries
+    a move, so a move costs ``L^2`` (``L`` entries), not ``Ne^2``."""
+    n = g.shape[0]
+    at = np.asarray(at, dtype=np.int64)
+    d = np.asarray(d, dtype=np.float64)
+    at = np.where(at < n, at, n)
+    gx = np.append(np.asarray(g, dtype=np.float64), 0.0)
+    out = (d * gx[at]).sum(axis=1)
     if H is not None:
-        d = d + 0.5 * np.einsum("ij,ij->i", D @ H, D)
-    return d
+        Hx = np.zeros((n + 1, n + 1))
+        Hx[:n, :n] = H
+        for s in range(0, len(at), block):
+            a, w = at[s:s + block], d[s:s + block]
+            out[s:s + block] += 0.5 * np.einsum("bi,bij,bj->b", w, Hx[a[:, :, None], a[:, None, :]], w)
+    return out
 
 
 class GuidedOrder:
@@ -413,7 +438,7 @@ class SwapSearch:
         self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
         self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
         self.shifts = 0  # improving segment shifts taken
-        self._shift_perms: np.ndarray | None = None  # every shift as a gather (shift_permutations; formed once)
+        self._shifts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (at, source, keys); formed once
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self.shift_guide = GuidedOrder(self.guide.share)  # the shifts' guided share adapts on its own
         self.guide_shifts = bool(guide_shifts)
@@ -557,27 +582,40 @@ class SwapSearch:
         """The best shift of the first chunk holding one that improves on ``value``, or None after
         ``shift_scan`` shifts (or all) without improvement. Only the distinct shifted selections
         that differ from ``mask`` are scored, in a random order or, in a guided descent, a share
-        of each chunk in the order the model predicts (:func:`move_changes`, :attr:`shift_guide`)."""
-        if self._shift_perms is None:
-            self._shift_perms = shift_permutations(self.n, shift_moves(self.n, self.shift_len, self.shift))
-        cands = mask[self._shift_perms[self.rng.permutation(len(self._shift_perms))]]
-        _, first = np.unique(np.packbits(cands, axis=1), axis=0, return_index=True)
-        first = np.sort(first)  # the random order, each selection once
-        cands = cands[first[(cands[first] != mask).any(axis=1)]]
-        if cands.shape[0] == 0:
+        of each chunk in the order the model predicts (:func:`move_changes`, :attr:`shift_guide`).
+        A shift is held as the few elements it changes (:func:`shift_segments`); only the
+        selections of the chunks scored are formed."""
+        if self._shifts is None:
+            at, source = shift_segments(self.n, shift_moves(self.n, self.shift_len, self.shift))
+            keys = np.random.default_rng(0).integers(1, 2 ** 62, size=self.n + 1, dtype=np.int64)
+            keys[self.n] = 0
+            self._shifts = (at, source, keys)
+        at, source, keys = self._shifts
+        order = self.rng.permutation(len(at))
+        at, source = at[order], source[order]
+        extended = np.append(mask, False)
+        d = extended[source].astype(np.int8) - extended[at]
+        # equal changes give equal keys (sums mod 2**64 of a key an element): one of each is kept
+        key = (d.astype(np.int64) * keys[at]).sum(axis=1)
+        _, first = np.unique(key, return_index=True)
+        first = np.sort(first)  # the random order
+        first = first[np.any(d[first] != 0, axis=1)]
+        if first.size == 0:
             return None
+        at, source, d = at[first], source[first], d[first]
         pred = None
         if self._guided and self.guide_shifts and self.shift_guide.wants_gradient():
             m = self._model(mask)
             self._guided = m is not None
-            pred = None if m is None else move_changes(m[0], m[1], mask, cands)
-        index = np.arange(cands.shape[0])
+            pred = None if m is None else move_changes(m[0], m[1], at, d)
+        index = np.arange(first.size)
         for pick, ng in self.shift_guide.chunks(index, index, pred, self.chunk, min(self.shift_scan, index.size)):
-            values = self.score_moved(mask, cands[pick])
+            cands = _shifted(extended, at[pick], source[pick])
+            values = self.score_moved(mask, cands)
             i = int(np.argmin(values))
             if values[i] < value:
                 self.shift_guide.credit(None if pred is None else bool(i < ng))
-                return cands[pick[i]].copy(), float(values[i])
+                return cands[i].copy(), float(values[i])
         return None
 
     # -- iterated local search ---------------------------------------------------------
