@@ -767,3 +767,90 @@ def test_compiled_peak_search_equals_torch(no_cache, monkeypatch, dtype):
         monkeypatch.setattr(compiled, "MIN_BATCH", least)
         ok = fast.refinement._locate(bad, eps, w, r0, c0)[3]
         assert not bool(ok[2]) and bool(ok[[0, 1, 3]].all())
+
+
+def test_moved_block_values_are_the_quadratic_form():
+    """``moved_block_values`` gives ``w^T G w`` for ``w = s + d`` from ``g = G s`` and
+    ``s^T G s``, whatever d (a swap, a far selection, soft weights, none), rows padded."""
+    from arraysel.physics.pairkernels import moved_block_values
+
+    rng = np.random.default_rng(0)
+    ne, n2 = 7, 6
+    G = rng.normal(size=(ne, ne, n2))
+    G = (G + G.transpose(1, 0, 2)) / 2
+    s = (rng.random(ne) < 0.5).astype(float)
+    g = np.tensordot(G, s, axes=([1], [0]))
+    W = np.stack([s, s, 1 - s, rng.uniform(0, 1, ne)])
+    W[1, [0, 1]] = 1 - W[1, [0, 1]]
+    d = W - s
+    idx = np.full((4, ne), -1)
+    val = np.zeros((4, ne))
+    for r in range(4):
+        nz = np.flatnonzero(d[r])
+        idx[r, :nz.size], val[r, :nz.size] = nz, d[r, nz]
+    got = moved_block_values(G, g, s @ g, idx, val)
+    want = np.einsum("re,ejp,rj->rp", W, G, W)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_block_pair_matrix_gives_each_selections_block_image(no_cache):
+    """A block's pair matrix (from the stored pair channels) gives the image of any selection on
+    that block as the delay-and-sum of the selection's own channels does: 0/1 masks, soft
+    weights, one element, none."""
+    from arraysel.physics.pairkernels import block_pair_matrix
+
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    cert, refinement = fast.certificates, fast.refinement
+    w = _mixed_weights(model.n_elements, seed=3)
+    ne = model.n_elements
+    y = cert.pair_channels.numpy().reshape(ne, ne, 2, len(model.transmits), cert.window_samples)
+    for key in [tuple(int(v) for v in fast.layout.blocks1[q]) for q in (0, len(fast.layout.blocks1) // 2)]:
+        i0, wt, rot = refinement._plans_for_blocks([key])[0]
+        G = block_pair_matrix(y, i0.numpy(), wt.numpy(), torch.view_as_real(rot).numpy(), cert.segment)
+        n = G.shape[2] // 2
+        got = np.einsum("re,ejp,rj->rp", w.numpy(), G, w.numpy())
+        for r, x in refinement._grouped_channels(w, list(range(w.shape[0])), raw=True):
+            want = refinement._das(x, [key]).numpy()
+            np.testing.assert_allclose(got[r, :n] + 1j * got[r, n:], want, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(want).max()))
+
+
+@pytest.mark.parametrize("tier", [1, 2])
+def test_hot_blocks_settle_as_the_block_delay_and_sums(no_cache, tier):
+    """Blocks made hot at once (``HotBlocks.after = 0``) settle every selection as the block
+    delay-and-sums do, for thresholds that leave some blocks loose and some selections
+    unsettled, with a reference selection carried from batch to batch (a search's held sums
+    moving by one swap, then none held) or too small a memory for any block (delay-and-sums)."""
+    model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
+    fast = model.basis
+    cert, refinement = fast.certificates, fast.refinement
+    if tier == 2 and not cert.block_envelopes_band.shape[0]:
+        pytest.skip("no tier-2 blocks")
+    ne = model.n_elements
+    base = (torch.arange(ne) % 2 == 0).double()
+    batches = [torch.cat([base[None], _mixed_weights(ne, seed=s)]) for s in range(3)]
+    moved = base.clone()
+    moved[0], moved[1] = 0, 1
+    batches.append(torch.stack([moved, base, 1 - base]))
+    blocks = [tuple(int(v) for v in q) for q in (fast.layout.blocks1 if tier == 1 else fast.layout.blocks2)]
+    cases = []
+    for w in batches:
+        bounds = cert.bound(w, tier, per_block=True)
+        cases += [(w, bounds.quantile(q, dim=0) * 1.0001) for q in (0.3, 0.7, 1.0)]
+        # thresholds just above and just below each selection's exact largest value on the blocks
+        top = torch.stack([refinement._das(x, blocks).abs().max()
+                           for _, x in refinement._grouped_channels(w, list(range(w.shape[0])), raw=True)])
+        cases.append((w, top * torch.where(torch.arange(w.shape[0]) % 2 == 0, 1.001, 0.999)))
+    want = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
+    assert any(bool((~o).any()) for o in want) and any(bool(o.any()) for o in want)
+    refinement.hot.after = 0
+    held = [(base.numpy().astype(bool).tobytes(), None), (moved.numpy().astype(bool).tobytes(), None), None]
+    for step, sums in enumerate(held):
+        cert._swap_sums = sums
+        got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
+        assert all(torch.equal(a, b) for a, b in zip(got, want)), step
+    assert refinement.hot.settled > 0 and refinement.hot.matrices
+    refinement.hot.clear()
+    refinement.hot.max_bytes = 0
+    got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
+    assert all(torch.equal(a, b) for a, b in zip(got, want)) and not refinement.hot.matrices

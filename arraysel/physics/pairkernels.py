@@ -237,6 +237,97 @@ def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarra
     return out
 
 
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _block_pair_images_kernel(y, i0, wt, rot, shift, out):
+    """``out[j, e, p] = sum_n rot[n, p, e] lerp(y[j, e, :, n], i0[n, p, e], wt[n, p, e])``: the
+    delay-and-sum on a block's pixels of the I/Q signal received by element ``e`` when element
+    ``j`` transmits, for every (j, e). y: (Ne, Ne, 2, ntx, T) [re, im] (``pair_channels``, tx
+    rows, samples in segment-offset-major order as :func:`_das_stacked_raw_kernel` reads them);
+    i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2); out: (Ne, Ne, Npix, 2) float64."""
+    nj = y.shape[0]
+    ne = y.shape[1]
+    ntx = i0.shape[0]
+    npix = i0.shape[1]
+    ns = y.shape[4] >> shift
+    last = (1 << shift) - 1
+    for j in numba.prange(nj):
+        for e in range(ne):
+            for p in range(npix):
+                sr = 0.0
+                si = 0.0
+                for n in range(ntx):
+                    cr = rot[n, p, e, 0]
+                    ci = rot[n, p, e, 1]
+                    if cr != 0.0 or ci != 0.0:
+                        i = np.int64(i0[n, p, e])
+                        w = wt[n, p, e]
+                        r = i & last
+                        ia = r * ns + (i >> shift)
+                        ib = ia + ns if r != last else (i >> shift) + 1
+                        ar = y[j, e, 0, n, ia]
+                        ai = y[j, e, 1, n, ia]
+                        vr = ar + (y[j, e, 0, n, ib] - ar) * w
+                        vi = ai + (y[j, e, 1, n, ib] - ai) * w
+                        sr += cr * vr - ci * vi
+                        si += cr * vi + ci * vr
+                out[j, e, p, 0] = sr
+                out[j, e, p, 1] = si
+
+
+def block_pair_matrix(y: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.ndarray, segment: int) -> np.ndarray:
+    """The symmetric pair matrix ``G = (D + D^T) / 2`` of one block's pixels, (Ne, Ne, 2 Npix)
+    float64 with [re | im] last-axis halves, so that a selection's image on the block is
+    ``I(w) = sum_{e, j} w_e w_j G[e, j]`` (``D[j, e]``: :func:`_block_pair_images_kernel`), from
+    the stored pair channels ``y`` (Ne, Ne, 2, ntx, T) and the block's plan (i0, wt: (ntx,
+    Npix, Ne); rot: (ntx, Npix, Ne, 2)). The refinement's hot blocks
+    (:class:`arraysel.physics.psf.hotblocks.HotBlocks`) settle selections from it
+    instead of delay-and-summing each one's channels."""
+    shift = int(segment).bit_length() - 1
+    if segment < 1 or 1 << shift != segment or y.shape[4] % segment:
+        raise ValueError(f"segment: a power of two dividing the {y.shape[4]} samples, got {segment}")
+    ne, npix = y.shape[0], i0.shape[1]
+    D = np.empty((ne, ne, npix, 2), dtype=np.float64)
+    _block_pair_images_kernel(y, i0, wt, rot, shift, D)
+    S = (D + D.transpose(1, 0, 2, 3)) * 0.5
+    return np.ascontiguousarray(np.concatenate([S[..., 0], S[..., 1]], axis=2))
+
+
+@numba.njit(cache=True, nogil=True)
+def _moved_block_values_kernel(G, g, base, idx, val, out):
+    """``out[r] = base + 2 sum_a val[r, a] g[idx[r, a]] + sum_{a, b} val[r, a] val[r, b]
+    G[idx[r, a], idx[r, b]]`` over the entries ``idx >= 0`` of each row (the rest is padding)."""
+    nr, nl = idx.shape
+    n2 = g.shape[1]
+    for r in range(nr):
+        for p in range(n2):
+            out[r, p] = base[p]
+        for a in range(nl):
+            x = idx[r, a]
+            if x < 0:
+                break
+            va = val[r, a]
+            for p in range(n2):
+                out[r, p] += 2.0 * va * g[x, p]
+            for b in range(nl):
+                z = idx[r, b]
+                if z < 0:
+                    break
+                vab = va * val[r, b]
+                for p in range(n2):
+                    out[r, p] += vab * G[x, z, p]
+
+
+def moved_block_values(G: np.ndarray, g: np.ndarray, base: np.ndarray, idx: np.ndarray, val: np.ndarray) -> np.ndarray:
+    """Images (R, 2 Npix) float64 on one block of selections ``w = s + d`` that differ from a
+    reference selection ``s`` by ``d`` (row r: ``d[idx[r, a]] = val[r, a]``, ``idx`` padded with
+    -1), from the block's pair matrix ``G`` (:func:`block_pair_matrix`), ``g = G s`` (Ne, 2 Npix)
+    and ``base = s^T G s``: ``I(s + d) = I(s) + 2 d^T G s + d^T G d``, ``|d|^2`` rows of ``G``
+    read a selection instead of all ``Ne^2``."""
+    out = np.empty((idx.shape[0], g.shape[1]), dtype=np.float64)
+    _moved_block_values_kernel(G, g, base, idx, val, out)
+    return out
+
+
 #: channels whose envelope entries are summed in the envelopes' precision before the sum moves
 #: to float64 in :func:`block_bound_sums` (float32: relative error at most 31 u < 2e-6, well
 #: inside the bounds' 1e-4 margin; twice the speed of float64 throughout)

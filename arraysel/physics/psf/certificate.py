@@ -319,6 +319,15 @@ class Certificates:
             idx[r, np.arange(r.size) - np.searchsorted(r, r)] = c
         return out, into, on
 
+    def held_selection(self) -> np.ndarray | None:
+        """The 0/1 selection (Ne,) bool whose channel sums :meth:`swap_envelopes` holds (the one
+        whose neighbourhood is being scored), or None."""
+        held = self._swap_sums
+        if held is None:
+            return None
+        base = np.frombuffer(held[0], dtype=bool)
+        return base if base.shape[0] == self.model.n_elements else None
+
     def moved_channels(self, w: torch.Tensor, index: list):
         """None, or a generator of ``(i, RawChannels)`` for the selections ``w[i]``, ``i`` in
         ``index``, when :meth:`swap_moves` describes them all: the raw channels (as the

@@ -21,8 +21,10 @@ runs its :meth:`Refinement.kernels`. Its inputs (constructor arguments):
 
 It owns ``kernel_tol``, the counts ``settled`` (kernels that reached each costly step since
 the basis was made: ``"finer"``, the stored rank's tighter bound, and ``"exact_windows"``, their
-window delay-and-summed exactly) and its caches: the block DAS plans and transmit distances,
-E's DAS plan and the core's pixel positions.
+window delay-and-summed exactly), its caches (the block DAS plans and transmit distances, E's
+DAS plan and the core's pixel positions) and ``hot``, the
+:class:`~arraysel.physics.psf.hotblocks.HotBlocks` that settle the blocks left loose again and
+again from their pair matrices.
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from arraysel.physics import compiled
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.psf.build import window_plans
 from arraysel.physics.psf.certificate import RawChannels, largest_bound
+from arraysel.physics.psf.hotblocks import HotBlocks
 from arraysel.physics.psf.window import cut_windows, window_start
 
 
@@ -78,9 +81,10 @@ class Refinement:
             self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
             self._e_plan_holder: dict = {}  # E's DAS plan (:meth:`_e_plans`)
             self.settled = {"finer": 0, "exact_windows": 0}  #: kernels that reached each costly step
+            self.hot = HotBlocks(self.model, self.layout, certificates, self._plans_for_blocks)
         else:
             self._block_plans, self._block_dtx = shared._block_plans, shared._block_dtx
-            self._e_plan_holder, self.settled = shared._e_plan_holder, shared.settled
+            self._e_plan_holder, self.settled, self.hot = shared._e_plan_holder, shared.settled, shared.hot
         self._core_pos = None  # E pixel -> its column among the core's (:meth:`_settle_in_core`)
 
     #: at most this many pixels tied with the peak (within the error bound) are settled exactly
@@ -94,8 +98,7 @@ class Refinement:
     #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
     refine_max_blocks = 1024
 
-    #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of
-    #: index, weight and rotation)
+    #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of index, weight and rotation)
     plan_cache_bytes = 256 * 2 ** 20
 
     @property
@@ -294,6 +297,7 @@ class Refinement:
             elif not bool(strip[left].any()) and left.numel() <= self.refine_max_blocks:
                 loose[i] = left
             # else: a strip block reaches the peak, or too many blocks to beamform
+        out[torch.tensor(self.hot.settle(w, loose, blocks, threshold), dtype=torch.long)] = True  # hot ones first
         for i, x in self._grouped_channels(w, list(loose), raw=True):
             img = self._das(x, [tuple(int(v) for v in blocks[q]) for q in loose[i].tolist()])
             out[i] = bool(img.abs().max() * (1 + 1e-4) < threshold[i])
@@ -518,10 +522,9 @@ class Refinement:
     #: block delay-and-sums without gradient read :class:`RawChannels` (False: the complex channels
     #: of ``basis.channels``, the same values; ``benchmarks/bench_certificate.py`` compares the two)
     raw_channels = True
-    #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`,
-    #: for :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of
-    #: ``pair_channels``, so larger groups cost less per selection (``docs/performance.md``,
-    #: "Tuning constants")
+    #: memory (bytes) of the channels of the selections formed at once (:meth:`_grouped_channels`, for
+    #: :meth:`_exact_windows`, :meth:`refine` and :meth:`_locate`): each group reads all of ``pair_channels``,
+    #: so larger groups cost less per selection (``docs/performance.md``, "Tuning constants")
     channel_group_bytes = 192 << 20
 
     @property
