@@ -816,11 +816,14 @@ def test_block_pair_matrix_gives_each_selections_block_image(no_cache):
 
 
 @pytest.mark.parametrize("tier", [1, 2])
-def test_hot_blocks_settle_as_the_block_delay_and_sums(no_cache, tier):
+def test_hot_blocks_settle_as_the_block_delay_and_sums(no_cache, monkeypatch, tier):
     """Blocks made hot at once (``HotBlocks.after = 0``) settle every selection as the block
     delay-and-sums do, for thresholds that leave some blocks loose and some selections
     unsettled, with a reference selection carried from batch to batch (a search's held sums
-    moving by one swap, then none held) or too small a memory for any block (delay-and-sums)."""
+    moving by one swap, then none held) or too small a memory for any block (delay-and-sums; the
+    class's memory or the cap ``ARRAYSEL_MEMORY_GIB``)."""
+    from arraysel.physics.psf.hotblocks import HotBlocks
+
     model = PSFModel(_setup(), dtype=torch.float64, fast=True, margin=2, block=4)
     fast = model.basis
     cert, refinement = fast.certificates, fast.refinement
@@ -850,7 +853,10 @@ def test_hot_blocks_settle_as_the_block_delay_and_sums(no_cache, tier):
         got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
         assert all(torch.equal(a, b) for a, b in zip(got, want)), step
     assert refinement.hot.settled > 0 and refinement.hot.matrices
-    refinement.hot.clear()
-    refinement.hot.max_bytes = 0
-    got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
-    assert all(torch.equal(a, b) for a, b in zip(got, want)) and not refinement.hot.matrices
+    # no room: every block stays beamformed (the class's memory, or the memory cap)
+    for room in ({"max_bytes": 0}, {"env": "0.000001"}):
+        refinement.hot.clear()
+        refinement.hot.max_bytes = room.get("max_bytes", HotBlocks.max_bytes)
+        monkeypatch.setenv("ARRAYSEL_MEMORY_GIB", room.get("env", "4"))
+        got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
+        assert all(torch.equal(a, b) for a, b in zip(got, want)) and not refinement.hot.matrices

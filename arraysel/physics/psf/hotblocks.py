@@ -43,7 +43,8 @@ class HotBlocks:
     after = 64
 
     #: memory (bytes) of the pair matrices kept (one block: Ne^2 x 2 block^2 float64, 16.8 MB
-    #: for 128 elements and 8 x 8 blocks; a block that does not fit stays beamformed)
+    #: for 128 elements and 8 x 8 blocks; a block that does not fit stays beamformed), at most
+    #: the memory cap ``ARRAYSEL_MEMORY_GIB``
     max_bytes = 256 * 2 ** 20
 
     #: the reference selection is kept while the selections settled differ from it by at most
@@ -192,9 +193,11 @@ class HotBlocks:
         ne = model.n_elements
         if cert.pair_channels.device.type != "cpu":
             return None
+        from arraysel.physics.psf.settings import memory_limit_bytes
+
         i0, wt, rot = self.plans([key])[0]
         need = ne * ne * 2 * i0.shape[1] * 8
-        if sum(G.nbytes for G, _ in self.matrices.values()) + need > self.max_bytes:
+        if sum(G.nbytes for G, _ in self.matrices.values()) + need > min(self.max_bytes, memory_limit_bytes()):
             return None
         y = cert.pair_channels.numpy().reshape(ne, ne, 2, len(model.transmits), cert.window_samples)
         G = block_pair_matrix(y, i0.contiguous().numpy(), wt.contiguous().numpy(),
