@@ -184,14 +184,37 @@ def das_plan_rows(x: np.ndarray, plans, pix: np.ndarray) -> np.ndarray:
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _segment_lerp(y, e, n, i, w, shift, ns, last):
+    """``(re, im)`` of raw channel ``y[e]`` ((2, ntx, T), samples in segment-offset-major order,
+    ``2 ** shift`` a segment, ``ns`` segments) for transmit ``n`` at sample ``i + w`` (linear
+    interpolation between samples ``i`` and ``i + 1``): sample t is stored at ``(t % sg) ns + t //
+    sg`` with ``sg = 2 ** shift`` (shifts and masks: an integer division per entry cost as much as
+    the rest of the sum)."""
+    r = i & last
+    ia = r * ns + (i >> shift)
+    ib = ia + ns if r != last else (i >> shift) + 1
+    ar = y[e, 0, n, ia]
+    ai = y[e, 1, n, ia]
+    return ar + (y[e, 0, n, ib] - ar) * w, ai + (y[e, 1, n, ib] - ai) * w
+
+
+def _segment_shift(segment: int, samples: int) -> int:
+    """``log2(segment)`` for the compiled sums over raw channels of ``samples`` samples; a
+    ``ValueError`` unless ``segment`` is a power of two dividing them."""
+    shift = int(segment).bit_length() - 1
+    if segment < 1 or 1 << shift != segment or samples % segment:
+        raise ValueError(f"segment: a power of two dividing the {samples} samples, got {segment}")
+    return shift
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out):
     """``out[p] = sum_{n, e} rot[n, p, e] we[e] lerp(y[e, :, n], i0[n, p, e], wt[n, p, e])`` over
     the entries with a non-zero rotation and weight (the channels of a zero weight are not read).
-    y: (Ne, 2, ntx, T) [re, im], sample t of channel (n, e) at ``(t % sg) (T // sg) + t // sg``
-    with ``sg = 2 ** shift`` samples a segment (shifts and masks: an integer division per entry
-    cost as much as the rest of the sum); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2); out:
-    (Npix, 2) float64."""
+    y: (Ne, 2, ntx, T) [re, im], samples in segment-offset-major order (:func:`_segment_lerp`,
+    ``2 ** shift`` a segment); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2); out: (Npix, 2)
+    float64."""
     ntx = i0.shape[0]
     ne = i0.shape[2]
     ns = y.shape[3] >> shift
@@ -205,15 +228,9 @@ def _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out):
                 cr = rot[n, p, e, 0]
                 ci = rot[n, p, e, 1]
                 if f != 0.0 and (cr != 0.0 or ci != 0.0):
-                    i = np.int64(i0[n, p, e])
-                    w = wt[n, p, e]
-                    r = i & last
-                    ia = r * ns + (i >> shift)
-                    ib = ia + ns if r != last else (i >> shift) + 1
-                    ar = y[e, 0, n, ia]
-                    ai = y[e, 1, n, ia]
-                    vr = (ar + (y[e, 0, n, ib] - ar) * w) * f
-                    vi = (ai + (y[e, 1, n, ib] - ai) * w) * f
+                    vr, vi = _segment_lerp(y, e, n, np.int64(i0[n, p, e]), wt[n, p, e], shift, ns, last)
+                    vr = vr * f
+                    vi = vi * f
                     sr += cr * vr - ci * vi
                     si += cr * vi + ci * vr
         out[p, 0] = sr
@@ -229,11 +246,8 @@ def das_stacked_raw(y: np.ndarray, we: np.ndarray, i0: np.ndarray, wt: np.ndarra
     1: time order), weighted by ``we`` (Ne,) inside the sum (the certificate product's raw
     channels, :class:`arraysel.physics.psf.refinement.RawChannels`); i0, wt (ntx, Npix, Ne); rot
     (ntx, Npix, Ne, 2). Returns (Npix, 2) float64 [re, im]."""
-    shift = int(segment).bit_length() - 1
-    if segment < 1 or 1 << shift != segment or y.shape[3] % segment:
-        raise ValueError(f"segment: a power of two dividing the {y.shape[3]} samples, got {segment}")
     out = np.empty((i0.shape[1], 2), dtype=np.float64)
-    _das_stacked_raw_kernel(y, we, i0, wt, rot, shift, out)
+    _das_stacked_raw_kernel(y, we, i0, wt, rot, _segment_shift(segment, y.shape[3]), out)
     return out
 
 
@@ -242,8 +256,8 @@ def _block_pair_images_kernel(y, i0, wt, rot, shift, out):
     """``out[j, e, p] = sum_n rot[n, p, e] lerp(y[j, e, :, n], i0[n, p, e], wt[n, p, e])``: the
     delay-and-sum on a block's pixels of the I/Q signal received by element ``e`` when element
     ``j`` transmits, for every (j, e). y: (Ne, Ne, 2, ntx, T) [re, im] (``pair_channels``, tx
-    rows, samples in segment-offset-major order as :func:`_das_stacked_raw_kernel` reads them);
-    i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix, Ne, 2); out: (Ne, Ne, Npix, 2) float64."""
+    rows, samples as :func:`_segment_lerp` reads them); i0, wt: (ntx, Npix, Ne); rot: (ntx, Npix,
+    Ne, 2); out: (Ne, Ne, Npix, 2) float64."""
     nj = y.shape[0]
     ne = y.shape[1]
     ntx = i0.shape[0]
@@ -251,6 +265,7 @@ def _block_pair_images_kernel(y, i0, wt, rot, shift, out):
     ns = y.shape[4] >> shift
     last = (1 << shift) - 1
     for j in numba.prange(nj):
+        yj = y[j]
         for e in range(ne):
             for p in range(npix):
                 sr = 0.0
@@ -259,15 +274,7 @@ def _block_pair_images_kernel(y, i0, wt, rot, shift, out):
                     cr = rot[n, p, e, 0]
                     ci = rot[n, p, e, 1]
                     if cr != 0.0 or ci != 0.0:
-                        i = np.int64(i0[n, p, e])
-                        w = wt[n, p, e]
-                        r = i & last
-                        ia = r * ns + (i >> shift)
-                        ib = ia + ns if r != last else (i >> shift) + 1
-                        ar = y[j, e, 0, n, ia]
-                        ai = y[j, e, 1, n, ia]
-                        vr = ar + (y[j, e, 0, n, ib] - ar) * w
-                        vi = ai + (y[j, e, 1, n, ib] - ai) * w
+                        vr, vi = _segment_lerp(yj, e, n, np.int64(i0[n, p, e]), wt[n, p, e], shift, ns, last)
                         sr += cr * vr - ci * vi
                         si += cr * vi + ci * vr
                 out[j, e, p, 0] = sr
@@ -282,12 +289,9 @@ def block_pair_matrix(y: np.ndarray, i0: np.ndarray, wt: np.ndarray, rot: np.nda
     Npix, Ne); rot: (ntx, Npix, Ne, 2)). The refinement's hot blocks
     (:class:`arraysel.physics.psf.hotblocks.HotBlocks`) settle selections from it
     instead of delay-and-summing each one's channels."""
-    shift = int(segment).bit_length() - 1
-    if segment < 1 or 1 << shift != segment or y.shape[4] % segment:
-        raise ValueError(f"segment: a power of two dividing the {y.shape[4]} samples, got {segment}")
     ne, npix = y.shape[0], i0.shape[1]
     D = np.empty((ne, ne, npix, 2), dtype=np.float64)
-    _block_pair_images_kernel(y, i0, wt, rot, shift, D)
+    _block_pair_images_kernel(y, i0, wt, rot, _segment_shift(segment, y.shape[4]), D)
     S = (D + D.transpose(1, 0, 2, 3)) * 0.5
     return np.ascontiguousarray(np.concatenate([S[..., 0], S[..., 1]], axis=2))
 
