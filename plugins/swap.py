@@ -24,7 +24,7 @@ from __future__ import annotations
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch, model_options, shift_options
-from arraysel.selectors.starts import start_options, start_selection
+from arraysel.selectors.starts import CHIRP_CANDIDATES, start_options, start_selection
 
 
 class SwapSelector(Selector):
@@ -55,6 +55,9 @@ class SwapSelector(Selector):
                        "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
         "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "
                              "each turn)", lo=1),
+        "race_chirps": Option(int, CHIRP_CANDIDATES, "chirped layouts scored for each chirped extra start of "
+                              "a race (fresh = chirp or mixed: the best distinct of race_chirps x their number, "
+                              "in one call; fewer leave more of a short budget to the descents)", lo=1),
         **shift_options(),
         **model_options(),
     }
@@ -68,7 +71,8 @@ class SwapSelector(Selector):
         search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
                             perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
                             restart_after=o["restart_after"], fresh=o["fresh"],
-                            race=o["race"], race_quota=o["race_quota"], shift=o["shift"],
+                            race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
+                            shift=o["shift"],
                             shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
                             refresh=o["refresh"])
         return search.run(start)[0]

@@ -113,6 +113,7 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
     ("swap", {"start": "chirp", "fresh": "chirp"}, (0, 1)),
     ("swap", {"race": 4, "race_quota": 50}, (0, 1)),
+    ("swap", {"race": 6, "race_quota": 20, "fresh": "mixed", "race_chirps": 4}, (0,)),
     ("swap", {"race": 3, "race_quota": 20, "fresh": "chirp", "max_perturb": 4}, (0,)),
     ("swap", {"race": 5, "race_quota": 20, "fresh": "mixed", "restart_after": 3}, (0, 1)),
     ("ils", {"fresh": "mixed"}, (0, 1)),
@@ -695,6 +696,28 @@ def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
     assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected[:3]))
     randoms = SwapSearch(view, 10, numpy_rng(7), race=4)._race_starts(3)  # fresh = random
     assert len(randoms) == 3 and all(int(m.sum()) == 10 for m in randoms)
+
+
+def test_race_chirps_sets_the_chirped_layouts_scored_for_each_chirped_race_start():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch
+    from arraysel.selectors.starts import chirp_masks
+
+    obj, view, _ = _view(evaluations=100_000, k=10, n=20)
+    before = view.evaluations
+    # fresh = mixed with 5 extra starts: 3 chirped, chosen from 3 x 6 layouts in one call, then 2 random
+    starts = SwapSearch(view, 10, numpy_rng(4), fresh="mixed", race=6, race_chirps=6)._race_starts(5)
+    assert view.evaluations - before == 3 * 6  # the chirped layouts' call, nothing else
+    masks = chirp_masks(obj, 10, numpy_rng(4), 3 * 6)
+    values = obj.evaluate(masks)["Mean"]
+    distinct = {}
+    for i in np.argsort(values, kind="stable"):
+        distinct.setdefault(masks[i].tobytes(), masks[i])
+    expected = list(distinct.values())[:3]
+    assert len(starts) == 5 and all((a == b).all() for a, b in zip(starts[:3], expected))
+    assert all(int(m.sum()) == 10 for m in starts)
+    with pytest.raises(ParameterError, match="race_chirps"):
+        SwapSearch(view, 10, numpy_rng(0), race_chirps=0)
 
 
 def test_mixed_fresh_selections_are_chirped_and_random_in_turn():

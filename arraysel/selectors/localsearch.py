@@ -53,8 +53,9 @@ neighbours. :class:`SwapSearch` is an iterated local search:
 
 With ``race`` above 1 the first descent is a **race** (successive halving): descents from the
 start and from ``race - 1`` fresh selections (``fresh = chirp``: the best distinct of
-``(race - 1) x`` :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts; ``fresh =
-mixed``: half of them, rounded up, chosen so, the rest random) move in
+``(race - 1) x race_chirps`` chirped layouts, scored in one call, ``race_chirps`` by default
+:data:`~arraysel.selectors.starts.CHIRP_CANDIDATES`; ``fresh = mixed``: half of them, rounded
+up, chosen so, the rest random) move in
 turns of ``race_quota`` scored selections each, the better half going on after each turn with
 the quota doubled; the winner's local optimum is where the iterated local search goes on. Where
 a descent's outcome depends mostly on its start (a probe whose good selections are block
@@ -390,6 +391,8 @@ class SwapSearch:
     race : descents raced by successive halving (:meth:`race_descents`) before the iterated local
         search: the one from the start and ``race - 1`` from fresh selections (1: no race)
     race_quota : selections each raced descent scores in the first turn (doubled each turn)
+    race_chirps : chirped layouts scored for each chirped extra start of a race (``fresh`` =
+        ``chirp`` or ``mixed``; :meth:`_race_starts`)
     shift : largest displacement of a segment shift (:func:`shift_moves`); above 0, a descent at
         a local optimum of swaps scores segment shifts (random order, ``chunk`` a call) and
         goes on swapping from the first improving one; after ``shift_scan`` shifts without
@@ -410,7 +413,8 @@ class SwapSearch:
                  scan: float = 1.0, perturb: int = 2, max_perturb: int | None = None, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
-                 fresh: str = "random", race: int = 1, race_quota: int = 500, shift: int = 0,
+                 fresh: str = "random", race: int = 1, race_quota: int = 500,
+                 race_chirps: int = CHIRP_CANDIDATES, shift: int = 0,
                  shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str = "linear",
                  refresh: int = 8, guide_shifts: bool = True):
         self.objective = objective
@@ -434,6 +438,7 @@ class SwapSearch:
         self._fresh_count = 0  # fresh selections drawn (fresh = mixed alternates chirped and random)
         self.race = int(check_number("race", race, lo=1, integer=True))
         self.race_quota = int(check_number("race_quota", race_quota, lo=1, integer=True))
+        self.race_chirps = int(check_number("race_chirps", race_chirps, lo=1, integer=True))
         self.shift = int(check_number("shift", shift, lo=0, integer=True))
         self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
         self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
@@ -639,14 +644,13 @@ class SwapSearch:
 
     def _race_starts(self, m: int) -> list[np.ndarray]:
         """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
-        selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x
-        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` chirped layouts, scored in one call;
-        by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen so from ``c`` x that many, then
-        ``m - c`` random selections."""
+        selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x :attr:`race_chirps`
+        chirped layouts, scored in one call; by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen so
+        from ``c`` x that many, then ``m - c`` random selections."""
         if self.restart_from is not None or self.fresh == "random":
             return [self._fresh_mask(self.rng) for _ in range(m)]
         c = m if self.fresh == "chirp" else (m + 1) // 2
-        masks = chirp_masks(self.objective, self.k, self.rng, c * CHIRP_CANDIDATES)
+        masks = chirp_masks(self.objective, self.k, self.rng, c * self.race_chirps)
         chirped = list(survivors(masks, self.score(masks), c)[0])
         return chirped + [self._random_mask(self.rng) for _ in range(m - c)]
 
