@@ -14,7 +14,9 @@ and :func:`masks_from_indices` a batch of index lists given by a user. Every che
 accepted wherever a sequence is, through ``.detach()``).
 
 Batches of masks in a search: :func:`mask_key` is a mask's hashable key, :func:`survivors` the
-best distinct masks of a scored batch (a population's survivors, a race's starts).
+best distinct masks of a scored batch (a population's survivors, a race's starts), and
+:func:`flagged_elements` the elements each row of a boolean batch flags (the elements a move
+switches), as padded index rows.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ import numpy as np
 from arraysel.errors import SelectionError
 
 __all__ = ["Selection", "check_selection", "indices_to_mask", "mask_to_indices", "masks_from_indices", "format_elements",
-           "parse_element_text", "mask_key", "survivors"]
+           "parse_element_text", "mask_key", "survivors", "flagged_elements"]
 
 
 def _plain(x: Any):
@@ -182,6 +184,21 @@ class Selection:
 def mask_key(mask: np.ndarray) -> bytes:
     """A hashable key of a boolean mask (its packed bits)."""
     return np.packbits(mask).tobytes()
+
+
+def flagged_elements(flags: np.ndarray, width: int | None = None) -> np.ndarray:
+    """The elements each row of ``flags`` (B, Ne) bool flags, in increasing order: int64
+    ``(B, width)``, each row padded with ``-1`` after its elements. ``width`` defaults to the
+    most any row flags (0 for none); a smaller one than that is refused."""
+    flags = np.asarray(flags, dtype=bool)
+    most = int(flags.sum(1).max(initial=0))
+    width = most if width is None else int(width)
+    if width < most:
+        raise SelectionError(f"width must be at least {most} (the most elements a row flags), got {width}")
+    out = np.full((flags.shape[0], width), -1, dtype=np.int64)
+    rows, cols = np.nonzero(flags)
+    out[rows, np.arange(rows.size) - np.searchsorted(rows, rows)] = cols
+    return out
 
 
 def survivors(masks: np.ndarray, values: np.ndarray, mu: int) -> tuple[np.ndarray, np.ndarray]:

@@ -66,3 +66,16 @@ def test_selections_figure_draws_the_non_empty_selections():
     assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == ["uniform", "full"]
     image = fig.axes[0].images[0].get_array()
     assert np.array_equal(np.asarray(image), [[1, 0, 1, 0], [1, 1, 1, 1]])
+
+
+def test_flagged_elements_lists_each_rows_elements_padded():
+    from arraysel.selection import flagged_elements
+
+    flags = np.array([[0, 1, 0, 1, 1], [0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], dtype=bool)
+    assert flagged_elements(flags).tolist() == [[1, 3, 4], [-1, -1, -1], [0, -1, -1]]
+    assert flagged_elements(flags, 4).tolist() == [[1, 3, 4, -1], [-1, -1, -1, -1], [0, -1, -1, -1]]
+    assert flagged_elements(np.zeros((2, 5), dtype=bool)).shape == (2, 0)
+    assert flagged_elements(np.zeros((0, 5), dtype=bool)).shape == (0, 0)
+    assert flagged_elements(flags).dtype == np.int64
+    with pytest.raises(SelectionError, match="width"):
+        flagged_elements(flags, 2)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from arraysel.errors import SelectionError
+from arraysel.selection import flagged_elements
 
 __all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "check_moves", "move_masks", "moves_between",
            "evaluate_moves", "prepare_neighbourhoods"]
@@ -146,14 +147,7 @@ def moves_between(mask, cands) -> tuple[np.ndarray, np.ndarray]:
     c = np.asarray(cands, dtype=bool).reshape(-1, m.size)
     if (c.sum(1) != m.sum()).any():
         raise SelectionError("cands must hold as many active elements as mask")
-    moves = []
-    for diff in (m[None] & ~c, c & ~m[None]):
-        count = diff.sum(1)
-        idx = np.full((c.shape[0], int(count.max(initial=0))), -1, dtype=np.int64)
-        r, e = np.nonzero(diff)
-        idx[r, np.arange(r.size) - np.repeat(np.cumsum(count) - count, count)] = e
-        moves.append(idx)
-    return moves[0], moves[1]
+    return flagged_elements(m[None] & ~c), flagged_elements(c & ~m[None])
 
 
 def evaluate_moves(objective, mask, out, into) -> dict[str, np.ndarray]:

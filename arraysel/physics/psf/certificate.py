@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from arraysel.physics import compiled
+from arraysel.selection import flagged_elements
 
 
 def largest_bound(bounds: torch.Tensor) -> torch.Tensor:
@@ -298,26 +299,20 @@ class Certificates:
         afresh) when no sums are held, ``w`` is not 0/1 on the CPU without gradient, or a
         selection is more than :attr:`swap_channels_most` elements away each way, or so far that
         correcting a channel (``2 m + 1`` rows) reads as many rows as summing it (the k it uses)."""
-        held = self._swap_sums
-        if held is None or w.device.type != "cpu" or w.requires_grad or not w.shape[0]:
+        base = self.held_selection()
+        if base is None or w.device.type != "cpu" or w.requires_grad or not w.shape[0]:
             return None
         wn = w.detach().numpy()
         on = wn != 0
         if not np.array_equal(wn[on], np.ones(int(on.sum()), dtype=wn.dtype)):
             return None  # soft weights
-        base = np.frombuffer(held[0], dtype=bool)
         if base.shape[0] != on.shape[1]:
             return None
         outs, ins = base[None] & ~on, on & ~base[None]
         m = int(max(outs.sum(1).max(), ins.sum(1).max()))
         if m > self.swap_channels_most or 2 * m + 1 >= int(on.sum(1).min()):
             return None
-        out = np.full((on.shape[0], max(m, 1)), -1, dtype=np.int64)
-        into = out.copy()
-        for idx, moved in ((out, outs), (into, ins)):
-            r, c = np.nonzero(moved)
-            idx[r, np.arange(r.size) - np.searchsorted(r, r)] = c
-        return out, into, on
+        return flagged_elements(outs, max(m, 1)), flagged_elements(ins, max(m, 1)), on
 
     def held_selection(self) -> np.ndarray | None:
         """The 0/1 selection (Ne,) bool whose channel sums :meth:`swap_envelopes` holds (the one

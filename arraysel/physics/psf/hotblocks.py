@@ -19,9 +19,9 @@ The reference is the selection whose neighbourhood is being scored, when the cer
 one (:meth:`~arraysel.physics.psf.certificate.Certificates.held_selection`); ``G s`` and
 ``s^T G s`` are carried from one reference to the next by the elements that changed.
 
-Inputs (constructor): the model (``n_elements``, ``transmits``), the layout (``pairs_e`` for
-P), the certificates (``pair_channels``, ``window_samples``, ``segment``,
-``held_selection``) and ``plans``, the refinement's block DAS plans
+Inputs (constructor): the model (``n_elements``, ``transmits``, ``device``), the certificates
+(``pair_channels``, ``window_samples``, ``segment``, ``held_selection``) and ``plans``, the
+refinement's block DAS plans
 (:meth:`~arraysel.physics.psf.refinement.Refinement._plans_for_blocks`). Results are exact to
 float64 rounding, covered by an allowance; a decision keeps the delay-and-sum's ``1e-4``
 margin.
@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+
+from arraysel.selection import flagged_elements
 
 __all__ = ["HotBlocks"]
 
@@ -55,9 +57,8 @@ class HotBlocks:
     #: updates of a block's state at the reference before it is formed afresh
     refresh = 64
 
-    def __init__(self, model, layout, certificates, plans):
+    def __init__(self, model, certificates, plans):
         self.model = model
-        self.layout = layout
         self.certificates = certificates
         self.plans = plans
         self.matrices: dict = {}  # (qz, qx) -> (G, largest |G| entry)
@@ -105,11 +106,8 @@ class HotBlocks:
         ref = self._reference(W)
         d = W - ref[None]
         moved = d != 0
-        idx = np.full((W.shape[0], max(1, int(moved.sum(1).max()))), -1, dtype=np.int64)
-        val = np.zeros(idx.shape)
-        r_, c_ = np.nonzero(moved)
-        slot = np.arange(r_.size) - np.searchsorted(r_, r_)
-        idx[r_, slot], val[r_, slot] = c_, d[r_, c_]
+        idx = flagged_elements(moved, max(1, int(moved.sum(1).max())))
+        val = np.where(idx >= 0, np.take_along_axis(d, np.maximum(idx, 0), axis=1), 0.0)
         # float64 rounding of sums of at most 4 Ne^2 terms, each at most (|w|_1 + |s|_1)^2 max|G|
         ne = W.shape[1]
         room = 4 * ne * ne * (np.finfo(np.float64).eps / 2) * (np.abs(W).sum(1) + np.abs(ref).sum()) ** 2

@@ -81,7 +81,7 @@ class Refinement:
             self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
             self._e_plan_holder: dict = {}  # E's DAS plan (:meth:`_e_plans`)
             self.settled = {"finer": 0, "exact_windows": 0}  #: kernels that reached each costly step
-            self.hot = HotBlocks(self.model, self.layout, certificates, self._plans_for_blocks)
+            self.hot = HotBlocks(self.model, certificates, self._plans_for_blocks)
         else:
             self._block_plans, self._block_dtx = shared._block_plans, shared._block_dtx
             self._e_plan_holder, self.settled, self.hot = shared._e_plan_holder, shared.settled, shared.hot
