@@ -1,29 +1,31 @@
 """``swap``: iterated local search by one-in-one-out element swaps (exact k, batched).
 
-From a start selection (``uniform``, the default, ``random``, the ``greedy`` backward
-elimination, or a given element list) the search improves the selection by
-swapping one active and one inactive element, with first improvement (chunks of
-``chunk`` neighbours per call, a share ``guide`` of each in the order the loss's
-gradient predicts, the rest in a random order) or best improvement (all
-``k (Ne - k)`` neighbours per step, scored in one call). At a local optimum it
-perturbs the best selection by ``perturb`` random swaps (growing by one swap after each
-perturbation without a new best, up to ``max_perturb``) and descends again (iterated local
-search), and after ``restart_after`` non-improving
-perturbations it restarts from a random selection, until the budget is spent. With ``race``
-above 1 the first descent is a race of descents from the start and ``race - 1`` fresh
-selections (successive halving in turns of ``race_quota`` scored selections); the search goes
-on from the winner. With ``shift`` above 0 a descent that no swap improves tries segment shifts
-(runs of consecutive elements rotated by up to ``shift`` places) before it ends. With
-``model = quadratic`` the guided share of each chunk is ranked by the loss's gradient and
-Hessian instead of its gradient alone, which puts the best swaps first, so a small ``scan`` ends
-a descent more cheaply. See
+From a start selection (``chirp``, the default: the best of 256 chirped layouts; ``uniform``,
+``random``, the ``greedy`` backward elimination, or a given element list) the search improves
+the selection by swapping one active and one inactive element, with first improvement (chunks
+of ``chunk`` neighbours per call, a share ``guide`` of each in the order a model of the loss
+predicts, the rest in a random order) or best improvement (all ``k (Ne - k)`` neighbours per
+step, scored in one call). At a local optimum it perturbs the best selection by ``perturb``
+random swaps (growing by one swap after each perturbation without a new best, up to
+``max_perturb``) and descends again (iterated local search), and after ``restart_after``
+non-improving perturbations it restarts from a fresh selection (``fresh``: chirped and random
+in turn by default), until the budget is spent. With ``race`` above 1 (16 by default) the first
+descent is a race of descents from the start and ``race - 1`` fresh selections (successive
+halving; by default its turns share a third of the budget); the search goes on from the winner.
+With ``shift`` above 0 (6 by default) a descent that no swap improves tries segment shifts
+(runs of consecutive elements rotated by up to ``shift`` places) before it ends. With the
+quadratic model (the default up to 256 elements) the guided share of each chunk is ranked by
+the loss's gradient and Hessian, which puts the best swaps first, so a small ``scan`` (0.125 by
+default) ends a descent cheaply. The defaults are the configuration that measured best at 20 s
+and 120 s a run on the built-in scenes (``docs/selectors.md``, "The defaults of swap"). See
 :mod:`arraysel.selectors.localsearch` for the algorithm.
 """
 from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, SwapSearch, model_options, shift_options
+from arraysel.selectors.localsearch import (FRESH_CHIRPS, FRESH_CHOICES, RACE_CHIRP_SHARE, RACE_QUOTA, RACE_SHARE,
+                                            SwapSearch, model_options, shift_options)
 from arraysel.selectors.starts import CHIRP_CANDIDATES, start_options, start_selection
 
 
@@ -31,14 +33,14 @@ class SwapSelector(Selector):
     name = "swap"
     description = "iterated swap local search (first/best improvement, perturbation, restarts) from any start"
     options = {
-        **start_options(),
+        **start_options("chirp"),
         "mode": Option(str, "first", "first: move at the first chunk holding an improvement (random "
                        "order); best: score all k(Ne-k) neighbours per move", choices=("first", "best")),
         "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
-        "guide": Option(float, 0.5, "first share of each first-mode chunk taken in the order the loss's "
+        "guide": Option(float, 0.875, "first share of each first-mode chunk taken in the order the loss's "
                         "gradient predicts (adapts to where improvements come from; 0: random order)",
                         lo=0.0, hi=1.0),
-        "scan": Option(float, 1.0, "fraction of the neighbourhood scored without improvement before a "
+        "scan": Option(float, 0.125, "fraction of the neighbourhood scored without improvement before a "
                        "local optimum is declared (first mode)", lo=0.01, hi=1.0),
         "perturb": Option(int, 2, "random swaps of an iterated-local-search perturbation (0: restart "
                           "from a random selection at each local optimum)", lo=0),
@@ -47,18 +49,23 @@ class SwapSelector(Selector):
                               "or less: fixed)", lo=0),
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
                                 "a random selection (0: never restart)", lo=0),
-        "fresh": Option(str, "random", "restarts and the extra starts of a race: random selections, chirp "
+        "fresh": Option(str, "mixed", "restarts and the extra starts of a race: random selections, chirp "
                         f"(the best of {FRESH_CHIRPS} random chirped layouts each, scored in one call; a race's: "
                         "the best distinct of one call), or mixed (chirped and random in turn; a race: half "
                         "of its extra starts chirped, rounded up, the rest random)", choices=FRESH_CHOICES),
-        "race": Option(int, 1, "first descents raced by successive halving: the one from start and race - 1 "
+        "race": Option(int, 16, "first descents raced by successive halving: the one from start and race - 1 "
                        "from fresh selections, the better half going on after each turn (1: no race)", lo=1),
-        "race_quota": Option(int, 500, "selections each raced descent scores in the first turn (doubled "
-                             "each turn)", lo=1),
-        "race_chirps": Option(int, CHIRP_CANDIDATES, "chirped layouts scored for each chirped extra start of "
+        "race_quota": Option(int, None, "selections each raced descent scores in the first turn (doubled "
+                             f"each turn); auto: the turns share {RACE_SHARE:.3g} of the budget, each an equal "
+                             f"part split among its descents ({RACE_QUOTA} without a limited budget)", lo=1),
+        "race_chirps": Option(int, None, "chirped layouts scored for each chirped extra start of "
                               "a race (fresh = chirp or mixed: the best distinct of race_chirps x their number, "
-                              "in one call; fewer leave more of a short budget to the descents)", lo=1),
-        **shift_options(),
+                              "in one call; fewer leave more of a short budget to the descents); auto: as many "
+                              f"as {RACE_CHIRP_SHARE:.3g} of the budget allows, at most {CHIRP_CANDIDATES}",
+                              lo=1),
+        **shift_options(shift=6, shift_scan=512),
+        "pairs": Option(int, 0, "two-swaps (two elements off, two on) scored at a local optimum of swaps and "
+                        "shifts, the ones the quadratic model predicts best, in that order (0: none)", lo=0),
         **model_options(),
     }
     deterministic = False
@@ -74,7 +81,7 @@ class SwapSelector(Selector):
                             race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
                             shift=o["shift"],
                             shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
-                            refresh=o["refresh"])
+                            refresh=o["refresh"], pairs=o["pairs"])
         return search.run(start)[0]
 
 

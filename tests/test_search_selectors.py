@@ -883,3 +883,178 @@ def test_shifting_searches_run_at_the_extremes_of_k(reg, name, k):
     row = Experiment(ToyObjective(12, k), name, options={"shift": 4, "shift_scan": 50}, budget=Budget(evaluations=300),
                      seed=0, registry=reg).run()
     assert row["error"] == "" and len(row["elements"].split()) == k and np.isfinite(row["Mean"])
+
+
+def test_automatic_race_chirps_spend_their_share_of_the_budget():
+    # race_chirps = None: RACE_CHIRP_PROBE layouts a chirped start first, then as many more as
+    # bring the total to RACE_CHIRP_SHARE of the budget, at most CHIRP_CANDIDATES a start
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import RACE_CHIRP_PROBE, RACE_CHIRP_SHARE, SwapSearch
+    from arraysel.selectors.starts import CHIRP_CANDIDATES
+
+    for evaluations, expected in ((2000, int(RACE_CHIRP_SHARE * 2000)), (300, 3 * RACE_CHIRP_PROBE),
+                                  (10 ** 6, 3 * CHIRP_CANDIDATES)):
+        obj, view, _ = _view(evaluations=evaluations, k=10, n=20)
+        search = SwapSearch(view, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)
+        masks, values = search._race_chirps(3)
+        assert masks.shape == (expected, 20) and masks.sum(axis=1).tolist() == [10] * expected
+        assert view.budget.used_evaluations() == search.scored <= expected  # nothing else was scored
+        np.testing.assert_allclose(values, obj.evaluate(masks)["Mean"])
+    # without a limited budget: CHIRP_CANDIDATES a start
+    _, unlimited, _ = _view(k=10, n=20)
+    masks, _ = SwapSearch(unlimited, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_chirps(2)
+    assert masks.shape == (2 * CHIRP_CANDIDATES, 20)
+    # the race's chirped starts are the best distinct of those layouts
+    obj, view, _ = _view(evaluations=2000, k=10, n=20)
+    starts = SwapSearch(view, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_starts(3)
+    _, again, _ = _view(evaluations=2000, k=10, n=20)
+    masks, values = SwapSearch(again, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_chirps(3)
+    distinct = {}
+    for i in np.argsort(values, kind="stable"):
+        distinct.setdefault(masks[i].tobytes(), masks[i])
+    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, list(distinct.values())[:3]))
+
+
+class _CountingRace:
+    """A SwapSearch whose descents score one random selection a step: logs, step by step, which
+    descent stepped and how many selections it scored (0 when the step's was cached)."""
+
+    @staticmethod
+    def make(view, race, race_quota, steps=10_000, modelled=()):
+        from arraysel.selectors.contract import numpy_rng
+        from arraysel.selectors.localsearch import SwapSearch
+        from arraysel.selectors.starts import random_mask
+
+        class Search(SwapSearch):
+            def _descent(self, mask, value):
+                who = self.started
+                self.started += 1
+                for _ in range(steps):
+                    m = random_mask(self.rng, self.n, self.k)
+                    if who in modelled:
+                        self._model(m)
+                    before = self.scored
+                    v = float(self.score(m[None])[0])
+                    self.log.append((who, self.scored - before))
+                    yield m, v
+
+        search = Search(view, view.k, numpy_rng(0), race=race, race_quota=race_quota, model="quadratic",
+                        refresh=4)
+        search.started, search.log = 0, []
+        return search
+
+    @staticmethod
+    def turns(search) -> list[int]:
+        """Selections scored in each stretch one descent moved in a row (its part of a turn)."""
+        return [sum(d for _, d in g) for _, g in itertools.groupby(search.log, key=lambda e: e[0])]
+
+
+def test_automatic_race_quota_gives_each_turn_its_part_of_the_race_share():
+    # race_quota = None: ceil(log2(race)) turns, each RACE_SHARE / turns of the budget, split
+    # evenly among the descents of the turn; under an evaluation budget that is a count
+    from arraysel.selectors.localsearch import RACE_QUOTA, RACE_SHARE
+    from arraysel.selectors.starts import random_mask
+
+    evaluations, race = 24_000, 4
+    starts = [random_mask(np.random.default_rng(i), 20, 10) for i in range(race)]
+    search = _CountingRace.make(_view(evaluations=evaluations, k=10, n=20)[1], race, None)
+    search.race_descents(starts)
+    share = RACE_SHARE / 2 * evaluations / 4  # a descent's part of the first of two turns
+    # (the last stretch may run on into the winner's finished descent)
+    runs = _CountingRace.turns(search)
+    assert [round(r / share, 3) for r in runs[:5]] == [1.0] * 4 + [2.0] and runs[5] >= 2 * share, runs[:6]
+    # what the models take is not charged to a turn: a descent that forms a Hessian at each step
+    # (Ne evaluations of the budget) scores as many selections as the others
+    search = _CountingRace.make(_view(evaluations=evaluations, k=10, n=20)[1], race, None, modelled=(1,))
+    with pytest.raises(BudgetExhausted):  # the Hessians use the budget up in the second turn
+        search.race_descents(starts)
+    runs = _CountingRace.turns(search)
+    assert search.hessians > 100 and search.model_used > 0.2
+    assert all(abs(r - share) <= 1 for r in runs[:4]), runs[:6]  # (to rounding of the shares)
+    # quota given: race_quota selections a descent in the first turn, doubled after
+    search = _CountingRace.make(_view(evaluations=evaluations, k=10, n=20)[1], race, 100)
+    search.race_descents(starts)
+    runs = _CountingRace.turns(search)
+    assert runs[:5] == [100] * 4 + [200] and runs[5] >= 200
+    # no limited budget: RACE_QUOTA
+    search = _CountingRace.make(_view(k=10, n=20)[1], race, None)
+    search.race_descents(starts)
+    runs = _CountingRace.turns(search)
+    assert runs[:5] == [RACE_QUOTA] * 4 + [2 * RACE_QUOTA] and runs[5] >= 2 * RACE_QUOTA
+
+
+def test_automatic_model_is_quadratic_up_to_its_element_limit():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import QUADRATIC_MAX_ELEMENTS, SwapSearch
+
+    small = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS, 8), 8, numpy_rng(0), model=None)
+    large = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS + 4, 8), 8, numpy_rng(0), model=None)
+    assert (small.model, large.model) == ("quadratic", "linear")
+    with pytest.raises(ParameterError, match="model"):
+        SwapSearch(ToyObjective(16, 8), 8, numpy_rng(0), model="cubic")
+
+
+def test_best_pair_swaps_are_the_two_swaps_the_quadratic_model_predicts_best():
+    from arraysel.selectors.localsearch import best_pair_swaps
+
+    rng = np.random.default_rng(0)
+    for n, k, width, block in ((12, 5, 64, 256), (14, 7, 64, 3), (20, 10, 6, 4)):
+        g, a = rng.normal(size=n), rng.normal(size=(n, n))
+        H = a + a.T
+        mask = np.zeros(n, dtype=bool)
+        mask[rng.choice(n, k, replace=False)] = True
+        out, into, pred = best_pair_swaps(g, H, mask, 40, width=width, block=block)
+        moves = []
+        for off in itertools.combinations(np.flatnonzero(mask), 2):
+            for on in itertools.combinations(np.flatnonzero(~mask), 2):
+                d = np.zeros(n)
+                d[list(on)], d[list(off)] = 1.0, -1.0
+                moves.append((d @ g + 0.5 * d @ H @ d, off, on))
+        direct = {(off, on): v for v, off, on in moves}
+        assert out.shape == into.shape == (40, 2) and np.all(np.diff(pred) >= 0)
+        for o, i, v in zip(out, into, pred):  # each prediction is d.g + d.H.d / 2 of its move
+            assert mask[o].all() and not mask[i].any()
+            assert v == pytest.approx(direct[(tuple(o), tuple(i))], abs=1e-9)
+        if width >= max(k, n - k):  # every move considered: the 40 lowest of all
+            np.testing.assert_allclose(pred, sorted(v for v, _, _ in moves)[:40], atol=1e-9)
+        else:  # drawn from the `width` elements of each kind with the lowest one-swap prediction
+            assert len(set(out.ravel())) <= width and len(set(into.ravel())) <= width
+    out, into, pred = best_pair_swaps(g, H, np.eye(1, 20, 3, dtype=bool)[0], 5)  # one active element
+    assert out.shape == (0, 2) and pred.size == 0
+
+
+def test_a_pair_step_takes_the_best_improving_two_swap_of_the_first_chunk_that_holds_one():
+    from arraysel.selectors.contract import numpy_rng
+    from arraysel.selectors.localsearch import SwapSearch, best_pair_swaps, loss_quadratic
+
+    obj, view, _ = _view(evaluations=100_000, k=8, n=24)
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        mask = np.zeros(24, dtype=bool)
+        mask[rng.choice(24, 8, replace=False)] = True
+        value = float(obj.evaluate(mask[None])["Mean"][0])
+        search = SwapSearch(view, 8, numpy_rng(0), model="quadratic", guide=1.0, pairs=48, chunk=16)
+        found = search._pair_step(mask, value)
+        g, H = loss_quadratic(view, mask)
+        out, into, _ = best_pair_swaps(g, H, mask, 48)
+        cands = np.repeat(mask[None], len(out), axis=0)
+        cands[np.arange(len(out))[:, None], out] = False
+        cands[np.arange(len(out))[:, None], into] = True
+        values = obj.evaluate(cands)["Mean"]
+        first = next((c for c in range(0, 48, 16) if values[c:c + 16].min() < value), None)
+        if first is None:
+            assert found is None
+        else:
+            j = first + int(np.argmin(values[first:first + 16]))
+            assert (found[0] == cands[j]).all() and found[1] == pytest.approx(values[j])
+            assert int(found[0].sum()) == 8 and int((found[0] != mask).sum()) == 4
+    assert SwapSearch(view, 8, numpy_rng(0), model="linear", pairs=48)._pair_step(mask, value) is None
+    # at the optimum no two-swap improves
+    best, best_value = brute_force_optimum(12, 4)
+    _, small, _ = _view(evaluations=100_000, k=4, n=12)
+    at = np.zeros(12, dtype=bool)
+    at[best] = True
+    assert SwapSearch(small, 4, numpy_rng(0), model="quadratic", guide=1.0, pairs=10 ** 4)._pair_step(
+        at, best_value) is None
+    with pytest.raises(ParameterError, match="pairs"):
+        SwapSearch(view, 8, numpy_rng(0), pairs=-1)

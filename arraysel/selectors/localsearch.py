@@ -36,7 +36,11 @@ neighbours. :class:`SwapSearch` is an iterated local search:
    the shifts are ordered as the swaps are: a share of each chunk (its own :class:`GuidedOrder`)
    in the order the model predicts (:func:`move_changes`), the rest in a random order. The
    improving shifts are then mostly among the first few hundred, so a ``shift_scan`` of 512, say,
-   ends a descent for a fraction of a full scan's cost (several thousand shifts);
+   ends a descent for a fraction of a full scan's cost (several thousand shifts); with ``pairs``
+   above 0 and the quadratic model, a selection neither swaps nor shifts improve is tried with
+   the ``pairs`` two-swaps (two elements off, two on) the model predicts best
+   (:func:`best_pair_swaps`), ``chunk`` a call in that order, and the descent goes on from the
+   first improving one;
 
 2. **perturbation**: from the best local optimum found, ``perturb`` random
    swaps, then a new descent; the result replaces the base when it is no
@@ -57,7 +61,9 @@ start and from ``race - 1`` fresh selections (``fresh = chirp``: the best distin
 :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES`; ``fresh = mixed``: half of them, rounded
 up, chosen so, the rest random) move in
 turns of ``race_quota`` scored selections each, the better half going on after each turn with
-the quota doubled; the winner's local optimum is where the iterated local search goes on. Where
+the quota doubled; the winner's local optimum is where the iterated local search goes on (with ``race_quota`` None
+the turns share :data:`RACE_SHARE` of the budget instead, less what the models of the loss
+take, and with ``race_chirps`` None the chirped layouts take :data:`RACE_CHIRP_SHARE`). Where
 a descent's outcome depends mostly on its start (a probe whose good selections are block
 layouts, such as l11-5v), this spends the budget on the promising starts. Mixed extra starts let
 one race hold both kinds of funnel: chirped block layouts, and the nearly alternating layouts a
@@ -96,21 +102,41 @@ SHIFT_SCAN = 4096
 #: how a first-improvement descent predicts the change of a swap: by the loss's gradient
 #: (``linear``) or by its gradient and Hessian (``quadratic``, :func:`loss_quadratic`)
 MODEL_CHOICES = ("linear", "quadratic")
+#: the automatic model (``model`` None): quadratic on arrays of at most this many elements (a
+#: Hessian costs ``Ne`` evaluations and ``Ne^2`` memory), linear on larger ones
+QUADRATIC_MAX_ELEMENTS = 256
 
-__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "MODEL_CHOICES", "SwapSearch", "EliteSearch",
-           "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "model_options",
+#: share of the budget an automatic race (``race_quota`` None) gives its turns: each turn an
+#: equal part of it, split evenly among the descents still racing
+RACE_SHARE = 1.0 / 3.0
+#: selections a raced descent scores in the first turn without a limited budget (``race_quota``
+#: None on an objective whose budget has no limit)
+RACE_QUOTA = 500
+#: share of the budget an automatic ``race_chirps`` (None) spends on a race's chirped layouts
+RACE_CHIRP_SHARE = 0.1
+#: chirped layouts an automatic ``race_chirps`` scores first for each chirped start, to learn
+#: what one costs
+RACE_CHIRP_PROBE = 16
+#: active and inactive elements a two-swap step draws its moves from (:func:`best_pair_swaps`)
+PAIR_WIDTH = 64
+
+__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS",
+           "RACE_SHARE", "RACE_QUOTA", "RACE_CHIRP_SHARE", "RACE_CHIRP_PROBE", "PAIR_WIDTH", "SwapSearch", "EliteSearch",
+           "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "best_pair_swaps",
+           "model_options",
            "random_swaps", "random_swap_pairs", "shift_moves", "shift_segments", "shifted_masks",
            "shift_options"]
 
 
-def shift_options() -> dict[str, Option]:
+def shift_options(shift: int = 0, shift_scan: int = SHIFT_SCAN) -> dict[str, Option]:
     """The segment-shift options of the selectors built on :class:`SwapSearch` (``shift``,
-    ``shift_len``, ``shift_scan``), passed on as keywords of the same names."""
+    ``shift_len``, ``shift_scan``, with the defaults given), passed on as keywords of the same
+    names."""
     return {
-        "shift": Option(int, 0, "largest displacement of a segment shift, the second neighbourhood a descent "
+        "shift": Option(int, shift, "largest displacement of a segment shift, the second neighbourhood a descent "
                         "tries at a local optimum of swaps (0: swaps only)", lo=0),
         "shift_len": Option(int, SHIFT_LEN, "longest segment (consecutive element indices) a shift moves", lo=2),
-        "shift_scan": Option(int, SHIFT_SCAN, "shifts scored without improvement before a local optimum is "
+        "shift_scan": Option(int, shift_scan, "shifts scored without improvement before a local optimum is "
                              "declared (a guided descent scores them in its model's order: with the quadratic "
                              "model 512 is enough)", lo=1),
     }
@@ -120,8 +146,9 @@ def model_options() -> dict[str, Option]:
     """The declared options ``model`` and ``refresh`` of a search whose descents order swaps by a
     model of the loss (:meth:`SwapSearch._predict`)."""
     return {
-        "model": Option(str, "linear", "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
-                        "and Hessian (quadratic; a Hessian costs Ne evaluations)", choices=MODEL_CHOICES),
+        "model": Option(str, None, "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
+                        "and Hessian (quadratic; a Hessian costs Ne evaluations); auto: quadratic up to "
+                        f"{QUADRATIC_MAX_ELEMENTS} elements, linear above", choices=MODEL_CHOICES),
         "refresh": Option(int, 8, "quadratic model: moves between Hessians (the gradient is taken at every "
                           "move)", lo=1),
     }
@@ -293,6 +320,56 @@ def move_changes(g: np.ndarray, H: np.ndarray | None, at: np.ndarray, d: np.ndar
     return out
 
 
+def best_pair_swaps(g: np.ndarray, H: np.ndarray, mask: np.ndarray, m: int, width: int = PAIR_WIDTH,
+                    block: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``m`` two-swap moves of ``mask`` (two active elements off, two inactive ones on) whose
+    change the quadratic model ``g``, ``H`` predicts lowest, best first: ``(out (m', 2), into
+    (m', 2), predicted (m',))``, ``m' = min(m, moves)``.
+
+    A two-swap ``d = e_b1 + e_b2 - e_a1 - e_a2`` is predicted to change the loss by
+    ``d.g + d.H.d / 2 = S[a1, b1] + S[a2, b2] + H[a1, a2] + H[b1, b2] - H[a1, b2] - H[a2, b1]``,
+    ``S`` the one-swap predictions (:func:`swap_changes`), whichever way the two swaps are paired.
+    The moves are drawn from the ``width`` active elements and the ``width`` inactive ones whose
+    best one-swap prediction is lowest (all of them when there are no more), so a call costs at
+    most ``(width (width - 1) / 2)^2`` predictions, formed ``block`` pairs of active elements at a
+    time."""
+    mask = np.asarray(mask, dtype=bool)
+    act, ina = np.flatnonzero(mask), np.flatnonzero(~mask)
+    if act.size < 2 or ina.size < 2 or m < 1:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64), np.zeros(0)
+    diag = np.diagonal(H)
+    S = (g[ina][None, :] - g[act][:, None] + 0.5 * (diag[act][:, None] + diag[ina][None, :])
+         - H[np.ix_(act, ina)])
+    if act.size > width:
+        keep = np.sort(np.argpartition(S.min(axis=1), width - 1)[:width])
+        act, S = act[keep], S[keep]
+    if ina.size > width:
+        keep = np.sort(np.argpartition(S.min(axis=0), width - 1)[:width])
+        ina, S = ina[keep], S[:, keep]
+    Hab, Haa, Hbb = H[np.ix_(act, ina)], H[np.ix_(act, act)], H[np.ix_(ina, ina)]
+    ii, jj = np.triu_indices(act.size, 1)
+    pp, qq = np.triu_indices(ina.size, 1)
+    cross = Hbb[pp, qq][None, :]
+    best_v, best_i = np.zeros(0), np.zeros(0, np.int64)
+    for s in range(0, ii.size, block):
+        i, j = ii[s:s + block, None], jj[s:s + block, None]
+        v = S[i, pp] + S[j, qq] + Haa[i, j] + cross - Hab[i, qq] - Hab[j, pp]
+        flat = v.ravel()
+        take = min(m, flat.size)
+        top = np.argpartition(flat, take - 1)[:take] if take < flat.size else np.arange(flat.size)
+        best_v = np.concatenate([best_v, flat[top]])
+        best_i = np.concatenate([best_i, top + s * pp.size])
+        if best_v.size > 4 * m:
+            keep = np.argpartition(best_v, m - 1)[:m]
+            best_v, best_i = best_v[keep], best_i[keep]
+    order = np.lexsort((best_i, best_v))[:m]
+    best_v, best_i = best_v[order], best_i[order]
+    a, b = best_i // pp.size, best_i % pp.size
+    out = np.stack([act[ii[a]], act[jj[a]]], axis=1)
+    into = np.stack([ina[pp[b]], ina[qq[b]]], axis=1)
+    return out, into, best_v
+
+
 class GuidedOrder:
     """Which one-swap neighbours a first-improvement descent scores next, chunk by chunk.
 
@@ -390,9 +467,12 @@ class SwapSearch:
     cache_size : most scored selections remembered
     race : descents raced by successive halving (:meth:`race_descents`) before the iterated local
         search: the one from the start and ``race - 1`` from fresh selections (1: no race)
-    race_quota : selections each raced descent scores in the first turn (doubled each turn)
+    race_quota : selections each raced descent scores in the first turn (doubled each turn);
+        None: the turns share :data:`RACE_SHARE` of the budget (:meth:`race_descents`)
     race_chirps : chirped layouts scored for each chirped extra start of a race (``fresh`` =
-        ``chirp`` or ``mixed``; :meth:`_race_starts`)
+        ``chirp`` or ``mixed``; :meth:`_race_starts`); None: as many as
+        :data:`RACE_CHIRP_SHARE` of the budget allows, at most
+        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES`
     shift : largest displacement of a segment shift (:func:`shift_moves`); above 0, a descent at
         a local optimum of swaps scores segment shifts (random order, ``chunk`` a call) and
         goes on swapping from the first improving one; after ``shift_scan`` shifts without
@@ -400,10 +480,14 @@ class SwapSearch:
     shift_len : longest segment a shift moves
     shift_scan : shifts scored without improvement before a local optimum is declared
     model : how a guided descent predicts the change of a swap: ``linear`` (the gradient) or
-        ``quadratic`` (the gradient and the Hessian, :func:`loss_quadratic`)
+        ``quadratic`` (the gradient and the Hessian, :func:`loss_quadratic`); None: quadratic on
+        arrays of at most :data:`QUADRATIC_MAX_ELEMENTS` elements, linear on larger ones
     refresh : ``quadratic``: predictions between Hessians (the gradient is taken for each)
     guide_shifts : in a guided descent, order the segment shifts by the model too (:meth:`_shift_step`;
         False: a random order, as an unguided descent scores them)
+    pairs : above 0, a guided descent with the quadratic model that neither swaps nor shifts
+        improve scores the ``pairs`` two-swaps its model predicts best (:meth:`_pair_step`) and
+        goes on from the first improving one (0: no two-swaps)
     """
 
     #: rounds in a row without a newly scored selection after which the search stops
@@ -413,17 +497,20 @@ class SwapSearch:
                  scan: float = 1.0, perturb: int = 2, max_perturb: int | None = None, restart_after: int = 0,
                  restart_from: Callable[[np.random.Generator], np.ndarray] | None = None,
                  guide: float = 0.5, max_rounds: int | None = None, cache_size: int = 2_000_000,
-                 fresh: str = "random", race: int = 1, race_quota: int = 500,
-                 race_chirps: int = CHIRP_CANDIDATES, shift: int = 0,
-                 shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str = "linear",
-                 refresh: int = 8, guide_shifts: bool = True):
+                 fresh: str = "random", race: int = 1, race_quota: int | None = RACE_QUOTA,
+                 race_chirps: int | None = CHIRP_CANDIDATES, shift: int = 0,
+                 shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str | None = "linear",
+                 refresh: int = 8, guide_shifts: bool = True, pairs: int = 0):
         self.objective = objective
+        self.n = int(objective.n_elements)
+        if model is None:
+            model = "quadratic" if self.n <= QUADRATIC_MAX_ELEMENTS else "linear"
         self.model = check_choice("model", model, MODEL_CHOICES)
         self.refresh = int(check_number("refresh", refresh, lo=1, integer=True))
         self._hessian: np.ndarray | None = None  # the quadratic model's Hessian, and the moves it served
         self._hessian_age = 0
         self.hessians = 0  # Hessians formed
-        self.n = int(objective.n_elements)
+        self.model_used = 0.0  # share of the budget the models took (gradients, Hessians)
         self.k = int(k)
         self.rng = rng
         self.mode = check_choice("mode", mode, ("first", "best"))
@@ -437,12 +524,16 @@ class SwapSearch:
         self.fresh = check_choice("fresh", fresh, FRESH_CHOICES)
         self._fresh_count = 0  # fresh selections drawn (fresh = mixed alternates chirped and random)
         self.race = int(check_number("race", race, lo=1, integer=True))
-        self.race_quota = int(check_number("race_quota", race_quota, lo=1, integer=True))
-        self.race_chirps = int(check_number("race_chirps", race_chirps, lo=1, integer=True))
+        self.race_quota = None if race_quota is None else \
+            int(check_number("race_quota", race_quota, lo=1, integer=True))
+        self.race_chirps = None if race_chirps is None else \
+            int(check_number("race_chirps", race_chirps, lo=1, integer=True))
         self.shift = int(check_number("shift", shift, lo=0, integer=True))
         self.shift_len = int(check_number("shift_len", shift_len, lo=2, integer=True))
         self.shift_scan = int(check_number("shift_scan", shift_scan, lo=1, integer=True))
         self.shifts = 0  # improving segment shifts taken
+        self.pairs = int(check_number("pairs", pairs, lo=0, integer=True))
+        self.pair_moves = 0  # improving two-swaps taken
         self._shifts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (at, source, keys); formed once
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self.shift_guide = GuidedOrder(self.guide.share)  # the shifts' guided share adapts on its own
@@ -511,6 +602,17 @@ class SwapSearch:
         key = mask_key(mask)
         if self._model_at is not None and self._model_at[0] == key:
             return self._model_at[1]
+        before = self._budget_used()
+        try:
+            out = self._form_model(mask)
+        finally:
+            if before is not None:
+                self.model_used += self._budget_used() - before
+        self._model_at = (key, out)
+        return out
+
+    def _form_model(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """:meth:`_model` formed afresh (a gradient, and a Hessian when one is due)."""
         if self.model == "quadratic":
             if self._hessian is None or self._hessian_age >= self.refresh:
                 q = loss_quadratic(self.objective, mask)
@@ -521,12 +623,9 @@ class SwapSearch:
             else:
                 g = loss_gradient(self.objective, mask)
             self._hessian_age += 1
-            out = None if g is None else (g, self._hessian)
-        else:
-            g = loss_gradient(self.objective, mask)
-            out = None if g is None else (g, None)
-        self._model_at = (key, out)
-        return out
+            return None if g is None else (g, self._hessian)
+        g = loss_gradient(self.objective, mask)
+        return None if g is None else (g, None)
 
     def _predict(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
         """The predicted change of each swap ``(a[i], b[i])`` of ``mask`` (:func:`swap_changes`) by
@@ -577,6 +676,11 @@ class SwapSearch:
                 if found is not None:
                     (mask, value), moved = found, True
                     self.shifts += 1
+            if not moved and self.pairs:
+                found = self._pair_step(mask, value)
+                if found is not None:
+                    (mask, value), moved = found, True
+                    self.pair_moves += 1
             if not moved:
                 return
             self.moves += 1
@@ -623,6 +727,28 @@ class SwapSearch:
                 return cands[i].copy(), float(values[i])
         return None
 
+    def _pair_step(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float] | None:
+        """The best two-swap of the first chunk holding one that improves on ``value``, among the
+        ``pairs`` two-swaps the quadratic model at ``mask`` predicts best
+        (:func:`best_pair_swaps`), scored ``chunk`` a call in that order (as moves of two elements,
+        :meth:`score_moved`); None when none of them improves, or without a quadratic model
+        (``model = linear``, or an objective without a usable loss)."""
+        model = self._model(mask) if self._guided else None
+        if model is None or model[1] is None:
+            return None
+        out, into, _ = best_pair_swaps(model[0], model[1], mask, self.pairs)
+        for s in range(0, out.shape[0], self.chunk):
+            o, i = out[s:s + self.chunk], into[s:s + self.chunk]
+            rows = np.arange(o.shape[0])[:, None]
+            cands = np.repeat(mask[None], o.shape[0], axis=0)
+            cands[rows, o] = False
+            cands[rows, i] = True
+            values = self.score_moved(mask, cands)
+            j = int(np.argmin(values))
+            if values[j] < value:
+                return cands[j].copy(), float(values[j])
+        return None
+
     # -- iterated local search ---------------------------------------------------------
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
         return random_mask(rng, self.n, self.k)
@@ -645,14 +771,53 @@ class SwapSearch:
     def _race_starts(self, m: int) -> list[np.ndarray]:
         """The ``m`` extra starts of a race: by ``restart_from`` or ``fresh = random``, fresh
         selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x :attr:`race_chirps`
-        chirped layouts, scored in one call; by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen so
-        from ``c`` x that many, then ``m - c`` random selections."""
+        chirped layouts (:meth:`_race_chirps`); by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen
+        so from ``c`` x that many, then ``m - c`` random selections."""
         if self.restart_from is not None or self.fresh == "random":
             return [self._fresh_mask(self.rng) for _ in range(m)]
         c = m if self.fresh == "chirp" else (m + 1) // 2
-        masks = chirp_masks(self.objective, self.k, self.rng, c * self.race_chirps)
-        chirped = list(survivors(masks, self.score(masks), c)[0])
+        masks, values = self._race_chirps(c)
+        chirped = list(survivors(masks, values, c)[0])
         return chirped + [self._random_mask(self.rng) for _ in range(m - c)]
+
+    def _race_chirps(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """The chirped layouts ``c`` chirped race starts are chosen from, and their Means.
+
+        With :attr:`race_chirps` set, ``c`` x that many, scored in one call. Automatic (None):
+        :data:`RACE_CHIRP_PROBE` a start are scored first; the share of the budget they used
+        gives what one costs, and as many more as bring the total to
+        :data:`RACE_CHIRP_SHARE` of the budget (at most
+        :data:`~arraysel.selectors.starts.CHIRP_CANDIDATES` a start, that many without a
+        limited budget) are scored in a second call."""
+        if self.race_chirps is not None:
+            masks = chirp_masks(self.objective, self.k, self.rng, c * self.race_chirps)
+            return masks, self.score(masks)
+        first = chirp_masks(self.objective, self.k, self.rng, c * RACE_CHIRP_PROBE)
+        before = self._budget_used()
+        values = self.score(first)
+        after = self._budget_used()
+        total = c * CHIRP_CANDIDATES
+        if before is not None and after > before:
+            total = min(total, int(RACE_CHIRP_SHARE * first.shape[0] / (after - before) + 1e-6))
+        more = total - first.shape[0]
+        if more <= 0:
+            return first, values
+        extra = chirp_masks(self.objective, self.k, self.rng, more)
+        return np.concatenate([first, extra]), np.concatenate([values, self.score(extra)])
+
+    def _race_used(self) -> float:
+        """The used share of the budget less what the models took (:attr:`model_used`): what an
+        automatic race charges a descent's turn, so a descent that forms a Hessian moves as far
+        as one that reuses it."""
+        return self._budget_used() - self.model_used
+
+    def _budget_used(self) -> float | None:
+        """The used share of the objective's budget (``budget.fraction()``), or None where the
+        objective has no budget or its budget sets no limit."""
+        budget = getattr(self.objective, "budget", None)
+        if budget is None or getattr(budget, "unlimited", True) or not callable(getattr(budget, "fraction", None)):
+            return None
+        return float(budget.fraction())
 
     def _start_mask(self, start) -> np.ndarray:
         """``start`` (element indices or a boolean mask) as a boolean mask of ``k`` elements."""
@@ -684,20 +849,29 @@ class SwapSearch:
 
     def race_descents(self, starts: list[np.ndarray]) -> np.ndarray:
         """Successive halving of descents (:meth:`descend`) from ``starts``: each in turn moves
-        until ``race_quota`` more selections were scored (or it reaches its local optimum), then
-        the better half by value goes on with the quota doubled, until one is left; its descent
-        is finished and its local optimum returned. A descent that has reached its local optimum
-        scores nothing more while it stays in the race."""
+        for its share of the turn, then the better half by value goes on with its share doubled,
+        until one is left; its descent is finished and its local optimum returned. A share is
+        ``race_quota`` more scored selections in the first turn, doubled each turn; automatic
+        (``race_quota`` None), each of the ``ceil(log2(len(starts)))`` turns has an equal part of
+        :data:`RACE_SHARE` of the budget, split evenly among its descents, and what the models of
+        the loss take is not charged to a turn (:meth:`_race_used`; without a limited budget,
+        :data:`RACE_QUOTA` selections). A descent moves on while its share is not used up, so it
+        may overrun it by the cost of one move. A descent that has reached its local
+        optimum scores nothing more while it stays in the race."""
         racers = []
         for m in starts:
             v = float(self.score(m[None])[0])
             self._note(m, v)
             racers.append([self._descent(m, v), m, v, False])
         quota = self.race_quota
+        turn_share = RACE_SHARE / max(1, math.ceil(math.log2(len(racers))))
+        if quota is None and self._budget_used() is None:
+            quota = RACE_QUOTA
         while len(racers) > 1:
             for r in racers:
-                stop = self.scored + quota
-                while not r[3] and self.scored < stop:
+                spent = self._race_used if quota is None else (lambda: self.scored)
+                stop = spent() + (turn_share / len(racers) if quota is None else quota)
+                while not r[3] and spent() < stop:
                     try:
                         r[1], r[2] = next(r[0])
                     except StopIteration:
@@ -705,7 +879,8 @@ class SwapSearch:
             racers.sort(key=lambda r: r[2])
             self.local_optima += sum(r[3] for r in racers[len(racers) // 2:])  # the winner's: in iterate
             racers = racers[:len(racers) // 2]
-            quota *= 2
+            if quota is not None:
+                quota *= 2
         descent, mask, _, _ = racers[0]
         for mask, _ in descent:
             pass
