@@ -43,12 +43,12 @@ class SwapSelector(Selector):
         "scan": Option(float, 0.125, "fraction of the neighbourhood scored without improvement before a "
                        "local optimum is declared (first mode)", lo=0.01, hi=1.0),
         "perturb": Option(int, 2, "random swaps of an iterated-local-search perturbation (0: restart "
-                          "from a random selection at each local optimum)", lo=0),
+                          "from a fresh selection, see fresh, at each local optimum)", lo=0),
         "max_perturb": Option(int, 2, "most random swaps of a perturbation: the strength grows from perturb by "
                               "one after each perturbation without a new best (variable strength; perturb "
                               "or less: fixed)", lo=0),
         "restart_after": Option(int, 30, "perturbations in a row without a new best before a restart from "
-                                "a random selection (0: never restart)", lo=0),
+                                "a fresh selection, see fresh (0: never restart)", lo=0),
         "fresh": Option(str, "mixed", "restarts and the extra starts of a race: random selections, chirp "
                         f"(the best of {FRESH_CHIRPS} random chirped layouts each, scored in one call; a race's: "
                         "the best distinct of one call), or mixed (chirped and random in turn; a race: half "

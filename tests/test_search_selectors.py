@@ -678,6 +678,15 @@ def test_fresh_chirp_restarts_are_the_best_of_their_layouts():
         SwapSearch(view, 10, numpy_rng(0), fresh="sometimes")
 
 
+def _best_distinct(masks, values, m):
+    """The ``m`` best distinct rows of ``masks`` by ``values`` (ties: the earlier first), found
+    independently of ``arraysel.selection.survivors``."""
+    distinct = {}
+    for i in np.argsort(values, kind="stable"):
+        distinct.setdefault(masks[i].tobytes(), masks[i])
+    return list(distinct.values())[:m]
+
+
 def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
     from arraysel.selectors.contract import numpy_rng
     from arraysel.selectors.localsearch import SwapSearch
@@ -687,13 +696,8 @@ def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
     starts = SwapSearch(view, 10, numpy_rng(7), fresh="chirp", race=4)._race_starts(3)
     masks = chirp_masks(obj, 10, numpy_rng(7), 3 * CHIRP_CANDIDATES)
     values = obj.evaluate(masks)["Mean"]
-    expected, seen = [], set()
-    for i in np.argsort(values, kind="stable"):
-        key = masks[i].tobytes()
-        if key not in seen:
-            seen.add(key)
-            expected.append(masks[i])
-    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected[:3]))
+    expected = _best_distinct(masks, values, 3)
+    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected))
     randoms = SwapSearch(view, 10, numpy_rng(7), race=4)._race_starts(3)  # fresh = random
     assert len(randoms) == 3 and all(int(m.sum()) == 10 for m in randoms)
 
@@ -710,10 +714,7 @@ def test_race_chirps_sets_the_chirped_layouts_scored_for_each_chirped_race_start
     assert view.evaluations - before == 3 * 6  # the chirped layouts' call, nothing else
     masks = chirp_masks(obj, 10, numpy_rng(4), 3 * 6)
     values = obj.evaluate(masks)["Mean"]
-    distinct = {}
-    for i in np.argsort(values, kind="stable"):
-        distinct.setdefault(masks[i].tobytes(), masks[i])
-    expected = list(distinct.values())[:3]
+    expected = _best_distinct(masks, values, 3)
     assert len(starts) == 5 and all((a == b).all() for a, b in zip(starts[:3], expected))
     assert all(int(m.sum()) == 10 for m in starts)
     with pytest.raises(ParameterError, match="race_chirps"):
@@ -909,10 +910,7 @@ def test_automatic_race_chirps_spend_their_share_of_the_budget():
     starts = SwapSearch(view, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_starts(3)
     _, again, _ = _view(evaluations=2000, k=10, n=20)
     masks, values = SwapSearch(again, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_chirps(3)
-    distinct = {}
-    for i in np.argsort(values, kind="stable"):
-        distinct.setdefault(masks[i].tobytes(), masks[i])
-    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, list(distinct.values())[:3]))
+    assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, _best_distinct(masks, values, 3)))
 
 
 class _CountingRace:

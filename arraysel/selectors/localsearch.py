@@ -85,7 +85,7 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.contract import hessian_by_rows
-from arraysel.objective.neighbours import moves_between, swap_masks, swap_pairs
+from arraysel.objective.neighbours import move_masks, moves_between, swap_masks, swap_pairs
 from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
@@ -337,9 +337,7 @@ def best_pair_swaps(g: np.ndarray, H: np.ndarray, mask: np.ndarray, m: int, widt
     act, ina = np.flatnonzero(mask), np.flatnonzero(~mask)
     if act.size < 2 or ina.size < 2 or m < 1:
         return np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64), np.zeros(0)
-    diag = np.diagonal(H)
-    S = (g[ina][None, :] - g[act][:, None] + 0.5 * (diag[act][:, None] + diag[ina][None, :])
-         - H[np.ix_(act, ina)])
+    S = swap_changes(g, H, act[:, None], ina[None, :])  # (active, inactive)
     if act.size > width:
         keep = np.sort(np.argpartition(S.min(axis=1), width - 1)[:width])
         act, S = act[keep], S[keep]
@@ -738,11 +736,7 @@ class SwapSearch:
             return None
         out, into, _ = best_pair_swaps(model[0], model[1], mask, self.pairs)
         for s in range(0, out.shape[0], self.chunk):
-            o, i = out[s:s + self.chunk], into[s:s + self.chunk]
-            rows = np.arange(o.shape[0])[:, None]
-            cands = np.repeat(mask[None], o.shape[0], axis=0)
-            cands[rows, o] = False
-            cands[rows, i] = True
+            cands = move_masks(mask, out[s:s + self.chunk], into[s:s + self.chunk])
             values = self.score_moved(mask, cands)
             j = int(np.argmin(values))
             if values[j] < value:
