@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     from arraysel.objective.neighbours import evaluate_moves, move_masks, moves_between
-    from arraysel.selectors.localsearch import shift_moves, shifted_masks
+    from arraysel.selectors.moves import shift_moves, shifted_masks
 
     record = {"chunk": args.chunk, "shifts": args.shifts, "threads": args.threads, "scenes": {}}
     for scene in [s for s in args.scenes.split(",") if s]:

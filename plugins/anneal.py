@@ -29,7 +29,7 @@ import numpy as np
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import random_swap_pairs
+from arraysel.selectors.moves import random_swap_pairs
 from arraysel.selectors.starts import start_options, start_selection
 
 

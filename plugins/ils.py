@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch, shift_options
+from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch
+from arraysel.selectors.moves import shift_options
 from arraysel.selectors.starts import start_options, start_selection
 
 

@@ -25,7 +25,9 @@ from __future__ import annotations
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.localsearch import (FRESH_CHIRPS, FRESH_CHOICES, RACE_CHIRP_SHARE, RACE_QUOTA, RACE_SHARE,
-                                            SwapSearch, model_options, shift_options)
+                                            SwapSearch)
+from arraysel.selectors.lossmodel import model_options
+from arraysel.selectors.moves import shift_options
 from arraysel.selectors.starts import CHIRP_CANDIDATES, start_options, start_selection
 
 

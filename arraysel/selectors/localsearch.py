@@ -84,27 +84,20 @@ from typing import Callable
 import numpy as np
 
 from arraysel.errors import ParameterError, check_choice, check_number
-from arraysel.objective.contract import hessian_by_rows
 from arraysel.objective.neighbours import move_masks, moves_between, swap_masks, swap_pairs
 from arraysel.selection import mask_key, survivors
-from arraysel.selectors.contract import Option
+# the moves and the loss's models live in their own modules; their names stay importable from here
+from arraysel.selectors.lossmodel import (MODEL_CHOICES, PAIR_WIDTH, QUADRATIC_MAX_ELEMENTS, GuidedOrder,
+                                          best_pair_swaps, loss_gradient, loss_quadratic, model_options,
+                                          move_changes, swap_changes)
+from arraysel.selectors.moves import (SHIFT_LEN, SHIFT_SCAN, apply_shifts, random_swap_pairs, random_swaps,
+                                      shift_moves, shift_options, shift_segments, shifted_masks)
 from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
 #: where fresh selections (restarts, extra starts) come from (``mixed``: chirped and random in turn)
 FRESH_CHOICES = ("random", "chirp", "mixed")
 #: chirped layouts a ``fresh = chirp`` restart scores (one call), keeping the best
 FRESH_CHIRPS = 32
-
-#: longest segment a shift move displaces (``shift_len`` default)
-SHIFT_LEN = 24
-#: shift moves scored without improvement before a selection counts as a local optimum of them
-SHIFT_SCAN = 4096
-#: how a first-improvement descent predicts the change of a swap: by the loss's gradient
-#: (``linear``) or by its gradient and Hessian (``quadratic``, :func:`loss_quadratic`)
-MODEL_CHOICES = ("linear", "quadratic")
-#: the automatic model (``model`` None): quadratic on arrays of at most this many elements (a
-#: Hessian costs ``Ne`` evaluations and ``Ne^2`` memory), linear on larger ones
-QUADRATIC_MAX_ELEMENTS = 256
 
 #: share of the budget an automatic race (``race_quota`` None) gives its turns: each turn an
 #: equal part of it, split evenly among the descents still racing
@@ -117,325 +110,13 @@ RACE_CHIRP_SHARE = 0.1
 #: chirped layouts an automatic ``race_chirps`` scores first for each chirped start, to learn
 #: what one costs
 RACE_CHIRP_PROBE = 16
-#: active and inactive elements a two-swap step draws its moves from (:func:`best_pair_swaps`)
-PAIR_WIDTH = 64
 
-__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "SHIFT_LEN", "SHIFT_SCAN", "MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS",
-           "RACE_SHARE", "RACE_QUOTA", "RACE_CHIRP_SHARE", "RACE_CHIRP_PROBE", "PAIR_WIDTH", "SwapSearch", "EliteSearch",
-           "GuidedOrder", "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "best_pair_swaps",
-           "model_options",
-           "random_swaps", "random_swap_pairs", "shift_moves", "shift_segments", "shifted_masks",
-           "shift_options"]
-
-
-def shift_options(shift: int = 0, shift_scan: int = SHIFT_SCAN) -> dict[str, Option]:
-    """The segment-shift options of the selectors built on :class:`SwapSearch` (``shift``,
-    ``shift_len``, ``shift_scan``, with the defaults given), passed on as keywords of the same
-    names."""
-    return {
-        "shift": Option(int, shift, "largest displacement of a segment shift, the second neighbourhood a descent "
-                        "tries at a local optimum of swaps (0: swaps only)", lo=0),
-        "shift_len": Option(int, SHIFT_LEN, "longest segment (consecutive element indices) a shift moves", lo=2),
-        "shift_scan": Option(int, shift_scan, "shifts scored without improvement before a local optimum is "
-                             "declared (a guided descent scores them in its model's order: with the quadratic "
-                             "model 512 is enough)", lo=1),
-    }
-
-
-def model_options() -> dict[str, Option]:
-    """The declared options ``model`` and ``refresh`` of a search whose descents order swaps by a
-    model of the loss (:meth:`SwapSearch._predict`)."""
-    return {
-        "model": Option(str, None, "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
-                        "and Hessian (quadratic; a Hessian costs Ne evaluations); auto: quadratic up to "
-                        f"{QUADRATIC_MAX_ELEMENTS} elements, linear above", choices=MODEL_CHOICES),
-        "refresh": Option(int, 8, "quadratic model: moves between Hessians (the gradient is taken at every "
-                          "move)", lo=1),
-    }
-
-
-def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``min(b, k (Ne - k))`` distinct random swaps ``(out, into)`` of a boolean mask."""
-    on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
-    total = on.size * off.size
-    pick = rng.choice(total, size=min(b, total), replace=False)
-    return on[pick // off.size], off[pick % off.size]
-
-
-def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
-    """``mask`` after ``m`` random swaps (distinct elements swapped out and in)."""
-    out = mask.copy()
-    on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
-    m = min(m, on.size, off.size)
-    if m <= 0:
-        return out
-    out[rng.choice(on, m, replace=False)] = False
-    out[rng.choice(off, m, replace=False)] = True
-    return out
-
-
-def shift_moves(n: int, longest: int, most: int, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Every segment shift of an ``n``-element selection as rows ``(start, length, d)``: the
-    segment ``start .. start + length - 1`` (``2 <= length <= longest``) is rotated by ``d``
-    places (``1 <= |d| <= min(most, length - 1)``; positive: towards higher indices, the
-    elements pushed past its end coming back at its start), which keeps ``k``. A shift moves a
-    group of active elements together, which single swaps can only do through worse
-    selections. In a random order when ``rng`` is given; ``(0, 3)`` when there is none."""
-    rows = []
-    for length in range(2, min(int(longest), int(n)) + 1):
-        dmax = min(int(most), length - 1)
-        if dmax < 1:
-            continue
-        starts = np.arange(n - length + 1)
-        ds = np.concatenate([np.arange(1, dmax + 1), -np.arange(1, dmax + 1)])
-        st, dd = np.meshgrid(starts, ds, indexing="ij")
-        rows.append(np.stack([st.ravel(), np.full(st.size, length), dd.ravel()], axis=1))
-    moves = np.concatenate(rows) if rows else np.zeros((0, 3), dtype=np.int64)
-    return moves[rng.permutation(len(moves))] if rng is not None else moves
-
-
-def shift_segments(n: int, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The segment shifts ``moves`` (rows ``(start, length, d)``, :func:`shift_moves`) as two
-    ``(len(moves), L)`` int32 arrays ``(at, source)``, ``L`` the longest segment: shift ``i`` puts
-    element ``source[i, j]`` of a selection at ``at[i, j]``. Rows of shorter segments are padded
-    with ``n``, a place past the selection's last element (extend the selection by one ``False``):
-    a few integers a shift, where a whole shifted selection would take ``n``."""
-    moves = np.asarray(moves, dtype=np.int64).reshape(-1, 3)
-    longest = int(moves[:, 1].max()) if len(moves) else 1
-    start, length, d = moves[:, 0:1], moves[:, 1:2], moves[:, 2:3]
-    j = np.arange(longest)[None]
-    inside = j < length
-    at = np.where(inside, start + j, n).astype(np.int32)
-    source = np.where(inside, start + (j - d) % np.maximum(length, 1), n).astype(np.int32)
-    return at, source
-
-
-def _shifted(extended: np.ndarray, at: np.ndarray, source: np.ndarray) -> np.ndarray:
-    """The selections ``extended[:-1]`` with the shifts ``(at, source)`` of :func:`shift_segments`
-    applied, one a row: ``(len(at), Ne)``; ``extended`` is the selection with one ``False`` appended."""
-    out = np.repeat(extended[None], len(at), axis=0)
-    out[np.arange(len(at))[:, None], at] = extended[source]
-    return out[:, :-1]
-
-
-def shifted_masks(mask: np.ndarray, moves: np.ndarray) -> np.ndarray:
-    """``(len(moves), Ne)`` copies of ``mask``, each with one segment shift of ``moves``
-    (rows ``(start, length, d)``, :func:`shift_moves`) applied."""
-    mask = np.asarray(mask, dtype=bool)
-    return _shifted(np.append(mask, False), *shift_segments(mask.shape[0], moves))
-
-
-def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
-    """The gradient (Ne,) float64 of the objective's ``mask_loss`` at the 0/1 selection ``mask``
-    (one evaluation and one gradient step of the budget), or ``None`` where the objective has no
-    ``mask_loss``, it fails with anything but the budget's end, or the gradient is zero or not
-    finite. :class:`~arraysel.selectors.contract.BudgetExhausted` propagates."""
-    import torch
-
-    from arraysel.selectors.contract import BudgetExhausted
-
-    loss = getattr(objective, "mask_loss", None)
-    if not callable(loss):
-        return None
-    dtype = getattr(objective, "dtype", torch.float32)
-    w = torch.tensor(np.asarray(mask, dtype=np.float64)[None], dtype=dtype,
-                     device=getattr(objective, "device", "cpu")).requires_grad_(True)
-    try:
-        total, _terms = loss(w)
-        total.sum().backward()
-    except BudgetExhausted:
-        raise
-    except Exception:  # an objective without a differentiable loss: the search goes unguided
-        return None
-    g = w.grad
-    if g is None:
-        return None
-    g = g.detach()[0].double().cpu().numpy()
-    if not np.isfinite(g).all() or not np.any(g):
-        return None
-    return g
-
-
-def loss_quadratic(objective, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64, symmetrised) of the objective's
-    ``mask_loss`` at the 0/1 selection ``mask`` (``Ne`` evaluations of the budget): its own
-    ``mask_hessian`` (:class:`~arraysel.objective.contract.HasHessian`) when it has one, else
-    :func:`~arraysel.objective.contract.hessian_by_rows`. ``None`` where the objective has no
-    ``mask_loss``, it fails with anything but the budget's end, or a result is not finite.
-    :class:`~arraysel.selectors.contract.BudgetExhausted` propagates."""
-    from arraysel.selectors.contract import BudgetExhausted
-
-    own = getattr(objective, "mask_hessian", None)
-    loss = getattr(objective, "mask_loss", None)
-    mask = np.asarray(mask, dtype=bool)
-    n = mask.shape[0]
-    try:
-        if callable(own):
-            g, H = own(mask)
-        elif callable(loss):
-            g, H = hessian_by_rows(loss, mask, getattr(objective, "dtype", None),
-                                   getattr(objective, "device", "cpu"))
-        else:
-            return None
-        g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
-    except BudgetExhausted:
-        raise
-    except Exception:  # an objective without a twice differentiable loss: no quadratic model
-        return None
-    if g.shape != (n,) or H.shape != (n, n) or not (np.isfinite(g).all() and np.isfinite(H).all()):
-        return None
-    return g, 0.5 * (H + H.T)
-
-
-def swap_changes(g: np.ndarray, H: np.ndarray | None, out: np.ndarray, into: np.ndarray) -> np.ndarray:
-    """The change of the loss that the quadratic model ``g``, ``H`` (:func:`loss_quadratic`; ``H``
-    None: the linear model) predicts for each swap ``(out[i], into[i])``:
-    ``g[into] - g[out] + (H[out, out] + H[into, into]) / 2 - H[out, into]``."""
-    d = g[into] - g[out]
-    if H is not None:
-        diag = np.diagonal(H)
-        d = d + 0.5 * (diag[out] + diag[into]) - H[out, into]
-    return d
-
-
-def move_changes(g: np.ndarray, H: np.ndarray | None, at: np.ndarray, d: np.ndarray,
-                 block: int = 4096) -> np.ndarray:
-    """The change of the loss that the quadratic model ``g``, ``H`` (``H`` None: the linear model)
-    predicts for each move ``i`` that changes the selection by ``d[i, j]`` (+1 on, -1 off, 0
-    nothing) at element ``at[i, j]``: ``d.g + d.H.d / 2`` over the elements it changes (a swap:
-    :func:`swap_changes`). Entries at ``Ne`` or beyond are padding (``d`` 0 there). A few entries
-    a move, so a move costs ``L^2`` (``L`` entries), not ``Ne^2``."""
-    n = g.shape[0]
-    at = np.asarray(at, dtype=np.int64)
-    d = np.asarray(d, dtype=np.float64)
-    at = np.where(at < n, at, n)
-    gx = np.append(np.asarray(g, dtype=np.float64), 0.0)
-    out = (d * gx[at]).sum(axis=1)
-    if H is not None:
-        Hx = np.zeros((n + 1, n + 1))
-        Hx[:n, :n] = H
-        for s in range(0, len(at), block):
-            a, w = at[s:s + block], d[s:s + block]
-            out[s:s + block] += 0.5 * np.einsum("bi,bij,bj->b", w, Hx[a[:, :, None], a[:, None, :]], w)
-    return out
-
-
-def best_pair_swaps(g: np.ndarray, H: np.ndarray, mask: np.ndarray, m: int, width: int = PAIR_WIDTH,
-                    block: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ``m`` two-swap moves of ``mask`` (two active elements off, two inactive ones on) whose
-    change the quadratic model ``g``, ``H`` predicts lowest, best first: ``(out (m', 2), into
-    (m', 2), predicted (m',))``, ``m' = min(m, moves)``.
-
-    A two-swap ``d = e_b1 + e_b2 - e_a1 - e_a2`` is predicted to change the loss by
-    ``d.g + d.H.d / 2 = S[a1, b1] + S[a2, b2] + H[a1, a2] + H[b1, b2] - H[a1, b2] - H[a2, b1]``,
-    ``S`` the one-swap predictions (:func:`swap_changes`), whichever way the two swaps are paired.
-    The moves are drawn from the ``width`` active elements and the ``width`` inactive ones whose
-    best one-swap prediction is lowest (all of them when there are no more), so a call costs at
-    most ``(width (width - 1) / 2)^2`` predictions, formed ``block`` pairs of active elements at a
-    time."""
-    mask = np.asarray(mask, dtype=bool)
-    act, ina = np.flatnonzero(mask), np.flatnonzero(~mask)
-    if act.size < 2 or ina.size < 2 or m < 1:
-        return np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64), np.zeros(0)
-    S = swap_changes(g, H, act[:, None], ina[None, :])  # (active, inactive)
-    if act.size > width:
-        keep = np.sort(np.argpartition(S.min(axis=1), width - 1)[:width])
-        act, S = act[keep], S[keep]
-    if ina.size > width:
-        keep = np.sort(np.argpartition(S.min(axis=0), width - 1)[:width])
-        ina, S = ina[keep], S[:, keep]
-    Hab, Haa, Hbb = H[np.ix_(act, ina)], H[np.ix_(act, act)], H[np.ix_(ina, ina)]
-    ii, jj = np.triu_indices(act.size, 1)
-    pp, qq = np.triu_indices(ina.size, 1)
-    cross = Hbb[pp, qq][None, :]
-    best_v, best_i = np.zeros(0), np.zeros(0, np.int64)
-    for s in range(0, ii.size, block):
-        i, j = ii[s:s + block, None], jj[s:s + block, None]
-        v = S[i, pp] + S[j, qq] + Haa[i, j] + cross - Hab[i, qq] - Hab[j, pp]
-        flat = v.ravel()
-        take = min(m, flat.size)
-        top = np.argpartition(flat, take - 1)[:take] if take < flat.size else np.arange(flat.size)
-        best_v = np.concatenate([best_v, flat[top]])
-        best_i = np.concatenate([best_i, top + s * pp.size])
-        if best_v.size > 4 * m:
-            keep = np.argpartition(best_v, m - 1)[:m]
-            best_v, best_i = best_v[keep], best_i[keep]
-    order = np.lexsort((best_i, best_v))[:m]
-    best_v, best_i = best_v[order], best_i[order]
-    a, b = best_i // pp.size, best_i % pp.size
-    out = np.stack([act[ii[a]], act[jj[a]]], axis=1)
-    into = np.stack([ina[pp[b]], ina[qq[b]]], axis=1)
-    return out, into, best_v
-
-
-class GuidedOrder:
-    """Which one-swap neighbours a first-improvement descent scores next, chunk by chunk.
-
-    The swaps ``(out[i], into[i])`` come in a random order. With a predicted change of each swap
-    (:meth:`SwapSearch._predict`: the gradient's first-order change ``g[into] - g[out]``, or the
-    quadratic model's), each chunk takes ``round(share * chunk)`` swaps in the order of that
-    prediction (most improving first) and the rest in the random order, no swap twice.
-    :meth:`credit` moves ``share`` by ``step`` towards the part that held the chunk's best
-    improving move, within ``[0, hi]``; at share 0 the
-    gradient is only computed every ``probe`` moves (:meth:`wants_gradient`), with share
-    ``probe_share`` for that move, so a gradient that stops predicting costs little and one that
-    predicts again is found back.
-    """
-
-    def __init__(self, share: float, step: float = 0.125, hi: float = 0.875, probe: int = 8,
-                 probe_share: float = 0.5):
-        self.share = float(share)
-        self.step, self.hi, self.probe, self.probe_share = float(step), float(hi), int(probe), float(probe_share)
-        self.moves = 0
-        self.guided_hits = 0
-        self.random_hits = 0
-
-    def wants_gradient(self) -> bool:
-        return self.share > 0 or self.moves % self.probe == 0
-
-    def chunks(self, a: np.ndarray, b: np.ndarray, pred: np.ndarray | None, chunk: int, limit: int):
-        """Yield ``(index array into a/b, number of them taken from the prediction)`` per chunk,
-        ``limit`` swaps in all; ``pred`` the predicted change of each swap (None: random order)."""
-        n = min(limit, a.size)
-        if pred is None:
-            for s in range(0, n, chunk):
-                yield np.arange(s, min(s + chunk, n)), 0
-            return
-        share = self.share if self.share > 0 else self.probe_share
-        ranked = np.argsort(pred, kind="stable")
-        taken = np.zeros(a.size, dtype=bool)
-        gi = ri = done = 0
-        while done < n:
-            size = min(chunk, n - done)
-            ng = min(size, int(round(share * size)))
-            pick = []
-            while len(pick) < ng and gi < ranked.size:
-                j = ranked[gi]
-                gi += 1
-                if not taken[j]:
-                    taken[j] = True
-                    pick.append(j)
-            ng = len(pick)
-            while len(pick) < size and ri < a.size:
-                if not taken[ri]:
-                    taken[ri] = True
-                    pick.append(ri)
-                ri += 1
-            done += len(pick)
-            yield np.asarray(pick, dtype=np.int64), ng
-
-    def credit(self, guided: bool | None) -> None:
-        """After a move: ``guided`` whether its swap came from the prediction (None: the move was
-        made without a gradient)."""
-        self.moves += 1
-        if guided is None:
-            return
-        if guided:
-            self.guided_hits += 1
-            self.share = self.probe_share if self.share == 0 else min(self.hi, self.share + self.step)
-        else:
-            self.random_hits += 1
-            self.share = max(0.0, self.share - self.step)
+__all__ = ["FRESH_CHOICES", "FRESH_CHIRPS", "RACE_SHARE", "RACE_QUOTA", "RACE_CHIRP_SHARE", "RACE_CHIRP_PROBE",
+           "SwapSearch", "EliteSearch",
+           # from arraysel.selectors.moves and arraysel.selectors.lossmodel
+           "SHIFT_LEN", "SHIFT_SCAN", "random_swaps", "random_swap_pairs", "shift_moves", "shift_segments",
+           "shifted_masks", "shift_options", "MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS", "PAIR_WIDTH", "GuidedOrder",
+           "loss_gradient", "loss_quadratic", "swap_changes", "move_changes", "best_pair_swaps", "model_options"]
 
 
 class SwapSearch:
@@ -717,7 +398,7 @@ class SwapSearch:
             pred = None if m is None else move_changes(m[0], m[1], at, d)
         index = np.arange(first.size)
         for pick, ng in self.shift_guide.chunks(index, index, pred, self.chunk, min(self.shift_scan, index.size)):
-            cands = _shifted(extended, at[pick], source[pick])
+            cands = apply_shifts(extended, at[pick], source[pick])
             values = self.score_moved(mask, cands)
             i = int(np.argmin(values))
             if values[i] < value:

@@ -19,7 +19,7 @@ import numpy as np
 from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.layouts import uniform_layout
-from arraysel.selectors.localsearch import random_swaps
+from arraysel.selectors.moves import random_swaps
 from arraysel.selectors.starts import chirp_masks, random_subsets
 
 #: a ``chirp`` initial population keeps the best ``population`` of ``CHIRP_POOL x population``
