@@ -542,9 +542,9 @@ class SwapSearch:
         turn_share = RACE_SHARE / max(1, math.ceil(math.log2(len(racers))))
         if quota is None and self._budget_used() is None:
             quota = RACE_QUOTA
+        spent = self._race_used if quota is None else (lambda: self.scored)  # what a turn charges
         while len(racers) > 1:
             for r in racers:
-                spent = self._race_used if quota is None else (lambda: self.scored)
                 stop = spent() + (turn_share / len(racers) if quota is None else quota)
                 while not r[3] and spent() < stop:
                     try:
