@@ -543,18 +543,56 @@ def test_neighbourhood_base_carried_by_rows_along_a_walk_equals_the_products(mon
 
     def spy(self, mask):
         out = real(self, mask)
-        updated.append(self._swap_base_held[4])
+        updated.append(self.swap_bases.latest()[3])
         return out
 
     monkeypatch.setattr(type(basis), "_swap_base", spy)
     rng = np.random.default_rng(4)
     m = _walk_images(obj, _mask(12, [0, 2, 3, 7, 9, 11]), rng, 14, dtype, tol)
     assert 2 in np.diff(updated) and 0 in updated[1:]       # a two-element move by rows; bases formed afresh
-    assert basis._swap_base_held[4] >= 1                      # the last bases were updated by rows
+    assert basis.swap_bases.latest()[3] >= 1   # the last bases were updated by rows
     out, into = swap_pairs(m, rng)
     _assert_same_scores(obj.evaluate_swaps(m, out, into, return_kernels=True),
                         obj.evaluate(swap_masks(m, out, into), return_kernels=True),
                         rtol=1e-10 if dtype == torch.float64 else 2e-4, atol=0 if dtype == torch.float64 else 1e-6)
+
+
+@pytest.mark.parametrize("kept", [3, 1])
+def test_interleaved_walks_each_keep_their_base(monkeypatch, kept):
+    # three walks taking turns, a swap each turn (a race's descents): with room for three bases
+    # each walk finds its own and carries it by rows (three bases formed in all); with room for
+    # one, a turn forms its base afresh unless the last walk's happens to be a swap away; the
+    # images equal the product either way
+    from arraysel.objective.neighbours import prepare_neighbourhoods
+
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(torch.float64, probe={"n_elements": 12}, selection={"k": 6})
+    basis = obj.psf.basis
+    assert prepare_neighbourhoods(obj) >= 0
+    entry = 16 * (12 + 1) * basis.npix
+    monkeypatch.setattr(type(basis), "swap_base_max_bytes", kept * entry + entry // 2)
+    monkeypatch.setattr(type(basis), "swap_base_moved_max", 1)   # a walk's own last base only
+    formed, reachable = [], []
+    real = type(basis)._swap_base
+
+    def spy(self, mask):
+        m = mask.cpu().numpy() != 0
+        bases = self.__dict__.get("swap_bases")
+        kept_masks = [e[0].numpy() for e in bases.kept.values()] if bases is not None else []
+        reachable.append(any((k & ~m).sum() <= 1 for k in kept_masks))   # a kept base a swap away
+        out = real(self, mask)
+        formed.append(self.swap_bases.latest()[3] == 0)
+        return out
+
+    monkeypatch.setattr(type(basis), "_swap_base", spy)
+    rng = np.random.default_rng(11)
+    walks = [_mask(12, rng.choice(12, 6, replace=False)) for _ in range(3)]
+    for turn in range(4):
+        for i, m in enumerate(walks):
+            walks[i] = _walk_images(obj, m, rng, 1, torch.float64, 1e-11)
+            assert len(basis.swap_bases) <= kept
+    assert formed == [not r for r in reachable]               # formed afresh exactly when none is at hand
+    assert sum(formed) == 3 if kept == 3 else sum(formed) >= 9
 
 
 def test_paper_neighbourhoods_with_all_rows_kept_along_a_walk(paper_objective, monkeypatch):

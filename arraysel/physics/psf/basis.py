@@ -32,6 +32,7 @@ from arraysel.physics.psf.certificate import Certificates
 from arraysel.physics.psf.layout import LAYOUT_FIELDS, BasisLayout, pair_index
 from arraysel.physics.psf.refinement import Refinement
 from arraysel.physics.psf.state import ErrorConstants, basis_state, restore_state
+from arraysel.physics.psf.swapbase import SwapBases
 
 __all__ = ["PairBasis", "BUILD_RANK_TOL", "ErrorConstants", "pair_index", "pair_products"]
 
@@ -206,7 +207,7 @@ class PairBasis:
 
         out = copy.copy(self)
         # a neighbourhood base is updated in place along a walk: each basis holds its own
-        out.__dict__.pop("_swap_base_held", None)
+        out.__dict__.pop("swap_bases", None)
         r = int(check_number("rank", rank, lo=1, integer=True))
         if self.U is None or r >= self.rank:
             out._attach_refinement(shared=self.refinement)
@@ -426,51 +427,24 @@ class PairBasis:
             return None
         return store[0].numpy()
 
+    #: bytes the neighbourhood bases of :meth:`_swap_base` may keep: the images and element rows
+    #: of the latest selections (float64, ``16 (Ne + 1) Npix`` bytes each: 43 MB on a 128-element
+    #: scene, 22 MB on the paper scene), so that descents taking turns (a search's race) each find
+    #: their own base instead of forming it afresh at every turn; at least one is kept, and at
+    #: most a quarter of the memory cap ``ARRAYSEL_MEMORY_GIB``
+    swap_base_max_bytes = 3 << 28
+
     def _swap_base(self, mask: torch.Tensor):
         """``(y, G)`` of the 0/1 selection ``mask``, float64: its image on E (1, 2 Npix) and the
-        rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix). Kept for the last selection; a selection
-        that differs from it by a move of at most :attr:`swap_base_moved_max` elements (a swap, a
-        segment shift, a search's perturbation) is updated by rows, when the pair rows are all at
-        hand (:meth:`_all_rows`: ``G -= H_.a`` for each element off, ``G += H_.b`` for each element
-        on; ``y`` is the neighbour's image, :meth:`swap_images`), for at most
-        :attr:`swap_base_refresh` elements moved in a row."""
-        m = (mask.cpu() != 0)
-        key = m.numpy().tobytes()
-        held = self.__dict__.get("_swap_base_held")
-        if held is not None and held[0] == key:
-            return held[2], held[3]
-        look = self.pair_lookup()
-        on = torch.nonzero(m).flatten()
-        dev = self.V.device
-        if held is not None and held[4] < self.swap_base_refresh:
-            prev = held[1]
-            gone, new = torch.nonzero(prev & ~m).flatten().numpy(), torch.nonzero(m & ~prev).flatten().numpy()
-            moved = gone.size
-            H = self._all_rows() if moved == new.size and 0 < moved <= self.swap_base_moved_max else None
-            if H is not None:
-                from arraysel.physics.pairkernels import move_rows
-
-                y, G = held[2].numpy(), held[3].numpy()  # owned here: updated in place
-                ln = look.numpy()
-                y[:] = move_rows(H, y[0], G, gone[None], new[None], *self._move_terms(gone[None], new[None]),
-                                 dtype=np.float64)
-                for a in gone:
-                    G -= np.take(H, ln[:, a], axis=0)
-                for b in new:
-                    G += np.take(H, ln[:, b], axis=0)
-                self._swap_base_held = (key, m, held[2], held[3], held[4] + moved)
-                return held[2], held[3]
-        sel = look[:, on]                                                         # (Ne, k)
-        if self.U is not None:
-            R = self.U[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)   # (Ne, rank)
-            G = (R.to(self.V.dtype) @ self.V).double()
-            y = (R[on.to(dev)].sum(0) + self.U[look[on, on].to(dev)].double().sum(0)) / 2
-            y = (y.to(self.V.dtype) @ self.V)[None].double()
-        else:
-            G = self.V[sel.reshape(-1).to(dev)].double().view(*sel.shape, -1).sum(1)
-            y = ((G[on.to(dev)].sum(0) + self.V[look[on, on].to(dev)].double().sum(0)) / 2)[None]
-        self._swap_base_held = (key, m, y.contiguous(), G.contiguous(), 0)
-        return self._swap_base_held[2], self._swap_base_held[3]
+        rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix), from the bases kept for the latest
+        selections (:attr:`swap_bases`, :class:`~arraysel.physics.psf.swapbase.SwapBases`): kept,
+        carried by rows from a kept one that a move of at most :attr:`swap_base_moved_max`
+        elements reaches (for at most :attr:`swap_base_refresh` elements moved in a row), or
+        formed afresh."""
+        bases = self.__dict__.get("swap_bases")
+        if bases is None:
+            bases = self.swap_bases = SwapBases()
+        return bases.base(self, mask)
 
     #: the cost of summing one pair-image row into a neighbour's image, in columns of the product
     #: ``(c U) V`` (docs/performance.md, tuning constants): :meth:`swap_images` sums rows while a
