@@ -53,9 +53,9 @@ class SwapBases:
         if held is not None:
             self.kept.move_to_end(key)
             return held[1], held[2]
-        near = self.nearest(basis, m) if self.kept else None
-        H = basis._all_rows() if near is not None else None
-        if H is not None:
+        H = basis._all_rows() if self.kept else None   # row updates need every pair row at hand
+        near = self.nearest(basis, m) if H is not None else None
+        if near is not None:
             old, gone, new = near
             _, y, G, moved = self.kept.pop(old)
             self._move(basis, H, y.numpy(), G.numpy(), gone, new)
