@@ -12,7 +12,9 @@ change of Mean compared with the change the models of ``mask_loss`` predict
 Printed per selection and model: the Pearson correlation of predicted and true changes, the
 rank (0 = first) by prediction of the best neighbour, and how many of the first chunk of 64 in
 predicted order improve on the selection (what a guided descent scores first). Then the seconds of one
-gradient, one Hessian and one chunk of 64 masks (``evaluate``), the Hessian's cost in masks.
+gradient, one Hessian (from the pair basis, ``arraysel.objective.pair_model``, and side by side by
+autograd through the basis's product, ``Objective.hessian_from_pairs = False``) and one chunk of
+64 masks (``evaluate``), the Hessian's cost in masks.
 The last line is one JSON record.
 """
 from __future__ import annotations
@@ -77,8 +79,17 @@ def main(argv=None) -> int:
         chunk = np.repeat(base[None], 64, axis=0)
         loss_gradient(obj, base), loss_quadratic(obj, base), obj.evaluate(chunk)  # warm
         times = {}
+        def autograd_hessian():
+            obj.hessian_from_pairs = False
+            try:
+                return loss_quadratic(obj, base)
+            finally:
+                obj.hessian_from_pairs = True
+
+        autograd_hessian()
         for name, call in (("gradient", lambda: loss_gradient(obj, base)),
                            ("hessian", lambda: loss_quadratic(obj, base)),
+                           ("hessian_autograd", autograd_hessian),
                            ("masks64", lambda: obj.evaluate(chunk))):
             t0 = time.perf_counter()
             for _ in range(3):
@@ -86,7 +97,9 @@ def main(argv=None) -> int:
             times[name] = (time.perf_counter() - t0) / 3
         per_mask = times["masks64"] / 64
         print(f"  one gradient {times['gradient']:.3f} s, one Hessian {times['hessian']:.3f} s "
-              f"(= {times['hessian'] / per_mask:.0f} masks), 64 masks {times['masks64']:.3f} s")
+              f"(= {times['hessian'] / per_mask:.0f} masks; by autograd through the basis "
+              f"{times['hessian_autograd']:.3f} s, {times['hessian_autograd'] / times['hessian']:.2f}x), "
+              f"64 masks {times['masks64']:.3f} s")
         record["scenes"][scene] = {"rows": rows, "seconds": times, "hessian_in_masks": times["hessian"] / per_mask}
     print(json.dumps(record))
     return 0

@@ -83,7 +83,7 @@ class SwapSelector(Selector):
                             race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
                             shift=o["shift"],
                             shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
-                            refresh=o["refresh"], pairs=o["pairs"])
+                            refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"])
         return search.run(start)[0]
 
 

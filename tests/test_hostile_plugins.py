@@ -238,6 +238,29 @@ def test_paper_scene_a_selector_that_edits_metric_kw_changes_no_other_row(tmp_pa
     out = tmp_path / "cmp"
     assert _compare(out, "edits_objective,uniform", scene="paper", budget_s="20", evals="5") == 1
     runs = _runs(out)
-    assert float(runs.loc["uniform", "Mean"]) == pytest.approx(0.040713, abs=5e-7)
-    assert float(runs.loc["edits_objective", "Mean"]) == pytest.approx(0.040713, abs=5e-7)
+    # float32 on the CPU: the value's last digits depend on the processor's vector width and the
+    # threads (0.0407130 and 0.0407122 measured); the edit moves it by 3 %
+    assert float(runs.loc["uniform", "Mean"]) == pytest.approx(0.040713, rel=1e-4)
+    assert float(runs.loc["edits_objective", "Mean"]) == pytest.approx(0.040713, rel=1e-4)
     assert "changed the objective in its own process" in runs.loc["edits_objective", "error"]
+
+
+@pytest.mark.parametrize("dtype,off,accepted", [("float32", 5e-5, True), ("float32", 1e-3, False),
+                                                ("float64", 5e-6, True), ("float64", 5e-5, False)])
+def test_a_row_is_checked_within_the_rounding_of_the_objectives_dtype(dtype, off, accepted):
+    # a worker scores with one thread and this process with several: in float32 the sums round
+    # differently (1.1e-5 apart on a paper-scene selection), which is not a changed objective
+    import torch
+
+    from arraysel.run.runners import _checked
+    from arraysel.selection import Selection
+
+    obj = ToyObjective(16, 8)
+    obj.dtype = getattr(torch, dtype)
+    sel = Selection.of(list(range(0, 16, 2)), 16)
+    true = float(obj.evaluate(indices_to_mask(list(sel.indices), 16)[None])["Mean"][0])
+    row, trace = _checked(obj, {"elements": sel, "Mean": true * (1 + off), "error": ""}, [{"t": 1}])
+    assert (row.get("error", "") == "") is accepted
+    assert (trace == [{"t": 1}]) is accepted
+    if not accepted:
+        assert "changed the objective in its own process" in row["error"] and row["Mean"] == true

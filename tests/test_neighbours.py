@@ -539,14 +539,14 @@ def test_neighbourhood_base_carried_by_rows_along_a_walk_equals_the_products(mon
     monkeypatch.setattr(type(basis), "swap_base_refresh", 6)
     monkeypatch.setattr(type(basis), "swap_base_moved_max", 2)
     updated = []
-    real = type(basis)._swap_base
+    real = type(basis).swap_base
 
     def spy(self, mask):
         out = real(self, mask)
         updated.append(self.swap_bases.latest()[3])
         return out
 
-    monkeypatch.setattr(type(basis), "_swap_base", spy)
+    monkeypatch.setattr(type(basis), "swap_base", spy)
     rng = np.random.default_rng(4)
     m = _walk_images(obj, _mask(12, [0, 2, 3, 7, 9, 11]), rng, 14, dtype, tol)
     assert 2 in np.diff(updated) and 0 in updated[1:]       # a two-element move by rows; bases formed afresh
@@ -573,7 +573,7 @@ def test_interleaved_walks_each_keep_their_base(monkeypatch, kept):
     monkeypatch.setattr(type(basis), "swap_base_max_bytes", kept * entry + entry // 2)
     monkeypatch.setattr(type(basis), "swap_base_moved_max", 1)   # a walk's own last base only
     formed, reachable = [], []
-    real = type(basis)._swap_base
+    real = type(basis).swap_base
 
     def spy(self, mask):
         m = mask.cpu().numpy() != 0
@@ -584,7 +584,7 @@ def test_interleaved_walks_each_keep_their_base(monkeypatch, kept):
         formed.append(self.swap_bases.latest()[3] == 0)
         return out
 
-    monkeypatch.setattr(type(basis), "_swap_base", spy)
+    monkeypatch.setattr(type(basis), "swap_base", spy)
     rng = np.random.default_rng(11)
     walks = [_mask(12, rng.choice(12, 6, replace=False)) for _ in range(3)]
     for turn in range(4):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from arraysel.errors import ParameterError
 from arraysel.objective.contract import HasHessian, hessian_by_rows
 from arraysel.objective.neighbours import swap_masks, swap_pairs
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder
@@ -259,3 +260,38 @@ def test_bad_model_options_name_the_option():
         SwapSearch(obj, 6, np.random.default_rng(0), model="cubic")
     with pytest.raises(Exception, match="refresh"):
         SwapSearch(obj, 6, np.random.default_rng(0), model="quadratic", refresh=0)
+
+
+def test_updated_gradients_follow_the_exact_ones_on_a_quadratic_loss():
+    # gradient = update carries the model's gradient along the moves (g + H d) instead of a backward
+    # pass at each: on a quadratic loss that is the exact gradient, so the descents take the same
+    # moves with fewer gradient steps
+    runs = {}
+    for gradient in ("exact", "update"):
+        obj = Quadratic(n=24, k=10, hessian=False, seed=4)
+        view = _budgeted(obj, 1_000_000)
+        search = SwapSearch(view, 10, np.random.default_rng(5), model="quadratic", refresh=3, scan=0.3, guide=1.0,
+                            gradient=gradient)
+        start = np.arange(24) < 10
+        mask, value = search.descend(start, float(view.score(start[None])[0]))
+        runs[gradient] = (mask, value, search.moves, obj.gradient_steps, search.gradients_updated)
+    (m0, v0, moves0, steps0, upd0), (m1, v1, moves1, steps1, upd1) = runs["exact"], runs["update"]
+    np.testing.assert_array_equal(m1, m0)
+    assert v1 == v0 and moves1 == moves0 and moves0 > 3
+    assert upd0 == 0 and upd1 > 0 and steps1 == steps0 - upd1
+
+
+def test_an_updated_gradient_is_taken_afresh_beyond_two_swaps():
+    obj = Quadratic(n=12, k=6, hessian=False, seed=2)
+    search = SwapSearch(obj, 6, np.random.default_rng(0), model="quadratic", refresh=100, gradient="update")
+    mask = np.arange(12) < 6
+    search._model(mask)
+    near = random_swaps(mask, 2, np.random.default_rng(1))
+    g, _ = search._model(near)
+    np.testing.assert_allclose(g, obj.q + obj.Q @ near, rtol=1e-12)
+    assert search.gradients_updated == 1
+    far = ~mask  # every element moved
+    search._model(far)
+    assert search.gradients_updated == 1
+    with pytest.raises(ParameterError, match="gradient"):
+        SwapSearch(obj, 6, np.random.default_rng(0), gradient="carried")

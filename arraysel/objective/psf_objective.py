@@ -41,6 +41,7 @@ import torch
 from arraysel.objective import metrics as M
 from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
+from arraysel.objective.pair_model import pair_model
 from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.selection import masks_from_indices
 from arraysel.physics.psf import PSFModel
@@ -145,6 +146,9 @@ class Objective:
         self.gradient_steps = 0
         self.seconds = 0.0
         self.fallbacks = 0
+        #: :meth:`mask_hessian` from the pair basis (:mod:`arraysel.objective.pair_model`) where it
+        #: applies (False: always the autograd of ``mask_loss``)
+        self.hessian_from_pairs = True
 
     # ------------------------------------------------------------------ exact-path notice
     def estimate_seconds(self, n_masks: int = 1) -> float:
@@ -366,9 +370,12 @@ class Objective:
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         w = w.to(self.device, self.dtype)
+        return self.terms_of_kernels([model.kernels(w) for model in self.psfs], terms)
+
+    def terms_of_kernels(self, kappas: list[torch.Tensor], terms=None) -> dict[str, torch.Tensor]:
+        """:meth:`psf_terms` of the kernels ``kappas`` (one (B, win, win) tensor per point)."""
         per = []
-        for model in self.psfs:
-            kappa = model.kernels(w)
+        for model, kappa in zip(self.psfs, kappas):
             ref = model.reference_kernel().to(kappa.dtype)
             per.append(M.psf_metrics(kappa, kappa_ref=ref, terms=terms, **self.metric_kw))
         if len(per) == 1:
@@ -379,16 +386,16 @@ class Objective:
             out[name] = mean if self.aggregate == "mean" else worst
         return out
 
-    def _psf_loss(self, weights: torch.Tensor):
+    def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None):
+        """The scene-weighted PSF loss ``(total (B,), terms)`` of ``weights`` (B, Ne), from their
+        kernels ``kappas`` (one tensor per point) when the caller has them."""
         wts = {k: self.weights.get(k, 0.0) for k in PSF_WEIGHT_KEYS}
         need = [k for k, v in wts.items() if v > 0]
-        terms_needed = []
-        for k in need:
-            terms_needed += ["L_SLR"] if k == "L_SLR" else [k]
-        if not terms_needed:
+        if not need:
             z = weights.sum(-1) * 0
             return z, {}
-        return training_loss(self.psf_terms(weights, terms=terms_needed), wts)
+        terms = self.psf_terms(weights, terms=need) if kappas is None else self.terms_of_kernels(kappas, need)
+        return training_loss(terms, wts)
 
     def mask_loss(self, weights: torch.Tensor):
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
@@ -405,11 +412,20 @@ class Objective:
     def mask_hessian(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64) of :meth:`mask_loss` at
         ``mask`` (weights ``(Ne,)``): the loss's quadratic model, by which swap descents with
-        ``model = quadratic`` rank swaps. One forward pass and ``Ne`` Hessian-vector products in one
-        batched backward pass; counted as ``Ne`` evaluations (about what the Hessian costs) and
-        one gradient step."""
+        ``model = quadratic`` rank swaps: from the pair basis where it applies
+        (:func:`~arraysel.objective.pair_model.pair_model`, :attr:`hessian_from_pairs`), else one
+        forward pass and ``Ne`` Hessian-vector products in one batched backward pass; the same
+        values to rounding. Counted as ``Ne`` evaluations and one gradient step."""
         n = self.n_elements
         with self._timed():
+            fast = pair_model(self, mask) if self.hessian_from_pairs else None
+            if fast is not None:
+                _total, g, H = fast
+                if not (np.isfinite(g).all() and np.isfinite(H).all()):
+                    raise NumericalError("mask_hessian is not finite (NaN/Inf) for this selection")
+                self.evaluations += n
+                self.gradient_steps += 1
+                return g, H
             w = torch.as_tensor(np.asarray(mask, dtype=np.float64), dtype=self.dtype,
                                 device=self.device).reshape(1, n).requires_grad_(True)
             total, _terms = self._psf_loss(w)

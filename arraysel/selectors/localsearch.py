@@ -87,7 +87,8 @@ from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.neighbours import move_masks, moves_between, swap_masks, swap_pairs
 from arraysel.selection import mask_key, survivors
 # the moves and the loss's models live in their own modules; their names stay importable from here
-from arraysel.selectors.lossmodel import (MODEL_CHOICES, PAIR_WIDTH, QUADRATIC_MAX_ELEMENTS, GuidedOrder,
+from arraysel.selectors.lossmodel import (GRADIENT_CHOICES, GRADIENT_UPDATE_MAX, MODEL_CHOICES, PAIR_WIDTH,
+                                          QUADRATIC_MAX_ELEMENTS, GuidedOrder,
                                           best_pair_swaps, loss_gradient, loss_quadratic, model_options,
                                           move_changes, swap_changes)
 from arraysel.selectors.moves import (SHIFT_LEN, SHIFT_SCAN, apply_shifts, random_swap_pairs, random_swaps,
@@ -161,7 +162,11 @@ class SwapSearch:
     model : how a guided descent predicts the change of a swap: ``linear`` (the gradient) or
         ``quadratic`` (the gradient and the Hessian, :func:`loss_quadratic`); None: quadratic on
         arrays of at most :data:`QUADRATIC_MAX_ELEMENTS` elements, linear on larger ones
-    refresh : ``quadratic``: predictions between Hessians (the gradient is taken for each)
+    refresh : ``quadratic``: predictions between Hessians
+    gradient : ``quadratic``: the gradient of each prediction between Hessians: ``exact`` (the
+        loss's, one backward pass each) or ``update`` (the model's own gradient carried along the
+        moves, ``g + H d``, from the last exact one while the selection is at most
+        :data:`GRADIENT_UPDATE_MAX` elements away from it; exact otherwise)
     guide_shifts : in a guided descent, order the segment shifts by the model too (:meth:`_shift_step`;
         False: a random order, as an unguided descent scores them)
     pairs : above 0, a guided descent with the quadratic model that neither swaps nor shifts
@@ -179,7 +184,7 @@ class SwapSearch:
                  fresh: str = "random", race: int = 1, race_quota: int | None = RACE_QUOTA,
                  race_chirps: int | None = CHIRP_CANDIDATES, shift: int = 0,
                  shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str | None = "linear",
-                 refresh: int = 8, guide_shifts: bool = True, pairs: int = 0):
+                 refresh: int = 8, guide_shifts: bool = True, pairs: int = 0, gradient: str = "exact"):
         self.objective = objective
         self.n = int(objective.n_elements)
         if model is None:
@@ -188,6 +193,9 @@ class SwapSearch:
         self.refresh = int(check_number("refresh", refresh, lo=1, integer=True))
         self._hessian: np.ndarray | None = None  # the quadratic model's Hessian, and the moves it served
         self._hessian_age = 0
+        self.gradient = check_choice("gradient", gradient, GRADIENT_CHOICES)
+        self._gradient_at: tuple[np.ndarray, np.ndarray] | None = None  # (selection, the model's gradient there)
+        self.gradients_updated = 0  # predictions whose gradient was carried by the Hessian
         self.hessians = 0  # Hessians formed
         self.model_used = 0.0  # share of the budget the models took (gradients, Hessians)
         self.k = int(k)
@@ -300,11 +308,29 @@ class SwapSearch:
                 g, self._hessian, self._hessian_age = q[0], q[1], 0
                 self.hessians += 1
             else:
-                g = loss_gradient(self.objective, mask)
+                g = self._carried_gradient(mask)
+                if g is None:
+                    g = loss_gradient(self.objective, mask)
             self._hessian_age += 1
+            if g is not None:
+                self._gradient_at = (mask.astype(np.float64), g)
             return None if g is None else (g, self._hessian)
         g = loss_gradient(self.objective, mask)
         return None if g is None else (g, None)
+
+    def _carried_gradient(self, mask: np.ndarray) -> np.ndarray | None:
+        """With ``gradient = update``: the quadratic model's gradient at ``mask``, ``g + H d`` from
+        the last one (``d`` the move from its selection), when ``mask`` is at most
+        :data:`GRADIENT_UPDATE_MAX` elements away from that selection; else None (take the
+        loss's)."""
+        if self.gradient != "update" or self._gradient_at is None or self._hessian is None:
+            return None
+        at, g = self._gradient_at
+        d = mask.astype(np.float64) - at
+        if np.abs(d).sum() > 2 * GRADIENT_UPDATE_MAX:
+            return None
+        self.gradients_updated += 1
+        return g + self._hessian @ d
 
     def _predict(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
         """The predicted change of each swap ``(a[i], b[i])`` of ``mask`` (:func:`swap_changes`) by

@@ -24,8 +24,16 @@ MODEL_CHOICES = ("linear", "quadratic")
 QUADRATIC_MAX_ELEMENTS = 256
 #: active and inactive elements a two-swap step draws its moves from (:func:`best_pair_swaps`)
 PAIR_WIDTH = 64
+#: the gradient of a quadratic model's predictions between Hessians: the loss's own at each
+#: selection (``exact``), or the model's carried along the moves (``update``: ``g + H d``)
+GRADIENT_CHOICES = ("exact", "update")
+#: the most elements (switched off, as many on) a selection may be from the last gradient for
+#: ``gradient = update`` to carry it there; farther (a segment shift, another descent's turn)
+#: the loss's gradient is taken
+GRADIENT_UPDATE_MAX = 2
 
-__all__ = ["MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS", "PAIR_WIDTH", "model_options", "loss_gradient",
+__all__ = ["MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS", "PAIR_WIDTH", "GRADIENT_CHOICES", "GRADIENT_UPDATE_MAX",
+           "model_options", "loss_gradient",
            "loss_quadratic", "swap_changes", "move_changes", "best_pair_swaps", "GuidedOrder"]
 
 
@@ -36,8 +44,11 @@ def model_options() -> dict[str, Option]:
         "model": Option(str, None, "how swaps are ranked: by the loss's gradient (linear) or by its gradient "
                         "and Hessian (quadratic; a Hessian costs Ne evaluations); auto: quadratic up to "
                         f"{QUADRATIC_MAX_ELEMENTS} elements, linear above", choices=MODEL_CHOICES),
-        "refresh": Option(int, 8, "quadratic model: moves between Hessians (the gradient is taken at every "
-                          "move)", lo=1),
+        "refresh": Option(int, 8, "quadratic model: moves between Hessians", lo=1),
+        "gradient": Option(str, "update", "quadratic model: the gradient at each move between Hessians: exact "
+                           "(the loss's, one backward pass) or update (the model's, g + H d, carried from "
+                           f"the last one up to {GRADIENT_UPDATE_MAX} swaps away; no backward pass)",
+                           choices=GRADIENT_CHOICES),
     }
 
 

@@ -408,7 +408,7 @@ class PairBasis:
     #: formed afresh from the basis
     swap_base_refresh = 64
 
-    #: the most elements a selection may differ by from the last base for :meth:`_swap_base` to
+    #: the most elements a selection may differ by from the last base for :meth:`swap_base` to
     #: update that base by rows instead of forming it afresh (2 m column gathers of the pair rows
     #: against the product of the selection's coefficients: docs/performance.md, tuning constants)
     swap_base_moved_max = 8
@@ -427,14 +427,14 @@ class PairBasis:
             return None
         return store[0].numpy()
 
-    #: bytes the neighbourhood bases of :meth:`_swap_base` may keep: the images and element rows
+    #: bytes the neighbourhood bases of :meth:`swap_base` may keep: the images and element rows
     #: of the latest selections (float64, ``16 (Ne + 1) Npix`` bytes each: 43 MB on a 128-element
     #: scene, 22 MB on the paper scene), so that descents taking turns (a search's race) each find
     #: their own base instead of forming it afresh at every turn; at least one is kept, and at
     #: most a quarter of the memory cap ``ARRAYSEL_MEMORY_GIB``
     swap_base_max_bytes = 3 << 28
 
-    def _swap_base(self, mask: torch.Tensor):
+    def swap_base(self, mask: torch.Tensor):
         """``(y, G)`` of the 0/1 selection ``mask``, float64: its image on E (1, 2 Npix) and the
         rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix), from the bases kept for the latest
         selections (:attr:`swap_bases`, :class:`~arraysel.physics.psf.swapbase.SwapBases`): kept,
@@ -456,7 +456,7 @@ class PairBasis:
         selection ``mask`` (Ne,) that switch the elements ``out[b]`` off and ``into[b]`` on (int
         (B,): one-swap neighbours, or (B, m): m elements each, ``-1`` for none). The image is bilinear in the
         selection: with ``G_e = sum_{j in mask} H_ej`` the image rows of element e (``H`` the pair
-        images, :meth:`pair_rows`; ``G`` and the image from :meth:`_swap_base`, in float64), a
+        images, :meth:`pair_rows`; ``G`` and the image from :meth:`swap_base`, in float64), a
         neighbour's image on E is the selection's, less ``G_a`` of each ``a`` in ``out[b]``, plus
         ``G_c`` of each ``c`` in ``into[b]``, plus ``H_cc'`` of each pair ``c <= c'`` of ``into[b]``
         and ``H_aa'`` of each pair ``a < a'`` of ``out[b]``, less ``H_ac`` of every ``a``, ``c``
@@ -508,7 +508,7 @@ class PairBasis:
         """(B, 2 Npix) images on E ([re | im], :attr:`V`'s dtype) of the neighbours of ``mask``
         that switch ``a[i]`` off and ``b[i]`` on ((B, m) each, ``-1`` for none), from its image,
         its element rows and the pair-image rows (:meth:`swap_images`)."""
-        y, G = self._swap_base(mask)
+        y, G = self.swap_base(mask)
         m = a.shape[1]
         pidx, sign = self._move_terms(a, b)
         H = self._all_rows()

@@ -65,6 +65,21 @@ def _windows(setup, pz, px, rows, cols):
     return z0, x0, fits
 
 
+def _pixel_blocks(zi: torch.Tensor, xi: torch.Tensor, b: int, n_x: int) -> tuple[list, list, list]:
+    """``(blocks, rows, order)`` of grid pixels (zi, xi): the blocks (``b`` x ``b`` pixels, ``n_x``
+    grid columns) that hold them, each block's pixels as row-major indices within it, and the
+    positions of those pixels in ``zi``."""
+    blocks, rows, order = [], [], []
+    qz, qx = zi // b, xi // b
+    for z_, x_ in torch.unique(torch.stack([qz, qx], 1), dim=0).tolist():
+        sel = torch.nonzero((qz == z_) & (qx == x_)).flatten()
+        bw = min(b, n_x - x_ * b)
+        blocks.append((z_, x_))
+        rows.append((zi[sel] - z_ * b) * bw + (xi[sel] - x_ * b))
+        order.append(sel)
+    return blocks, rows, order
+
+
 class Refinement:
     """Peak location, refinement and the certified kernels of a
     :class:`~arraysel.physics.psf.basis.PairBasis` (``basis.refinement``; its inputs and what it
@@ -339,17 +354,7 @@ class Refinement:
         """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
         channels ``X`` (ntx, Ne, T) (or its :class:`RawChannels`): delay-and-sum with the cached
         block plans, as the exact path."""
-        s = self.model.setup
-        b = self.model.block
-        zi, xi = zi.cpu(), xi.cpu()
-        blocks, rows, order = [], [], []
-        qz, qx = zi // b, xi // b
-        for z_, x_ in torch.unique(torch.stack([qz, qx], 1), dim=0).tolist():
-            sel = torch.nonzero((qz == z_) & (qx == x_)).flatten()
-            bw = min(b, s.n_x - x_ * b)
-            blocks.append((z_, x_))
-            rows.append((zi[sel] - z_ * b) * bw + (xi[sel] - x_ * b))
-            order.append(sel)
+        blocks, rows, order = _pixel_blocks(zi.cpu(), xi.cpu(), self.model.block, self.model.setup.n_x)
         vals = self._das(X, blocks, rows)
         out = torch.empty_like(vals)
         out[torch.cat(order).to(vals.device)] = vals
@@ -416,11 +421,14 @@ class Refinement:
             arg[sel] = union[mag2.argmax(dim=1)]
         return amb[~inside]
 
-    def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None):
+    def kernels(self, w: torch.Tensor, env: torch.Tensor | None = None, images: tuple | None = None,
+                tier_one: bool = False):
         """Kernels (B, win, win) and a (B,) bool tensor: True where certified (else recompute).
         ``env``: the envelopes of ``w`` (``certificates.envelopes``), ``images``: its images on E
         with their error bounds (``basis.images`` with ``with_error``), when the caller has them
         (one-swap neighbours: ``certificates.swap_envelopes``, ``basis.swap_images``).
+        ``tier_one``: return after tier 1 (True then marks the kernels that are windows of
+        ``images``, which :mod:`arraysel.objective.pair_model` differentiates).
 
         Certified: the exact peak is located (pixels tied with the approximate peak within the
         error bound are evaluated exactly), its window fits in the region, and the lower bound of
@@ -452,6 +460,8 @@ class Refinement:
         x0e = torch.where(ok, x0 - self.layout.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
         ok = ok & (win_err <= self.kernel_tol * norm)
+        if tier_one:
+            return out, ok.cpu()
         # tier 2 (the band) for the selections whose peak tier 1 could not certify; a certified
         # peak whose window leaves E or whose error bound is too loose gets an exact window below
         # (cheaper than the band's product, which reads every strip pair image, and exact)
