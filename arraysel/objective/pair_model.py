@@ -44,7 +44,7 @@ def _model_inputs(model, w: torch.Tensor):
         return None
     with torch.no_grad():
         m = w[0].detach()
-        y, G = basis.swap_base(m)
+        _y, G = basis.swap_base(m)
         ne = m.shape[0]
         ar = torch.arange(ne)
         diag = basis.pair_rows(basis.pair_lookup()[ar, ar]).to(G.device, torch.float64)
@@ -65,17 +65,13 @@ def _unflat(rows: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return torch.stack([rows[:, :n].reshape(-1, *shape), rows[:, n:].reshape(-1, *shape)], dim=-1).to(like.dtype)
 
 
-def _pair_term(basis, gy: torch.Tensor, ne: int) -> torch.Tensor:
+def _pair_term(basis, gy: torch.Tensor) -> torch.Tensor:
     """``(Ne, Ne)`` float64: ``<gy, H_ej>`` for ``e != j`` and ``2 <gy, H_ee>`` on the diagonal
     (the second derivatives of the image, against the image gradient ``gy`` (2 Npix,))."""
     v = gy.to(basis.V.device, basis.V.dtype)
     q = basis.U @ (basis.V @ v) if basis.U is not None else basis.V @ v
-    q = q.double().cpu()
-    e, j = basis.pairs_e.cpu(), basis.pairs_j.cpu()
-    out = torch.zeros(ne, ne, dtype=torch.float64)
-    out[e, j] = q
-    out[j, e] = q
-    out[e[e == j], e[e == j]] = 2 * q[e == j]
+    out = q.double().cpu()[basis.pair_lookup()]      # (Ne, Ne): pair (e, j) in either order
+    out.diagonal().mul_(2)
     return out
 
 
@@ -98,14 +94,15 @@ def pair_model(objective, mask, hessian: bool = True):
     if not total.requires_grad:
         return None
     grads = torch.autograd.grad(total.sum(), leaves, create_graph=hessian)
+    gys = [_flat(gl.detach())[0] for gl in grads]                      # dl/dy of each point, (2 Npix,)
     g = torch.zeros(ne, dtype=torch.float64)
-    for (leaf, J, _), gl in zip(parts, grads):
-        g += (J @ _flat(gl.detach())[0].to(J.device, torch.float64)).cpu()
+    for (leaf, J, _), gy in zip(parts, gys):
+        g += (J @ gy.to(J.device, torch.float64)).cpu()
     H = None
     if hessian:
         H = torch.zeros(ne, ne, dtype=torch.float64)
-        for (leaf, J, _), gl, model in zip(parts, grads, objective.psfs):
-            H += _pair_term(model.basis, _flat(gl.detach())[0], ne)
+        for gy, model in zip(gys, objective.psfs):
+            H += _pair_term(model.basis, gy)
         needs = [gl.requires_grad for gl in grads]
         if any(needs):
             dirs = [_unflat(J, leaf) for (leaf, J, _) in parts]        # (Ne, 1, nz, nx, 2) each

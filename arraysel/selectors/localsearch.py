@@ -312,7 +312,7 @@ class SwapSearch:
                 if g is None:
                     g = loss_gradient(self.objective, mask)
             self._hessian_age += 1
-            if g is not None:
+            if g is not None and self.gradient == "update":
                 self._gradient_at = (mask.astype(np.float64), g)
             return None if g is None else (g, self._hessian)
         g = loss_gradient(self.objective, mask)
