@@ -66,6 +66,9 @@ class SwapSelector(Selector):
                               f"as {RACE_CHIRP_SHARE:.3g} of the budget allows, at most {CHIRP_CANDIDATES}",
                               lo=1),
         **shift_options(shift=6, shift_scan=512),
+        "compound": Option(int, 0, "first mode: a chunk whose best swap improves takes up to compound of its "
+                           "improving swaps on distinct elements together, best first, when that scores better "
+                           "(the prefixes scored in one call; 0 or 1: one swap a step)", lo=0),
         "pairs": Option(int, 0, "two-swaps (two elements off, two on) scored at a local optimum of swaps and "
                         "shifts, the ones the quadratic model predicts best, in that order (0: none)", lo=0),
         **model_options(),
@@ -83,7 +86,8 @@ class SwapSelector(Selector):
                             race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
                             shift=o["shift"],
                             shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
-                            refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"])
+                            refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"],
+                            compound=o["compound"])
         return search.run(start)[0]
 
 

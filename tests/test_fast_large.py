@@ -847,7 +847,7 @@ def test_hot_blocks_settle_as_the_block_delay_and_sums(no_cache, monkeypatch, ti
     want = [refinement.refine(w, thr, tier=tier) for w, thr in cases]
     assert any(bool((~o).any()) for o in want) and any(bool(o.any()) for o in want)
     refinement.hot.after = 0
-    held = [(base.numpy().astype(bool).tobytes(), None), (moved.numpy().astype(bool).tobytes(), None), None]
+    held = [(base.numpy().astype(bool).tobytes(), None, 0), (moved.numpy().astype(bool).tobytes(), None, 0), None]
     for step, sums in enumerate(held):
         cert._swap_sums = sums
         got = [refinement.refine(w, thr, tier=tier) for w, thr in cases]

@@ -292,6 +292,45 @@ def test_swap_and_move_envelopes_equal_the_envelopes_of_the_neighbour_masks(monk
 
 
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_held_channel_sums_follow_a_walk_of_moves(monkeypatch, dtype, rtol):
+    # a search's next selection is a swap or a shift away: its channel sums are the held ones
+    # corrected by the rows switched (counted, refreshed after swap_sums_refresh in a row; a
+    # selection farther away is summed afresh), and its neighbours' envelopes are those of the
+    # neighbour masks either way
+    monkeypatch.setenv("ARRAYSEL_CACHE", "off")
+    obj = _tiny_objective(dtype, probe={"n_elements": 10}, selection={"k": 6})
+    cert = obj.psf.basis.certificates
+    monkeypatch.setattr(type(cert), "swap_sums_refresh", 3)
+    rng = np.random.default_rng(5)
+    m = _mask(10, [0, 1, 4, 5, 7, 9])
+    counts = []
+    for step in range(7):
+        out, into = swap_pairs(m, rng)
+        got = cert.swap_envelopes(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out), torch.as_tensor(into))
+        counts.append(cert._swap_sums[2])
+        A = cert.pair_channels.numpy().astype(np.float64)
+        fresh = A[np.flatnonzero(m)].sum(0).reshape(10, -1)
+        np.testing.assert_allclose(cert._swap_sums[1], fresh, rtol=1e-12, atol=1e-12 * np.abs(fresh).max())
+        ref = cert.envelopes(torch.as_tensor(swap_masks(m, out, into), dtype=dtype))
+        np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=rtol, atol=rtol * float(ref.abs().max()))
+        if step == 4:   # the mirror image: too many elements switched, summed afresh
+            m = m[::-1].copy()
+        else:
+            m = swap_masks(m, out[step:step + 1], into[step:step + 1])[0]
+    assert counts == [0, 1, 2, 3, 0, 0, 1]
+
+
+def test_receive_major_visits_every_used_channel_once_receive_element_by_element():
+    from arraysel.physics.pairkernels import receive_major
+
+    used = np.random.default_rng(0).random((5, 7)) < 0.5
+    sel_b, sel_e = receive_major(used)
+    assert sel_b.dtype == sel_e.dtype == np.int64
+    assert sorted(zip(sel_b.tolist(), sel_e.tolist())) == sorted(zip(*(v.tolist() for v in np.nonzero(used))))
+    assert list(zip(sel_e.tolist(), sel_b.tolist())) == sorted(zip(sel_e.tolist(), sel_b.tolist()))
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 def test_refinement_channels_of_neighbours_from_the_held_sums_equal_the_product(monkeypatch, dtype, rtol):
     # the I/Q channels the refinement delay-and-sums, for selections 0 to 2 elements away from the
     # one whose neighbourhood is scored: corrected from its held channel sums, the same values (on

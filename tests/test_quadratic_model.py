@@ -295,3 +295,54 @@ def test_an_updated_gradient_is_taken_afresh_beyond_two_swaps():
     assert search.gradients_updated == 1
     with pytest.raises(ParameterError, match="gradient"):
         SwapSearch(obj, 6, np.random.default_rng(0), gradient="carried")
+
+
+def test_compound_steps_take_several_improving_swaps_of_a_chunk_at_once():
+    # a linear loss: every improving swap improves independently, so a chunk's improving swaps on
+    # distinct elements improve together; the descent ends at the same optimum (the k elements of
+    # least weight) in fewer steps, each step's value that of its selection
+    runs = {}
+    for compound in (0, 8):
+        obj = Quadratic(n=30, k=12, hessian=False, seed=6)
+        obj.Q[:] = 0.0
+        view = _budgeted(obj, 1_000_000)
+        search = SwapSearch(view, 12, np.random.default_rng(2), chunk=64, scan=1.0, guide=0.0, compound=compound)
+        start = np.argsort(obj.q)[-12:]
+        mask0 = np.zeros(30, dtype=bool)
+        mask0[start] = True
+        steps = list(search._descent(mask0, float(view.score(mask0[None])[0])))
+        for m, v in steps:
+            assert v == pytest.approx(float(obj.f(m[None].astype(float))[0]), rel=1e-12)
+        runs[compound] = (steps[-1][0], len(steps), search.compound_moves)
+    best = np.zeros(30, dtype=bool)
+    best[np.argsort(obj.q)[:12]] = True
+    for compound, (mask, steps, taken) in runs.items():
+        np.testing.assert_array_equal(mask, best)
+    assert runs[0][2] == 0 and runs[8][2] > 0 and runs[8][1] < runs[0][1]
+
+
+def test_a_compound_step_is_the_best_of_its_prefixes_and_the_best_swap():
+    obj = Quadratic(n=16, k=7, hessian=False, seed=3)
+    search = SwapSearch(_budgeted(obj, 1_000_000), 7, np.random.default_rng(0), compound=4)
+    mask = np.arange(16) < 7
+    value = float(obj.f(mask[None].astype(float))[0])
+    a, b = swap_pairs(mask)
+    values = obj.f(swap_masks(mask, a, b).astype(float))
+    assert int((values < value).sum()) >= 2
+    got, v = search._compound_step(mask, value, a, b, values)
+    # every prefix of the improving swaps on distinct elements, best first, and the best swap alone
+    cands, used, cur = [swap_masks(mask, a[[np.argmin(values)]], b[[np.argmin(values)]])[0]], set(), mask.copy()
+    for j in np.argsort(values, kind="stable"):
+        if values[j] >= value or len(used) == 8:
+            break
+        if a[j] in used or b[j] in used:
+            continue
+        used.update((a[j], b[j]))
+        cur = cur.copy()
+        cur[a[j]], cur[b[j]] = False, True
+        cands.append(cur)
+    fv = obj.f(np.asarray(cands, dtype=float))
+    assert v == pytest.approx(float(fv.min()), rel=1e-12) and v == pytest.approx(float(obj.f(got[None] * 1.0)[0]))
+    assert int(got.sum()) == 7
+    with pytest.raises(ParameterError, match="compound"):
+        SwapSearch(obj, 7, np.random.default_rng(0), compound=-1)

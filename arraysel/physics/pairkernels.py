@@ -402,6 +402,21 @@ def _segment_peaks(acc, mx, ntx, seg, ns, half, scale, env, ne, e, b):
             env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * scale
 
 
+def receive_major(used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(sel_b, sel_e)`` (int64 each): the pairs (selection ``b``, receive element ``e``) with
+    ``used[b, e]`` (B, Ne) nonzero, receive element by receive element (selections in order within
+    each), the order in which the per-channel peak kernels (:func:`channel_peaks_into`,
+    :func:`swap_peaks_into`) visit them: the selections of one receive
+    element read the same row of the held channel sums and many of the same blocks of
+    ``pair_channels``, which then stay in cache from one selection to the next; selection by
+    selection, each is read from memory again for every selection (a neighbourhood's peaks 1.6
+    to 1.9 times slower on the built-in scenes: ``benchmarks/bench_channel_order.py``). The
+    values do not depend on the order. (:func:`swap_channels`, whose time goes to writing whole
+    channels, keeps the selections' order: the two orders time the same.)"""
+    sel_e, sel_b = np.nonzero(np.asarray(used).T)
+    return sel_b.astype(np.int64), sel_e.astype(np.int64)
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _channel_peaks_kernel(A, w, sel_b, sel_e, ntx, env):
     """``env[n * Ne + e, 0, a, b] = |w[b, e]| max_r |sum_j w[b, j] A[j, e, :, n, r, a]|`` for the
@@ -439,8 +454,8 @@ def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
     of the elements its selection uses, k^2 of the Ne^2 blocks, where the product
     ``w @ pair_channels`` reads Ne of them per receive element); entries of receive elements a
     selection does not use are left as they are (zero)."""
-    sel_b, sel_e = np.nonzero(w)
-    _channel_peaks_kernel(A, w, sel_b.astype(np.int64), sel_e.astype(np.int64), env.shape[0] // w.shape[1], env)
+    sel_b, sel_e = receive_major(w)
+    _channel_peaks_kernel(A, w, sel_b, sel_e, env.shape[0] // w.shape[1], env)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -592,9 +607,9 @@ def swap_channels(A: np.ndarray, Y: np.ndarray, out: np.ndarray, into: np.ndarra
     entries of the other receive elements are undefined."""
     on = np.asarray(on, dtype=bool)
     res = np.empty((on.shape[0],) + Y.shape, dtype=A.dtype)
-    sel_b, sel_e = np.nonzero(on)
+    sel_b, sel_e = (v.astype(np.int64) for v in np.nonzero(on))  # by selection: the writes stay in order
     _swap_channels_kernel(A, Y, np.ascontiguousarray(out, dtype=np.int64), np.ascontiguousarray(into, dtype=np.int64),
-                          sel_b.astype(np.int64), sel_e.astype(np.int64), res)
+                          sel_b, sel_e, res)
     return res
 
 
@@ -616,9 +631,8 @@ def swap_peaks_into(A: np.ndarray, Y: np.ndarray, mask: np.ndarray, out: np.ndar
     for idx, val in ((out, False), (into, True)):
         r, c = np.nonzero(idx >= 0)
         on[r, idx[r, c]] = val
-    sel_b, sel_e = np.nonzero(on)
-    _swap_peaks_kernel(A, Y, out, into, sel_b.astype(np.int64), sel_e.astype(np.int64), env.shape[0] // Y.shape[0],
-                       env)
+    sel_b, sel_e = receive_major(on)
+    _swap_peaks_kernel(A, Y, out, into, sel_b, sel_e, env.shape[0] // Y.shape[0], env)
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

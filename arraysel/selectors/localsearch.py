@@ -172,6 +172,9 @@ class SwapSearch:
     pairs : above 0, a guided descent with the quadratic model that neither swaps nor shifts
         improve scores the ``pairs`` two-swaps its model predicts best (:meth:`_pair_step`) and
         goes on from the first improving one (0: no two-swaps)
+    compound : ``first`` mode: above 1, a chunk whose best swap improves takes up to ``compound``
+        of its improving swaps together (distinct elements, best first) when that scores better
+        (:meth:`_compound_step`; 0 or 1: one swap a step)
     """
 
     #: rounds in a row without a newly scored selection after which the search stops
@@ -184,7 +187,8 @@ class SwapSearch:
                  fresh: str = "random", race: int = 1, race_quota: int | None = RACE_QUOTA,
                  race_chirps: int | None = CHIRP_CANDIDATES, shift: int = 0,
                  shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str | None = "linear",
-                 refresh: int = 8, guide_shifts: bool = True, pairs: int = 0, gradient: str = "exact"):
+                 refresh: int = 8, guide_shifts: bool = True, pairs: int = 0, gradient: str = "exact",
+                 compound: int = 0):
         self.objective = objective
         self.n = int(objective.n_elements)
         if model is None:
@@ -221,6 +225,8 @@ class SwapSearch:
         self.shifts = 0  # improving segment shifts taken
         self.pairs = int(check_number("pairs", pairs, lo=0, integer=True))
         self.pair_moves = 0  # improving two-swaps taken
+        self.compound = int(check_number("compound", compound, lo=0, integer=True))
+        self.compound_moves = 0  # steps that took several swaps of a chunk together
         self._shifts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (at, source, keys); formed once
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
         self.shift_guide = GuidedOrder(self.guide.share)  # the shifts' guided share adapts on its own
@@ -373,8 +379,8 @@ class SwapSearch:
                     cands, values = self.score_swaps(mask, a[pick], b[pick])
                     i = int(np.argmin(values))
                     if values[i] < value:
-                        mask, value, moved = cands[i], float(values[i]), True
                         self.guide.credit(None if pred is None else bool(i < ng))
+                        mask, value, moved = *self._compound_step(mask, value, a[pick], b[pick], values), True
                         break
             if not moved and self.shift:
                 found = self._shift_step(mask, value)
@@ -391,6 +397,40 @@ class SwapSearch:
             self.moves += 1
             self._note(mask, value)
             yield mask, value
+
+    def _compound_step(self, mask: np.ndarray, value: float, a: np.ndarray, b: np.ndarray,
+                       values: np.ndarray) -> tuple[np.ndarray, float]:
+        """The move a chunk of swaps ``(a[i], b[i])`` of ``mask`` whose Means are ``values`` leads
+        to, when its best one improves on ``value``: with ``compound`` above 1, the improving
+        swaps that switch distinct elements, best first, are taken together as far as that scores
+        best (the prefixes of up to ``compound`` of them, scored in one call as moves,
+        :meth:`score_moved`), so a descent where many swaps improve at once takes several a
+        step; else (or when no prefix improves on the best swap alone) the best swap."""
+        order = np.argsort(values, kind="stable")
+        best = order[0]
+        single = swap_masks(mask, a[best:best + 1], b[best:best + 1])[0]
+        if self.compound < 2:
+            return single, float(values[best])
+        taken, used = [], set()
+        for j in order:
+            if not values[j] < value or len(taken) == self.compound:
+                break
+            if int(a[j]) in used or int(b[j]) in used:
+                continue
+            taken.append(j)
+            used.update((int(a[j]), int(b[j])))
+        if len(taken) < 2:
+            return single, float(values[best])
+        prefixes = np.repeat(mask[None], len(taken) - 1, axis=0)   # row p: the first p + 2 swaps
+        for q, j in enumerate(taken):
+            prefixes[max(0, q - 1):, a[j]] = False
+            prefixes[max(0, q - 1):, b[j]] = True
+        pv = self.score_moved(mask, prefixes)
+        j = int(np.argmin(pv))
+        if pv[j] < values[best]:
+            self.compound_moves += 1
+            return prefixes[j].copy(), float(pv[j])
+        return single, float(values[best])
 
     def _shift_step(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float] | None:
         """The best shift of the first chunk holding one that improves on ``value``, or None after

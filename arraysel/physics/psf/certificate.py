@@ -90,7 +90,8 @@ class Certificates:
         if segment is not None:
             self.segment = int(segment)
         self._block_index: dict = {}  # per tier, the blocks' envelope entries (:meth:`_bound_index`)
-        self._swap_sums = None  # (selection key, its channel sums) of :meth:`swap_envelopes`
+        # (selection key, its channel sums, corrections since summed afresh) of :meth:`swap_envelopes`
+        self._swap_sums = None
         self.corrected = 0  #: selections whose raw channels :meth:`moved_channels` corrected
         self._small_calls: dict = {}  # per compiled pass, the small batches seen (:meth:`_warm`)
 
@@ -269,7 +270,7 @@ class Certificates:
         A_into,e``, 2 m + 1 rows read where summing it afresh reads k
         (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
         (:meth:`swaps_compiled`)."""
-        from arraysel.physics.pairkernels import row_sums, swap_peaks_into
+        from arraysel.physics.pairkernels import swap_peaks_into
 
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
@@ -281,11 +282,43 @@ class Certificates:
         key = on.tobytes()
         held = self._swap_sums
         if held is None or held[0] != key:
-            held = self._swap_sums = (key, row_sums(A, np.flatnonzero(on)).reshape(ne, -1))
+            held = self._swap_sums = self._channel_sums(A, on, key, held)
         env = torch.empty(ntx * ne, self.max_run, nS, B, dtype=self.pair_channels.dtype)
         env[:, 0].zero_()  # the channels a neighbour does not use; the longer runs come from the first
         swap_peaks_into(A, held[1], on, out.cpu().numpy(), into.cpu().numpy(), env.numpy())
         return self._segment_runs(env)
+
+    #: most elements switched (off and on together) from the held selection for which
+    #: :meth:`swap_envelopes` corrects its channel sums instead of summing the new selection's
+    #: afresh (a search's next selection is one swap or a segment shift away), and the most
+    #: corrections in a row before a fresh sum (float64 roundings of the corrections stay below
+    #: 1e-14 relative, far inside the float32 envelopes' resolution)
+    swap_sums_moved_max = 12
+    swap_sums_refresh = 32
+
+    def _channel_sums(self, A: np.ndarray, on: np.ndarray, key: bytes, held) -> tuple:
+        """``(key, Y, corrections)`` for the 0/1 selection ``on`` (Ne,) bool: its channel sums over
+        every receive element, ``Y[e] = sum_{j in on} A_je`` (Ne, 2 ntx T) float64. Corrected from
+        the ``held`` ones (``Y - sum A_out + sum A_into``: the rows of the elements switched,
+        where a fresh sum reads the k rows of the selection) when at most
+        :attr:`swap_sums_moved_max` elements differ and fewer than :attr:`swap_sums_refresh`
+        corrections were made in a row; summed afresh otherwise."""
+        from arraysel.physics.pairkernels import row_sums
+
+        ne = self.model.n_elements
+        if held is not None and held[1] is not None and held[2] < self.swap_sums_refresh:
+            base = np.frombuffer(held[0], dtype=bool)
+            if base.shape == on.shape:
+                outs, ins = np.flatnonzero(base & ~on), np.flatnonzero(on & ~base)
+                moved = len(outs) + len(ins)
+                if moved <= self.swap_sums_moved_max and moved + 2 < int(on.sum()):
+                    y = held[1].copy()
+                    if len(ins):
+                        y += row_sums(A, ins).reshape(ne, -1)
+                    if len(outs):
+                        y -= row_sums(A, outs).reshape(ne, -1)
+                    return key, y, held[2] + 1
+        return key, row_sums(A, np.flatnonzero(on)).reshape(ne, -1), 0
 
     #: most elements switched each way for which :meth:`swap_channels` corrects the held sums
     #: (:meth:`swap_moves`)
