@@ -329,7 +329,9 @@ def test_a_compound_step_is_the_best_of_its_prefixes_and_the_best_swap():
     a, b = swap_pairs(mask)
     values = obj.f(swap_masks(mask, a, b).astype(float))
     assert int((values < value).sum()) >= 2
-    got, v = search._compound_step(mask, value, a, b, values)
+    best = int(np.argmin(values))
+    got, v = search._compound_step(mask, value, a, b, values,
+                                   (swap_masks(mask, a[best:best + 1], b[best:best + 1])[0], float(values[best])))
     # every prefix of the improving swaps on distinct elements, best first, and the best swap alone
     cands, used, cur = [swap_masks(mask, a[[np.argmin(values)]], b[[np.argmin(values)]])[0]], set(), mask.copy()
     for j in np.argsort(values, kind="stable"):

@@ -421,19 +421,15 @@ class Objective:
             fast = pair_model(self, mask) if self.hessian_from_pairs else None
             if fast is not None:
                 _total, g, H = fast
-                if not (np.isfinite(g).all() and np.isfinite(H).all()):
-                    raise NumericalError("mask_hessian is not finite (NaN/Inf) for this selection")
-                self.evaluations += n
-                self.gradient_steps += 1
-                return g, H
-            w = torch.as_tensor(np.asarray(mask, dtype=np.float64), dtype=self.dtype,
-                                device=self.device).reshape(1, n).requires_grad_(True)
-            total, _terms = self._psf_loss(w)
-            (g,) = torch.autograd.grad(total.sum(), w, create_graph=True)
-            eye = torch.eye(n, dtype=self.dtype, device=self.device)[:, None, :]
-            (H,) = torch.autograd.grad(g, w, eye, is_grads_batched=True)
-            g = g.detach()[0].double().cpu().numpy()
-            H = H.detach()[:, 0, :].double().cpu().numpy()
+            else:
+                w = torch.as_tensor(np.asarray(mask, dtype=np.float64), dtype=self.dtype,
+                                    device=self.device).reshape(1, n).requires_grad_(True)
+                total, _terms = self._psf_loss(w)
+                (g,) = torch.autograd.grad(total.sum(), w, create_graph=True)
+                eye = torch.eye(n, dtype=self.dtype, device=self.device)[:, None, :]
+                (H,) = torch.autograd.grad(g, w, eye, is_grads_batched=True)
+                g = g.detach()[0].double().cpu().numpy()
+                H = H.detach()[:, 0, :].double().cpu().numpy()
             if not (np.isfinite(g).all() and np.isfinite(H).all()):
                 raise NumericalError("mask_hessian is not finite (NaN/Inf) for this selection")
             self.evaluations += n

@@ -380,7 +380,10 @@ class SwapSearch:
                     i = int(np.argmin(values))
                     if values[i] < value:
                         self.guide.credit(None if pred is None else bool(i < ng))
-                        mask, value, moved = *self._compound_step(mask, value, a[pick], b[pick], values), True
+                        step = cands[i], float(values[i])
+                        if self.compound > 1:
+                            step = self._compound_step(mask, value, a[pick], b[pick], values, step)
+                        (mask, value), moved = step, True
                         break
             if not moved and self.shift:
                 found = self._shift_step(mask, value)
@@ -399,18 +402,15 @@ class SwapSearch:
             yield mask, value
 
     def _compound_step(self, mask: np.ndarray, value: float, a: np.ndarray, b: np.ndarray,
-                       values: np.ndarray) -> tuple[np.ndarray, float]:
+                       values: np.ndarray, single: tuple[np.ndarray, float]) -> tuple[np.ndarray, float]:
         """The move a chunk of swaps ``(a[i], b[i])`` of ``mask`` whose Means are ``values`` leads
-        to, when its best one improves on ``value``: with ``compound`` above 1, the improving
-        swaps that switch distinct elements, best first, are taken together as far as that scores
-        best (the prefixes of up to ``compound`` of them, scored in one call as moves,
-        :meth:`score_moved`), so a descent where many swaps improve at once takes several a
-        step; else (or when no prefix improves on the best swap alone) the best swap."""
+        to, when its best one, ``single`` (its selection and Mean), improves on ``value``
+        (``compound`` above 1): the improving swaps that switch distinct elements, best first,
+        are taken together as far as that scores best (the prefixes of up to ``compound`` of
+        them, scored in one call as moves, :meth:`score_moved`), so a descent where many swaps
+        improve at once takes several a step; ``single`` when fewer than two such swaps improve
+        or no prefix scores below it."""
         order = np.argsort(values, kind="stable")
-        best = order[0]
-        single = swap_masks(mask, a[best:best + 1], b[best:best + 1])[0]
-        if self.compound < 2:
-            return single, float(values[best])
         taken, used = [], set()
         for j in order:
             if not values[j] < value or len(taken) == self.compound:
@@ -420,17 +420,17 @@ class SwapSearch:
             taken.append(j)
             used.update((int(a[j]), int(b[j])))
         if len(taken) < 2:
-            return single, float(values[best])
+            return single
         prefixes = np.repeat(mask[None], len(taken) - 1, axis=0)   # row p: the first p + 2 swaps
         for q, j in enumerate(taken):
             prefixes[max(0, q - 1):, a[j]] = False
             prefixes[max(0, q - 1):, b[j]] = True
         pv = self.score_moved(mask, prefixes)
         j = int(np.argmin(pv))
-        if pv[j] < values[best]:
+        if pv[j] < single[1]:
             self.compound_moves += 1
             return prefixes[j].copy(), float(pv[j])
-        return single, float(values[best])
+        return single
 
     def _shift_step(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float] | None:
         """The best shift of the first chunk holding one that improves on ``value``, or None after
