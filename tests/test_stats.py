@@ -255,3 +255,30 @@ def test_gap_closed_and_gap_to_best_known():
     assert s.loc["uniform", "gap_closed"] == 0 and s.loc["full", "gap_closed"] == 1
     s = stats_table(_runs({"full": [0.01], "a": [0.02]})).set_index("config")
     assert s["gap_closed"].isna().all() and s["gap_to_best_known"].isna().all()
+
+
+def test_expected_running_time_to_the_best_known_sums_every_runs_time_over_the_runs_that_reached_it():
+    from arraysel.report.stats import ert_by_config, ert_column
+
+    bk = 0.01
+    rows = [  # config a: seed 0 reaches 10 % at 2 s and 2 % at 5 s (ends 10 s); seed 1 reaches 10 % at 3 s,
+        # never 2 % (ends 12 s); config b: one run that reaches nothing (ends 7 s)
+        ("a", 0, 1.0, 0.020, "improvement"), ("a", 0, 2.0, 0.0108, "improvement"),
+        ("a", 0, 5.0, 0.01015, "improvement"), ("a", 0, 10.0, 0.01015, "end"),
+        ("a", 1, 3.0, 0.0109, "improvement"), ("a", 1, 12.0, 0.0109, "end"),
+        ("b", 0, 1.0, 0.5, "improvement"), ("b", 0, 7.0, 0.5, "end"),
+    ]
+    trace = pd.DataFrame([dict(zip(("config", "seed", "seconds", "best_Mean", "event"), r), evaluations=1,
+                               gradient_steps=0) for r in rows])
+    erts = ert_by_config(trace, bk)
+    assert erts["a"][ert_column(0.10)] == pytest.approx((2.0 + 3.0) / 2)
+    assert erts["a"][ert_column(0.03)] == pytest.approx((5.0 + 12.0) / 1)
+    assert erts["a"][ert_column(0.02)] == pytest.approx((5.0 + 12.0) / 1)
+    assert erts["a"][ert_column(0.01)] == math.inf and erts["b"][ert_column(0.10)] == math.inf
+    assert ert_column(0.02) == "ERT_s_2pct" and ert_by_config(trace, None) == {} and ert_by_config(None, bk) == {}
+    # stats.csv carries them; NaN without a best known or a trace
+    runs = _runs({"a": [0.01015, 0.0109], "b": [0.5]})
+    s = stats_table(runs, trace, best_known=bk).set_index("config")
+    assert s.loc["a", "ERT_s_10pct"] == pytest.approx(2.5) and s.loc["b", "ERT_s_2pct"] == math.inf
+    assert stats_table(runs, trace)[["ERT_s_1pct", "ERT_s_10pct"]].isna().all().all()
+    assert stats_table(runs, None, best_known=bk)["ERT_s_2pct"].isna().all()

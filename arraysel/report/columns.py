@@ -43,6 +43,11 @@ MERIT_COLUMNS = MERIT_NAMES
 #:   bounds from the comparison's trace; :mod:`arraysel.report.stats`);
 #: * ``gap_closed`` = (uniform - median) / (uniform - full), ``gap_to_best_known`` = median / the
 #:   scene's best-known Mean - 1 (NaN where the comparison or the scene lacks what they need);
+#: * ``ERT_s_1pct``, ``ERT_s_2pct``, ``ERT_s_3pct``, ``ERT_s_10pct``: expected running time, in
+#:   seconds, to a selection within 1, 2, 3 and 10 % of the scene's best-known Mean (the seconds of
+#:   its runs until they reached it, or all their seconds where they did not, summed, over the
+#:   runs that reached it; inf where none did, NaN without a trace or a best known;
+#:   :func:`arraysel.report.stats.ert_by_config`);
 #: * ``Mean_median_ci_low`` / ``_high``: percentile-bootstrap 95 % confidence interval of the
 #:   median (``scipy.stats.bootstrap``, fixed seed; see :mod:`arraysel.report.stats`);
 #: * ``evaluations_median``, ``seconds_median``;
@@ -51,7 +56,7 @@ MERIT_COLUMNS = MERIT_NAMES
 #: * ``note``: why a statistic is NaN (fewer than 2 runs, no ``random`` configuration, ...).
 STATS_COLUMNS = ("config", "n_seeds", "n_failed", "Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr",
                  "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "AOCC", "gap_closed", "gap_to_best_known",
-                 "Mean_median_ci_low",
+                 "ERT_s_1pct", "ERT_s_2pct", "ERT_s_3pct", "ERT_s_10pct", "Mean_median_ci_low",
                  "Mean_median_ci_high", "evaluations_median", "seconds_median", "U_vs_random", "p_vs_random",
                  "note")
 

@@ -27,6 +27,13 @@ worst, a bootstrap confidence interval of the median, and a rank test against th
 * **Gaps** (:func:`gap_columns`): ``gap_closed`` = (uniform - median) / (uniform - full) when the
   comparison holds the ``uniform`` and ``full`` rows; ``gap_to_best_known`` = median / best
   known - 1 when the scene has a stored best-known selection (:mod:`arraysel.scenes.best_known`).
+* **Expected running time** (:func:`ert_by_config`) to a target within :data:`ERT_GAPS` of the
+  best known, as benchmarking defines it for runs with a budget (Hansen et al., COCO; the ERT of
+  IOHprofiler): the time every run of the configuration spent until it reached the target, or
+  its whole time where it did not, summed, divided by the number of runs that reached it; inf
+  when none did. It reads off the trace how long a selector needs on average to come that close
+  to the best known, and stays meaningful past the budget (a median that misses the target says
+  only that half the runs did).
 """
 from __future__ import annotations
 
@@ -39,7 +46,7 @@ from arraysel.report.columns import STATS_COLUMNS
 
 __all__ = ["CI_LEVEL", "BOOTSTRAP_RESAMPLES", "BOOTSTRAP_SEED", "BASELINE", "finite", "seed_statistics",
            "median_ci", "rank_test", "baseline_config", "stats_table", "run_aocc", "aocc_by_config",
-           "gap_columns"]
+           "gap_columns", "ERT_GAPS", "ert_column", "ert_by_config"]
 
 #: confidence level of the bootstrap interval of the median Mean
 CI_LEVEL = 0.95
@@ -49,6 +56,13 @@ BOOTSTRAP_RESAMPLES = 9999
 BOOTSTRAP_SEED = 0
 #: the selector every configuration is tested against
 BASELINE = "random"
+#: targets of the expected running time: these gaps to the best-known Mean (1, 2, 3 and 10 %)
+ERT_GAPS = (0.01, 0.02, 0.03, 0.10)
+
+
+def ert_column(gap: float) -> str:
+    """The ``stats.csv`` column of the expected running time to a gap (``0.02`` -> ``ERT_s_2pct``)."""
+    return f"ERT_s_{round(100 * gap):d}pct"
 
 
 def finite(values) -> np.ndarray:
@@ -177,6 +191,38 @@ def aocc_by_config(trace) -> dict[str, float]:
     return {c: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan for c, v in out.items()}
 
 
+def ert_by_config(trace, best_known: float | None, gaps=ERT_GAPS) -> dict[str, dict[str, float]]:
+    """``{config: {ert_column(gap): seconds}}``: the expected running time of each configuration's
+    runs to a best-so-far Mean at most ``best_known * (1 + gap)`` (see the module), from the
+    trace's ``config``, ``seed``, ``seconds`` and ``best_Mean`` (each run's last row its end).
+    Empty without a trace or a positive finite best known."""
+    import pandas as pd
+
+    if trace is None or not len(trace) or best_known is None or not (math.isfinite(best_known) and best_known > 0):
+        return {}
+    t = pd.DataFrame(trace)
+    t["seconds"] = pd.to_numeric(t["seconds"], errors="coerce")
+    t["best_Mean"] = pd.to_numeric(t["best_Mean"], errors="coerce")
+    spent: dict[str, list[float]] = {}
+    hits: dict[str, list[float]] = {}  # per config, per gap: runs that reached the target
+    for (config, _seed), g in t.groupby(["config", "seed"], sort=False, dropna=False):
+        g = g.dropna(subset=["seconds"]).sort_values("seconds", kind="stable")
+        if not len(g):
+            continue
+        total = float(g["seconds"].iloc[-1])
+        y = g["best_Mean"].to_numpy(dtype=np.float64)
+        s = g["seconds"].to_numpy(dtype=np.float64)
+        c = str(config)
+        spent.setdefault(c, [0.0] * len(gaps))
+        hits.setdefault(c, [0.0] * len(gaps))
+        for i, gap in enumerate(gaps):
+            at = np.flatnonzero(np.isfinite(y) & (y <= best_known * (1.0 + gap)))
+            spent[c][i] += float(s[at[0]]) if at.size else total
+            hits[c][i] += 1.0 if at.size else 0.0
+    return {c: {ert_column(gap): (spent[c][i] / hits[c][i] if hits[c][i] else math.inf)
+                for i, gap in enumerate(gaps)} for c in spent}
+
+
 def gap_columns(runs, medians: dict[str, float], best_known: float | None) -> dict[str, tuple[float, float]]:
     """``{config: (gap_closed, gap_to_best_known)}`` of the configurations' median Means (see the
     module; NaN where the comparison lacks ``uniform`` or ``full``, or the scene a best known)."""
@@ -201,6 +247,7 @@ def stats_table(runs, trace=None, best_known: float | None = None) -> Any:
     import pandas as pd
 
     aoccs = aocc_by_config(trace)
+    erts = ert_by_config(trace, best_known)
     base, base_note = baseline_config(runs)
     ref = runs.loc[runs["config"].astype(str) == base, "Mean"] if base is not None else []
     out = []
@@ -209,6 +256,8 @@ def stats_table(runs, trace=None, best_known: float | None = None) -> Any:
         rec: dict[str, Any] = {"config": config, "n_seeds": int(means.size), "n_failed": int(len(g) - means.size)}
         rec.update(seed_statistics(means))
         rec["AOCC"] = aoccs.get(str(config), math.nan)
+        for gap in ERT_GAPS:
+            rec[ert_column(gap)] = erts.get(str(config), {}).get(ert_column(gap), math.nan)
         low, high, ci_note = median_ci(means)
         rec["Mean_median_ci_low"], rec["Mean_median_ci_high"] = low, high
         rec["evaluations_median"] = _median(g["evaluations"])

@@ -15,8 +15,9 @@ from pathlib import Path
 __all__ = ["BEST_KNOWN_FILE", "best_known", "load_best_known"]
 
 #: the stored best-known selections: ``{scene: {"k", "Mean", "elements", "command", "found", "rescored"}}``,
-#: optionally ``reference_Mean`` (a lower value reported without its mask, which the gaps use then)
-#: and ``reference_note`` (where it comes from)
+#: optionally ``long_runs`` (what runs of 30 min or more ended at), ``reference_Mean`` (a lower
+#: value reported without its mask, which the gaps use then) and ``reference_note`` (where it
+#: comes from)
 BEST_KNOWN_FILE = Path(__file__).with_name("best_known.json")
 
 
