@@ -204,7 +204,7 @@ def ert_by_config(trace, best_known: float | None, gaps=ERT_GAPS) -> dict[str, d
     t["seconds"] = pd.to_numeric(t["seconds"], errors="coerce")
     t["best_Mean"] = pd.to_numeric(t["best_Mean"], errors="coerce")
     spent: dict[str, list[float]] = {}
-    hits: dict[str, list[float]] = {}  # per config, per gap: runs that reached the target
+    hits: dict[str, list[int]] = {}  # per config, per gap: runs that reached the target
     for (config, _seed), g in t.groupby(["config", "seed"], sort=False, dropna=False):
         g = g.dropna(subset=["seconds"]).sort_values("seconds", kind="stable")
         if not len(g):
@@ -214,11 +214,11 @@ def ert_by_config(trace, best_known: float | None, gaps=ERT_GAPS) -> dict[str, d
         s = g["seconds"].to_numpy(dtype=np.float64)
         c = str(config)
         spent.setdefault(c, [0.0] * len(gaps))
-        hits.setdefault(c, [0.0] * len(gaps))
+        hits.setdefault(c, [0] * len(gaps))
         for i, gap in enumerate(gaps):
             at = np.flatnonzero(np.isfinite(y) & (y <= best_known * (1.0 + gap)))
             spent[c][i] += float(s[at[0]]) if at.size else total
-            hits[c][i] += 1.0 if at.size else 0.0
+            hits[c][i] += int(at.size > 0)
     return {c: {ert_column(gap): (spent[c][i] / hits[c][i] if hits[c][i] else math.inf)
                 for i, gap in enumerate(gaps)} for c in spent}
 

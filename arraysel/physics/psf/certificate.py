@@ -306,7 +306,7 @@ class Certificates:
         from arraysel.physics.pairkernels import row_sums
 
         ne = self.model.n_elements
-        if held is not None and held[1] is not None and held[2] < self.swap_sums_refresh:
+        if held is not None and held[2] < self.swap_sums_refresh:
             base = np.frombuffer(held[0], dtype=bool)
             if base.shape == on.shape:
                 outs, ins = np.flatnonzero(base & ~on), np.flatnonzero(on & ~base)
