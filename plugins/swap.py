@@ -39,6 +39,9 @@ class SwapSelector(Selector):
         "mode": Option(str, "first", "first: move at the first chunk holding an improvement (random "
                        "order); best: score all k(Ne-k) neighbours per move", choices=("first", "best")),
         "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
+        "lead": Option(int, 0, "first mode: neighbours in the first chunk a descent scores from each selection, "
+                       "each next chunk twice as many up to chunk (cheap steps while most chunks hold an "
+                       "improving swap; 0: chunk from the first)", lo=0),
         "guide": Option(float, 0.875, "first share of each first-mode chunk taken in the order the loss's "
                         "gradient predicts (adapts to where improvements come from; 0: random order)",
                         lo=0.0, hi=1.0),
@@ -87,7 +90,7 @@ class SwapSelector(Selector):
                             shift=o["shift"],
                             shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
                             refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"],
-                            compound=o["compound"])
+                            compound=o["compound"], lead=o["lead"])
         return search.run(start)[0]
 
 

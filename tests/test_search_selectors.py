@@ -113,6 +113,7 @@ def test_time_budget_stops_a_large_batch():
     ("swap", {"elements": "0 1 2 3 4 5 6"}, (0,)),
     ("swap", {"start": "chirp", "fresh": "chirp"}, (0, 1)),
     ("swap", {"race": 4, "race_quota": 50}, (0, 1)),
+    ("swap", {"lead": 2, "chunk": 16}, (0, 1)),
     ("swap", {"race": 6, "race_quota": 20, "fresh": "mixed", "race_chirps": 4}, (0,)),
     ("swap", {"race": 3, "race_quota": 20, "fresh": "chirp", "max_perturb": 4}, (0,)),
     ("swap", {"race": 5, "race_quota": 20, "fresh": "mixed", "restart_after": 3}, (0, 1)),
@@ -408,6 +409,30 @@ def test_guided_chunks_cover_each_swap_once_predicted_best_first():
     assert sum(len(p) for p, _ in order.chunks(a, b, pred, chunk=8, limit=13)) == 13
     assert [p.tolist() for p, ng in order.chunks(a, b, None, chunk=16, limit=40)] == \
         [list(range(0, 16)), list(range(16, 32)), list(range(32, 40))]
+
+
+def test_guided_chunks_with_a_lead_start_small_and_double_up_to_the_chunk():
+    from arraysel.selectors.localsearch import GuidedOrder
+
+    rng = np.random.default_rng(1)
+    a, b = rng.integers(0, 30, 300), rng.integers(0, 30, 300)
+    g = rng.normal(size=30)
+    pred = g[b] - g[a]
+    picks = list(GuidedOrder(0.5).chunks(a, b, pred, chunk=64, limit=250, lead=8))
+    assert [len(p) for p, _ in picks] == [8, 16, 32, 64, 64, 64, 2]     # 250 in all
+    seen = np.concatenate([p for p, _ in picks])
+    assert len(set(seen.tolist())) == 250                                # no swap twice
+    assert [ng for _, ng in picks[:4]] == [4, 8, 16, 32]                 # half of each from the prediction
+    assert picks[0][0][:4].tolist() == np.argsort(pred, kind="stable")[:4].tolist()
+    # without a prediction: the random order in the same sizes; a lead above the chunk is the chunk
+    assert [p.tolist() for p, _ in GuidedOrder(0.5).chunks(a, b, None, chunk=16, limit=40, lead=4)] == \
+        [list(range(0, 4)), list(range(4, 12)), list(range(12, 28)), list(range(28, 40))]
+    assert [len(p) for p, _ in GuidedOrder(0.5).chunks(a, b, pred, chunk=16, limit=40, lead=32)] == [16, 16, 8]
+    from arraysel.selectors.localsearch import SwapSearch
+    obj = ToyObjective(12, 4)
+    budget = Budget(evaluations=100).start(obj)
+    with pytest.raises(ParameterError, match="lead"):
+        SwapSearch(BudgetedObjective(obj, budget, Recorder(obj, budget), 4), 4, np.random.default_rng(0), lead=-1)
 
 
 def test_guided_share_follows_where_improvements_come_from_and_probes_at_zero():

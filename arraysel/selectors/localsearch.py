@@ -7,7 +7,9 @@ neighbours. :class:`SwapSearch` is an iterated local search:
 1. **descent** from the current selection, in one of two modes:
 
    * ``first`` (default): the neighbours are visited in a random order, in
-     chunks of ``chunk`` masks per ``objective.evaluate`` call; as soon as a
+     chunks of ``chunk`` masks per ``objective.evaluate`` call (with ``lead`` above 0 the first
+     chunk from each selection holds ``lead`` masks and each next one twice as many, up to
+     ``chunk``: cheap steps while most chunks hold an improving swap); as soon as a
      chunk holds an improving neighbour the search moves to the best of that
      chunk and starts over from the new selection (a fresh random order). When
      ``scan`` x the neighbourhood was scored without improvement the
@@ -172,6 +174,9 @@ class SwapSearch:
     pairs : above 0, a guided descent with the quadratic model that neither swaps nor shifts
         improve scores the ``pairs`` two-swaps its model predicts best (:meth:`_pair_step`) and
         goes on from the first improving one (0: no two-swaps)
+    lead : ``first`` mode: above 0, the first chunk scored from each selection holds ``lead``
+        neighbours and each next one twice as many, up to ``chunk``
+        (:meth:`GuidedOrder.chunks`; 0: ``chunk`` from the first)
     compound : ``first`` mode: above 1, a chunk whose best swap improves takes up to ``compound``
         of its improving swaps together (distinct elements, best first) when that scores better
         (:meth:`_compound_step`; 0 or 1: one swap a step)
@@ -188,7 +193,7 @@ class SwapSearch:
                  race_chirps: int | None = CHIRP_CANDIDATES, shift: int = 0,
                  shift_len: int = SHIFT_LEN, shift_scan: int = SHIFT_SCAN, model: str | None = "linear",
                  refresh: int = 8, guide_shifts: bool = True, pairs: int = 0, gradient: str = "exact",
-                 compound: int = 0):
+                 compound: int = 0, lead: int = 0):
         self.objective = objective
         self.n = int(objective.n_elements)
         if model is None:
@@ -226,6 +231,7 @@ class SwapSearch:
         self.pairs = int(check_number("pairs", pairs, lo=0, integer=True))
         self.pair_moves = 0  # improving two-swaps taken
         self.compound = int(check_number("compound", compound, lo=0, integer=True))
+        self.lead = int(check_number("lead", lead, lo=0, integer=True))
         self.compound_moves = 0  # steps that took several swaps of a chunk together
         self._shifts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (at, source, keys); formed once
         self.guide = GuidedOrder(float(check_number("guide", guide, lo=0.0, hi=1.0)))
@@ -375,7 +381,7 @@ class SwapSearch:
                 if self._guided and self.guide.wants_gradient():
                     pred = self._predict(mask, a, b)
                     self._guided = pred is not None  # an objective without a usable gradient: never again
-                for pick, ng in self.guide.chunks(a, b, pred, self.chunk, limit):
+                for pick, ng in self.guide.chunks(a, b, pred, self.chunk, limit, self.lead):
                     cands, values = self.score_swaps(mask, a[pick], b[pick])
                     i = int(np.argmin(values))
                     if values[i] < value:

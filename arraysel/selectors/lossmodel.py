@@ -195,6 +195,14 @@ def best_pair_swaps(g: np.ndarray, H: np.ndarray, mask: np.ndarray, m: int, widt
     return out, into, best_v
 
 
+def _chunk_sizes(chunk: int, lead: int):
+    """``lead``, ``2 lead``, ... up to ``chunk``, then ``chunk`` for ever (``lead`` 0: ``chunk``)."""
+    size = chunk if lead <= 0 else min(lead, chunk)
+    while True:
+        yield size
+        size = min(2 * size, chunk)
+
+
 class GuidedOrder:
     """Which one-swap neighbours a first-improvement descent scores next, chunk by chunk.
 
@@ -220,20 +228,27 @@ class GuidedOrder:
     def wants_gradient(self) -> bool:
         return self.share > 0 or self.moves % self.probe == 0
 
-    def chunks(self, a: np.ndarray, b: np.ndarray, pred: np.ndarray | None, chunk: int, limit: int):
+    def chunks(self, a: np.ndarray, b: np.ndarray, pred: np.ndarray | None, chunk: int, limit: int,
+               lead: int = 0):
         """Yield ``(index array into a/b, number of them taken from the prediction)`` per chunk,
-        ``limit`` swaps in all; ``pred`` the predicted change of each swap (None: random order)."""
+        ``limit`` swaps in all; ``pred`` the predicted change of each swap (None: random order).
+        With ``lead`` above 0 the first chunk holds ``lead`` swaps and each next one twice as
+        many, up to ``chunk``."""
         n = min(limit, a.size)
+        sizes = _chunk_sizes(chunk, lead)
         if pred is None:
-            for s in range(0, n, chunk):
-                yield np.arange(s, min(s + chunk, n)), 0
+            s = 0
+            while s < n:
+                e = min(s + next(sizes), n)
+                yield np.arange(s, e), 0
+                s = e
             return
         share = self.share if self.share > 0 else self.probe_share
         ranked = np.argsort(pred, kind="stable")
         taken = np.zeros(a.size, dtype=bool)
         gi = ri = done = 0
         while done < n:
-            size = min(chunk, n - done)
+            size = min(next(sizes), n - done)
             ng = min(size, int(round(share * size)))
             pick = []
             while len(pick) < ng and gi < ranked.size:
