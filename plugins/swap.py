@@ -79,18 +79,23 @@ class SwapSelector(Selector):
     deterministic = False
     scores_neighbourhoods = True
 
+    def search(self, objective, k: int, rng) -> SwapSearch:
+        """The :class:`SwapSearch` this selector runs, with its options, on ``objective``."""
+        o = self.options
+        return SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
+                          perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
+                          restart_after=o["restart_after"], fresh=o["fresh"],
+                          race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
+                          shift=o["shift"],
+                          shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
+                          refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"],
+                          compound=o["compound"], lead=o["lead"])
+
     def select(self, objective, k, seed):
         o = self.options
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
-        search = SwapSearch(objective, k, rng, mode=o["mode"], chunk=o["chunk"], guide=o["guide"], scan=o["scan"],
-                            perturb=o["perturb"], max_perturb=max(o["perturb"], o["max_perturb"]),
-                            restart_after=o["restart_after"], fresh=o["fresh"],
-                            race=o["race"], race_quota=o["race_quota"], race_chirps=o["race_chirps"],
-                            shift=o["shift"],
-                            shift_len=o["shift_len"], shift_scan=o["shift_scan"], model=o["model"],
-                            refresh=o["refresh"], gradient=o["gradient"], pairs=o["pairs"],
-                            compound=o["compound"], lead=o["lead"])
+        search = self.search(objective, k, rng)
         return search.run(start)[0]
 
 

@@ -16,7 +16,7 @@ from arraysel.selectors.registry import build_plugin_manager, get_registry
 from arraysel.report.plots import plot_anytime
 from arraysel.run.compare import DEFAULT_SEEDS, compare
 from arraysel.run.experiment import Experiment
-from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector
+from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector, numpy_rng
 from arraysel.testing import ToyObjective
 
 
@@ -171,6 +171,26 @@ def test_search_selectors_are_reproducible_per_seed(reg):
         rows = [Experiment(ToyObjective(16, 8), name, budget=Budget(evaluations=300), seed=s,
                            registry=reg).run() for s in (5, 5)]
         assert rows[0]["elements"] == rows[1]["elements"] and rows[0]["Mean"] == rows[1]["Mean"]
+
+
+def test_swap_s_search_is_the_one_its_runs_use_with_its_options(reg):
+    """``SwapSelector.search`` (what ``benchmarks/bench_race_funnels.py`` descends with) carries
+    the selector's options, and a run through it is the selector's run."""
+    from arraysel.selectors.localsearch import SwapSearch
+    from arraysel.selectors.starts import start_selection
+
+    sel = reg["swap"](lead=4, race=3, chunk=16, start="random")
+    _, view, rec = _view(evaluations=400, k=8, n=16)
+    rng = numpy_rng(7)
+    start = start_selection("random", view, 8, rng)  # the plugin draws its start first
+    search = sel.search(view, 8, rng)
+    assert isinstance(search, SwapSearch)
+    assert (search.lead, search.race, search.chunk, search.fresh, search.shift) == (4, 3, 16, "mixed", 6)
+    with pytest.raises(BudgetExhausted):
+        search.run(start)
+    row = Experiment(ToyObjective(16, 8), "swap", options={"lead": 4, "race": 3, "chunk": 16, "start": "random"},
+                     budget=Budget(evaluations=400), seed=7, registry=reg).run()
+    assert row["elements"] == " ".join(map(str, rec.best)) and row["Mean"] == pytest.approx(rec.best_mean)
 
 
 def test_bad_options_name_the_option(reg):
