@@ -50,7 +50,7 @@ def _descents(scene: str, seed: int, marks: list[int]) -> list[dict]:
     start = search._start_mask(start)
     m = search.race - 1
     extra = search._race_starts(m)
-    chirped = {"mixed": (m + 1) // 2, "chirp": m}.get(search.fresh, 0)
+    chirped = search.race_chirped(m)
     kinds = [o["start"]] + ["chirp"] * chirped + ["random"] * (len(extra) - chirped)
     rows = []
     for i, (mask, kind) in enumerate(zip([start] + extra, kinds)):

@@ -520,12 +520,19 @@ class SwapSearch:
         selections; by ``fresh = chirp``, the ``m`` best distinct of ``m`` x :attr:`race_chirps`
         chirped layouts (:meth:`_race_chirps`); by ``fresh = mixed``, ``c = ceil(m / 2)`` chosen
         so from ``c`` x that many, then ``m - c`` random selections."""
-        if self.restart_from is not None or self.fresh == "random":
+        c = self.race_chirped(m)
+        if c == 0:
             return [self._fresh_mask(self.rng) for _ in range(m)]
-        c = m if self.fresh == "chirp" else (m + 1) // 2
         masks, values = self._race_chirps(c)
         chirped = list(survivors(masks, values, c)[0])
         return chirped + [self._random_mask(self.rng) for _ in range(m - c)]
+
+    def race_chirped(self, m: int) -> int:
+        """How many of a race's ``m`` extra starts (:meth:`_race_starts`) are chirped layouts, the
+        first ones; the rest are fresh selections (``restart_from``'s, or random)."""
+        if self.restart_from is not None or self.fresh == "random":
+            return 0
+        return m if self.fresh == "chirp" else (m + 1) // 2
 
     def _race_chirps(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """The chirped layouts ``c`` chirped race starts are chosen from, and their Means.
