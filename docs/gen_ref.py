@@ -41,15 +41,15 @@ API_PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
         "`arraysel`: the notebook API",
         "`import arraysel as asel` gives these names (imported on first use, so `import arraysel` "
         "itself loads neither torch nor pandas). Each is documented where it lives.",
-        ("arraysel", "arraysel.scenes.schema.load_scene", "arraysel.objective.psf_objective.build_objective",
+        ("arraysel", "arraysel.scenes.load.load_scene", "arraysel.objective.psf_objective.build_objective",
          "arraysel.api.compare", "arraysel.run.compare.CompareResult", "arraysel.io.cache.cache_dir"),
     ),
     "scenes": (
         "Scenes",
         "Loading, validating and reading scenes; every key is listed in the "
         "[scene-key table](../scene-keys.md).",
-        ("arraysel.scenes.schema.load_scene", "arraysel.scenes.schema.Scene",
-         "arraysel.scenes.schema.builtin_scenes", "arraysel.scenes.schema.Key"),
+        ("arraysel.scenes.load.load_scene", "arraysel.scenes.scene.Scene",
+         "arraysel.scenes.load.builtin_scenes", "arraysel.scenes.keys.Key"),
     ),
     "objective": (
         "Objective",

@@ -119,9 +119,9 @@ def test_scene_files_are_parsed_as_data_never_executed(tmp_path):
             pass
         assert not marker.exists()
     # the loader itself: tomllib only, no eval/exec/pickle/import of scene content
-    src = (ROOT / "arraysel" / "scenes" / "schema.py").read_text()
-    tree = ast.parse(src)
-    called = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    src = "\n".join(p.read_text() for p in sorted((ROOT / "arraysel" / "scenes").glob("*.py")))
+    called = {n.func.id for p in sorted((ROOT / "arraysel" / "scenes").glob("*.py"))
+              for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
     assert not called & {"eval", "exec", "compile", "__import__"}
     assert "tomllib" in src and "pickle" not in src and "yaml" not in src
 

@@ -1,0 +1,161 @@
+"""Whole-scene checks: what a scene must satisfy once all its keys are known.
+
+The windows, grids and metric regions of a 1-D scene must fit in pixels (:func:`region_checks`),
+a 3-D scene must image planes around one scatterer below a matrix probe (:func:`volume_checks`),
+and keys of the other kind of scene are refused, naming the key (:func:`check_scene`). Errors
+name the keys and the allowed range.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+from arraysel.errors import ParameterError, check_number
+
+_log = logging.getLogger("arraysel.scenes.schema")  # the scene loader's one logger name, as before the split
+
+
+def region_checks(scene) -> None:
+    """Windows, grids and metric regions in pixels: they must fit (errors name the keys)."""
+    n_x, n_z = int(scene.length("grid", "n_x")), int(scene.length("grid", "n_z"))
+    win = int(scene.length("grid", "window"))
+    for key, n in (("n_x", n_x), ("n_z", n_z)):
+        if not 8 <= n <= 8192:
+            raise ParameterError(f"grid.{key} = {scene.value('grid', key)!r} is {n} pixels; allowed: [8, 8192] "
+                                 f"pixels (pitch {scene.pixel * 1e3:.4g} mm)")
+    if not 4 <= win <= 8192:
+        raise ParameterError(f"grid.window = {scene.value('grid', 'window')!r} is {win} pixels; allowed: "
+                             f"[4, 8192] pixels (pitch {scene.pixel * 1e3:.4g} mm)")
+    if win > min(n_x, n_z):
+        raise ParameterError(f"grid.window = {scene.value('grid', 'window')!r} must not exceed grid.n_x and "
+                             f"grid.n_z (window {win} px, grid {n_x} x {n_z} px)")
+    r_main = float(scene.length("metrics", "r_main"))
+    r_guard = float(scene.length("metrics", "r_guard"))
+    for key, r in (("r_main", r_main), ("r_guard", r_guard)):
+        if not 0 < r <= 1000:
+            raise ParameterError(f"metrics.{key} = {scene.value('metrics', key)!r} is {r:.4g} wavelengths; "
+                                 f"allowed: (0, 1000]")
+    if r_guard < r_main:
+        raise ParameterError("metrics.r_guard must be >= metrics.r_main "
+                             f"(r_main = {r_main:.4g} wl, r_guard = {r_guard:.4g} wl)")
+    # in pixels, around the window's centre pixel (where the peak sits)
+    lam_px = scene.wavelength / scene.pixel
+    c = win // 2
+    inscribed = min(c, win - 1 - c)
+    corner = math.hypot(c, c)
+    w_mm = win * scene.pixel * 1e3
+    problem = None
+    if r_main * lam_px > inscribed * (1 + 1e-9):
+        problem = (
+            f"metrics.r_main = {scene.value('metrics', 'r_main')!r} ({r_main * lam_px:.1f} px) does not fit "
+            f"grid.window = {scene.value('grid', 'window')!r} ({win} px, {w_mm:.3g} mm): the main lobe region "
+            f"must lie inside the window (r_main <= {inscribed} px = {inscribed / lam_px:.3g} wl); "
+            f"enlarge grid.window or reduce metrics.r_main")
+    elif r_guard * lam_px >= corner * (1 - 1e-9):
+        problem = (
+            f"metrics.r_guard = {scene.value('metrics', 'r_guard')!r} ({r_guard * lam_px:.1f} px) does not fit "
+            f"grid.window = {scene.value('grid', 'window')!r} ({win} px, {w_mm:.3g} mm): the side-lobe region "
+            f"r >= r_guard would be empty (r_guard < {corner:.1f} px = {corner / lam_px:.3g} wl needed); "
+            f"enlarge grid.window or reduce metrics.r_guard")
+    if problem is None:
+        return
+    if not scene.needs_data:
+        raise ParameterError(problem)
+    # an end-to-end scene's window is also the kernel of L_conv: small ones stay allowed there
+    _log.warning("scene %r: %s (L_contrast and L_SLR are then 0 or partial)", scene.name, problem)
+
+
+#: keys that only a 3-D scene reads
+VOLUME_ONLY_KEYS = (("transmit", "n_tx_x"), ("transmit", "n_tx_y"), ("transmit", "max_tilt_deg_y"),
+                    ("transmit", "source_distance"), ("medium", "scatterer_y"))
+#: keys that a 3-D scene does not read (it images planes, not the xz grid)
+PLANAR_ONLY_SECTIONS = ("grid",)
+PLANAR_ONLY_KEYS = (("transmit", "n_tx"), ("medium", "points"), ("receive", "fnumber"),
+                    ("simulator", "fast_margin"), ("simulator", "fast_block"))
+
+
+def volume_checks(scene) -> None:
+    """A 3-D scene: a matrix probe, one scatterer below the array, metric regions inside the planes."""
+    scene.matrix_probe()
+    for sec in PLANAR_ONLY_SECTIONS:
+        if scene.section(sec):
+            key = next(iter(scene.section(sec)))
+            raise ParameterError(f"{sec}.{key} does not apply to a 3-D scene (its planes are set in [volume])")
+    wrong = [f"{sec}.{key}" for sec, key in PLANAR_ONLY_KEYS if key in scene.section(sec)]
+    if wrong:
+        raise ParameterError(f"{wrong[0]} does not apply to a 3-D scene")
+    if scene.length("medium", "scatterer_z") is None:
+        raise ParameterError("medium.scatterer_z is required in a 3-D scene (the scatterer's depth, e.g. '30 mm')")
+    scene.planes()
+    halves = {k: float(scene.length("volume", k)) for k in ("half_x", "half_y", "half_z")}
+    r_main = float(scene.length("metrics", "r_main"))
+    r_guard = float(scene.length("metrics", "r_guard"))
+    if r_guard < r_main:
+        raise ParameterError("metrics.r_guard must be >= metrics.r_main "
+                             f"(r_main = {r_main:.4g} wl, r_guard = {r_guard:.4g} wl)")
+    if r_main > min(halves.values()):
+        raise ParameterError(f"metrics.r_main = {r_main:.4g} wl does not fit the planes: allowed at most the "
+                             f"smallest half-size, {min(halves.values()):.4g} wl (volume.half_x/y/z)")
+    if r_guard >= max(halves.values()):
+        raise ParameterError(f"metrics.r_guard = {r_guard:.4g} wl leaves no side-lobe region: allowed below the "
+                             f"largest half-size, {max(halves.values()):.4g} wl (volume.half_x/y/z)")
+    # the planes' pixels and extent (checked again, with the physics, by MatrixPSFSetup)
+    per_wl = float(scene.value("volume", "pixels_per_wavelength"))
+    for key, half in halves.items():
+        n = max(1, int(round(2 * half * per_wl)))
+        if n > 4096:
+            raise ParameterError(f"volume.{key} = {half:.4g} wl is {n} pixels at volume.pixels_per_wavelength = "
+                                 f"{per_wl:g}; allowed: at most 4096 pixels an axis")
+    depth = float(scene.length("medium", "scatterer_z"))
+    n_z = max(1, int(round(2 * halves["half_z"] * per_wl)))
+    top = depth - (n_z // 2) * scene.wavelength / per_wl
+    if top <= 0:
+        raise ParameterError(f"volume.half_z = {halves['half_z']:.4g} wl reaches above the array from the "
+                             f"scatterer's depth medium.scatterer_z = {depth:.4g} m; allowed: planes below z = 0")
+
+
+def check_scene(scene):
+    """``scene`` if it is complete and consistent, else a :class:`ParameterError` naming the key."""
+    probe = scene.probe()
+    k = scene.get("selection", "k")
+    if k is None:
+        raise ParameterError("selection.k is required")
+    if not 1 <= int(k) <= probe.n_elements:
+        raise ParameterError(f"selection.k = {k} is out of range; allowed: [1, {probe.n_elements}] "
+                             f"(the probe has {probe.n_elements} elements)")
+    if scene.is_volume:
+        volume_checks(scene)
+        return scene
+    wrong = [f"{sec}.{key}" for sec, key in VOLUME_ONLY_KEYS if key in scene.section(sec)]
+    if wrong:
+        raise ParameterError(f"{wrong[0]} applies to 3-D scenes only (a [volume] section and a matrix probe)")
+    if scene.get("grid", "pixel") is not None:
+        p = scene.pixel
+        if not 0 < p <= 1:
+            raise ParameterError(f"grid.pixel = {scene.get('grid', 'pixel')!r} is {p:.4g} m; allowed: (0, 1] m")
+    region_checks(scene)
+    m = scene.section("medium")
+    if "points" in m:
+        clash = [f"medium.{k}" for k in ("scatterer_x", "scatterer_z") if k in m]
+        clash += ["grid.z_offset"] if "z_offset" in scene.section("grid") else []
+        if clash:
+            raise ParameterError(f"medium.points and {', '.join(clash)} are exclusive: medium.points places "
+                                 "each point's grid itself")
+        for i, (x, z) in enumerate(scene.points()):
+            if not -1 <= x <= 1:
+                raise ParameterError(f"medium.points[{i}].x = {m['points'][i][0]!r} is {x:.4g} m; allowed: [-1, 1] m")
+            if not 0 < z <= 2:
+                raise ParameterError(f"medium.points[{i}].z = {m['points'][i][1]!r} is {z:.4g} m; allowed: (0, 2] m")
+        if scene.needs_data and len(m["points"]) > 1:
+            raise ParameterError("end-to-end scenes (weights.L_conv or weights.L_rec > 0) take one field point; "
+                                 f"medium.points has {len(m['points'])}")
+    else:
+        for key, lo, hi, lo_open in (("scatterer_x", -1, 1, False), ("scatterer_z", 0, 2, True)):
+            v = scene.length("medium", key)
+            if v is not None:
+                check_number(f"medium.{key} (m)", v, lo=lo, hi=hi, lo_open=lo_open)
+    d = scene.section("data")
+    if d and d.get("depth_max", 0.15) <= d.get("depth_min", 0.0):
+        raise ParameterError("data.depth_max must be > data.depth_min")
+    return scene
+

@@ -1,0 +1,177 @@
+"""The physics a scene describes: its probe, acquisition and PSF setups (the :class:`SceneSetups`
+half of :class:`~arraysel.scenes.scene.Scene`).
+
+The setups are built from the scene's values on demand; nothing is simulated here. A 1-D
+scene gives one :class:`~arraysel.physics.psf.PSFSetup` per field point, a 3-D scene (a
+``[volume]`` section) one :class:`~arraysel.physics.volume.MatrixPSFSetup`. A grid too large
+for the memory cap is refused from its sizes alone (:func:`memory_check`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from arraysel.errors import ParameterError
+from arraysel.scenes.keys import SCHEMA
+
+
+class SceneSetups:
+    """The physics methods of :class:`~arraysel.scenes.scene.Scene`; they read the scene through
+    its ``section``, ``get``, ``value``, ``length``, ``points``, ``pixel`` and ``wavelength``."""
+
+    def probe(self):
+        """The scene's probe: a :class:`~arraysel.physics.probes.Probe` or, for a matrix
+        catalogue probe, a :class:`~arraysel.physics.probes.MatrixProbe` (keys of the other
+        kind of probe are refused, naming the key)."""
+        from arraysel.physics.probes import MATRIX_ONLY_FIELDS, LINEAR_ONLY_FIELDS, get_probe
+
+        p = self.section("probe")
+        name = p.pop("name", SCHEMA["probe"]["name"].default)
+        matrix = get_probe(name).is_matrix
+        wrong = [k for k in p if k in (LINEAR_ONLY_FIELDS if matrix else MATRIX_ONLY_FIELDS)]
+        if wrong:
+            kind, other = ("a matrix", "1-D") if matrix else ("a 1-D", "matrix")
+            raise ParameterError(f"probe.{wrong[0]} applies to {other} probes only; probe.name = {name!r} is "
+                                 f"{kind} probe")
+        return get_probe(name, **p)
+
+    def matrix_probe(self):
+        """The scene's probe for a 3-D scene: refused, naming ``probe.name``, unless it is a matrix probe."""
+        probe = self.probe()
+        if not probe.is_matrix:
+            raise ParameterError(f"probe.name = {probe.name!r} is a 1-D probe: a 3-D scene needs a matrix probe "
+                                 "(e.g. 'MATRIX-32x32')")
+        return probe
+
+
+    def matrix_setup(self):
+        """The :class:`~arraysel.physics.volume.MatrixPSFSetup` of a 3-D scene (``[volume]``)."""
+        from arraysel.physics.volume import MatrixPSFSetup, diverging_delays3, plane_wave_delays3, tilt_grid
+
+        if not self.is_volume:
+            raise ParameterError(f"scene {self.name!r} has no [volume] section: it is not a 3-D scene")
+        probe = self.matrix_probe()
+        acq = self.acquisition()
+        tx = self.value("transmit", "max_tilt_deg")
+        ty = self.value("transmit", "max_tilt_deg_y")
+        ax, ay = tilt_grid(int(self.value("transmit", "n_tx_x")), int(self.value("transmit", "n_tx_y")),
+                           float(tx), float(tx if ty is None else ty))
+        dist = float(self.length("transmit", "source_distance"))
+        delays = (diverging_delays3(probe, ax, ay, dist, acq) if dist > 0 else plane_wave_delays3(probe, ax, ay, acq))
+        lam = self.wavelength
+        half = {k: float(self.length("volume", k)) * lam for k in ("half_x", "half_y", "half_z")}
+        x = self.length("medium", "scatterer_x")
+        y = self.length("medium", "scatterer_y")
+        z = self.length("medium", "scatterer_z")
+        return MatrixPSFSetup(probe=probe, acq=acq, delays=delays,
+                              scatterer=(0.0 if x is None else float(x), 0.0 if y is None else float(y), float(z)),
+                              pixel=lam / float(self.value("volume", "pixels_per_wavelength")),
+                              planes=self.planes(), reflectivity=float(self.value("medium", "reflectivity")),
+                              iq_bandwidth=self.value("receive", "iq_bandwidth"), options=self._sim_options(), **half)
+
+    def planes(self) -> tuple[str, ...]:
+        """The planes of a 3-D scene (``volume.planes``), checked."""
+        from arraysel.physics.probes import MATRIX_PLANES as PLANES
+
+        raw = str(self.value("volume", "planes"))
+        names = tuple(p.strip() for p in raw.split(",") if p.strip())
+        bad = [p for p in names if p not in PLANES]
+        if bad or not names or len(set(names)) != len(names):
+            raise ParameterError(f"volume.planes = {raw!r}: allowed a comma-separated subset of {list(PLANES)} "
+                                 "without repeats")
+        return names
+
+    def _sim_options(self):
+        from arraysel.physics.simus import SimOptions
+
+        split = self.value("simulator", "element_splitting")
+        return SimOptions(db_thresh=float(self.value("simulator", "db_thresh")),
+                          element_splitting=None if not split else int(split),
+                          full_frequency_directivity=bool(self.value("simulator", "full_frequency_directivity")),
+                          frequency_step=float(self.value("simulator", "frequency_step")))
+
+    def acquisition(self):
+        from arraysel.physics.probes import Acquisition
+
+        probe = self.probe()
+        a = self.section("acquisition")
+        ratio = a.pop("fs_over_fc", None)
+        fs = a.pop("fs", None)
+        if fs is None:
+            fs = (ratio or SCHEMA["acquisition"]["fs_over_fc"].default) * probe.fc
+        elif ratio is not None:
+            raise ParameterError("acquisition.fs and acquisition.fs_over_fc are exclusive: give one")
+        return Acquisition(fs=fs, **a)
+
+    def psf_setups(self) -> list:
+        """One :class:`~arraysel.physics.psf.PSFSetup` per field point (see :meth:`points`).
+
+        With ``medium.points`` each point gets its own grid, shifted by whole
+        pixels (``x_offset``, ``z_offset``) so that the point sits where the
+        one-scatterer scene puts its scatterer: column ``n_x // 2``, row
+        ``n_z // 2`` (to within half a pixel; rows never start above z = 0).
+        """
+        if self.get("medium", "points") is None:
+            return [self.psf_setup()]
+        pixel = self.pixel
+        n_z = int(self.length("grid", "n_z"))
+        out = []
+        for x, z in self.points():
+            z_off = max(0, int(round(z / pixel)) - n_z // 2)
+            out.append(self._setup(x_offset=int(round(x / pixel)), z_offset=z_off, scatterer=(x, z)))
+        return out
+
+    def psf_setup(self, point: int = 0):
+        """The :class:`~arraysel.physics.psf.PSFSetup` of field point ``point`` (the only one of most scenes)."""
+        if self.get("medium", "points") is not None:
+            setups = self.psf_setups()
+            if not 0 <= point < len(setups):
+                raise ParameterError(f"point = {point} is out of range; the scene has {len(setups)} point(s)")
+            return setups[point]
+        m = self.section("medium")
+        scat = None
+        if "scatterer_x" in m or "scatterer_z" in m:
+            scat = self.points()[0]
+        return self._setup(x_offset=0, z_offset=int(self.value("grid", "z_offset")), scatterer=scat)
+
+    def _setup(self, x_offset: int, z_offset: int, scatterer):
+        from arraysel.physics.psf import PSFSetup
+
+        probe = self.probe()
+        if probe.is_matrix:
+            raise ParameterError(f"probe.name = {probe.name!r} is a matrix probe: this scene images the xz plane "
+                                 "of a 1-D probe; a matrix probe needs a 3-D scene")
+        memory_check(self, probe.n_elements)
+        acq = self.acquisition()
+        n_tx = int(self.value("transmit", "n_tx"))
+        tilt = float(self.value("transmit", "max_tilt_deg"))
+        tilts = tuple(np.deg2rad(np.linspace(-tilt, tilt, n_tx))) if n_tx > 1 else (0.0,)
+        pixel = self.pixel
+        options = self._sim_options()
+        return PSFSetup(probe=probe, acq=acq, tilts=tilts, n_x=int(self.length("grid", "n_x")),
+                        n_z=int(self.length("grid", "n_z")), pixel=pixel, z_offset=z_offset, x_offset=x_offset,
+                        scatterer=scatterer, reflectivity=float(self.value("medium", "reflectivity")),
+                        window=int(self.length("grid", "window")), fnumber=float(self.value("receive", "fnumber")),
+                        iq_bandwidth=self.value("receive", "iq_bandwidth"), options=options)
+
+
+def memory_check(scene, n_elements: int) -> None:
+    """Refuse, from the sizes alone (nothing allocated), a grid whose setting up needs more memory
+    than the cap ``ARRAYSEL_MEMORY_GIB`` (:func:`arraysel.physics.psf.settings.grid_bytes`):
+    the message names the keys, the memory needed and allowed, and the largest grid allowed."""
+    from arraysel.physics.psf.settings import MEMORY_GIB, grid_bytes, largest_grid_pixels, memory_limit_bytes
+
+    n_x, n_z = int(scene.length("grid", "n_x")), int(scene.length("grid", "n_z"))
+    win = int(scene.length("grid", "window"))
+    need, step = grid_bytes(n_x, n_z, win, n_elements)
+    limit = memory_limit_bytes()
+    if need <= limit:
+        return
+    most = largest_grid_pixels(n_elements, limit)
+    side = int(math.isqrt(most))
+    raise ParameterError(
+        f"grid.n_x x grid.n_z = {n_x} x {n_z} pixels needs about {need / 2 ** 30:.1f} GiB ({step}, "
+        f"{n_elements} elements), more than the {limit / 2 ** 30:.1f} GiB allowed by {MEMORY_GIB}; allowed: "
+        f"grid.n_x * grid.n_z up to about {most / 1e6:.3g} million pixels (e.g. {side} x {side}): reduce "
+        f"grid.n_x / grid.n_z (or coarsen grid.pixel), or raise {MEMORY_GIB}")
