@@ -15,7 +15,7 @@ from arraysel.selectors.contract import Budget
 from arraysel.selectors.registry import build_plugin_manager, get_registry
 from arraysel.testing import ToyObjective
 
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +132,7 @@ def test_errors_for_folders_that_are_not_finished_comparisons(finished, tmp_path
 def test_committed_comparisons_report(name):
     """The committed example folders read as finished comparisons; their statistics are those of
     runs.csv (the medians their README quotes)."""
-    folder = DOCS / name
+    folder = RESULTS / name
     comp = load_comparison(folder)
     runs = comp.runs
     for config, s in comp.stats.set_index("config").iterrows():
