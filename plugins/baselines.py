@@ -1,4 +1,4 @@
-"""Baseline selectors named by the paper (SPEC §4): ``uniform`` and ``random``."""
+"""Baseline selectors named by the paper (``docs/paper-scene.md``): ``uniform`` and ``random``."""
 from __future__ import annotations
 
 import time

@@ -1,4 +1,4 @@
-"""``ste``: HARD straight-through estimator on an (Ne x k) logits matrix (SPEC §3).
+"""``ste``: HARD straight-through estimator on an (Ne x k) logits matrix (the paper's method, ``docs/training.md``).
 
 Column ``j`` of the logits gives ``p_j = softmax(l_j / tau)`` over the
 elements not chosen by columns ``0..j-1``; the forward pass uses the one-hot

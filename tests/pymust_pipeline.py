@@ -1,9 +1,9 @@
-"""The PyMUST oracle pipeline of SPEC §1, used only by tests and benchmarks.
+"""The PyMUST oracle pipeline of the paper scene (docs/paper-scene.md), used only by tests and benchmarks.
 
 PyMUST (LGPL) is called, never copied: this module builds the reference
 point-spread function of an element selection with PyMUST's public functions
-(``getparam``, ``txdelay``, ``simus``, ``rf2iq``, ``dasmtx``), exactly as the
-SPEC describes the paper scene.
+(``getparam``, ``txdelay``, ``simus``, ``rf2iq``, ``dasmtx``), exactly as
+docs/paper-scene.md describes the paper scene.
 """
 from __future__ import annotations
 
@@ -74,7 +74,7 @@ class PyMUSTScene:
 
 
 def window_kernel(image: np.ndarray, w: int) -> np.ndarray:
-    """SPEC §1: 128x128 window centred (64, 64) on the peak of |image|, clipped, L2-normalised."""
+    """The paper scene's kernel: 128x128 window centred (64, 64) on the peak of |image|, clipped, L2-normalised."""
     iz, ix = np.unravel_index(np.argmax(np.abs(image)), image.shape)
     nz, nx = image.shape
     z0 = min(max(iz - w // 2, 0), nz - w)
@@ -144,7 +144,7 @@ def compound_images(param, tilts, X, Z, point, reflectivity: float, masks: np.nd
 
 
 def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
-    """SPEC §1's kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
+    """The kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
     PyMUST (:func:`compound_images` on the setup's own grid), for scenes unlike the paper's:
     another probe, a convex one, attenuation, a longer pulse, an f-number, a point off the axis,
     other transmits."""

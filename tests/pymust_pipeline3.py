@@ -87,7 +87,7 @@ class PyMUSTScene3:
 
 
 def si_mse(k: np.ndarray, ref: np.ndarray) -> float:
-    """Scale-invariant MSE ||a k - ref||^2 / ||ref||^2, a = <k, ref> / <k, k> (SPEC's L_PSF)."""
+    """Scale-invariant MSE ||a k - ref||^2 / ||ref||^2, a = <k, ref> / <k, k> (L_PSF of docs/metrics.md)."""
     k = np.asarray(k).ravel()
     ref = np.asarray(ref).ravel()
     a = np.vdot(k, ref) / np.vdot(k, k)

@@ -1,4 +1,4 @@
-"""Known-answer tests of arraysel.objective.metrics (SPEC sections 2 and 3)."""
+"""Known-answer tests of arraysel.objective.metrics (docs/metrics.md)."""
 from __future__ import annotations
 
 import math
@@ -33,7 +33,7 @@ def metrics_path(request, monkeypatch):
     return request.param
 
 
-# SPEC paper scene: lambda0 = c / fc, pitch = (c / fs) / 4 with fs = 4 fc -> lambda0 / 16
+# the paper scene: lambda0 = c / fc, pitch = (c / fs) / 4 with fs = 4 fc -> lambda0 / 16
 C, FC = 1540.0, 3.5e6
 LAM = C / FC
 PITCH = (C / (4 * FC)) / 4

@@ -1,4 +1,4 @@
-"""Physics of the PSF core against the PyMUST oracle (SPEC §1), and its gradients."""
+"""Physics of the PSF core against the PyMUST oracle (docs/paper-scene.md), and its gradients."""
 import numpy as np
 import pytest
 import torch

@@ -41,7 +41,7 @@ def test_sequential_selection_draws_distinct_one_hot_columns(dtype):
 
 
 def _draw_column_by_column(logits, tau, noise=None, sample=False, generator=None):
-    """The draw of SPEC.md section 3 written out one column at a time (the definition the
+    """The HARD-STE draw (docs/training.md) written out one column at a time (the definition the
     batched :func:`sequential_selection` must reproduce bit for bit)."""
     n, k = logits.shape
     scores = (logits if noise is None else logits + noise) / tau

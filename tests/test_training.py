@@ -37,7 +37,7 @@ def toy_kernel_fn(ne: int = NE, n: int = N):
 
 
 def toy_psf_terms(kappa_ref: torch.Tensor):
-    """SI-MSE as in SPEC section 2 and crude energy-ratio stand-ins for contrast/SLR."""
+    """SI-MSE as in docs/metrics.md and crude energy-ratio stand-ins for contrast/SLR."""
     c = N // 2
     main = torch.zeros(N, N, dtype=torch.bool)
     main[c - 1:c + 2, c - 1:c + 2] = True

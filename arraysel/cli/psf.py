@@ -6,7 +6,7 @@ from arraysel.errors import ParameterError
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("psf", help="synthesise the PSF kernel of a selection",
-                              description="Compute the complex PSF kernel (SPEC §1) of an element selection "
+                              description="Compute the complex PSF kernel (docs/paper-scene.md) of an element selection "
                                           "and write it, with the full-array reference and the Table-1 "
                                           "metrics, to an npz file. A 3-D scene writes each plane "
                                           "(psf_xy, psf_ref_xy, coords_xy: pixel positions in metres, ...) "

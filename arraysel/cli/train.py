@@ -6,7 +6,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "train", help="train a selection end to end with the reconstruction network",
         description="Learn which k elements stay active jointly with an unrolled-ISTA reconstructor "
-                    "on MNIST / FashionMNIST scatterer maps (SPEC §3). Writes mask.txt, mask.json, "
+                    "on MNIST / FashionMNIST scatterer maps (docs/training.md). Writes mask.txt, mask.json, "
                     "table1.csv, reconstruction.csv, history.csv, settings.json, checkpoint.pt and "
                     "figures to --out. Without --full a quick CPU profile is used (a 3.5 mm field of "
                     "64x64 px of 55 um, linear convolution, speckle scenes, the full array's envelope "

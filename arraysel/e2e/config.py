@@ -1,4 +1,4 @@
-"""Settings of end-to-end training, one set: loss weights and optimisation (defaults: the SPEC, the
+"""Settings of end-to-end training, one set: loss weights and optimisation (defaults: the paper's, the
 scene schema's ``[training]`` section and :data:`arraysel.objective.losses.DEFAULT_WEIGHTS`,
 their homes)."""
 from __future__ import annotations
@@ -15,11 +15,11 @@ __all__ = ["TrainConfig"]
 
 @dataclass
 class TrainConfig:
-    """The training settings (SPEC section 3 defaults; the batch size, epochs, learning rates and
+    """The training settings (the paper's defaults; the batch size, epochs, learning rates and
     temperature schedule default to the scene schema's ``[training]`` section, their one home).
 
     ``weights``: the loss weights under the scene's ``[weights]`` names (``L_PSF``, ``L_conv``,
-    ``L_rec``, ``L_contrast``, ``L_SLR``, ``L_ent``, ``L_row``); a name left out takes its SPEC
+    ``L_rec``, ``L_contrast``, ``L_SLR``, ``L_ent``, ``L_row``); a name left out takes its
     default (:data:`arraysel.objective.losses.DEFAULT_WEIGHTS`), 0 switches a term off. After
     construction it is the complete, checked mapping (:func:`arraysel.objective.losses.check_weights`).
 
@@ -31,7 +31,7 @@ class TrainConfig:
     deviation to the measurements fed to the reconstructor (not to
     ``L_conv``).
 
-    Forward model and target (defaults: the SPEC's circular model on the
+    Forward model and target (defaults: the paper's circular model on the
     kernel's own grid, ``I_ref`` from the scene maker):
 
     * ``convolution``: ``'circular'`` (:class:`~arraysel.e2e.recon.ConvolutionOperator`

@@ -1,7 +1,7 @@
-"""The HARD-STE selection module of end-to-end training (SPEC section 3) and its temperature schedule.
+"""The HARD-STE selection module of end-to-end training (``docs/training.md``) and its temperature schedule.
 
 A *selection module* is an ``nn.Module`` called as ``selection(tau, generator) -> (P, P_soft)``
-(the protocol is stated in :mod:`arraysel.e2e.trainer`); :class:`HardSTESelection` is the SPEC's.
+(the protocol is stated in :mod:`arraysel.e2e.trainer`); :class:`HardSTESelection` is the paper's.
 """
 from __future__ import annotations
 

@@ -244,7 +244,7 @@ def resolve_settings(scene: Scene, *, full: bool = False, **overrides: Any) -> E
 
 
 def baseline_masks(n_elements: int, k: int, seed: int = 0) -> dict[str, list[int]]:
-    """SPEC §4 baselines: ``uniform`` (``i * Ne // k``: every second element for
+    """The paper's baselines (``docs/paper-scene.md``): ``uniform`` (``i * Ne // k``: every second element for
     k = Ne/2), ``random`` (one random k-subset from ``seed``), ``full`` (all)."""
     rng = np.random.default_rng(seed)
     return {"uniform": [i * n_elements // k for i in range(k)],

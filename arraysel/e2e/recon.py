@@ -1,4 +1,4 @@
-"""Convolutional forward model, unrolled ISTA and the residual CNN head (SPEC section 3).
+"""Convolutional forward model, unrolled ISTA and the residual CNN head of the paper (``docs/training.md``).
 
 Shapes: scenes, measurements and reconstructions are ``(B, 1, n, n)``
 tensors; a PSF kernel ``kappa`` is ``(n, n)`` complex. The kernel's centre
@@ -137,7 +137,7 @@ class LinearConvolutionOperator(ConvolutionOperator):
 
 
 def convolve(kappa: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``Y = kappa (*) x`` (circular, kernel centre at ``(n//2, n//2)``), as SPEC's L_conv uses."""
+    """``Y = kappa (*) x`` (circular, kernel centre at ``(n//2, n//2)``), as ``L_conv`` uses."""
     return ConvolutionOperator(kappa).A(x)
 
 
@@ -244,7 +244,7 @@ def features(X: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
 
 
 class ResidualHead(nn.Module):
-    """Residual CNN head of SPEC section 3 / Fig. 2 (5 feature channels -> 1 image).
+    """Residual CNN head of the paper's Fig. 2 (5 feature channels -> 1 image).
 
     With ``c = base_channels`` (32 in the paper) and ``act`` = LeakyReLU(0.1);
     every 3x3 convolution has padding 1, so the ``n x n`` size is kept::

@@ -1,4 +1,4 @@
-"""End-to-end training of an element selection with the reconstruction network (SPEC section 3).
+"""End-to-end training of an element selection with the reconstruction network (``docs/training.md``).
 
 The physics enters through one callable, ``kernel_fn(weights) -> kappa``:
 ``weights`` is an ``(Ne,)`` float tensor (1 for an active element, 0 for an
@@ -14,12 +14,12 @@ hard 0/1 selection matrix carrying the straight-through gradient and
 be deterministic (it then gives the learned selection). Element ``i`` is
 active when row ``i`` of ``P`` sums to 1; the trainer passes
 ``weights = P.sum(1)`` to ``kernel_fn``. :class:`HardSTESelection` is the
-HARD-STE module of the SPEC (:mod:`arraysel.e2e.hardste`). The settings are in
+HARD-STE module of the paper (:mod:`arraysel.e2e.hardste`). The settings are in
 :mod:`arraysel.e2e.config`, the kernel resampling in :mod:`arraysel.e2e.kernels`;
 this module keeps the trainer and re-exports those names.
 
-Loss (SPEC section 3)
----------------------
+Loss (``docs/metrics.md``)
+--------------------------
 ``total = w L_PSF + w L_conv + w L_rec + w L_contrast + w L_SLR + w L_ent + w L_row`` with the
 weights of ``config.weights`` (the scene's names; default 10, 1, 10, 10, 10, 1, 10), assembled by
 :func:`arraysel.objective.losses.training_loss`, the function every objective uses. A term whose

@@ -1,4 +1,4 @@
-"""The training loss: its terms (SPEC section 3), their weights and their weighted sum.
+"""The training loss: its terms (``docs/metrics.md``, "Training terms"), their weights and their weighted sum.
 
 One home for the loss, used by every objective and trainer:
 
@@ -34,7 +34,7 @@ __all__ = ["DEFAULT_WEIGHTS", "PSF_WEIGHT_KEYS", "SELECTION_WEIGHT_KEYS", "DATA_
            "l_conv", "l_rec", "l_ent", "l_row", "weighted_sum", "selection_terms",
            "composite_loss", "check_weights", "training_loss"]
 
-#: weights of the total training loss, SPEC section 3 (read-only; copy with ``dict(...)``)
+#: weights of the total training loss, those of the paper (read-only; copy with ``dict(...)``)
 DEFAULT_WEIGHTS: Mapping[str, float] = MappingProxyType({
     "L_PSF": 10.0,
     "L_conv": 1.0,
@@ -58,7 +58,7 @@ _FORMER_NAMES = {"psf": "L_PSF", "conv": "L_conv", "rec": "L_rec", "contrast": "
 
 
 def l_conv(y_c: Tensor, y_ref: Tensor, reduction: str = "sum") -> Tensor:
-    """``L_conv``: squared L2 norm ``||Y_c - Y_ref||^2`` over the last two axes (SPEC section 3),
+    """``L_conv``: squared L2 norm ``||Y_c - Y_ref||^2`` over the last two axes (``docs/metrics.md``),
     mean over the rest.
 
     ``reduction='mean'`` takes the mean of ``|Y_c - Y_ref|^2`` over the last two axes instead of

@@ -1,6 +1,6 @@
-"""PSF metrics (SPEC section 2) and the circular convolution of the image model.
+"""PSF metrics (Table 1 of the paper; ``docs/metrics.md``) and the circular convolution of the image model.
 
-The training loss terms (SPEC section 3) live in :mod:`arraysel.objective.losses`.
+The training loss terms (``docs/metrics.md``, "Training terms") live in :mod:`arraysel.objective.losses`.
 
 Everything here is written with torch, works on any device, accepts
 float32/float64 and complex64/complex128 tensors, is batched over leading
@@ -54,7 +54,7 @@ __all__ = [
     "check_regions",
 ]
 
-#: names of the quantities :func:`psf_metrics` can return, in SPEC order
+#: names of the quantities :func:`psf_metrics` can return, in the order of ``docs/metrics.md``
 #: the Table-1 metrics, in table order: the one definition every module imports
 METRIC_NAMES: tuple[str, ...] = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i", "L_SLR", "Mean")
 PSF_TERMS = METRIC_NAMES
@@ -206,7 +206,7 @@ def _promote(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
-    """Scale-invariant MSE ``L_PSF`` of SPEC section 2.
+    """Scale-invariant MSE ``L_PSF`` (``docs/metrics.md``).
 
     ``||a* kappa - kappa_ref||^2 / ||kappa_ref||^2`` with
     ``a* = <kappa, kappa_ref> / <kappa, kappa>`` and ``<u, v> = sum(conj(u) v)``
@@ -499,7 +499,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
                 kappa_ref: Tensor | None = None, r_main: float = 1.5, r_guard: float = 2.5,
                 quantile: float = 0.99, terms: Iterable[str] | None = None,
                 compiled: bool | None = None) -> dict[str, Tensor]:
-    """PSF quality metrics of SPEC section 2 (Table 1 of the paper); lower is better.
+    """PSF quality metrics of Table 1 of the paper (``docs/metrics.md``); lower is better.
 
     Parameters
     ----------
@@ -618,7 +618,7 @@ def circular_convolve(kappa: Tensor, image: Tensor) -> Tensor:
     ``kappa`` ``(..., h, w)`` with ``h <= H``, ``w <= W`` and ``image``
     ``(..., H, W)``; leading dimensions broadcast. Centring convention: the
     kernel pixel ``(h // 2, w // 2)`` (``(64, 64)`` for a 128 x 128 window,
-    where SPEC puts the peak) is the zero shift. ``kappa0`` is ``kappa``
+    where the kernel convention puts the peak) is the zero shift. ``kappa0`` is ``kappa``
     zero-padded to ``(H, W)`` and rolled so that pixel goes to ``(0, 0)``
     (for ``h = H``, ``w = W`` this is ``ifftshift``). Hence a delta kernel
     at its centre returns ``image`` unchanged, and

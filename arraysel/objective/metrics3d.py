@@ -7,7 +7,7 @@ for every plane, typically ``(B,)`` for B masks), and ``coords`` maps the same n
 array) is a plane set of the same names and windows whose leading shape broadcasts to the planes'
 (usually ``(1,)``).
 
-The definitions follow the 1-D ones of :mod:`arraysel.objective.metrics` (SPEC section 2) with the
+The definitions follow the 1-D ones of :mod:`arraysel.objective.metrics` (``docs/metrics.md``) with the
 pixels of every plane taken together (``docs/metrics.md``, section "3-D PSF (matrix probes)"):
 
 * the plane set is normalised jointly by its L2 norm (:func:`normalise_planes`; every metric is

@@ -93,7 +93,7 @@ def _check_tilts(name: str, tilts: np.ndarray) -> None:
 def plane_wave_tilts(n: int = 7, max_deg: float = 10.0) -> np.ndarray:
     """Tilt angles (rad) linspace(-max_deg, +max_deg, n) in degrees converted to radians.
 
-    The SPEC default is 7 tilts over +-10 degrees. ``n = 1`` gives the single
+    The paper scene uses 7 tilts over +-10 degrees. ``n = 1`` gives the single
     unsteered tilt 0.
     """
     n = check_number("n", n, lo=1, integer=True)

@@ -1,6 +1,6 @@
 """Relaxations of the (Ne x k) selection matrix, shared by the ``ste`` and ``gumbel`` selectors.
 
-Conventions (SPEC.md §3): logits ``l`` have shape ``(Ne, k)``; column ``j``
+Conventions (the paper's HARD-STE, ``docs/training.md``): logits ``l`` have shape ``(Ne, k)``; column ``j``
 chooses one element with probabilities ``p_j = softmax(l_j / tau)``; the
 columns are drawn one after the other *without replacement*: elements chosen
 by earlier columns are masked out (their score is ``-inf``) in later ones, as

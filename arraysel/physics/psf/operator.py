@@ -1,6 +1,6 @@
 """Point-spread function (PSF) synthesis for batches of element selections.
 
-The paper scene (SPEC §1): one point scatterer, ``n_tx`` plane-wave
+The paper scene (``docs/paper-scene.md``): one point scatterer, ``n_tx`` plane-wave
 transmits, RF -> I/Q -> delay-and-sum, the compound image summed coherently,
 and the complex 128 x 128 window centred on the peak of its magnitude,
 normalised to unit L2 norm, is the PSF kernel ``kappa``.
@@ -24,7 +24,7 @@ image is a quadratic form of the weights::
   margin), so that the image of a batch of selections is one matrix product
   of the pair products ``m_e m_j`` with ``H`` (a truncated SVD ``U V`` of it,
   with a rigorous bound of the truncation error of every pixel and window).
-  Because the SPEC searches the peak over the whole grid, the fast path also
+  Because the kernel's peak is searched for over the whole grid, the fast path also
   precomputes, for 8 x 8 blocks of pixels outside ``E``, the samples each
   block reads from each channel: the envelopes of a selection's I/Q channels
   there bound ``|I|`` on the block (``PairBasis``, certificates). A selection
@@ -33,7 +33,7 @@ image is a quadratic form of the weights::
   factors, or block-wise DAS), and whose window fits in ``E``, provably has
   its global peak there; a kernel whose error bound is too large is retried
   at the stored rank; any other selection is recomputed by the exact path on
-  the whole grid. The result is therefore the SPEC's kernel, up to the stated
+  the whole grid. The result is therefore the scene's kernel, up to the stated
   error bound (5e-3 relative L2; the actual error is typically below 1e-3),
   for every selection.
 """
@@ -340,7 +340,7 @@ class PSFModel:
         return torch.cat(out, dim=1) if len(out) > 1 else out[0].reshape(w.shape[0], nz, nx)
 
     def kernels_exact(self, weights) -> torch.Tensor:
-        """SPEC kernels (B, window, window) from the exact whole-grid image, in batches of
+        """PSF kernels (B, window, window) from the exact whole-grid image, in batches of
         :meth:`exact_chunking`'s size (bounded memory whatever B)."""
         w = self._weights(weights)
         step = self.exact_chunking()[0]
@@ -351,7 +351,7 @@ class PSFModel:
 
     # ------------------------------------------------------------------ fast path
     def kernels(self, weights, return_info: bool = False):
-        """SPEC kernels (B, window, window) complex; differentiable w.r.t. weights.
+        """PSF kernels (B, window, window) complex; differentiable w.r.t. weights.
 
         Uses the precomputed pair basis when the peak provably lies in its
         region, the exact path otherwise.

@@ -1,4 +1,4 @@
-"""The SPEC's kernel convention: the ``window`` x ``window`` cut of the image centred on the peak
+"""The kernel convention of the paper scene (``docs/paper-scene.md``): the ``window`` x ``window`` cut of the image centred on the peak
 of its magnitude (clipped to the grid), normalised to unit L2 norm."""
 from __future__ import annotations
 
