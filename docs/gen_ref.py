@@ -13,9 +13,14 @@ site's virtual docs folder, never into the checkout:
 * ``reference/api/*.md``: the mkdocstrings pages of the public API.
 
 Links between Markdown files are written for the repository (so that they work when the files
-are read on their own); a link that leaves ``docs/`` is pointed at the generated page or at a
-copy of the file in the site. ``python docs/gen_ref.py OUT_DIR`` writes the same pages into
-OUT_DIR (to read them without building the site).
+are read on their own, on a code host or in an editor); a link that leaves ``docs/`` is pointed
+at the generated page or at a copy of the file in the site, published at its repository path.
+This is how the figures of ``benchmarks/results/`` reach the results pages: a page embeds
+``![PSFs](../../benchmarks/results/compare-20s/psfs.png)`` and the build copies that one file
+(never copy result figures into ``docs/img/``). A Markdown file copied this way (a result
+folder's ``README.md``) has its own links rewritten the same way, and what it links to is
+copied in turn. ``python docs/gen_ref.py OUT_DIR`` writes the same pages into OUT_DIR (to read
+them without building the site).
 """
 from __future__ import annotations
 
@@ -33,6 +38,11 @@ DOCS = ROOT / "docs"
 PAGES = {
     "README.md": "index.md",
     "benchmarks/README.md": "benchmarks.md",
+}
+
+#: notebooks rendered by mkdocs-jupyter (with their committed outputs): repository path -> page
+NOTEBOOKS = {
+    "examples/quickstart.ipynb": "quickstart.ipynb",
 }
 
 #: the API reference: page -> (title, introduction, objects documented by mkdocstrings)
@@ -85,6 +95,8 @@ def _site_path(repo_path: str) -> str | None:
     """Where a repository file lives in the site (None: not published)."""
     if repo_path in PAGES:
         return PAGES[repo_path]
+    if repo_path in NOTEBOOKS:
+        return NOTEBOOKS[repo_path]
     if repo_path.startswith("docs/"):
         return repo_path[len("docs/"):]
     return None
@@ -94,10 +106,10 @@ def rewrite_links(text: str, repo_path: str, copies: set[str]) -> str:
     """Relative links of a Markdown file at ``repo_path``, pointed at the site's pages.
 
     A link to a file outside ``docs/`` that is not a generated page adds that file to
-    ``copies`` (published at its repository path) and points at the copy.
+    ``copies`` (published at its repository path) and points at the copy. A file that is not
+    a page of its own is itself published at its repository path.
     """
-    page = _site_path(repo_path)
-    assert page is not None, repo_path
+    page = _site_path(repo_path) or repo_path
     page_dir = posixpath.dirname(page)
 
     def fix(m: re.Match) -> str:
@@ -219,8 +231,21 @@ def generated_pages() -> tuple[dict[str, str], dict[str, Path]]:
     pages["reference/scene-keys.md"] = scene_key_table()
     for name, (title, intro, objects) in API_PAGES.items():
         pages[f"reference/api/{name}.md"] = api_page(title, intro, objects)
-    files = {path: ROOT / path for path in sorted(copies)}
-    files["quickstart.ipynb"] = ROOT / "examples" / "quickstart.ipynb"
+    files: dict[str, Path] = {}
+    pending, seen = sorted(copies), set()
+    while pending:                      # copied Markdown files get their links rewritten too
+        path = pending.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        if path.endswith(".md"):
+            found: set[str] = set()
+            pages[path] = rewrite_links((ROOT / path).read_text(encoding="utf-8"), path, found)
+            pending += sorted(found - seen)
+        else:
+            files[path] = ROOT / path
+    for repo_path, page in NOTEBOOKS.items():
+        files[page] = ROOT / repo_path
     return pages, files
 
 
