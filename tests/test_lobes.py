@@ -81,7 +81,7 @@ def _dirichlet_side_db(n: int) -> float:
 
 def test_dirichlet_two_way_pattern_of_a_uniform_array():
     probe = get_probe("MATRIX-32x32", nx=8, ny=6)
-    bp = BeamPattern.from_probe(probe, n_freq=1, oversample=8, sector_deg=(0, 0), element_factor=False,
+    bp = BeamPattern.from_probe(probe, n_freq=1, oversample=8, sector_deg=(0, 0), region="visible",
                                 dtype=torch.float64)
     lam = float(bp.wavelengths[0])
     img = bp.pattern(torch.ones(1, probe.n_elements))
@@ -171,7 +171,7 @@ def test_main_lobe_touching_the_edge():
 
 def test_grating_lobe_of_a_periodic_thinning_where_theory_says():
     probe = get_probe("MATRIX-32x32", nx=16, ny=16)
-    bp = BeamPattern.from_probe(probe, n_freq=1, oversample=2, sector_deg=(0, 0), element_factor=False,
+    bp = BeamPattern.from_probe(probe, n_freq=1, oversample=2, sector_deg=(0, 0), region="visible",
                                 dtype=torch.float64)
     lam = float(bp.wavelengths[0])
     thin = np.zeros((16, 16))

@@ -12,9 +12,19 @@ steered to the direction ``(u0, v0) = (sin theta_x, sin theta_y)`` at frequency 
 sees the directions ``s + (du, dv)``; the shifts a designer cares about are those that some beam of
 the sector sees inside the ``region``:
 
-* ``"visible"`` (default): the scatterer anywhere in the visible half-space ``u^2 + v^2 <= 1``;
-  the shifts fill the unit disk swept over the sector, ``|du| <= 1 + sin theta_x,max``;
-* ``"sector"``: the scatterer inside the sector itself, ``|du| <= 2 sin theta_x,max``.
+* ``"sector"`` (default): points and pixels inside the sector, as a scene that images points of
+  the sector on regions covering it: ``|du| <= 2 sin theta_x,max``;
+* ``"visible"``: anything in the visible half-space ``u^2 + v^2 <= 1``: the unit disk swept over
+  the sector, ``|du| <= 1 + sin theta_x,max``. There the grating lobes of the probe's own
+  lattice appear for every selection once ``lambda / pitch < 1 + sin theta`` (MATRIX-32x32:
+  ``lambda / 0.3 mm`` is 1.28 at 4 MHz, so beyond about 16 degrees of steering at the top of
+  the band): a level no selection changes.
+
+**Pixel view and beam view.** The image of a point at ``s`` over pixels is ``E(s)^2 T R`` (``E``
+the element's far-field factor): relative to its peak the element factor cancels, and the
+pattern alone is the point's PSF (the default, ``element=None``). A beam steered to ``s`` answering
+scatterers at ``s + d`` weights each by ``E(s + d)^2 / E(s)^2`` (``element=(width, height,
+baffle)``; :func:`steering_weights`).
 
 :attr:`BeamPattern.coverage` is the fraction of the sector's beams (steerings uniform in ``(u0,
 v0)`` over ``[-sin theta_x,max, sin theta_x,max] x [-sin theta_y,max, sin theta_y,max]``) that
@@ -46,8 +56,8 @@ with missing elements after :func:`lattice_of`) use the separable transform
 ``T_f = E_y(f) A E_x(f)^T`` of the weight grid ``A`` (ny, nx), in real arithmetic, with the
 lattice's symmetry folded in (each cosine and sine matrix has half the columns); elements
 anywhere on the plane use the explicit sum (about ``Ne / 16`` times slower on MATRIX-32x32).
-No element factor: it is the same for every selection, and it would make the pattern depend on
-the steering.
+The energy combination runs in compiled kernels on the CPU for batches of at least
+:data:`~arraysel.physics.compiled.MIN_BATCH` (:mod:`arraysel.physics.beamkernels`).
 """
 from __future__ import annotations
 
@@ -61,11 +71,42 @@ from arraysel.physics.beamgeometry import (COMBINE, REGIONS, band_nodes, directi
                                            grating_lobe_directions, grating_lobe_segments, lattice_of,
                                            lattice_periods, pulse_echo_spectrum, sector_sines, sphere_surface,
                                            steering_coverage, steering_weights)
+from arraysel.physics.compiled import MIN_BATCH
 from arraysel.physics.probes import Acquisition, MatrixProbe, check_sound_speed
 
 __all__ = ["BeamPattern", "COMBINE", "REGIONS", "pulse_echo_spectrum", "band_nodes", "steering_coverage",
            "element_factor", "steering_weights", "grating_lobe_directions", "grating_lobe_segments",
            "lattice_periods", "lattice_of", "direction_cosines", "sphere_surface"]
+
+
+class _EnergyCombine(torch.autograd.Function):
+    """``sum_f w_f |T_f|^2 |R_f|^2`` (R = T when not given) of (F, V, X) real and imaginary parts,
+    by the compiled kernels of :mod:`arraysel.physics.beamkernels` (CPU), forward and backward."""
+
+    @staticmethod
+    def forward(ctx, w, tre, tim, rre=None, rim=None):
+        from arraysel.physics import beamkernels as K
+
+        arrs = [v.detach().numpy() for v in (tre, tim) + (() if rre is None else (rre, rim))]
+        out = np.empty(tre.shape[1:], dtype=arrs[0].dtype)
+        wn = w.detach().numpy()
+        K.energy_shared(*arrs, wn, out) if rre is None else K.energy_pair(*arrs, wn, out)
+        ctx.save_for_backward(w, tre, tim, *(() if rre is None else (rre, rim)))
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, g):
+        from arraysel.physics import beamkernels as K
+
+        w, *ts = ctx.saved_tensors
+        arrs = [v.detach().numpy() for v in ts]
+        grads = [np.empty(arrs[0].shape, dtype=arrs[0].dtype) for _ in arrs]
+        gn = np.ascontiguousarray(g.detach().numpy())
+        if len(arrs) == 2:
+            K.energy_shared_grad(*arrs, w.detach().numpy(), gn, *grads)
+            return None, torch.from_numpy(grads[0]), torch.from_numpy(grads[1]), None, None
+        K.energy_pair_grad(*arrs, w.detach().numpy(), gn, *grads)
+        return (None,) + tuple(torch.from_numpy(v) for v in grads)
 
 
 def _check_element(element):
@@ -107,13 +148,13 @@ class BeamPattern:
     fc, bandwidth, tx_cycles : the pulse (Hz, % pulse-echo -6 dB bandwidth, cycles), as in SIMUS
     c : speed of sound (m/s)
     sector_deg : ``(theta_x, theta_y)``, the largest steering angles in degrees, each in [0, 89]
-    region : ``"visible"`` or ``"sector"`` (the module docstring)
+    region : ``"sector"`` or ``"visible"`` (the module docstring)
     n_freq : frequencies of the broadband combination, 1..512
     oversample : the grid's step is the two-way Nyquist step divided by this, in [0.25, 16]
     combine : ``"energy"`` (a power pattern) or ``"coherent"`` (a complex amplitude pattern)
     element : ``(width, height, baffle)`` of the rectangular elements (metres; baffle as in
         :class:`MatrixProbe`), whose two-way factor at ``fc`` weights each beam's view of the
-        pattern (:func:`steering_weights`); None: no element factor
+        pattern (the beam view, :func:`steering_weights`); None (default): the pixel view
     n_steer : steerings an axis over which those weights are averaged
     chunk : selections transformed at once (memory ~ chunk * n_freq * pixels)
     dtype, device : torch.float32 or torch.float64; any device
@@ -126,7 +167,7 @@ class BeamPattern:
     """
 
     def __init__(self, positions, *, fc: float, bandwidth: float, c: float = 1540.0, tx_cycles: float = 1.0,
-                 sector_deg=(30.0, 30.0), region: str = "visible", n_freq: int = 8, oversample: float = 1.0,
+                 sector_deg=(30.0, 30.0), region: str = "sector", n_freq: int = 8, oversample: float = 1.0,
                  combine: str = "energy", element=None, n_steer: int = 33, chunk: int = 16,
                  dtype=torch.float32, device="cpu"):
         if dtype not in (torch.float32, torch.float64):
@@ -164,10 +205,10 @@ class BeamPattern:
         self._build_grid(k) if self.path == "grid" else self._build_direct(k)
 
     @classmethod
-    def from_probe(cls, probe: MatrixProbe, acq: Acquisition | None = None, *, element_factor: bool = True,
+    def from_probe(cls, probe: MatrixProbe, acq: Acquisition | None = None, *, element_factor: bool = False,
                    **kw) -> "BeamPattern":
-        """The pattern of a matrix probe: its fc, bandwidth and (``element_factor``) its elements'
-        size and baffle; ``acq``'s c and tx_cycles."""
+        """The pattern of a matrix probe: its fc and bandwidth, ``acq``'s c and tx_cycles, and with
+        ``element_factor`` its elements' size and baffle (the beam view)."""
         if not isinstance(probe, MatrixProbe):
             raise ParameterError(f"probe must be a MatrixProbe, got {type(probe).__name__}")
         if acq is not None:
@@ -220,8 +261,8 @@ class BeamPattern:
         phx = k[:, None, None] * torch.as_tensor(xh)[None, :, None] * self.du[None, None, :]   # (F, hx, Hu)
         cx, sx = torch.cos(phx), torch.sin(phx)
         cx[:, -1, :] *= midx
-        self._cx = cx.permute(1, 0, 2).reshape(len(xh), -1).to(**opt)
-        self._sx = sx.permute(1, 0, 2).reshape(len(xh), -1).to(**opt)
+        self._csx = torch.stack([cx, sx], 1).to(**opt)                  # (F, 2, hx, Hu)
+        self._scx = torch.stack([sx, cx], 1).to(**opt)
         phy = k[:, None, None] * dvh[None, :, None] * torch.as_tensor(yh)[None, None, :]        # (F, Hvh, hy)
         cy, sy = torch.cos(phy), torch.sin(phy)
         cy[..., -1] *= midy
@@ -244,26 +285,27 @@ class BeamPattern:
 
     # ------------------------------------------------------------------ transforms
     def _transform_grid(self, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Re and Im of ``T_f`` on the half grid, (F, Hvh, b, Hu), of weights ``a`` (b, Ne)."""
+        """Re and Im of ``T_f`` on the half grid, (F, Hvh, b * Hu), of weights ``a`` (b, Ne).
+
+        The weight grid is folded in y and x first (``A[j] +- A[n-1-j]``): the even-even and
+        odd-odd parts meet the x cosines and sines, then ``[Cy, -Sy]`` gives Re T; the even-odd and
+        odd-even parts meet the sines and cosines, then ``[Cy, Sy]`` gives Im T."""
         nx, ny = self.lattice[0], self.lattice[1]
         b = a.shape[0]
         if self._index is not None:
             a = a.new_zeros(b, nx * ny).index_copy(1, self._index, a)
-        A = a.reshape(b, ny, nx)
+        ye, yo = _fold(a.reshape(b, ny, nx).transpose(0, 1), 0)                # (hy, b, nx)
+        ee, eo = _fold(ye, 2)
+        oe, oo = _fold(yo, 2)                                                  # (hy, b, hx)
+        hy, hx = ee.shape[0], ee.shape[2]
         F, Hu = self.frequencies.numel(), self.du.numel()
-        ae, ao = _fold(A, 2)
-        hx = ae.shape[-1]
-        xc = (ae.reshape(b * ny, hx) @ self._cx).reshape(b, ny, F, Hu)
-        xs = (ao.reshape(b * ny, hx) @ self._sx).reshape(b, ny, F, Hu)
-        xce, xco = _fold(xc, 1)
-        xse, xso = _fold(xs, 1)
-        hy = xce.shape[1]
-        p = torch.cat([xce, xso], 1).permute(2, 1, 0, 3).reshape(F, 2 * hy, b * Hu)
-        q = torch.cat([xse, xco], 1).permute(2, 1, 0, 3).reshape(F, 2 * hy, b * Hu)
-        re = torch.bmm(self._wre, p).reshape(F, -1, b, Hu)
-        im = torch.bmm(self._wim, q).reshape(F, -1, b, Hu)
+        p = torch.matmul(torch.stack([ee, oo]).reshape(1, 2, hy * b, hx), self._csx)   # (F, 2, hy b, Hu)
+        q = torch.matmul(torch.stack([eo, oe]).reshape(1, 2, hy * b, hx), self._scx)
+        re = torch.bmm(self._wre, p.reshape(F, 2 * hy, b * Hu))
+        im = torch.bmm(self._wim, q.reshape(F, 2 * hy, b * Hu))
         if self._shift is not None:
             c, s = self._shift
+            c, s = c.expand(-1, -1, b, -1).reshape(re.shape), s.expand(-1, -1, b, -1).reshape(re.shape)
             re, im = re * c - im * s, re * s + im * c
         return re, im
 
@@ -274,21 +316,27 @@ class BeamPattern:
         yr, yi = yr.transpose(-1, -2), yi.transpose(-1, -2)      # (F, b, Hvh, Ne)
         re = yr @ exr[:, None] - yi @ exi[:, None]               # (F, b, Hvh, Hu)
         im = yr @ exi[:, None] + yi @ exr[:, None]
-        return re.transpose(1, 2), im.transpose(1, 2)
+        f, b, hv, hu = re.shape
+        return (re.transpose(1, 2).reshape(f, hv, b * hu), im.transpose(1, 2).reshape(f, hv, b * hu))
 
-    def _combine(self, t, r) -> torch.Tensor:
-        """The half pattern (b, Hvh, Hu) of the transforms ``t`` and ``r`` (None: shared)."""
+    def _combine(self, t, r, b: int) -> torch.Tensor:
+        """The half pattern (b, Hvh, Hu) of the transforms ``t`` and ``r`` (None: shared), each a
+        pair of (F, Hvh, b * Hu) tensors."""
         tre, tim = t
-        f, hv, b, hu = tre.shape
+        f, hv, x = tre.shape
         if self.combine == "energy":
-            pt = torch.addcmul(tre * tre, tim, tim)
-            prod = pt * pt if r is None else pt * torch.addcmul(r[0] * r[0], r[1], r[1])
-            return (self._w[None] @ prod.reshape(f, -1)).reshape(hv, b, hu).permute(1, 0, 2)
+            if self.device.type == "cpu" and b >= MIN_BATCH:
+                out = _EnergyCombine.apply(self._w, tre, tim, *(() if r is None else r))
+            else:
+                pt = torch.addcmul(tre * tre, tim, tim)
+                prod = pt * pt if r is None else pt * torch.addcmul(r[0] * r[0], r[1], r[1])
+                out = (self._w[None] @ prod.reshape(f, -1)).reshape(hv, x)
+            return out.reshape(hv, b, -1).permute(1, 0, 2)
         rre, rim = t if r is None else r
         pre = torch.addcmul(tre * rre, tim, rim, value=-1.0)
         pim = torch.addcmul(tre * rim, tim, rre)
-        pre = (self._w[None] @ pre.reshape(f, -1)).reshape(hv, b, hu).permute(1, 0, 2)
-        pim = (self._w[None] @ pim.reshape(f, -1)).reshape(hv, b, hu).permute(1, 0, 2)
+        pre = (self._w[None] @ pre.reshape(f, -1)).reshape(hv, b, -1).permute(1, 0, 2)
+        pim = (self._w[None] @ pim.reshape(f, -1)).reshape(hv, b, -1).permute(1, 0, 2)
         return torch.complex(pre, pim)
 
     # ------------------------------------------------------------------ the pattern
@@ -314,9 +362,13 @@ class BeamPattern:
         transform = self._transform_grid if self.path == "grid" else self._transform_direct
         out = []
         for i in range(0, a.shape[0], self.chunk):
-            t = transform(a[i:i + self.chunk])
-            r = None if b is None else transform(b[i:i + self.chunk])
-            out.append(self._combine(t, r))
+            n = min(self.chunk, a.shape[0] - i)
+            if b is None:
+                out.append(self._combine(transform(a[i:i + n]), None, n))
+            else:                                   # one transform of both
+                re, im = transform(torch.cat([a[i:i + n], b[i:i + n]]))
+                h = re.shape[-1] // 2
+                out.append(self._combine((re[..., :h], im[..., :h]), (re[..., h:], im[..., h:]), n))
         half = torch.cat(out) if len(out) > 1 else out[0]
         low = half[:, 1:].flip(1, 2)
         return torch.cat([low.conj() if low.is_complex() else low, half], dim=1)
