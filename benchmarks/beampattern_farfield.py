@@ -70,10 +70,12 @@ def beam(a, probe, acq, w) -> dict:
 
     R = a.range
     lam = acq.c / probe.fc
+    step = acq.c / probe.fc / (8 * probe.aperture[0])            # a quarter of the Nyquist step at fc
     pats = {c: BeamPattern.from_probe(probe, acq, n_freq=a.n_coherent if c == "coherent" else 16, combine=c,
-                                      sector_deg=(0, 0), region="visible", oversample=4, dtype=torch.float64)
+                                      sector_deg=(0, 0), region="visible", step=step, dtype=torch.float64)
             for c in ("coherent", "energy")}
     bp = pats["coherent"]
+    vals = {c: p.pattern(torch.as_tensor(w[None]))[0].abs() for c, p in pats.items()}
     du = bp.du.numpy()
     keep = np.nonzero(np.abs(du) <= a.extent)[0]
     delays = focused_delays3(probe, 0.0, 0.0, R, acq.c)
@@ -95,8 +97,8 @@ def beam(a, probe, acq, w) -> dict:
             en.append(float((img.abs() ** 2).sum()))
             ef = float(element_factor(torch.tensor(u), torch.tensor(v), probe.width, probe.height, probe.baffle, lam))
             i = bp.dv.numel() // 2 + (0 if cut == "u" else int(j) - bp.du.numel() // 2)
-            pc = pats["coherent"].pattern(torch.as_tensor(w[None]))[0, i, j].abs().item()
-            pe = pats["energy"].pattern(torch.as_tensor(w[None]))[0, i, j].item()
+            pc = float(vals["coherent"][i, j])
+            pe = float(vals["energy"][i, j])
             ref_c.append(pc * ef ** 2)
             ref_e.append(pe * ef ** 4)
         db = lambda x: 20 * np.log10(np.asarray(x) / np.max(x))  # noqa: E731
@@ -121,18 +123,19 @@ def sector(a, probe, acq, w, off_deg: float) -> dict:
     us = math.sin(math.radians(off_deg))
     scat = (R * us, 0.0, R * math.cos(math.radians(off_deg)))
     res = {}
+    step = acq.c / probe.fc / (4 * probe.aperture[0])            # half the Nyquist step at fc
     bps = {c: BeamPattern.from_probe(probe, acq, n_freq=16 if c == "energy" else a.n_coherent, combine=c,
-                                     sector_deg=(0, 0), region="visible", oversample=2, dtype=torch.float64)
+                                     sector_deg=(0, 0), region="visible", step=step, dtype=torch.float64)
            for c in ("energy", "coherent")}
     bp = bps["energy"]
-    cu = np.abs(bp.du.numpy()) <= a.extent
-    cv = np.abs(bp.dv.numpy()) <= a.extent
+    cu = np.abs(bp.du.numpy()) <= a.extent_sector
+    cv = np.abs(bp.dv.numpy()) <= a.extent_sector
     du, dv = bp.du.numpy()[cu], bp.dv.numpy()[cv]
     U, V = np.meshgrid(du + us, dv, indexing="xy")
     ok = U * U + V * V < 0.999
     surf = sphere_surface(R, du + us, dv).numpy() if ok.all() else None
     if surf is None:
-        raise SystemExit("the surface leaves the visible region: lower --extent")
+        raise SystemExit("the surface leaves the visible region: lower --extent-sector")
     t0 = time.perf_counter()
     setup = MatrixPSFSetup(probe, acq, delays, scat, 1e-3, 1e-3, 1e-3, 1e-3, planes=("xy",))
     img = _model(setup, surf).planes(torch.as_tensor(w[None]))["xy"][0]
@@ -153,7 +156,9 @@ def sector(a, probe, acq, w, off_deg: float) -> dict:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--range", type=float, default=40e-3, help="distance of the point (m, default 0.04)")
-    p.add_argument("--extent", type=float, default=0.8, help="largest |du|, |dv| compared (default 0.8)")
+    p.add_argument("--extent", type=float, default=0.8, help="largest |du| of the beam scans (default 0.8)")
+    p.add_argument("--extent-sector", type=float, default=0.55,
+                   help="largest |du|, |dv| of the sector PSF surfaces (default 0.55)")
     p.add_argument("--floor-db", type=float, default=-40.0, help="dB floor of the comparison (default -40)")
     p.add_argument("--n-coherent", type=int, default=128, help="frequencies of the coherent pattern (default 128)")
     p.add_argument("--off-axis", type=float, default=13.0, help="angle in x of the second point (deg, default 13)")

@@ -99,7 +99,6 @@ def speed(a) -> dict:
                                   "grad_ms": round(t_grad, 4)}
         out[f"n{nf}_setup_s"] = round(setup, 2)
         out[f"n{nf}_grid"] = grid
-        del np
     return out
 
 

@@ -48,6 +48,10 @@ def test_pattern_matches_the_explicit_sum(combine, which):
     bp = (BeamPattern.from_probe(layout, element_factor=False, **kw) if name == "probe"
           else BeamPattern(layout, fc=3e6, bandwidth=70, **kw))
     assert bp.path == path
+    same = (BeamPattern.from_probe(layout, step=bp.du[1] - bp.du[0], **{**kw, "n_freq": 5}) if name == "probe"
+            else None)
+    if same is not None:
+        assert torch.equal(same.du, bp.du)
     rng = np.random.default_rng(0)
     a, b = rng.random((3, ne)), rng.random((3, ne))
     got = bp.pattern(torch.tensor(a), torch.tensor(b)).numpy()
@@ -234,6 +238,92 @@ def test_bad_input():
         BeamPattern.from_probe(probe, element=(0.1e-3, -1, "soft"))
     with pytest.raises(ParameterError, match="oversample"):
         BeamPattern.from_probe(probe, oversample=100)
+    with pytest.raises(ParameterError, match="step"):
+        BeamPattern.from_probe(probe, step=(0.01, 0.02, 0.03))
     with pytest.raises(ParameterError, match="GLL_dB"):
         BeamPatternScorer(BeamPattern(np.array([[0, 0], [1e-3, 0], [0.3712345e-3, 0.1e-3]]), fc=3e6,
                                       bandwidth=70)).metrics(torch.ones(1, 3), terms=["GLL_dB"])
+
+
+# --------------------------------------------------------------------------
+# the far-field limit of the exact 3-D PSF (benchmarks/beampattern_farfield.py has the full runs)
+# --------------------------------------------------------------------------
+
+def _exact_on(setup, pixels):
+    """MatrixPSF of ``setup`` on the given pixels (H, W, 3) instead of its planes."""
+    from unittest import mock
+
+    import arraysel.physics.volume.psf as psf
+
+    with mock.patch.object(psf, "plane_axes", lambda s: {"xy": torch.as_tensor(pixels, dtype=torch.float64)}):
+        return psf.MatrixPSF(setup, dtype=torch.float64)
+
+
+@pytest.mark.slow
+def test_focused_beam_far_field_is_the_coherent_pattern():
+    """A beam focused at (0, 0, R) in transmit and receive, answering a scatterer moved along u on
+    the sphere of radius R: in the far field, the coherent two-way pattern times the elements'
+    factor squared."""
+    from arraysel.physics.probes import Acquisition
+    from arraysel.physics.volume import MatrixPSFSetup, focused_delays3
+
+    probe = get_probe("MATRIX-32x32", nx=6, ny=6)
+    acq = Acquisition.for_probe(probe)
+    R, lam = 40e-3, acq.c / probe.fc
+    step = lam / (4 * probe.aperture[0])
+    bp = BeamPattern.from_probe(probe, acq, n_freq=128, combine="coherent", sector_deg=(0, 0), region="visible",
+                                step=step, dtype=torch.float64)
+    w = torch.ones(1, 36, dtype=torch.float64)
+    pat = bp.pattern(w)[0, bp.dv.numel() // 2].abs()
+    delays = focused_delays3(probe, 0.0, 0.0, R, acq.c)
+    got, ref = [], []
+    for j in range(bp.du.numel() // 2, bp.du.numel()):
+        u = float(bp.du[j])
+        if u > 0.7:
+            break
+        setup = MatrixPSFSetup(probe, acq, delays, (R * u, 0.0, R * math.sqrt(1 - u * u)), 1e-3, 1e-3, 1e-3, 1e-3,
+                               planes=("xy",))
+        got.append(abs(complex(_exact_on(setup, np.array([[[0.0, 0.0, R]]])).planes(w)["xy"][0, 0, 0])))
+        ef = float(element_factor(torch.tensor(u), torch.tensor(0.0), probe.width, probe.height, probe.baffle, lam))
+        ref.append(float(pat[j]) * ef ** 2)
+    got_db = 20 * np.log10(np.array(got) / got[0])
+    ref_db = 20 * np.log10(np.array(ref) / ref[0])
+    # the main lobe and the first side lobe within 1 dB (0.03 and 0.07 dB at -2.5 and -10 dB, 0.8 dB
+    # at -23 dB); from -30 dB the exact image levels off about 3 to 7 dB above the pattern
+    # (benchmarks/results/beampattern/farfield.txt)
+    assert np.abs(got_db - ref_db)[ref_db > -25].max() < 1.0
+    keep = ref_db > -40
+    assert np.corrcoef(got_db[keep], ref_db[keep])[0, 1] > 0.97
+
+
+@pytest.mark.slow
+def test_diverging_wave_psf_far_field_is_close_to_the_energy_pattern():
+    """A point far from an 8 x 8 probe imaged with 5 x 5 diverging waves over +-30 degrees, its PSF
+    on the sphere through it sampled in (u, v): the energy pattern's dB map and lobe metrics."""
+    from arraysel.objective.lobes import lobe_metrics
+    from arraysel.physics.beampattern import sphere_surface
+    from arraysel.physics.probes import Acquisition
+    from arraysel.physics.volume import MatrixPSFSetup, diverging_delays3, tilt_grid
+
+    probe = get_probe("MATRIX-32x32", nx=8, ny=8)
+    acq = Acquisition.for_probe(probe)
+    R = 40e-3
+    bp = BeamPattern.from_probe(probe, acq, n_freq=16, sector_deg=(0, 0), region="visible",
+                                step=acq.c / probe.fc / (4 * probe.aperture[0]), dtype=torch.float64)
+    keep_u, keep_v = bp.du.abs() <= 0.55, bp.dv.abs() <= 0.55
+    du, dv = bp.du[keep_u], bp.dv[keep_v]
+    tx, ty = tilt_grid(5, 5, 30.0, 30.0)
+    setup = MatrixPSFSetup(probe, acq, diverging_delays3(probe, tx, ty, 0.84 * probe.aperture[0], acq.c),
+                           (0.0, 0.0, R), 1e-3, 1e-3, 1e-3, 1e-3, planes=("xy",))
+    w = torch.ones(1, 64, dtype=torch.float64)
+    psf = _exact_on(setup, sphere_surface(R, du, dv)).planes(w)["xy"][0].abs() ** 2
+    pat = bp.pattern(w)[0][keep_v][:, keep_u]
+    a, b = ((10 * torch.log10(x / x.max())).numpy() for x in (psf, pat))
+    keep = (a > -40) | (b > -40)
+    assert np.corrcoef(np.maximum(a[keep], -40), np.maximum(b[keep], -40))[0, 1] > 0.98      # 0.992 measured
+    coords = {"s": bp.coords[keep_v][:, keep_u]}
+    m_psf = lobe_metrics({"s": psf[None]}, coords, power=True, frame="uv", target=(0, 0, 0))
+    m_pat = lobe_metrics({"s": pat[None]}, coords, power=True, frame="uv", target=(0, 0, 0))
+    assert abs(float(m_psf["PSL_dB"][0] - m_pat["PSL_dB"][0])) < 1.0                         # 0.6 dB
+    assert abs(float(m_psf["ISLR_dB"][0] - m_pat["ISLR_dB"][0])) < 1.0                       # 0.4 dB
+    assert float(m_pat["width_u_6dB"][0]) == pytest.approx(float(m_psf["width_u_6dB"][0]), rel=0.12)

@@ -39,7 +39,7 @@ _NAME = "pattern"
 class BeamPatternScorer:
     """Per-beam lobe metrics of a :class:`BeamPattern` (module docstring).
 
-    ``rule`` (default ``MainLobeRule(n_rays=32, max_radius=...)``, the rays walked first to 8 times
+    ``rule`` (default ``MainLobeRule(n_rays=32, max_radius=...)``, the rays walked first to 4 times
     the lowest band frequency's null spacing ``lambda / D``, further where undecided).
     """
 
@@ -49,7 +49,7 @@ class BeamPatternScorer:
         self.pattern = pattern
         if rule is None:
             d = max(max(pattern.aperture), 1e-12)
-            rule = MainLobeRule(n_rays=32, max_radius=8 * float(pattern.wavelengths.max()) / d)
+            rule = MainLobeRule(n_rays=32, max_radius=4 * float(pattern.wavelengths.max()) / d)
         self.rule = rule
         self._maps: dict = {}
         self._uv = pattern.coords[..., :2].reshape(-1, 2).to(pattern.device)

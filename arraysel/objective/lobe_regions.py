@@ -153,7 +153,7 @@ def surfaces(planes, coords, weights, power: bool, frame: str) -> tuple[list[Sur
     if not isinstance(coords, Mapping):
         raise ParameterError("coords must be a dict {name: array (H, W, 3)}")
     check_choice("frame", frame, FRAMES)
-    out, lead = [], None
+    out, lead, tops = [], None, []
     for name, x in planes.items():
         p = _power(name, x, power)
         if lead is None:
@@ -174,21 +174,16 @@ def surfaces(planes, coords, weights, power: bool, frame: str) -> tuple[list[Sur
             wt = pixel_map(f"weights[{name!r}]", weights[name], (h, w), p.device, p.dtype)
         p = p.reshape((-1, h, w))
         pdet = p.detach()
-        if not bool(torch.isfinite(pdet).all()) or bool((pdet < 0).any()):
+        lo, hi = torch.aminmax(pdet.reshape(pdet.shape[0], -1), dim=1)      # one pass: NaN shows in both
+        if not bool(torch.isfinite(hi).all()) or not bool((lo >= 0).all()):
             raise NumericalError(f"planes[{name!r}] holds NaN, Inf or (power=True) negative values")
         out.append(Surface(name, p, pdet, pos, _steps(name, pos), wt))
-    b = out[0].pdet.shape[0]
-    top = torch.stack([s.pdet.reshape(b, -1).amax(1) for s in out]).amax(0)
+        tops.append(hi)
+    top = torch.stack(tops).amax(0)
     if bool((top <= 0).any()):
         idx = torch.nonzero(top <= 0).flatten().tolist()[:5]
         raise NumericalError(f"the PSF is identically zero at batch index(es) {idx}; its lobe metrics are undefined")
     return out, lead
-
-
-def _amp(p: Tensor, flat_idx: Tensor) -> Tensor:
-    """The amplitude (square root of the power ``p`` (B, H, W)) at flat indices (B, ...)."""
-    b = p.shape[0]
-    return p.reshape(b, -1).gather(1, flat_idx.reshape(b, -1)).reshape(flat_idx.shape).clamp(min=0).sqrt()
 
 
 # --------------------------------------------------------------------------
@@ -266,22 +261,22 @@ def _seeds(surfs: list[Surface], target) -> tuple[dict, dict, list]:
 # rays and the main lobe
 # --------------------------------------------------------------------------
 
-def _bilinear(p: Tensor, fi: Tensor, fj: Tensor) -> Tensor:
+def _window_amp(p: Tensor, fi: Tensor, fj: Tensor) -> Tensor:
     """The amplitude (square root of ``p`` (B, H, W)) interpolated bilinearly at fractional
-    indices ``fi``, ``fj`` (B, ...) (clamped to the grid), float64."""
+    indices ``fi``, ``fj`` (B, K, n) (clamped to the grid), read from the window they reach only."""
     b, h, w = p.shape
-    fi = fi.clamp(0, h - 1)
-    fj = fj.clamp(0, w - 1)
-    i0 = fi.floor().clamp(max=h - 2)
-    j0 = fj.floor().clamp(max=w - 2)
-    ti, tj = fi - i0, fj - j0
-    i0, j0 = i0.long(), j0.long()
-
-    def at(i, j):
-        return _amp(p, i * w + j).double()
-
-    return ((1 - ti) * ((1 - tj) * at(i0, j0) + tj * at(i0, j0 + 1))
-            + ti * ((1 - tj) * at(i0 + 1, j0) + tj * at(i0 + 1, j0 + 1)))
+    i0 = max(0, int(math.floor(float(fi.min()))))
+    i1 = min(h - 1, int(math.ceil(float(fi.max()))))
+    j0 = max(0, int(math.floor(float(fj.min()))))
+    j1 = min(w - 1, int(math.ceil(float(fj.max()))))
+    i1, j1 = max(i1, i0 + 1), max(j1, j0 + 1)
+    win = p[:, i0:i1 + 1, j0:j1 + 1].clamp(min=0).sqrt()
+    gy = (fi.clamp(0, h - 1) - i0) / (i1 - i0) * 2 - 1
+    gx = (fj.clamp(0, w - 1) - j0) / (j1 - j0) * 2 - 1
+    grid = torch.stack([gx, gy], dim=-1).to(win.dtype)
+    out = torch.nn.functional.grid_sample(win[:, None], grid, mode="bilinear", padding_mode="border",
+                                          align_corners=True)
+    return out[:, 0].double()
 
 
 def _contour_radius(a: Tensor, inside: Tensor, db: float, dt: float) -> Tensor:
@@ -323,7 +318,7 @@ def _ray_radii(s: Surface, seed: Tensor, rule: MainLobeRule, limit: float | None
     fj = seed[:, 1, None, None].double() + (t[None, None] * torch.cos(phi)[None, :, None]) / sc
     eps = 1e-9
     inside = (fi >= -eps) & (fi <= h - 1 + eps) & (fj >= -eps) & (fj <= w - 1 + eps)
-    a = _bilinear(s.pdet, fi, fj)                                        # (B, K, n)
+    a = _window_amp(s.pdet, fi, fj)                                      # (B, K, n)
     r_cont = _contour_radius(a, inside, rule.contour_db, dt)
     if rule.method == "contour":
         r = rule.contour_factor * r_cont

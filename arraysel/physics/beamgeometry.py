@@ -215,14 +215,19 @@ def lattice_periods(weights, nx: int, ny: int) -> torch.Tensor:
     w = w.reshape(-1, w.shape[-1]) if w.dim() > 1 else w[None]
     if w.shape[-1] != nx * ny:
         raise SelectionError(f"weights must have {nx * ny} entries (nx * ny), got {w.shape[-1]}")
-    out = np.zeros((w.shape[0], 2), dtype=np.int64)
-    active = (w != 0).cpu().numpy()
-    for b in range(w.shape[0]):
-        e = np.nonzero(active[b])[0]
-        if e.size:
-            ix, iy = e % nx, e // nx
-            out[b] = (np.gcd.reduce(ix - ix.min()), np.gcd.reduce(iy - iy.min()))
-    return torch.as_tensor(out)
+    active = (w != 0).cpu()
+    e = torch.arange(nx * ny)
+    cols = []
+    for idx in (e % nx, e // nx):
+        big = torch.iinfo(torch.int64).max
+        low = torch.where(active, idx[None], torch.full_like(idx[None], big)).amin(1, keepdim=True)
+        d = torch.where(active, idx[None] - low, torch.zeros_like(idx[None]))   # gcd(x, 0) = x
+        while d.shape[1] > 1:                                                   # a tree of gcds
+            if d.shape[1] % 2:
+                d = torch.cat([d, torch.zeros_like(d[:, :1])], 1)
+            d = torch.gcd(d[:, 0::2], d[:, 1::2])
+        cols.append(d[:, 0])
+    return torch.stack(cols, 1)
 
 
 # --------------------------------------------------------------------------

@@ -156,6 +156,9 @@ class BeamPattern:
         :class:`MatrixProbe`), whose two-way factor at ``fc`` weights each beam's view of the
         pattern (the beam view, :func:`steering_weights`); None (default): the pixel view
     n_steer : steerings an axis over which those weights are averaged
+    step : the grid's steps ``(du, dv)`` (or one for both) before rounding to the region's edge;
+        None: the two-way Nyquist steps divided by ``oversample`` (two patterns of the same
+        region and steps share their grid)
     chunk : selections transformed at once (memory ~ chunk * n_freq * pixels)
     dtype, device : torch.float32 or torch.float64; any device
 
@@ -168,7 +171,7 @@ class BeamPattern:
 
     def __init__(self, positions, *, fc: float, bandwidth: float, c: float = 1540.0, tx_cycles: float = 1.0,
                  sector_deg=(30.0, 30.0), region: str = "sector", n_freq: int = 8, oversample: float = 1.0,
-                 combine: str = "energy", element=None, n_steer: int = 33, chunk: int = 16,
+                 combine: str = "energy", element=None, n_steer: int = 33, step=None, chunk: int = 16,
                  dtype=torch.float32, device="cpu"):
         if dtype not in (torch.float32, torch.float64):
             raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
@@ -188,7 +191,7 @@ class BeamPattern:
         if region == "sector" and min(self.sines) <= 0:
             raise ParameterError(f"sector_deg = {sector_deg!r}: region 'sector' needs both angles > 0")
         self.extent = tuple((1.0 + s) if region == "visible" else 2.0 * s for s in self.sines)
-        self.du, self.dv = self._grid(float(self.wavelengths.min()), oversample)
+        self.du, self.dv = self._grid(float(self.wavelengths.min()), oversample, step)
         self.coverage = steering_coverage(self.du, self.dv, *self.sines, region).to(self.device)
         self.element = _check_element(element)
         ef = None
@@ -237,11 +240,17 @@ class BeamPattern:
         self.path = "grid" if lat is not None else "direct"
         self.lattice = lat
 
-    def _grid(self, lam_top: float, oversample: float) -> tuple[torch.Tensor, torch.Tensor]:
-        steps = [lam_top / (2 * d * oversample) if d > 0 else None for d in self.aperture]
-        if steps[0] is None and steps[1] is None:
-            steps = [0.05 / oversample] * 2
-        steps = [s if s is not None else steps[1 - i] for i, s in enumerate(steps)]
+    def _grid(self, lam_top: float, oversample: float, step) -> tuple[torch.Tensor, torch.Tensor]:
+        if step is not None:
+            steps = [step, step] if np.ndim(step) == 0 else list(step)
+            if len(steps) != 2:
+                raise ParameterError(f"step must be one number or (du, dv), got {step!r}")
+            steps = [check_number("step", v, lo=1e-6, hi=2) for v in steps]
+        else:
+            steps = [lam_top / (2 * d * oversample) if d > 0 else None for d in self.aperture]
+            if steps[0] is None and steps[1] is None:
+                steps = [0.05 / oversample] * 2
+            steps = [s if s is not None else steps[1 - i] for i, s in enumerate(steps)]
         axes = []
         for e, s in zip(self.extent, steps):
             m = max(1, int(math.ceil(e / s - 1e-9)))
