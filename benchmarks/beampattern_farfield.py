@@ -185,11 +185,13 @@ def main(argv=None):
                 for comb in ("coherent", "energy"):
                     c = v[comb]
                     print(f"beam scan, {name}, along {cut}, {comb}: {v['directions']} directions, corr of dB "
-                          f"{c['corr_db']:.4f}, |diff| max {c['max_diff_db']:.2f} dB, median {c['median_diff_db']:.3f} dB")
+                          f"{c['corr_db']:.4f}, |diff| max {c['max_diff_db']:.2f} dB, "
+                          f"median {c['median_diff_db']:.3f} dB")
         if "sector" in a.parts:
             for off in (0.0, a.off_axis):
                 out[f"sector {name} {off:g} deg"] = r = sector(a, probe, acq, w, off)
-                print(f"sector PSF, {name}, point at {off:g} deg: PSF " + ", ".join(f"{k} {v:.4g}" for k, v in r["psf"].items()))
+                print(f"sector PSF, {name}, point at {off:g} deg: PSF "
+                      + ", ".join(f"{k} {v:.4g}" for k, v in r["psf"].items()))
                 for comb in ("energy", "coherent"):
                     c = r[comb]
                     print(f"   {comb} pattern: corr of dB {c['corr_db']:.3f}, |diff| max {c['max_diff_db']:.1f} dB, "
