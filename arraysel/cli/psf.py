@@ -14,7 +14,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scene", default="paper", help="scene name or .toml file (default paper)")
     p.add_argument("--elements", default=None, metavar="I,J,...",
                    help="0-based active elements (default: every second element, 0,2,4,...; a matrix probe: "
-                        "every second in x and in y, element iy * nx + ix)")
+                        "every second grid cell in x and in y, element iy * nx + ix without blank rows)")
     p.add_argument("--out", default="psf.npz", help="output .npz (default psf.npz)")
     p.add_argument("--plot", action="store_true", help="also write a PNG (40 dB dynamic range) next to --out")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -42,9 +42,9 @@ def run(args) -> int:
     probe = scene.probe()
     ne = probe.n_elements
     if args.elements is None:
-        if scene.is_volume:  # every second element in x and in y
-            ny, nx = probe.grid_shape
-            elements = [iy * nx + ix for iy in range(0, ny, 2) for ix in range(0, nx, 2)]
+        if scene.is_volume and hasattr(probe, "element_grid"):  # every second grid cell in x and in y
+            ix, iy = probe.element_grid(np.arange(ne))
+            elements = [int(e) for e in np.flatnonzero((ix % 2 == 0) & (iy % 2 == 0))]
         else:
             elements = list(range(0, ne, 2))
     else:

@@ -128,8 +128,9 @@ class MatrixObjective(Objective):
         probe = self.setup.probe
         self.n_elements = probe.n_elements
         self.k = st.k
-        #: the element grid (ny, nx) and centres (Ne, 3) in metres (ObjectiveContract's layout)
-        self.element_grid = tuple(probe.grid_shape)
+        #: the element grid (ny, nx) and centres (Ne, 3) in metres (ObjectiveContract's layout); a grid
+        #: with blank rows or columns, or a planar layout, has no full grid: None, and its positions
+        self.element_grid = probe.layout_grid
         self.element_positions = probe.element_positions()
         self.n_points = 1
         self.points = [self.setup.scatterer]

@@ -20,7 +20,10 @@ MUST's 3-D functions. **Element index = iy * nx + ix** (x fastest): element
 ``e`` sits at ``x = (e % nx - (nx - 1) / 2) pitch_x``,
 ``y = (e // nx - (ny - 1) / 2) pitch_y``. Masks, weights, figures and files of
 a matrix probe use this index everywhere; ``mask.reshape(ny, nx)`` is the
-probe seen from the medium with x to the right and y down the rows.
+probe seen from the medium with x to the right and y down the rows. A grid
+with blank (unconnected) rows or columns numbers its connected cells row by
+row, skipping the blank ones; :class:`PlanarProbe` holds elements at
+arbitrary centres (``arraysel.physics.matrix_probes``, ``docs/matrix.md``).
 
 The catalogue holds the probes of MUST/PyMUST's ``getparam`` (numbers are
 physical facts carried over as literal data) plus a few others. Fields that
@@ -33,11 +36,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
 from arraysel.errors import ParameterError, check_number
+from arraysel.physics.matrix_probes import MatrixProbe, PlanarProbe, probe_from_positions
+from arraysel.physics.probe_fields import (C_MAX, C_MIN, Baffle, check_field_names, check_name,
+                                           check_sound_speed, check_transducer, positive)
 
 #: the planes through a scatterer a matrix probe's 3-D PSF is imaged on, in this order: the
 #: C-plane ``xy`` at the scatterer's depth, then ``xz`` and ``yz`` (``docs/matrix.md``)
@@ -46,6 +52,8 @@ MATRIX_PLANES = ("xy", "xz", "yz")
 __all__ = [
     "Probe",
     "MatrixProbe",
+    "PlanarProbe",
+    "probe_from_positions",
     "MATRIX_CATALOGUE",
     "LINEAR_ONLY_FIELDS",
     "MATRIX_ONLY_FIELDS",
@@ -59,57 +67,6 @@ __all__ = [
     "C_MAX",
     "PROBE_CATALOGUE",
 ]
-
-#: Range accepted for the speed of sound (m/s): air-like to very stiff solids.
-C_MIN = 300.0
-C_MAX = 10000.0
-
-Baffle = Union[str, float]
-
-
-def check_sound_speed(c: Any, name: str = "c") -> float:
-    """Return the speed of sound ``c`` (m/s) as a float after checking it lies in [C_MIN, C_MAX]."""
-    return check_number(name, c, lo=C_MIN, hi=C_MAX)
-
-
-def _positive(name: str, value: Any, *, allow_inf: bool = False) -> float:
-    """A strictly positive number, finite unless ``allow_inf``."""
-    v = check_number(name, value, lo=0.0, lo_open=True)
-    if math.isinf(v) and not allow_inf:
-        raise ParameterError(f"{name} = {value!r} must be finite; allowed: (0, inf)")
-    return v
-
-
-def _check_baffle(value: Any) -> Baffle:
-    if isinstance(value, str):
-        key = value.strip().lower()
-        if key in ("soft", "rigid"):
-            return key
-        raise ParameterError(
-            f"baffle = {value!r} is not allowed; use 'soft', 'rigid' or a positive number "
-            "(ratio of the medium impedance to the baffle impedance)")
-    try:
-        v = check_number("baffle", value, lo=0.0, lo_open=True)
-    except ParameterError as exc:
-        raise ParameterError(
-            f"{exc}; baffle must be 'soft', 'rigid' or a positive finite number") from None
-    if math.isinf(v):
-        raise ParameterError(f"baffle = {value!r} must be 'soft', 'rigid' or a positive finite number")
-    return v
-
-
-def _check_name(name: Any) -> None:
-    """A probe's name: a non-empty string."""
-    if not isinstance(name, str) or not name.strip():
-        raise ParameterError(f"name = {name!r} must be a non-empty string")
-
-
-def _check_transducer(probe, set_) -> None:
-    """Check and set the fields every probe kind shares: ``fc``, ``bandwidth`` and ``baffle``."""
-    set_("fc", _positive("fc", probe.fc))
-    set_("bandwidth", check_number("bandwidth", probe.bandwidth, lo=0.0, hi=200.0,
-                                   lo_open=True, hi_open=True))
-    set_("baffle", _check_baffle(probe.baffle))
 
 
 @dataclass(frozen=True)
@@ -146,19 +103,19 @@ class Probe:
 
     def __post_init__(self) -> None:
         set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
-        _check_name(self.name)
+        check_name(self.name)
         set_("n_elements", check_number("n_elements", self.n_elements, lo=1, hi=None, integer=True))
-        pitch = _positive("pitch", self.pitch)
+        pitch = positive("pitch", self.pitch)
         set_("pitch", pitch)
-        width = _positive("width", self.width)
+        width = positive("width", self.width)
         if width > pitch:
             raise ParameterError(
                 f"width = {self.width!r} is out of range; allowed: (0, pitch] = (0, {pitch!r}] "
                 "(the element cannot be wider than the pitch)")
         set_("width", width)
-        set_("height", _positive("height", self.height, allow_inf=True))
-        set_("elevation_focus", _positive("elevation_focus", self.elevation_focus, allow_inf=True))
-        radius = _positive("radius", self.radius, allow_inf=True)
+        set_("height", positive("height", self.height, allow_inf=True))
+        set_("elevation_focus", positive("elevation_focus", self.elevation_focus, allow_inf=True))
+        radius = positive("radius", self.radius, allow_inf=True)
         set_("radius", radius)
         if not math.isinf(radius):
             half_step_sine = pitch / (2.0 * radius)
@@ -172,7 +129,7 @@ class Probe:
                     f"radius = {self.radius!r} is too small for n_elements = {self.n_elements} and "
                     f"pitch = {pitch!r}: the arc would span {total!r} rad; a convex array needs "
                     f"(n_elements - 1) * 2 asin(pitch / (2 radius)) < pi")
-        _check_transducer(self, set_)
+        check_transducer(self, set_)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -246,132 +203,6 @@ class Probe:
         }
 
 
-
-
-@dataclass(frozen=True)
-class MatrixProbe:
-    """Geometry and pulse band of a planar matrix (2-D) array of rectangular elements.
-
-    Element ``e = iy * nx + ix`` (x fastest) is centred at
-    ``((ix - (nx - 1) / 2) pitch_x, (iy - (ny - 1) / 2) pitch_y, 0)``; see the module docstring.
-
-    Attributes:
-        name: label of the probe.
-        nx, ny: elements along x and along y (integers >= 1).
-        pitch_x, pitch_y: centre-to-centre distances along x and y (m, > 0).
-        width: element size along x (m, 0 < width <= pitch_x).
-        height: element size along y (m, 0 < height <= pitch_y).
-        fc: centre frequency (Hz, > 0).
-        bandwidth: pulse-echo -6 dB fractional bandwidth (%, in (0, 200)).
-        baffle: 'soft', 'rigid' or a positive impedance ratio, as for :class:`Probe`.
-    """
-
-    name: str
-    nx: int
-    ny: int
-    pitch_x: float
-    pitch_y: float
-    width: float
-    height: float
-    fc: float
-    bandwidth: float = 75.0
-    baffle: Baffle = "soft"
-
-    def __post_init__(self) -> None:
-        set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
-        _check_name(self.name)
-        set_("nx", check_number("nx", self.nx, lo=1, hi=4096, integer=True))
-        set_("ny", check_number("ny", self.ny, lo=1, hi=4096, integer=True))
-        for pitch, size in (("pitch_x", "width"), ("pitch_y", "height")):
-            p = _positive(pitch, getattr(self, pitch))
-            set_(pitch, p)
-            v = _positive(size, getattr(self, size))
-            if v > p:
-                raise ParameterError(
-                    f"{size} = {getattr(self, size)!r} is out of range; allowed: (0, {pitch}] = (0, {p!r}] "
-                    "(an element cannot be larger than the pitch)")
-            set_(size, v)
-        _check_transducer(self, set_)
-
-    # ------------------------------------------------------------------ derived
-    @property
-    def n_elements(self) -> int:
-        """Number of elements Ne = nx * ny."""
-        return self.nx * self.ny
-
-    @property
-    def grid_shape(self) -> tuple[int, int]:
-        """``(ny, nx)``: the shape a (Ne,) mask takes with ``reshape`` (rows along y)."""
-        return self.ny, self.nx
-
-    @property
-    def is_matrix(self) -> bool:
-        """True: a 2-D array."""
-        return True
-
-    @property
-    def aperture(self) -> tuple[float, float]:
-        """Distances between the outermost element centres along x and along y (m)."""
-        return (self.nx - 1) * self.pitch_x, (self.ny - 1) * self.pitch_y
-
-    def wavelength(self, c: float = 1540.0) -> float:
-        """Wavelength c / fc at the centre frequency (m)."""
-        return check_sound_speed(c) / self.fc
-
-    def element_index(self, ix: Any, iy: Any) -> np.ndarray:
-        """Element index ``iy * nx + ix`` of grid column ``ix`` and row ``iy`` (checked)."""
-        ix = np.asarray(ix)
-        iy = np.asarray(iy)
-        for name, v, n in (("ix", ix, self.nx), ("iy", iy, self.ny)):
-            if v.size and (not np.issubdtype(v.dtype, np.integer) or v.min() < 0 or v.max() >= n):
-                raise ParameterError(f"{name} must be integers in [0, {n - 1}], got {v!r}")
-        return iy * self.nx + ix
-
-    def element_grid(self, index: Any) -> tuple[np.ndarray, np.ndarray]:
-        """``(ix, iy)`` of element indices (checked against ``[0, Ne - 1]``)."""
-        e = np.asarray(index)
-        if e.size and (not np.issubdtype(e.dtype, np.integer) or e.min() < 0 or e.max() >= self.n_elements):
-            raise ParameterError(f"elements: an element index must be an integer in [0, {self.n_elements - 1}] "
-                                 f"(nx * ny - 1 = {self.nx} * {self.ny} - 1), got {e!r}")
-        return e % self.nx, e // self.nx
-
-    def mask(self, indices: Any) -> np.ndarray:
-        """0/1 float64 mask (Ne,) with ones at the element ``indices`` (``iy * nx + ix``), checked:
-        integers in ``[0, nx * ny - 1]``, no repeats, at most Ne of them."""
-        idx = np.asarray(indices).reshape(-1)
-        if idx.size > self.n_elements:
-            raise ParameterError(f"k = {idx.size} elements is out of range for probe {self.name!r}; allowed: "
-                                 f"[1, {self.n_elements}] (nx * ny = {self.nx} * {self.ny})")
-        self.element_grid(idx)
-        if np.unique(idx).size != idx.size:
-            raise ParameterError(f"elements repeat an index: {sorted(idx.tolist())[:8]}")
-        m = np.zeros(self.n_elements, dtype=np.float64)
-        m[idx] = 1.0
-        return m
-
-    def element_positions(self) -> np.ndarray:
-        """Element centres, float64 (Ne, 3) in metres: columns x, y, z (z = 0), row ``iy * nx + ix``."""
-        x = (np.arange(self.nx, dtype=np.float64) - (self.nx - 1) / 2.0) * self.pitch_x
-        y = (np.arange(self.ny, dtype=np.float64) - (self.ny - 1) / 2.0) * self.pitch_y
-        X, Y = np.meshgrid(x, y)  # (ny, nx): row iy, column ix
-        return np.stack([X.ravel(), Y.ravel(), np.zeros(self.n_elements)], axis=1)
-
-    # ------------------------------------------------------------------ copies
-    def replace(self, **changes: Any) -> "MatrixProbe":
-        """A validated copy with some fields changed; unknown names raise :class:`ParameterError`."""
-        _check_field_names(changes, _MATRIX_FIELD_NAMES)
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    def to_must_dict(self) -> dict[str, Any]:
-        """The geometry under the PARAM field names of MUST's 3-D functions (``elements`` 2 x Ne)."""
-        pos = self.element_positions()
-        return {"elements": pos[:, :2].T.copy(), "Nelements": self.n_elements, "width": self.width,
-                "height": self.height, "fc": self.fc, "bandwidth": self.bandwidth, "baffle": self.baffle}
-
-
 _FIELD_NAMES = tuple(f.name for f in dataclasses.fields(Probe))
 _MATRIX_FIELD_NAMES = tuple(f.name for f in dataclasses.fields(MatrixProbe))
 #: fields of one kind of probe only (a scene refuses them for the other kind, naming the key)
@@ -380,11 +211,7 @@ MATRIX_ONLY_FIELDS = tuple(f for f in _MATRIX_FIELD_NAMES if f not in _FIELD_NAM
 
 
 def _check_field_names(changes: dict[str, Any], names: tuple = _FIELD_NAMES) -> None:
-    unknown = [k for k in changes if k not in names]
-    if unknown:
-        raise ParameterError(
-            f"unknown probe field(s) {', '.join(map(repr, unknown))}; "
-            f"allowed: {', '.join(names)}")
+    check_field_names(changes, names)
 
 
 # ---------------------------------------------------------------------- catalogue
@@ -430,10 +257,15 @@ PROBE_CATALOGUE: dict[str, dict[str, Any]] = {
 #: 3-D examples (``txdelay3``, ``pfield3``, ``simus3``): 300 um pitch, 250 um square elements,
 #: 70 % bandwidth (PyMUST's ``getparam`` has no matrix probe; these are the numbers of its
 #: examples). Its pulse-echo spectrum (1-cycle pulse times the squared response) peaks near
-#: 2.7 MHz.
+#: 2.7 MHz. ``MATRIX-32x35``: the same elements on a 32 x 35 grid whose rows 8, 17 and 26 are
+#: blank (a row left unconnected after every 8 rows): 1024 connected elements in four banks of
+#: 8 rows x 32 columns, the layout of 1024-element matrix probes wired in four 256-element banks
+#: (``docs/matrix.md``).
 MATRIX_CATALOGUE: dict[str, dict[str, Any]] = {
     "MATRIX-32x32": dict(nx=32, ny=32, pitch_x=0.300e-3, pitch_y=0.300e-3, width=0.250e-3,
                          height=0.250e-3, fc=3e6, bandwidth=70.0),
+    "MATRIX-32x35": dict(nx=32, ny=35, pitch_x=0.300e-3, pitch_y=0.300e-3, width=0.250e-3,
+                         height=0.250e-3, fc=3e6, bandwidth=70.0, blank_rows=(8, 17, 26)),
 }
 
 _LOOKUP = {name.lower(): name for name in PROBE_CATALOGUE}
@@ -489,18 +321,19 @@ class Acquisition:
 
     def __post_init__(self) -> None:
         set_ = lambda field, value: object.__setattr__(self, field, value)  # noqa: E731
-        set_("fs", _positive("fs", self.fs))
+        set_("fs", positive("fs", self.fs))
         set_("c", check_sound_speed(self.c))
         att = check_number("attenuation", self.attenuation, lo=0.0)
         if math.isinf(att):
             raise ParameterError(f"attenuation = {self.attenuation!r} must be finite; allowed: [0, inf)")
         set_("attenuation", att)
-        set_("tx_cycles", _positive("tx_cycles", self.tx_cycles))
+        set_("tx_cycles", positive("tx_cycles", self.tx_cycles))
 
     @classmethod
-    def for_probe(cls, probe: "Probe | MatrixProbe", fs: float | None = None, **kw: Any) -> "Acquisition":
+    def for_probe(cls, probe: "Probe | MatrixProbe | PlanarProbe", fs: float | None = None,
+                  **kw: Any) -> "Acquisition":
         """Settings for ``probe``: ``fs`` defaults to 4 * probe.fc; ``kw`` sets the other fields."""
-        if not isinstance(probe, (Probe, MatrixProbe)):
+        if not isinstance(probe, (Probe, MatrixProbe, PlanarProbe)):
             raise ParameterError(f"probe must be a Probe, got {type(probe).__name__}")
         allowed = ("c", "attenuation", "tx_cycles")
         unknown = [k for k in kw if k not in allowed]

@@ -24,14 +24,14 @@ import numpy as np
 
 from arraysel.errors import ParameterError, check_number
 from arraysel.physics.delays import _broadcast, _rows_from_zero, _speed, _vector
-from arraysel.physics.probes import Acquisition, MatrixProbe
+from arraysel.physics.probes import Acquisition, MatrixProbe, PlanarProbe
 
 __all__ = ["plane_wave_delays3", "focused_delays3", "virtual_sources3", "diverging_delays3", "tilt_grid"]
 
 
 def _check_matrix(probe: Any) -> MatrixProbe:
-    if not isinstance(probe, MatrixProbe):
-        raise ParameterError(f"probe must be an arraysel.physics.probes.MatrixProbe (a matrix probe), "
+    if not isinstance(probe, (MatrixProbe, PlanarProbe)):
+        raise ParameterError(f"probe must be an arraysel.physics.probes.MatrixProbe or PlanarProbe (a 2-D array), "
                              f"got {type(probe).__name__}")
     return probe
 

@@ -30,7 +30,7 @@ import torch
 
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.physics.beamform import das_apply
-from arraysel.physics.probes import MATRIX_PLANES, Acquisition, MatrixProbe, check_sampling
+from arraysel.physics.probes import MATRIX_PLANES, Acquisition, MatrixProbe, PlanarProbe, check_sampling
 from arraysel.physics.psf.operator import normalised_transmits
 from arraysel.physics.psf.window import scale_complex
 from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
@@ -106,8 +106,8 @@ class MatrixPSFSetup:
     options: SimOptions = field(default_factory=SimOptions)
 
     def __post_init__(self):
-        if not isinstance(self.probe, MatrixProbe):
-            raise ParameterError(f"probe must be a MatrixProbe (a 3-D PSF needs a matrix probe), got "
+        if not isinstance(self.probe, (MatrixProbe, PlanarProbe)):
+            raise ParameterError(f"probe must be a MatrixProbe or a PlanarProbe (a 3-D PSF needs a 2-D array), got "
                                  f"{type(self.probe).__name__}")
         check_sampling(self.probe, self.acq)
         d = np.asarray(self.delays, dtype=np.float64)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError
-from arraysel.physics.probes import Acquisition, MatrixProbe
+from arraysel.physics.probes import Acquisition, MatrixProbe, PlanarProbe
 from arraysel.physics.simus import (NEPER_PER_DB, FrequencyGrid, SimOptions, _as_tensor, frequency_grid,
                                     probe_response, pulse_spectrum, sinc, spectra_to_rf)
 
@@ -145,8 +145,8 @@ def simulate_rf3(points, rc, delays, probe: MatrixProbe, acq: Acquisition, tx_ap
     tx_apod, rx_apod: (..., Ne) weights (default ones), differentiable.
     Returns ``(rf, grid)``: rf (..., n_time, Ne) sampled at ``acq.fs`` (time first, like MUST).
     """
-    if not isinstance(probe, MatrixProbe):
-        raise ParameterError(f"probe must be a MatrixProbe, got {type(probe).__name__}")
+    if not isinstance(probe, (MatrixProbe, PlanarProbe)):
+        raise ParameterError(f"probe must be a MatrixProbe or a PlanarProbe, got {type(probe).__name__}")
     pts = _points(points, dtype, device)
     rc = _as_tensor(rc, dtype, device).reshape(-1)
     if rc.numel() != pts.shape[0]:
