@@ -83,8 +83,10 @@ API_PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
     ),
     "report": (
         "Reports: tables and figures",
-        "The columns of the result tables, the tables and IOHprofiler export, and every figure.",
-        ("arraysel.report.columns", "arraysel.report.tables", "arraysel.report.plots"),
+        "The columns of the result tables, the tables and IOHprofiler export, every figure, and a "
+        "selection exported for a scanner (with the probe files it is read back from).",
+        ("arraysel.report.columns", "arraysel.report.tables", "arraysel.report.plots", "arraysel.report.export",
+         "arraysel.physics.probe_files"),
     ),
 }
 
@@ -169,10 +171,10 @@ def _allowed(key) -> str:
         return "true, false"
     if kind == "str":
         return "any" if cons is None else ", ".join(f'"{c}"' for c in cons)
-    if kind in ("int", "points"):
+    if kind in ("int", "points", "ints"):
         lo, hi = cons
         text = f"{_fmt(lo)} … {_fmt(hi)}"
-        return f"{text} points" if kind == "points" else text
+        return {"points": f"{text} points", "ints": f"a list of {text}"}.get(kind, text)
     lo, hi, lo_open = cons
     text = f"{'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}{')' if hi == float('inf') else ']'}"
     if kind == "length":

@@ -7,7 +7,7 @@ import numpy as np
 
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.layouts import uniform_layout
+from arraysel.selectors.layouts import is_planar, planar_uniform_layout, uniform_layout
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.starts import random_subsets
 
@@ -17,7 +17,10 @@ class UniformSelector(Selector):
 
     On a 1-D array ``floor(i Ne / k)``, i = 0..k-1 (every second one for k = Ne/2); on a matrix
     array (``objective.element_grid``) the same rule in both directions on a sub-grid of about
-    ``k`` elements, made exactly ``k`` by the fewest documented changes.
+    ``k`` elements, made exactly ``k`` by the fewest documented changes; on a matrix array known
+    by its element centres only (a grid with blank rows, an imported layout) the same on the grid
+    the centres lie on, or the farthest-point spread of an irregular layout
+    (:func:`arraysel.selectors.layouts.planar_uniform_layout`).
     """
 
     name = "uniform"
@@ -27,8 +30,11 @@ class UniformSelector(Selector):
 
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
-        grid, _ = element_layout(objective)
-        chosen = uniform_layout(n, k, grid)
+        grid, positions = element_layout(objective)
+        if grid is None and is_planar(positions):  # a grid with blank rows, an imported layout
+            chosen = planar_uniform_layout(positions, k)
+        else:
+            chosen = uniform_layout(n, k, grid)
         objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
         return chosen
 

@@ -1,6 +1,7 @@
 """The ``spiral`` baseline: a density-tapered Fermat spiral snapped to the array's elements.
 
-On a matrix array (``objective.element_grid`` set) the ``k`` points of a sunflower spiral (golden
+On a matrix array (``objective.element_grid`` set, or element centres spanning x and y: a grid
+with blank rows, an imported layout) the ``k`` points of a sunflower spiral (golden
 angle 137.508 degrees) whose density follows a radial taper are scaled to the aperture and each
 takes the nearest free element (:func:`arraysel.selectors.layouts.fermat_spiral_layout`, on the
 element centres when the objective gives them). On a 1-D array it takes the 1-D analogue, ``k``
@@ -14,7 +15,7 @@ import numpy as np
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.contract import Option, Selector
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.layouts import TAPERS, fermat_spiral_layout, tapered_line_layout
+from arraysel.selectors.layouts import TAPERS, fermat_spiral_layout, is_planar, tapered_line_layout
 
 
 class SpiralSelector(Selector):
@@ -34,7 +35,7 @@ class SpiralSelector(Selector):
         n = int(objective.n_elements)
         grid, positions = element_layout(objective)
         taper = self.options["taper"]
-        if grid is None:
+        if grid is None and not is_planar(positions):
             chosen = tapered_line_layout(n, k, taper)
         else:
             layout = positions if positions is not None else grid

@@ -146,9 +146,16 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
 
 def _masks_figure(objective, selections: dict[str, Selection], out: Path) -> None:
     grid = getattr(objective, "element_grid", None)
+    positions = getattr(objective, "element_positions", None)
+    kept = [config for config, sel in selections.items() if len(sel)]
     if grid is not None:  # a matrix probe: each selection as its ny x nx image
-        kept = [config for config, sel in selections.items() if len(sel)]
         plots.save_figure(plots.matrix_masks_figure(kept, np.array([selections[c].mask for c in kept]), grid),
+                          out / "masks.png")
+    elif positions is not None and np.ptp(np.asarray(positions)[:, 1]) > 0 and kept:
+        # a 2-D array without a full grid (blank rows, an imported layout): drawn at its element positions
+        from arraysel.report.layout_plots import layout_masks_figure
+
+        plots.save_figure(layout_masks_figure(kept, np.array([selections[c].mask for c in kept]), positions),
                           out / "masks.png")
     else:
         plots.save_figure(plots.selections_figure(selections), out / "masks.png")

@@ -18,9 +18,9 @@ class Key:
     """One scene key: its kind, constraints, default and meaning.
 
     kind: ``float``, ``int``, ``bool``, ``str``, ``length`` (a number in
-    ``unit`` or a string with one of ``units``) or ``points`` (a list of
-    ``[x, z]`` lengths). cons: for numbers ``(lo, hi, lo_open)`` (ints:
-    ``(lo, hi)``), in ``unit`` for lengths; for strings the allowed choices
+    ``unit`` or a string with one of ``units``), ``points`` (a list of
+    ``[x, z]`` lengths) or ``ints`` (a list of integers). cons: for numbers
+    ``(lo, hi, lo_open)`` (ints and lists of ints: ``(lo, hi)``), in ``unit`` for lengths; for strings the allowed choices
     (None: any). default: the value used when no scene sets the key (None:
     none, or derived as ``help`` says).
     """
@@ -55,6 +55,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "fc": Key("float", (1e3, 1e9, False), None, "centre frequency, Hz (default: the probe's)"),
         "bandwidth": Key("float", (0, 200, True), None, "pulse-echo bandwidth, % (default: the probe's)"),
         "baffle": Key("str", ("soft", "rigid"), None, "baffle (default: the probe's)"),
+        "blank_rows": Key("ints", (0, 4095), None, "grid rows without elements, e.g. [8, 17, 26] (matrix "
+                          "probes; default: the probe's)"),
+        "blank_columns": Key("ints", (0, 4095), None, "grid columns without elements (matrix probes; default: "
+                             "the probe's)"),
+        "file": Key("str", None, None, "a probe file instead of a catalogue probe: element positions (.csv, "
+                    ".npy, .npz) or a MUST parameter set (.mat, .npz), relative to the scene file; the other "
+                    "[probe] keys fill in or replace its fields (docs/matrix.md)"),
     },
     "acquisition": {
         "fs": Key("float", (1e3, 1e10, False), None, "sampling frequency, Hz (default: fs_over_fc * fc)"),

@@ -56,6 +56,12 @@ def _read_file(path: str) -> dict:
         raise ParameterError(f"scene file {path!r} is not valid TOML: {exc}") from None
     except OSError as exc:
         raise ParameterError(f"scene file {path!r} cannot be read ({exc.strerror or exc})") from None
+    probe = tree.get("probe")
+    if isinstance(probe, dict) and isinstance(probe.get("file"), str) and probe["file"].strip():
+        # a relative probe file, like a relative base, names a file next to this one
+        where = os.path.expanduser(probe["file"].strip())
+        if not os.path.isabs(where):
+            probe["file"] = os.path.join(os.path.dirname(os.path.abspath(path)), where)
     base = tree.get("base")
     if isinstance(base, str) and base.endswith(".toml") and not os.path.isabs(os.path.expanduser(base)):
         # a relative base names a file next to this one, not in the working directory

@@ -27,6 +27,16 @@ class SceneSetups:
         from arraysel.physics.probes import MATRIX_ONLY_FIELDS, LINEAR_ONLY_FIELDS, get_probe
 
         p = self.section("probe")
+        if p.get("file"):  # a probe file: its geometry, the other keys fill in or replace its fields
+            from arraysel.physics.probe_files import PROBE_FIELDS, load_probe
+
+            path = p.pop("file")
+            wrong = [k for k in p if k not in PROBE_FIELDS]
+            if wrong:
+                raise ParameterError(f"probe.{wrong[0]} cannot be set with probe.file (the geometry comes from "
+                                     f"the file); allowed with it: {', '.join(PROBE_FIELDS)}")
+            return load_probe(path, **p)
+        p.pop("file", None)
         name = p.pop("name", SCHEMA["probe"]["name"].default)
         matrix = get_probe(name).is_matrix
         wrong = [k for k in p if k in (LINEAR_ONLY_FIELDS if matrix else MATRIX_ONLY_FIELDS)]

@@ -74,6 +74,11 @@ def _check_value(key: str, value: Any, spec: Key) -> Any:
         return check_number(key, value, lo=lo, hi=hi, lo_open=lo_open)
     if kind == "length":
         return _check_length(key, value, spec)
+    if kind == "ints":
+        lo, hi = cons
+        if not isinstance(value, list):
+            raise ParameterError(f"{key} must be a list of integers in [{lo}, {hi}], got {value!r}")
+        return [check_number(f"{key}[{i}]", v, lo=lo, hi=hi, integer=True) for i, v in enumerate(value)]
     if kind == "points":
         lo, hi = cons
         if not isinstance(value, list) or not lo <= len(value) <= hi:

@@ -6,7 +6,8 @@ One home for the layouts the deterministic baselines use (``uniform`` and ``spir
 Conventions (``docs/selectors.md``, "Layouts"):
 
 * a 1-D array is indexed ``0 .. Ne - 1`` along the array;
-* a matrix array is a grid ``(ny, nx)`` with element index ``iy * nx + ix``;
+* a matrix array is a grid ``(ny, nx)`` with element index ``iy * nx + ix``; a grid with holes
+  (blank rows) or an irregular layout is known by its element centres (``positions``);
   ``positions`` (when given) are the elements' centres, an ``(Ne, 2)`` or ``(Ne, 3)`` array in
   metres in that order (only x and y are used).
 """
@@ -20,7 +21,8 @@ import numpy as np
 from arraysel.errors import ParameterError, check_choice, check_number
 from arraysel.objective.contract import check_element_grid
 
-__all__ = ["GOLDEN_ANGLE_DEG", "TAPERS", "uniform_layout", "uniform_subgrid", "taper_density",
+__all__ = ["GOLDEN_ANGLE_DEG", "TAPERS", "uniform_layout", "uniform_subgrid", "taper_density", "grid_of_positions",
+           "spread_layout", "planar_uniform_layout", "is_planar",
            "fermat_spiral_points", "fermat_spiral_layout", "tapered_line_layout", "snap_to_elements",
            "CHIRP_PERIODS", "chirped_layouts"]
 
@@ -70,7 +72,7 @@ def _even(n: int, m: int) -> np.ndarray:
     return (np.arange(m) * n) // m
 
 
-def uniform_layout(n_elements: int, k: int, grid=None) -> list[int]:
+def uniform_layout(n_elements: int, k: int, grid=None, cells=None) -> list[int]:
     """``k`` evenly spaced elements.
 
     1-D (``grid`` None): ``floor(i Ne / k)``, ``i = 0 .. k-1`` (every second element for
@@ -85,20 +87,26 @@ def uniform_layout(n_elements: int, k: int, grid=None) -> list[int]:
     * too few: add, one at a time, the free element farthest from every active element (it fills
       the largest gap; on ties the one nearest the grid's centre, then the smallest index).
 
+    A grid with holes (blank rows, missing elements): ``cells`` gives the grid cell
+    ``iy * nx + ix`` of each element (Ne distinct cells, ``Ne <= ny nx``); the sub-grid's cells
+    that hold no element are dropped, then the same fewest changes among the elements.
+
     A ``(1, Ne)`` grid gives the 1-D layout.
     """
     n = int(check_number("n_elements", n_elements, lo=1, integer=True))
     k = _check_k(k, n)
     if grid is None:
         return [int(i) for i in _even(n, k)]
-    ny, nx = check_element_grid(grid, n)
+    ny, nx = check_element_grid(grid, n if cells is None else None)
+    cells = np.arange(n) if cells is None else _check_cells(cells, n, ny * nx)
     ky, kx = uniform_subgrid((ny, nx), k)
     iy, ix = _even(ny, ky), _even(nx, kx)
     active = np.zeros((ny, nx), dtype=bool)
     active[np.ix_(iy, ix)] = True
     yy, xx = np.meshgrid(np.arange(ny, dtype=float), np.arange(nx, dtype=float), indexing="ij")
-    centre2 = ((yy - (ny - 1) / 2) ** 2 + (xx - (nx - 1) / 2) ** 2).ravel()
-    flat = active.ravel()
+    yy, xx = yy.ravel()[cells], xx.ravel()[cells]
+    centre2 = (yy - (ny - 1) / 2) ** 2 + (xx - (nx - 1) / 2) ** 2
+    flat = active.ravel()[cells]
     order = np.arange(n)
     while flat.sum() > k:
         cand = np.flatnonzero(flat)
@@ -108,11 +116,85 @@ def uniform_layout(n_elements: int, k: int, grid=None) -> list[int]:
     while flat.sum() < k:
         act = np.flatnonzero(flat)
         free = np.flatnonzero(~flat)
-        d2 = ((yy.ravel()[free, None] - yy.ravel()[None, act]) ** 2
-              + (xx.ravel()[free, None] - xx.ravel()[None, act]) ** 2).min(axis=1)
+        if act.size:
+            d2 = ((yy[free, None] - yy[None, act]) ** 2 + (xx[free, None] - xx[None, act]) ** 2).min(axis=1)
+        else:
+            d2 = np.zeros(free.size)
         i = free[np.lexsort((order[free], centre2[free], -d2))[0]]
         flat[i] = True
     return [int(i) for i in np.flatnonzero(flat)]
+
+
+def _check_cells(cells, n: int, n_cells: int) -> np.ndarray:
+    c = np.asarray(cells)
+    if (c.shape != (n,) or not np.issubdtype(c.dtype, np.integer) or c.min() < 0 or c.max() >= n_cells
+            or np.unique(c).size != n):
+        raise ParameterError(f"cells must be {n} distinct grid cells in [0, {n_cells - 1}] (one per element)")
+    return c
+
+
+def grid_of_positions(positions) -> tuple[tuple[int, int], np.ndarray] | None:
+    """``((ny, nx), cells)`` when the element centres ``positions`` ``(Ne, 2|3)`` lie on a regular
+    grid (steps: the smallest distance between distinct x and between distinct y; cell
+    ``iy * nx + ix`` from the lowest x and y), with or without holes; None otherwise (an irregular
+    layout, or a grid of more than 4096 cells along an axis)."""
+    pos = _positions_xy(positions)
+    index = []
+    for v in (pos[:, 1], pos[:, 0]):
+        u = np.unique(v)
+        tol = 1e-9 * max(1.0, float(np.abs(u).max()))
+        u = u[np.concatenate([[True], np.diff(u) > tol])]
+        step = float(np.min(np.diff(u))) if len(u) > 1 else 1.0
+        i = np.round((v - u[0]) / step)
+        if np.abs(i * step + u[0] - v).max() > 1e-6 * step or i.max() >= 4096:
+            return None
+        index.append(i.astype(np.int64))
+    (iy, ix), shape = index, (int(index[0].max()) + 1, int(index[1].max()) + 1)
+    cells = iy * shape[1] + ix
+    return (shape, cells) if np.unique(cells).size == len(cells) else None
+
+
+def spread_layout(positions, k: int) -> list[int]:
+    """``k`` elements spread evenly over an irregular planar layout (farthest-point order): the
+    element nearest the centre of the centres' bounding box first, then, one at a time, the
+    element farthest from every chosen one (the smallest index on ties). Sorted."""
+    pos = _positions_xy(positions)
+    k = _check_k(k, len(pos))
+    centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
+    d2 = ((pos - centre) ** 2).sum(axis=1)
+    chosen = [int(np.argmin(d2))]
+    near = ((pos - pos[chosen[0]]) ** 2).sum(axis=1)
+    while len(chosen) < k:
+        i = int(np.argmax(near))      # first maximum: the smallest index on ties
+        chosen.append(i)
+        near = np.minimum(near, ((pos - pos[i]) ** 2).sum(axis=1))
+    return sorted(chosen)
+
+
+def planar_uniform_layout(positions, k: int) -> list[int]:
+    """``uniform`` on a matrix array known by its element centres only (a grid with blank rows, an
+    imported layout): on the grid they lie on (:func:`grid_of_positions`), :func:`uniform_layout`
+    on its rows and columns that hold elements when the missing cells form whole rows or columns
+    (blank rows squeezed out: the rule of a full grid on the connected rows), else on the grid
+    with its holes; :func:`spread_layout` on an irregular layout."""
+    pos = _positions_xy(positions)
+    found = grid_of_positions(pos)
+    if found is None:
+        return spread_layout(pos, k)
+    (ny, nx), cells = found
+    rows, iy = np.unique(cells // nx, return_inverse=True)
+    cols, ix = np.unique(cells % nx, return_inverse=True)
+    if len(rows) * len(cols) == len(cells):  # whole rows or columns missing: squeeze them out
+        return uniform_layout(len(pos), k, (len(rows), len(cols)), iy.reshape(-1) * len(cols) + ix.reshape(-1))
+    return uniform_layout(len(pos), k, (ny, nx), cells)
+
+
+def is_planar(positions) -> bool:
+    """Whether element centres ``(Ne, 2|3)`` span both x and y (a matrix array, not a line)."""
+    if positions is None:
+        return False
+    pos = _positions_xy(positions)
+    return bool(np.ptp(pos[:, 0]) > 0 and np.ptp(pos[:, 1]) > 0)
 
 
 # --------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from arraysel.errors import ParameterError, check_number
 from arraysel.io.masks import parse_elements
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.contract import BudgetExhausted, Option
-from arraysel.selectors.layouts import chirped_layouts, uniform_layout
+from arraysel.selectors.layouts import chirped_layouts, is_planar, planar_uniform_layout, uniform_layout
 
 __all__ = ["START_CHOICES", "GREEDY_START_SHARE", "CHIRP_CANDIDATES", "random_subsets", "random_mask", "chirp_masks",
            "greedy_selection", "start_selection",
@@ -221,7 +221,9 @@ def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str 
     if elements is not None:
         how = "elements"
     if how == "uniform":
-        grid, _ = element_layout(objective)
+        grid, positions = element_layout(objective)
+        if 0 < k and grid is None and is_planar(positions):  # a grid with blank rows, an imported layout
+            return planar_uniform_layout(positions, k)
         return uniform_layout(n, k, grid) if 0 < k else []
     if how == "random":
         return sorted(int(i) for i in rng.choice(n, k, replace=False))
