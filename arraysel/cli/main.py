@@ -19,7 +19,7 @@ import sys
 from arraysel.errors import ArrayselError
 
 #: command modules, in the order they are listed by ``arraysel --help``
-COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "list", "scenes", "cache", "train")
+COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "export", "list", "scenes", "cache", "train")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -92,6 +92,27 @@ def iter_mask_lines(path: str, n_elements: int, k: int | None, what: str = "--ma
                 yield parse_elements(body, n_elements, k, where=f"{path}, line {no}")
 
 
+def mask_line(path: str, line: int, n_elements: int, what: str = "--masks") -> list[int]:
+    """The selection on line ``line`` (1-based, counting every line of the file) of a mask file;
+    refused, naming the file and the line, when that line is blank, a comment or past the end."""
+    if isinstance(line, bool) or not isinstance(line, int) or line < 1:
+        raise ParameterError(f"{what}: the line number must be an integer >= 1, got {line!r}")
+    with _open_text(path, what) as fh:
+        for no in range(1, line + 1):
+            try:
+                text = fh.readline(MAX_LINE + 1)
+            except UnicodeDecodeError:
+                raise ParameterError(f"{what}: {path!r} is not UTF-8 text (line {no})") from None
+            if not text:
+                raise ParameterError(f"{what}: {path!r} has {no - 1} lines, no line {line}")
+            if len(text) > MAX_LINE:
+                raise SelectionError(f"{path}, line {no}: longer than {MAX_LINE} characters")
+    body = text.split("#", 1)[0].strip()
+    if not body:
+        raise SelectionError(f"{path}, line {line}: holds no selection (blank or a comment)")
+    return parse_elements(body, n_elements, None, where=f"{path}, line {line}")
+
+
 def count_masks(path: str, n_elements: int, k: int | None, what: str = "--masks") -> int:
     """Validate every line of a mask file (streaming) and return how many selections it holds;
     refuses a file with none."""
