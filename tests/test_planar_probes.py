@@ -278,3 +278,18 @@ def test_a_3d_scene_with_a_blank_row_end_to_end(tmp_path):
     assert np.isfinite(res["Mean"]).all()
     _masks_figure(obj, {k: Selection(tuple(v), 16) for k, v in sel.items()}, tmp_path)
     assert (tmp_path / "masks.png").stat().st_size > 1000
+
+
+def test_beam_pattern_of_a_grid_with_blank_rows_and_of_a_planar_layout():
+    """The beam pattern reads a blank-row grid's element nodes (not iy * nx + ix) and a planar
+    layout's centres: both give the pattern of the same centres given as an array."""
+    from arraysel.physics.beampattern import BeamPattern
+
+    p = get_probe("MATRIX-32x32", nx=4, ny=5, blank_rows=(2,))
+    planar = PlanarProbe("same", p.element_positions(), p.width, p.height, p.fc, p.bandwidth)
+    w = torch.rand(2, p.n_elements, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    kw = dict(n_freq=3, dtype=torch.float64)
+    ref = BeamPattern(p.element_positions(), fc=p.fc, bandwidth=p.bandwidth, **kw)
+    for probe in (p, planar):
+        bp = BeamPattern.from_probe(probe, step=((ref.du[1] - ref.du[0]).item(), (ref.dv[1] - ref.dv[0]).item()), **kw)
+        torch.testing.assert_close(bp.pattern(w), ref.pattern(w), rtol=1e-9, atol=1e-12)

@@ -72,7 +72,7 @@ from arraysel.physics.beamgeometry import (COMBINE, REGIONS, band_nodes, directi
                                            lattice_periods, pulse_echo_spectrum, sector_sines, sphere_surface,
                                            steering_coverage, steering_weights)
 from arraysel.physics.compiled import MIN_BATCH
-from arraysel.physics.probes import Acquisition, MatrixProbe, check_sound_speed
+from arraysel.physics.probes import Acquisition, MatrixProbe, PlanarProbe, check_sound_speed
 
 __all__ = ["BeamPattern", "COMBINE", "REGIONS", "pulse_echo_spectrum", "band_nodes", "steering_coverage",
            "element_factor", "steering_weights", "grating_lobe_directions", "grating_lobe_segments",
@@ -212,20 +212,21 @@ class BeamPattern:
                    **kw) -> "BeamPattern":
         """The pattern of a matrix probe: its fc and bandwidth, ``acq``'s c and tx_cycles, and with
         ``element_factor`` its elements' size and baffle (the beam view)."""
-        if not isinstance(probe, MatrixProbe):
-            raise ParameterError(f"probe must be a MatrixProbe, got {type(probe).__name__}")
+        if not isinstance(probe, (MatrixProbe, PlanarProbe)):
+            raise ParameterError(f"probe must be a MatrixProbe or a PlanarProbe, got {type(probe).__name__}")
         if acq is not None:
             kw = {"c": acq.c, "tx_cycles": acq.tx_cycles, **kw}
         if element_factor:
             kw.setdefault("element", (probe.width, probe.height, probe.baffle))
-        return cls(probe, fc=probe.fc, bandwidth=probe.bandwidth, **kw)
+        layout = probe if isinstance(probe, MatrixProbe) else probe.element_positions()
+        return cls(layout, fc=probe.fc, bandwidth=probe.bandwidth, **kw)
 
     # ------------------------------------------------------------------ setup
     def _layout(self, positions) -> None:
         if isinstance(positions, MatrixProbe):
             p = positions.element_positions()
             lat = (positions.nx, positions.ny, positions.pitch_x, positions.pitch_y, (0.0, 0.0),
-                   np.arange(positions.n_elements))
+                   positions.cells)   # each element's node: blank rows and columns stay empty
         else:
             p = np.asarray(positions, dtype=np.float64)
             if p.ndim != 2 or p.shape[1] not in (2, 3) or p.shape[0] < 1 or not np.isfinite(p).all():
