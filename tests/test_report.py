@@ -39,7 +39,7 @@ def test_markdown_table(finished, capsys):
     assert lines[0].startswith("Scene toy, k = 8 of 16 elements, budget 40 evaluations per run")
     header = next(i for i, l in enumerate(lines) if l.startswith("| selector |"))
     assert lines[header] == ("| selector | L_PSF | L_contrast | L_SLR_q | L_SLR_i | Mean | seeds | "
-                             "median Mean [IQR] | 95% CI of median | p vs random |")
+                             "median Mean [IQR] | CI of median (coverage) | p vs random (Holm) | A vs random |")
     body = lines[header + 2:]
     assert [l.split(" | ")[0] for l in body] == ["| full", "| uniform", "| random", "| ste"]
     comp = load_comparison(finished)
@@ -51,10 +51,11 @@ def test_markdown_table(finished, capsys):
     ste = next(l for l in body if l.startswith("| ste |")).split(" | ")
     assert ste[6] == "3"
     assert ste[7] == f"{st.loc['ste', 'Mean_median']:.4g} [{st.loc['ste', 'Mean_iqr']:.2g}]"
-    assert ste[8] == f"{st.loc['ste', 'Mean_median_ci_low']:.4g} - {st.loc['ste', 'Mean_median_ci_high']:.4g}"
-    assert ste[9].rstrip(" |") == f"{st.loc['ste', 'p_vs_random']:.2g}"
+    assert ste[8] == "n/a"                                              # 3 seeds: too few for 90 %
+    assert ste[9] == f"{st.loc['ste', 'p_vs_random_holm']:.2g}"
+    assert ste[10].rstrip(" |") == f"{st.loc['ste', 'A_vs_random']:.2g}"
     uniform = next(l for l in body if l.startswith("| uniform |")).split(" | ")
-    assert uniform[8] == "-" and uniform[9].rstrip(" |") == "-"       # one run: no interval, no test
+    assert uniform[6] == "1 (deterministic)" and uniform[8:10] == ["-", "-"]   # no interval, no test
 
 
 def test_latex_table_written_to_a_file(finished, tmp_path, capsys):
@@ -64,15 +65,15 @@ def test_latex_table_written_to_a_file(finished, tmp_path, capsys):
     assert cap.out == "" and f"wrote {out}" in cap.err
     tex = out.read_text()
     assert tex.startswith("\\begin{table}\n\\centering\n\\caption{Scene toy, k = 8 of 16")
-    assert "95 \\% confidence interval" in tex and tex.rstrip().endswith("\\end{table}")
+    assert "at least 90 \\%" in tex and tex.rstrip().endswith("\\end{table}")
     lines = tex.splitlines()
-    assert lines[lines.index("\\toprule") - 1] == "\\begin{tabular}{lrrrrrrrrr}"
+    assert lines[lines.index("\\toprule") - 1] == "\\begin{tabular}{lrrrrrrrrrr}"
     head = lines[lines.index("\\toprule") + 1]
     assert head.startswith("selector & $\\mathcal{L}_{\\mathrm{PSF}}$ & $\\mathcal{L}_{\\mathrm{contrast}}$ & "
                            "$\\mathcal{L}_{\\mathrm{SLR},q}$ & $\\mathcal{L}_{\\mathrm{SLR},i}$ & Mean")
     rows = lines[lines.index("\\midrule") + 1:lines.index("\\bottomrule")]
     assert [r.split(" & ")[0] for r in rows] == ["full", "uniform", "random", "ste"]
-    assert all(r.endswith("\\\\") and r.count(" & ") == 9 for r in rows)
+    assert all(r.endswith("\\\\") and r.count(" & ") == 10 for r in rows)
     assert sum("\\textbf{" in r for r in rows) == 1
     assert tex == render(finished, "latex")
 
@@ -126,6 +127,43 @@ def test_errors_for_folders_that_are_not_finished_comparisons(finished, tmp_path
     assert "--out" in _error(["report", str(finished), "--out", str(tmp_path)], capsys)  # a folder
     with pytest.raises(SystemExit):
         cli.main(["report", str(finished), "--format", "html"])
+
+
+def test_the_interval_is_labelled_with_its_exact_coverage(tmp_path, capsys):
+    reg = get_registry(build_plugin_manager(load_entrypoints=False, disabled=()))
+    compare(ToyObjective(16, 8), ["random", "ste"], out_dir=tmp_path, seeds=[0, 1, 2, 3, 4],
+            budget=Budget(evaluations=30), registry=reg, progress=False, figures=False)
+    assert cli.main(["report", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| 93.8 % CI of median |" in out                    # 5 seeds: [min, max], 1 - 2/32
+    st = load_comparison(tmp_path).stats.set_index("config")
+    runs = pd.read_csv(tmp_path / "runs.csv")
+    means = runs.loc[runs["config"] == "ste", "Mean"]
+    assert (st.loc["ste", "Mean_median_ci_low"], st.loc["ste", "Mean_median_ci_high"]) == (means.min(), means.max())
+    assert cli.main(["report", str(tmp_path), "--ci-level", "0.95"]) == 0
+    assert "| CI of median (coverage) |" in capsys.readouterr().out   # 6 seeds needed: n/a
+    assert "between 0 and 1" in _error(["report", str(tmp_path), "--ci-level", "95"], capsys)
+
+
+def test_an_older_folder_reports_with_todays_statistics(finished, tmp_path, capsys):
+    """A folder written before the deterministic flag and the order-statistic interval: an older
+    stats.csv, run.json without 'deterministic', uniform run once per seed."""
+    old = _copy(finished, tmp_path / "old")
+    meta = json.loads((old / "run.json").read_text())
+    for d in meta["selectors"]:
+        d.pop("deterministic")
+    (old / "run.json").write_text(json.dumps(meta))
+    runs = pd.read_csv(old / "runs.csv", keep_default_na=False)
+    uni = runs[runs["config"] == "uniform"]
+    runs = pd.concat([runs] + [uni.assign(seed=s) for s in (1, 2)])
+    runs.to_csv(old / "runs.csv", index=False)
+    pd.read_csv(old / "stats.csv").drop(columns=["deterministic", "Mean_median_ci_level", "p_vs_random_holm",
+                                                 "A_vs_random"]).to_csv(old / "stats.csv", index=False)
+    assert cli.main(["report", str(old)]) == 0
+    uniform = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("| uniform |")).split(" | ")
+    assert uniform[6] == "3 (deterministic)" and uniform[8:10] == ["-", "-"]
+    assert cli.main(["report", str(old), "--rebuild"]) == 0
+    assert pd.read_csv(old / "stats.csv").set_index("config").loc["uniform", "deterministic"]
 
 
 @pytest.mark.parametrize("name", ["compare-60s", "compare-20s"])

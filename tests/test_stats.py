@@ -9,7 +9,9 @@ import pytest
 from scipy import stats as sps
 
 from arraysel.report.columns import ROW_COLUMNS, STATS_COLUMNS, TABLE1_COLUMNS, TABLE1_METRICS
-from arraysel.report.stats import baseline_config, median_ci, rank_test, seed_statistics, stats_table
+from arraysel.errors import ParameterError
+from arraysel.report.stats import (baseline_config, deterministic_configs, holm, median_ci, median_ci_rank, rank_test,
+                                   seed_statistics, stats_table, vargha_delaney_a)
 from arraysel.report.tables import read_runs, rebuild_tables, table1
 from arraysel.run.compare import compare
 from arraysel.selection import indices_to_mask, parse_element_text
@@ -64,19 +66,83 @@ def test_mannwhitneyu_known_p_values():
     assert math.isnan(u) and math.isnan(p) and "2 needed" in note
 
 
-def test_bootstrap_ci_of_the_median_known_answers():
-    # two values: the resampled median is a (1/4), (a+b)/2 (1/2) or b (1/4) -> the 95 % interval is [a, b]
-    assert median_ci([1.0, 2.0])[:2] == (1.0, 2.0)
-    assert median_ci([0.3, 0.3, 0.3]) == (0.3, 0.3, "")
-    low, high, note = median_ci([0.5])
-    assert math.isnan(low) and math.isnan(high) and "2 needed" in note
-    v = [0.11, 0.15, 0.12, 0.30, 0.13, 0.14, 0.16]
-    low, high, _ = median_ci(v)
-    assert min(v) <= low <= np.median(v) <= high <= max(v) and low < high
-    assert median_ci(v) == median_ci(v)          # a fixed seed: the same interval
-    ref = sps.bootstrap((np.array(v),), np.median, confidence_level=0.95, n_resamples=9999, method="percentile",
-                        rng=np.random.default_rng(0), vectorized=True, axis=-1).confidence_interval
-    assert (low, high) == (ref.low, ref.high)
+def test_median_interval_known_answers():
+    # [min, max] of n values misses the median when all n fall on one side: coverage 1 - 2 / 2^n
+    assert median_ci_rank(5) == (1, pytest.approx(1 - 2 / 32))          # 93.75 %
+    assert median_ci_rank(4) is None and median_ci_rank(3) is None      # 87.5 %, 75 % < 90 %
+    assert median_ci_rank(5, 0.95) is None and median_ci_rank(6, 0.95) == (1, pytest.approx(1 - 2 / 64))
+    # n = 8 at 90 %: [x_(2), x_(7)] covers 1 - 2 (1 + 8) / 256 = 92.97 %; [x_(3), x_(6)] only 71.1 %
+    assert median_ci_rank(8) == (2, pytest.approx(1 - 2 * 9 / 256))
+    ci = median_ci([3.0, 1.0, float("nan"), 5.0, 2.0, 4.0])
+    assert (ci.low, ci.high, ci.coverage, ci.note) == (1.0, 5.0, pytest.approx(0.9375), "")
+    ci = median_ci([0.5, 0.7, 0.6])
+    assert math.isnan(ci.low) and math.isnan(ci.coverage) and "5 needed for 90 %" in ci.note
+    assert "6 needed for 95 %" in median_ci([0.5] * 5, 0.95).note
+    assert median_ci([0.3] * 5)[:3] == (0.3, 0.3, pytest.approx(0.9375))   # ties: the interval is a point
+    with pytest.raises(ParameterError, match="confidence level"):
+        median_ci_rank(5, 1.0)
+
+
+@pytest.mark.parametrize("n, level", [(5, 0.90), (8, 0.90), (8, 0.95), (11, 0.90), (12, 0.95), (20, 0.95)])
+def test_median_interval_agrees_with_scipys_quantile_test(n, level):
+    x = np.random.default_rng(n).lognormal(size=n)
+    ci = median_ci(x, level)
+    ref = sps.quantile_test(x, q=float(np.median(x)), p=0.5).confidence_interval(level)
+    assert (ci.low, ci.high) == (ref.low, ref.high)
+
+
+@pytest.mark.parametrize("n, level", [(5, 0.90), (8, 0.90), (8, 0.95), (11, 0.90), (12, 0.95)])
+def test_median_interval_covers_at_its_stated_level_by_simulation(n, level):
+    """40,000 samples of n lognormal values (true median 1): the share of intervals holding the
+    median is the stated coverage within 2 points (the simulation's standard error is < 0.15 points)."""
+    x = np.random.default_rng(1000 + n).lognormal(size=(40_000, n))
+    l, stated = median_ci_rank(n, level)
+    xs = np.sort(x, axis=1)
+    low, high = xs[:, l - 1], xs[:, n - l]
+    for i in range(50):  # the function gives these bounds
+        assert median_ci(x[i], level)[:2] == (low[i], high[i])
+    covered = float(np.mean((low <= 1.0) & (1.0 <= high)))
+    assert stated >= level and abs(covered - stated) < 0.02, (covered, stated)
+
+
+def test_holm_known_answers():
+    # sorted 0.005, 0.01, 0.03, 0.04 (m = 4): 4 x 0.005, 3 x 0.01, 2 x 0.03, max(0.06, 1 x 0.04)
+    got = holm([0.01, 0.04, 0.03, 0.005, float("nan")])
+    assert got[:4] == pytest.approx([0.03, 0.06, 0.06, 0.02]) and math.isnan(got[4])
+    assert holm([0.5, 0.9]).tolist() == [1.0, 1.0] and holm([0.02]).tolist() == [0.02]
+    assert holm([]).size == 0 and np.isnan(holm([float("nan")])).all()
+
+
+def test_vargha_delaney_a_known_answers():
+    assert vargha_delaney_a([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]) == 1.0     # always lower (better)
+    assert vargha_delaney_a([4.0, 5.0], [1.0, 2.0]) == 0.0
+    # pairs (1,2) (1,3) (2,3) lower, (2,2) a tie: (3 + 0.5) / 4
+    assert vargha_delaney_a([1.0, 2.0], [2.0, 3.0]) == 0.875
+    assert vargha_delaney_a([1.0, 1.0], [1.0]) == 0.5 and math.isnan(vargha_delaney_a([], [1.0]))
+    a, b = np.random.default_rng(0).normal(size=7), np.random.default_rng(1).normal(size=9)
+    u = sps.mannwhitneyu(a, b).statistic        # pairs where a is the larger (ties half)
+    assert vargha_delaney_a(a, b) == pytest.approx(1 - u / (7 * 9))
+
+
+def test_deterministic_selectors_are_single_values_never_tested():
+    runs = _runs({"full": [0.05], "uniform": [0.4, 0.4, 0.4], "random": [0.5, 0.6, 0.7, 0.8, 0.9],
+                  "a": [0.1, 0.2, 0.3, 0.15, 0.25], "b": [0.55, 0.65, 0.75, 0.85, 0.95]})
+    s = stats_table(runs).set_index("config")                  # uniform's class declares it
+    assert s["deterministic"].to_dict() == {"full": True, "uniform": True, "random": False, "a": False, "b": False}
+    for c in ("full", "uniform"):
+        assert s.loc[c, ["Mean_median_ci_low", "p_vs_random", "p_vs_random_holm", "A_vs_random"]].isna().all()
+        assert "a single value, no interval and no test" in s.loc[c, "note"]
+    assert s.loc["uniform", "Mean_median"] == 0.4
+    # two tests in the family: Holm doubles the smaller p (a: 2/252), then max(., 1 x p_b)
+    p_a, p_b = s.loc["a", "p_vs_random"], s.loc["b", "p_vs_random"]
+    assert p_a == pytest.approx(2 / 252) and s.loc["a", "p_vs_random_holm"] == pytest.approx(2 * p_a)
+    assert s.loc["b", "p_vs_random_holm"] == pytest.approx(max(2 * p_a, p_b))
+    assert s.loc["a", "A_vs_random"] == 1.0 and s.loc["b", "A_vs_random"] == pytest.approx(10 / 25)
+    assert s.loc["a", "Mean_median_ci_level"] == pytest.approx(0.9375)
+    # run.json's declaration wins over the registry, and a caller may say it
+    meta = [{"config": "uniform", "deterministic": False}, {"config": "a", "deterministic": True}]
+    assert deterministic_configs(runs, meta) == {"full", "a"}
+    assert stats_table(runs, deterministic=["b"]).set_index("config")["deterministic"].sum() == 2
 
 
 def test_stats_table_known_medians_iqr_and_p():
@@ -95,13 +161,13 @@ def test_stats_table_known_medians_iqr_and_p():
     assert s.loc["b", "p_vs_random"] == pytest.approx(sps.mannwhitneyu([0.9, 0.4], [0.5, 0.6, 0.7, 0.8]).pvalue)
     assert math.isnan(s.loc["random", "p_vs_random"]) and "reference" in s.loc["random", "note"]
     assert math.isnan(s.loc["full", "p_vs_random"]) and math.isnan(s.loc["full", "Mean_median_ci_low"])
-    assert "no confidence interval" in s.loc["full", "note"] and s.loc["a", "note"] == ""
+    assert "a single value" in s.loc["full", "note"] and s.loc["a", "note"].startswith("no confidence interval")
 
 
 def test_rank_test_without_random_is_nan_with_a_reason():
     s = stats_table(_runs({"a": [0.1, 0.2], "b": [0.3, 0.4]})).set_index("config")
     assert s["p_vs_random"].isna().all() and s["U_vs_random"].isna().all()
-    assert (s["note"] == "no rank test: the comparison has no random configuration").all()
+    assert s["note"].str.endswith("; no rank test: the comparison has no random configuration").all()
     # a random configuration with options is the reference when it is the only random one
     runs = _runs({"random(polish=0.5)": [0.5, 0.6], "a": [0.1, 0.2]}, selector={"random(polish=0.5)": "random"})
     assert baseline_config(runs) == ("random(polish=0.5)", "")
@@ -189,7 +255,8 @@ def test_api_result_carries_the_stats_table(tmp_path):
     assert s.loc["ste", "Mean_median"] == pytest.approx(means.median())
     assert s.loc["ste", "p_vs_random"] == pytest.approx(
         sps.mannwhitneyu(means, res.runs.loc[res.runs["config"] == "random", "Mean"]).pvalue)
-    assert s.loc["uniform", "note"].startswith("no confidence interval") and s.loc["ste", "note"] == ""
+    assert s.loc["uniform", "note"].startswith("deterministic") and s.loc["uniform", "deterministic"]
+    assert s.loc["ste", "note"].startswith("no confidence interval: 2 run(s)")
     assert res.table.set_index("config").loc["ste", "Mean"] == pytest.approx(means.min())
 
 

@@ -34,9 +34,11 @@ TABLE1_COLUMNS = ("config", *TABLE1_METRICS, "seconds", "evaluations", "elements
 MERIT_COLUMNS = MERIT_NAMES
 
 #: columns of ``stats.csv``: one row per configuration, statistics of its runs' ``Mean`` over seeds
-#: (runs without a finite Mean are left out and counted in ``n_failed``):
+#: (runs without a finite Mean are left out and counted in ``n_failed``; ``docs/statistics.md``):
 #:
 #: * ``n_seeds`` runs used, ``n_failed`` runs left out;
+#: * ``deterministic``: True for a single value, not a sample (the ``full`` row, a selector whose
+#:   class declares ``deterministic``): no interval, no test;
 #: * ``Mean_median``, ``Mean_q25``, ``Mean_q75``, ``Mean_iqr`` (``q75 - q25``; numpy's linear
 #:   percentiles), ``Mean_mean``, ``Mean_std`` (ddof 1), ``Mean_best`` (lowest), ``Mean_worst``;
 #: * ``AOCC``: the mean area over the convergence curve of its runs (iohinspector's definition,
@@ -48,17 +50,20 @@ MERIT_COLUMNS = MERIT_NAMES
 #:   its runs until they reached it, or all their seconds where they did not, summed, over the
 #:   runs that reached it; inf where none did, NaN without a trace or a best known;
 #:   :func:`arraysel.report.stats.ert_by_config`);
-#: * ``Mean_median_ci_low`` / ``_high``: percentile-bootstrap 95 % confidence interval of the
-#:   median (``scipy.stats.bootstrap``, fixed seed; see :mod:`arraysel.report.stats`);
+#: * ``Mean_median_ci_low`` / ``_high``: distribution-free confidence interval of the median from
+#:   the order statistics, ``Mean_median_ci_level`` its exact coverage (at least 90 %; NaN when the
+#:   runs are too few for that level; :func:`arraysel.report.stats.median_ci`);
 #: * ``evaluations_median``, ``seconds_median``;
 #: * ``U_vs_random``, ``p_vs_random``: two-sided Mann-Whitney U test of the runs' Means against
-#:   those of the ``random`` configuration (``scipy.stats.mannwhitneyu``);
-#: * ``note``: why a statistic is NaN (fewer than 2 runs, no ``random`` configuration, ...).
-STATS_COLUMNS = ("config", "n_seeds", "n_failed", "Mean_median", "Mean_q25", "Mean_q75", "Mean_iqr",
-                 "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "AOCC", "gap_closed", "gap_to_best_known",
-                 "ERT_s_1pct", "ERT_s_2pct", "ERT_s_3pct", "ERT_s_10pct", "Mean_median_ci_low",
-                 "Mean_median_ci_high", "evaluations_median", "seconds_median", "U_vs_random", "p_vs_random",
-                 "note")
+#:   those of the ``random`` configuration (``scipy.stats.mannwhitneyu``); ``p_vs_random_holm``:
+#:   the p-values Holm-adjusted over the configurations tested; ``A_vs_random``: Vargha-Delaney A,
+#:   the chance that a run's Mean is below a random run's (0.5: no difference);
+#: * ``note``: why a statistic is NaN (too few runs, deterministic, no ``random`` configuration, ...).
+STATS_COLUMNS = ("config", "n_seeds", "n_failed", "deterministic", "Mean_median", "Mean_q25", "Mean_q75",
+                 "Mean_iqr", "Mean_mean", "Mean_std", "Mean_best", "Mean_worst", "AOCC", "gap_closed",
+                 "gap_to_best_known", "ERT_s_1pct", "ERT_s_2pct", "ERT_s_3pct", "ERT_s_10pct", "Mean_median_ci_low",
+                 "Mean_median_ci_high", "Mean_median_ci_level", "evaluations_median", "seconds_median",
+                 "U_vs_random", "p_vs_random", "p_vs_random_holm", "A_vs_random", "note")
 
 #: the paper's names of the Table-1 metrics: ``{column: (plain text / Markdown, LaTeX)}``
 PAPER_NAMES = {

@@ -3,19 +3,32 @@
 
 For each configuration, the ``Mean`` of each of its runs (one per seed; runs without a finite
 Mean are left out and counted): median, quartiles, IQR, mean, standard deviation, best and
-worst, a bootstrap confidence interval of the median, and a rank test against the runs of the
-``random`` configuration.
+worst, a distribution-free confidence interval of the median, and a rank test and an effect size
+against the runs of the ``random`` configuration. ``docs/statistics.md`` states each statistic
+and its assumptions.
 
-* **Confidence interval**: ``scipy.stats.bootstrap`` of the median, percentile method,
-  :data:`BOOTSTRAP_RESAMPLES` resamples, level :data:`CI_LEVEL`, a generator seeded with
-  :data:`BOOTSTRAP_SEED` (the same table gives the same interval). The percentile method is
-  used because BCa's jackknife of a median is degenerate for a handful of seeds. With 5 seeds
-  the interval is wide by nature (it is often the range of the middle three or all five);
-  NaN with fewer than 2 runs.
+* **Deterministic configurations** (:func:`deterministic_configs`): the ``full`` reference and
+  every selector whose class declares ``deterministic = True`` (``uniform``, ``spiral``,
+  ``greedy``: the seed does not change the result) are single values: their repeats (an older
+  folder ran them once per seed) are not samples, so they get no interval and no test.
+* **Confidence interval of the median** (:func:`median_ci`): the order statistics
+  ``[x_(l), x_(n+1-l)]`` of the ``n`` finite Means, with the largest ``l`` whose exact coverage
+  ``1 - 2 P(B <= l - 1)``, ``B ~ Binomial(n, 1/2)``, is at least the asked level
+  (:data:`CI_LEVEL`, 90 % by default); the coverage is stated with the interval
+  (``Mean_median_ci_level``: 93.75 % for 5 seeds). It assumes only independent runs from one
+  continuous distribution (ties make it conservative). NaN, with "n/a" in the report, when even
+  ``[min, max]`` covers less than the level (5 seeds are needed for 90 %, 6 for 95 %).
 * **Rank test**: ``scipy.stats.mannwhitneyu(means, random_means, alternative="two-sided")``
   (exact p-value for small samples without ties, the normal approximation otherwise, as scipy
   chooses with ``method="auto"``); NaN, with the reason in ``note``, when there is no ``random``
-  configuration, for ``random`` itself, or when either side has fewer than 2 runs.
+  configuration, for ``random`` itself, for a deterministic configuration, or when either side
+  has fewer than 2 runs. ``p_vs_random_holm``: the p-values of one comparison adjusted for their
+  number by Holm's step-down method (:func:`holm`), which controls the family-wise error rate
+  under any dependence between the tests.
+* **Effect size** (:func:`vargha_delaney_a`): ``A_vs_random`` = P(X < Y) + P(X = Y) / 2 for a run
+  X of the configuration and a run Y of ``random``: the chance that the configuration's Mean is
+  the lower (better) one. 0.5: no difference; 1: every run below every random run. It is
+  Vargha and Delaney's A12 for a quantity to minimise (Cliff's delta = 2 A - 1).
 * **AOCC** (:func:`aocc_by_config`): the area over the convergence curve of each run, as
   ``iohinspector`` computes it (``transform_fval`` then ``get_aocc``), averaged over the
   configuration's runs: the best-so-far ``Mean`` of the trace, on a log scale between the lowest
@@ -38,26 +51,25 @@ worst, a bootstrap confidence interval of the median, and a rank test against th
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from arraysel.report.columns import STATS_COLUMNS
 
-__all__ = ["CI_LEVEL", "BOOTSTRAP_RESAMPLES", "BOOTSTRAP_SEED", "BASELINE", "finite", "seed_statistics",
-           "median_ci", "rank_test", "baseline_config", "stats_table", "run_aocc", "aocc_by_config",
-           "gap_columns", "ERT_GAPS", "ert_column", "ert_by_config"]
+__all__ = ["CI_LEVEL", "BASELINE", "MedianCI", "finite", "seed_statistics", "median_ci", "median_ci_rank",
+           "rank_test", "holm", "vargha_delaney_a", "percent", "baseline_config", "deterministic_configs",
+           "stats_table", "run_aocc", "aocc_by_config", "gap_columns", "ERT_GAPS", "ert_column", "ert_by_config"]
 
-#: confidence level of the bootstrap interval of the median Mean
-CI_LEVEL = 0.95
-#: bootstrap resamples
-BOOTSTRAP_RESAMPLES = 9999
-#: seed of the bootstrap's generator
-BOOTSTRAP_SEED = 0
+#: the least coverage asked of the confidence interval of the median (each interval states its own,
+#: exact coverage, at least this)
+CI_LEVEL = 0.90
 #: the selector every configuration is tested against
 BASELINE = "random"
 #: targets of the expected running time: these gaps to the best-known Mean (1, 2, 3 and 10 %)
 ERT_GAPS = (0.01, 0.02, 0.03, 0.10)
+#: the reference row of every comparison (the full array): one value
+FULL = "full"
 
 
 def ert_column(gap: float) -> str:
@@ -86,24 +98,50 @@ def seed_statistics(means) -> dict[str, float]:
             "Mean_best": float(v.min()), "Mean_worst": float(v.max())}
 
 
-def median_ci(values, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
-              seed: int = BOOTSTRAP_SEED) -> tuple[float, float, str]:
-    """Percentile-bootstrap confidence interval of the median of the finite ``values``:
-    ``(low, high, note)``; ``(nan, nan, reason)`` with fewer than 2 values."""
-    from scipy import stats
+class MedianCI(NamedTuple):
+    """A confidence interval of the median: its bounds, its exact coverage (a probability) and,
+    when there is none, why (``note``); NaN bounds and coverage then."""
 
-    v = finite(values)
-    if v.size < 2:
-        return math.nan, math.nan, f"no confidence interval: {v.size} run(s) with a finite Mean, 2 needed"
-    if np.all(v == v[0]):  # every resample has this median
-        return float(v[0]), float(v[0]), ""
-    kw = dict(confidence_level=level, n_resamples=int(resamples), method="percentile", vectorized=True,
-              axis=-1)
-    try:
-        res = stats.bootstrap((v,), np.median, rng=np.random.default_rng(seed), **kw)
-    except TypeError:  # scipy < 1.15 names the generator random_state
-        res = stats.bootstrap((v,), np.median, random_state=np.random.default_rng(seed), **kw)
-    return float(res.confidence_interval.low), float(res.confidence_interval.high), ""
+    low: float
+    high: float
+    coverage: float
+    note: str
+
+
+def median_ci_rank(n: int, level: float = CI_LEVEL) -> tuple[int, float] | None:
+    """``(l, coverage)`` of the narrowest interval ``[x_(l), x_(n+1-l)]`` (1-based order
+    statistics of ``n`` values) whose coverage of the median, ``1 - 2 P(B <= l - 1)`` with ``B ~
+    Binomial(n, 1/2)``, is at least ``level``; None when even ``[x_(1), x_(n)]`` covers less."""
+    if not 0.0 < level < 1.0:
+        from arraysel.errors import ParameterError
+
+        raise ParameterError(f"the confidence level must be between 0 and 1 (exclusive), got {level!r}")
+    best = None
+    tail = 0  # 2^n P(B <= l - 1), in integers
+    for l in range(1, (n + 1) // 2 + 1):
+        tail += math.comb(n, l - 1)
+        coverage = 1.0 - 2.0 * tail / 2 ** n
+        if coverage < level:
+            break
+        best = (l, coverage)
+    return best
+
+
+def median_ci(values, level: float = CI_LEVEL) -> MedianCI:
+    """Distribution-free confidence interval of the median of the finite ``values`` from their
+    order statistics (:func:`median_ci_rank`), with its exact coverage; NaN with the reason when
+    there are too few values for ``level``."""
+    v = np.sort(finite(values))
+    found = median_ci_rank(int(v.size), level)
+    if found is None:
+        need = 2
+        while 1.0 - 2.0 ** (1 - need) < level:  # [min, max] of `need` values covers 1 - 2^(1-need)
+            need += 1
+        return MedianCI(math.nan, math.nan, math.nan,
+                        f"no confidence interval: {v.size} run(s) with a finite Mean, {need} needed for "
+                        f"{percent(level)}")
+    l, coverage = found
+    return MedianCI(float(v[l - 1]), float(v[v.size - l]), coverage, "")
 
 
 def rank_test(values, reference) -> tuple[float, float, str]:
@@ -117,6 +155,75 @@ def rank_test(values, reference) -> tuple[float, float, str]:
                                     f"finite Mean, 2 needed on each side")
     res = stats.mannwhitneyu(a, b, alternative="two-sided")
     return float(res.statistic), float(res.pvalue), ""
+
+
+def holm(pvalues) -> np.ndarray:
+    """Holm's step-down adjustment of ``pvalues`` (NaN stay NaN and are not counted): the ``i``-th
+    smallest of ``m`` p-values becomes ``max_{j <= i} min(1, (m - j + 1) p_(j))``, in the given order."""
+    p = np.asarray(pvalues, dtype=np.float64).reshape(-1)
+    out = np.full(p.shape, math.nan)
+    ok = np.flatnonzero(np.isfinite(p))
+    m = ok.size
+    if not m:
+        return out
+    order = ok[np.argsort(p[ok], kind="stable")]
+    scaled = np.minimum(1.0, (m - np.arange(m)) * p[order])
+    out[order] = np.maximum.accumulate(scaled)
+    return out
+
+
+def vargha_delaney_a(values, reference) -> float:
+    """P(X < Y) + P(X = Y) / 2 for X drawn from the finite ``values`` and Y from the finite
+    ``reference`` (all pairs counted): Vargha and Delaney's A for a quantity to minimise, the
+    chance that ``values`` is the lower; NaN when either side is empty."""
+    a, b = finite(values), finite(reference)
+    if not a.size or not b.size:
+        return math.nan
+    lower = (a[:, None] < b[None, :]).sum()
+    ties = (a[:, None] == b[None, :]).sum()
+    return float((lower + 0.5 * ties) / (a.size * b.size))
+
+
+def percent(x: float) -> str:
+    """A probability as a percentage for a label: ``0.9375`` -> ``"93.8 %"``, ``0.9`` -> ``"90 %"``."""
+    text = f"{100 * x:.1f}"
+    return (text[:-2] if text.endswith(".0") else text) + " %"
+
+
+def deterministic_configs(runs, selectors_meta=None) -> set[str]:
+    """The configurations of ``runs`` that are single values, not samples: :data:`FULL` and each
+    whose selector class declares ``deterministic = True``. ``selectors_meta`` (``run.json``'s
+    ``selectors`` entries) says it per configuration when it has a ``deterministic`` key (written
+    since that key exists); otherwise the selector's registered class says it (an older folder);
+    a selector the registry does not know counts as stochastic."""
+    declared = {str(d["config"]): bool(d["deterministic"]) for d in (selectors_meta or ())
+                if isinstance(d, dict) and "config" in d and "deterministic" in d}
+    out = {FULL}
+    pairs = dict.fromkeys(zip(runs["config"].astype(str),
+                              runs["selector"].astype(str) if "selector" in runs else runs["config"].astype(str)))
+    registry = None
+    for config, selector in pairs:
+        if config in declared:
+            if declared[config]:
+                out.add(config)
+            continue
+        if registry is None:
+            registry = _registry()
+        cls = registry.get(selector) if registry else None
+        if cls is not None and bool(getattr(cls, "deterministic", False)):
+            out.add(config)
+    return out
+
+
+def _registry() -> dict:
+    """``{name: selector class}`` of the process-wide registry; empty when a plugin fails to load."""
+    from arraysel.errors import ArrayselError
+    from arraysel.selectors.registry import get_registry
+
+    try:
+        return dict(get_registry().items())
+    except ArrayselError:
+        return {}
 
 
 def baseline_config(runs) -> tuple[str | None, str]:
@@ -240,12 +347,16 @@ def gap_columns(runs, medians: dict[str, float], best_known: float | None) -> di
     return out
 
 
-def stats_table(runs, trace=None, best_known: float | None = None) -> Any:
+def stats_table(runs, trace=None, best_known: float | None = None, *, deterministic=None,
+                level: float = CI_LEVEL) -> Any:
     """``stats.csv`` of a runs table (a DataFrame with ``config``, ``Mean``, ``evaluations``,
     ``seconds`` and optionally ``selector``): one row per configuration, in their order. ``trace``
-    (``trace.csv``'s rows) gives the AOCC, ``best_known`` (the scene's best-known Mean) the gap to it."""
+    (``trace.csv``'s rows) gives the AOCC, ``best_known`` (the scene's best-known Mean) the gap to
+    it; ``deterministic``: the configurations that are single values (default:
+    :func:`deterministic_configs`); ``level``: the least coverage of the median's interval."""
     import pandas as pd
 
+    single = deterministic_configs(runs) if deterministic is None else {FULL, *map(str, deterministic)}
     aoccs = aocc_by_config(trace)
     erts = ert_by_config(trace, best_known)
     base, base_note = baseline_config(runs)
@@ -253,25 +364,41 @@ def stats_table(runs, trace=None, best_known: float | None = None) -> Any:
     out = []
     for config, g in runs.groupby("config", sort=False):
         means = finite(g["Mean"])
-        rec: dict[str, Any] = {"config": config, "n_seeds": int(means.size), "n_failed": int(len(g) - means.size)}
+        rec: dict[str, Any] = {"config": config, "n_seeds": int(means.size), "n_failed": int(len(g) - means.size),
+                               "deterministic": str(config) in single}
         rec.update(seed_statistics(means))
         rec["AOCC"] = aoccs.get(str(config), math.nan)
         for gap in ERT_GAPS:
             rec[ert_column(gap)] = erts.get(str(config), {}).get(ert_column(gap), math.nan)
-        low, high, ci_note = median_ci(means)
-        rec["Mean_median_ci_low"], rec["Mean_median_ci_high"] = low, high
         rec["evaluations_median"] = _median(g["evaluations"])
         rec["seconds_median"] = _median(g["seconds"])
-        if base is None:
-            u, p, test_note = math.nan, math.nan, base_note
-        elif str(config) == base:
-            u, p, test_note = math.nan, math.nan, f"no rank test: {config} is the reference"
-        else:
-            u, p, test_note = rank_test(means, ref)
-        rec["U_vs_random"], rec["p_vs_random"] = u, p
-        rec["note"] = "; ".join(n for n in (ci_note, test_note) if n)
+        rec.update(_versus(str(config), means, base, base_note, ref, rec["deterministic"], level))
         out.append(rec)
+    adjusted = holm([r["p_vs_random"] for r in out])
     gaps = gap_columns(runs, {r["config"]: r["Mean_median"] for r in out}, best_known)
-    for rec in out:
+    for rec, p in zip(out, adjusted):
+        rec["p_vs_random_holm"] = float(p)
         rec["gap_closed"], rec["gap_to_best_known"] = gaps[rec["config"]]
     return pd.DataFrame(out, columns=list(STATS_COLUMNS))
+
+
+def _versus(config: str, means: np.ndarray, base, base_note: str, ref, single: bool, level: float) -> dict:
+    """The interval of the median, the rank test and the effect size of one configuration (NaN,
+    with the reasons in ``note``, where they do not apply)."""
+    nan = math.nan
+    if single:
+        why = "the full array" if config == FULL else "deterministic"
+        return {"Mean_median_ci_low": nan, "Mean_median_ci_high": nan, "Mean_median_ci_level": nan,
+                "U_vs_random": nan, "p_vs_random": nan, "A_vs_random": nan,
+                "note": f"{why}: a single value, no interval and no test"}
+    ci = median_ci(means, level)
+    if base is None:
+        u, p, a, test_note = nan, nan, nan, base_note
+    elif config == base:
+        u, p, a, test_note = nan, nan, nan, f"no rank test: {config} is the reference"
+    else:
+        u, p, test_note = rank_test(means, ref)
+        a = vargha_delaney_a(means, ref)
+    return {"Mean_median_ci_low": ci.low, "Mean_median_ci_high": ci.high, "Mean_median_ci_level": ci.coverage,
+            "U_vs_random": u, "p_vs_random": p, "A_vs_random": a,
+            "note": "; ".join(n for n in (ci.note, test_note) if n)}

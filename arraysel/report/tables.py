@@ -12,8 +12,9 @@ Files (see ``docs/selectors.md``):
   config's listed selection: its run with the lowest finite ``Mean`` (``seed`` names it),
   so the metrics are those of ``elements``.
 * ``stats.csv`` — one row per config, the statistics of its runs' Means over seeds
-  (median, quartiles, IQR, mean, std, best, worst, bootstrap confidence interval of the
-  median, Mann-Whitney U test against ``random``): :mod:`arraysel.report.stats`, columns
+  (median, quartiles, IQR, mean, std, best, worst, order-statistic confidence interval of the
+  median with its coverage, Mann-Whitney U test against ``random``, Holm-adjusted, and
+  Vargha-Delaney A): :mod:`arraysel.report.stats`, columns
   :data:`arraysel.report.columns.STATS_COLUMNS`.
 * ``trace.csv`` — ``config,seed,seconds,evaluations,gradient_steps,best_Mean,event``,
   one ``improvement`` row per new best evaluated selection, then one ``end`` row at the
@@ -34,7 +35,7 @@ import numpy as np
 
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
 from arraysel.report.columns import MERIT_COLUMNS, ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
-from arraysel.report.stats import stats_table
+from arraysel.report.stats import deterministic_configs, stats_table
 from arraysel.selection import Selection
 
 __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "best_rows", "stats_table",
@@ -61,7 +62,9 @@ def write_tables(out: Path, runs, trace=None) -> tuple[Any, Any]:
         import pandas as pd
 
         trace = pd.read_csv(out / "trace.csv")
-    stats = stats_table(runs, trace, best_known_mean(out))
+    selectors = _run_meta(out).get("selectors")
+    stats = stats_table(runs, trace, best_known_mean(out),
+                        deterministic=deterministic_configs(runs, selectors if isinstance(selectors, list) else None))
     table = table1(runs, dict(zip(stats["config"], stats["AOCC"])))
     write_csv(out / "table1.csv", table)
     write_csv(out / "stats.csv", stats)
@@ -74,12 +77,18 @@ def best_known_mean(folder) -> float | None:
     its ``Mean``; None without run.json or a stored entry."""
     from arraysel.scenes.best_known import best_known
 
+    meta = _run_meta(folder)
+    entry = best_known(meta.get("scene_name"), meta.get("k")) if meta else None
+    return float(entry.get("reference_Mean", entry["Mean"])) if entry else None
+
+
+def _run_meta(folder) -> dict:
+    """The folder's ``run.json`` as a dict; empty when it is missing or not a JSON object."""
     try:
         meta = json.loads((Path(folder) / "run.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return None
-    entry = best_known(meta.get("scene_name"), meta.get("k")) if isinstance(meta, dict) else None
-    return float(entry.get("reference_Mean", entry["Mean"])) if entry else None
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def read_runs(path):

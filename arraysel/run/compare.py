@@ -123,7 +123,8 @@ class _Plan:
                 if (lab, seed) not in done]
 
     def selectors_meta(self) -> list[dict]:
-        return [{"config": lab, "selector": n, "options": o, "origin": self.registry.origin(n)}
+        return [{"config": lab, "selector": n, "options": o, "origin": self.registry.origin(n),
+                 "deterministic": bool(self.classes[n].deterministic)}
                 for lab, (n, o) in zip(self.labels, self.sels)]
 
 
