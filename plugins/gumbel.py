@@ -11,7 +11,6 @@ best-mask bookkeeping are those of ``ste``.
 from __future__ import annotations
 
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.relax import gumbel_noise, sequential_selection
 from arraysel.selectors.contract import Option
 
 from .ste import _COMMON, MatrixSelector
@@ -30,6 +29,8 @@ class GumbelSelector(MatrixSelector):
     }
 
     def draw(self, logits, tau, generator):
+        from arraysel.selectors.relax import gumbel_noise, sequential_selection
+
         noise = gumbel_noise(tuple(logits.shape), generator, device=logits.device, dtype=logits.dtype)
         return sequential_selection(logits, tau, noise=noise, hard=self.options["variant"] == "hard")
 

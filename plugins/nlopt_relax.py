@@ -24,11 +24,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.relax import project_capped_simplex
 from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k
 
 _GRADIENT = ("MMA", "SLSQP")
@@ -52,6 +50,9 @@ class NLoptSelector(Selector):
 
     def select(self, objective, k, seed):
         import nlopt
+        import torch  # here, not at the top: `arraysel list` loads the plugin without torch
+
+        from arraysel.selectors.relax import project_capped_simplex
 
         budget = objective.budget
         n = int(objective.n_elements)

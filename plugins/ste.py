@@ -14,13 +14,14 @@ The shared training loop (:class:`MatrixSelector`) is reused by ``gumbel``.
 """
 from __future__ import annotations
 
-
-import torch
+from typing import TYPE_CHECKING
 
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.relax import cosine_temperature, sequential_selection
 from arraysel.selectors.contract import Option, Selector, indices_to_mask, torch_rng
+
+if TYPE_CHECKING:  # torch is imported when a run starts: `arraysel list` loads the plugin without it
+    import torch
 
 # Default learning rates, measured on arraysel.testing.ToyObjective (Ne=64, k=32,
 # 300 gradient steps, 3 seeds, best Mean; target 0.0404):
@@ -53,6 +54,10 @@ class MatrixSelector(Selector):
         raise NotImplementedError
 
     def select(self, objective, k, seed):
+        import torch
+
+        from arraysel.selectors.relax import cosine_temperature, sequential_selection
+
         n = int(objective.n_elements)
         device, dtype = objective.device, objective.dtype
         o = self.options
@@ -113,6 +118,8 @@ class STESelector(MatrixSelector):
     }
 
     def draw(self, logits, tau, generator):
+        from arraysel.selectors.relax import sequential_selection
+
         return sequential_selection(logits, tau, hard=True, sample=self.options["draw"] == "sample",
                                     generator=generator)
 

@@ -37,7 +37,8 @@ print(json.dumps({"code": code, "out": out.getvalue(), "heavy": [m for m in %r i
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["scenes"], ["scenes", "paper"], ["cache", "path"],
-                                  ["cache", "info"], ["-q", "scenes", "--json"]])
+                                  ["cache", "info"], ["-q", "scenes", "--json"], ["list"], ["list", "-v", "--json"],
+                                  ["report", "--help"]])
 def test_light_commands_import_no_torch_pandas_or_matplotlib(argv, tmp_path):
     proc = _python(_LOADED, tmp_path, *argv)
     assert proc.returncode == 0, proc.stderr
@@ -46,10 +47,39 @@ def test_light_commands_import_no_torch_pandas_or_matplotlib(argv, tmp_path):
     assert res["heavy"] == [], f"arraysel {' '.join(argv)} imported {res['heavy']}"
 
 
-def test_a_command_that_needs_torch_is_seen_loading_it(tmp_path):
-    """The check above can fail: ``list`` (the selector plugins) does import torch."""
-    proc = _python(_LOADED, tmp_path, "list")
+def _finished_folder(folder):
+    """A finished comparison folder written by hand (run.json, runs.csv): what `report` reads."""
+    from arraysel.report.columns import ROW_COLUMNS
+
+    folder.mkdir()
+    (folder / "run.json").write_text(json.dumps({"status": "finished", "scene_name": "toy", "k": 2,
+                                                 "n_elements": 4, "budget": {"evaluations": 10},
+                                                 "selectors": [{"config": "random", "selector": "random"},
+                                                               {"config": "uniform", "selector": "uniform"}]}))
+    rows = [{**dict.fromkeys(ROW_COLUMNS, ""), "config": c, "selector": c, "seed": s, "k": 2, "n_elements": 4,
+             "Mean": m, "L_PSF": m, "L_contrast": 0, "L_SLR_q": 0, "L_SLR_i": 0, "L_SLR": 0, "seconds": 1,
+             "evaluations": 10, "gradient_steps": 0, "objective_seconds": 0.5, "overhead_seconds": 0.1,
+             "elements": "0 2"}
+            for c, s, m in [("random", 0, 0.3), ("random", 1, 0.2), ("random", 2, 0.4), ("random", 3, 0.25),
+                            ("random", 4, 0.35), ("uniform", 0, 0.5)]]
+    lines = [",".join(ROW_COLUMNS)] + [",".join(str(r[c]) for c in ROW_COLUMNS) for r in rows]
+    (folder / "runs.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_report_imports_no_torch_and_states_the_intervals_coverage(tmp_path):
+    folder = _finished_folder(tmp_path / "cmp")
+    proc = _python(_LOADED.replace("%r" % (HEAVY,), "('torch', 'matplotlib', 'scipy.stats')"), tmp_path,
+                   "report", str(folder))
     assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout.splitlines()[-1])
+    assert res["code"] == 0 and res["heavy"] == [], res["heavy"]
+    assert "| 93.8 % CI of median |" in res["out"] and "| 1 (deterministic) |" in res["out"]
+
+
+def test_the_check_can_fail(tmp_path):
+    """The checks above can fail: ``psf`` imports torch first thing (then refuses the scene)."""
+    proc = _python(_LOADED, tmp_path, "psf", "--scene", "no-such-scene")
     assert "torch" in json.loads(proc.stdout.splitlines()[-1])["heavy"]
 
 

@@ -10,8 +10,8 @@ from scipy import stats as sps
 
 from arraysel.report.columns import ROW_COLUMNS, STATS_COLUMNS, TABLE1_COLUMNS, TABLE1_METRICS
 from arraysel.errors import ParameterError
-from arraysel.report.stats import (baseline_config, deterministic_configs, holm, median_ci, median_ci_rank, rank_test,
-                                   seed_statistics, stats_table, vargha_delaney_a)
+from arraysel.report.stats import (baseline_config, deterministic_configs, holm, mann_whitney_u, median_ci,
+                                   median_ci_rank, rank_test, seed_statistics, stats_table, vargha_delaney_a)
 from arraysel.report.tables import read_runs, rebuild_tables, table1
 from arraysel.run.compare import compare
 from arraysel.selection import indices_to_mask, parse_element_text
@@ -64,6 +64,21 @@ def test_mannwhitneyu_known_p_values():
     assert u == 12.0 and p == pytest.approx(2 / 35)
     u, p, note = rank_test([1.0], [4.0, 5.0])
     assert math.isnan(u) and math.isnan(p) and "2 needed" in note
+
+
+def test_mann_whitney_u_is_scipys():
+    """The test as scipy.stats.mannwhitneyu computes it (exact and normal, ties, every size)."""
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        n1, n2 = (int(v) for v in rng.integers(1, 24, 2))
+        if rng.random() < 0.3:   # ties: the normal approximation with the tie correction
+            x, y = rng.integers(0, 5, n1).astype(float), rng.integers(0, 5, n2).astype(float)
+        else:
+            x, y = rng.normal(size=n1), rng.normal(size=n2) + rng.normal()
+        ref = sps.mannwhitneyu(x, y)
+        u, p = mann_whitney_u(x, y)
+        assert u == ref.statistic and p == pytest.approx(ref.pvalue, rel=1e-9, abs=1e-300), (x, y)
+    assert mann_whitney_u([2.0, 2.0], [2.0, 2.0]) == (2.0, 1.0)
 
 
 def test_median_interval_known_answers():

@@ -49,8 +49,8 @@ __all__ = ["MERIT_NAMES", "PSF3D_TERMS", "SIX_DB", "PSL_FLOOR_DB", "C_PLANE", "P
            "plane_set", "normalise_planes", "psf3d_regions", "psf3d_metrics", "c_plane_profiles",
            "main_lobe_widths", "check_planes"]
 
-#: the figures of merit of 2-D sparse-array papers, computed next to the Table-1 terms
-MERIT_NAMES: tuple[str, ...] = ("PSL_dB", "width_x_6dB", "width_y_6dB")
+#: the figures of merit of 2-D sparse-array papers (defined in :mod:`arraysel.objective.names`)
+from arraysel.objective.names import MERIT_NAMES  # noqa: E402
 #: every name :func:`psf3d_metrics` can return
 PSF3D_TERMS: tuple[str, ...] = tuple(METRIC_NAMES) + MERIT_NAMES
 #: the amplitude of -6 dB, the level of the main-lobe widths

@@ -3,8 +3,7 @@ write and the tables (``arraysel.report.tables``, ``arraysel.report.stats``,
 ``arraysel.report.summary``) read."""
 from __future__ import annotations
 
-from arraysel.objective.metrics import METRIC_NAMES
-from arraysel.objective.metrics3d import MERIT_NAMES
+from arraysel.objective.names import MERIT_NAMES, METRIC_NAMES  # torch-free: `arraysel report` loads no torch
 
 __all__ = ["METRICS", "TABLE1_METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "TABLE1_COLUMNS", "STATS_COLUMNS",
            "PAPER_NAMES", "MERIT_COLUMNS"]

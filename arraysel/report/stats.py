@@ -18,9 +18,9 @@ and its assumptions.
   (``Mean_median_ci_level``: 93.75 % for 5 seeds). It assumes only independent runs from one
   continuous distribution (ties make it conservative). NaN, with "n/a" in the report, when even
   ``[min, max]`` covers less than the level (5 seeds are needed for 90 %, 6 for 95 %).
-* **Rank test**: ``scipy.stats.mannwhitneyu(means, random_means, alternative="two-sided")``
-  (exact p-value for small samples without ties, the normal approximation otherwise, as scipy
-  chooses with ``method="auto"``); NaN, with the reason in ``note``, when there is no ``random``
+* **Rank test** (:func:`mann_whitney_u`): the two-sided Mann-Whitney U test of the Means against
+  random's, as ``scipy.stats.mannwhitneyu`` computes it by default (exact p-value for small
+  samples without ties, the normal approximation otherwise); NaN, with the reason in ``note``, when there is no ``random``
   configuration, for ``random`` itself, for a deterministic configuration, or when either side
   has fewer than 2 runs. ``p_vs_random_holm``: the p-values of one comparison adjusted for their
   number by Holm's step-down method (:func:`holm`), which controls the family-wise error rate
@@ -58,7 +58,7 @@ import numpy as np
 from arraysel.report.columns import STATS_COLUMNS
 
 __all__ = ["CI_LEVEL", "BASELINE", "MedianCI", "finite", "seed_statistics", "median_ci", "median_ci_rank",
-           "rank_test", "holm", "vargha_delaney_a", "percent", "baseline_config", "deterministic_configs",
+           "rank_test", "mann_whitney_u", "holm", "vargha_delaney_a", "percent", "baseline_config", "deterministic_configs",
            "stats_table", "run_aocc", "aocc_by_config", "gap_columns", "ERT_GAPS", "ert_column", "ert_by_config"]
 
 #: the least coverage asked of the confidence interval of the median (each interval states its own,
@@ -146,15 +146,52 @@ def median_ci(values, level: float = CI_LEVEL) -> MedianCI:
 
 def rank_test(values, reference) -> tuple[float, float, str]:
     """Two-sided Mann-Whitney U test of the finite ``values`` against the finite ``reference``:
-    ``(U, p, note)``; ``(nan, nan, reason)`` when either side has fewer than 2 values."""
-    from scipy import stats
-
+    ``(U, p, note)`` (:func:`mann_whitney_u`); ``(nan, nan, reason)`` when either side has fewer
+    than 2 values."""
     a, b = finite(values), finite(reference)
     if a.size < 2 or b.size < 2:
         return math.nan, math.nan, (f"no rank test: {a.size} run(s) here and {b.size} of {BASELINE} with a "
                                     f"finite Mean, 2 needed on each side")
-    res = stats.mannwhitneyu(a, b, alternative="two-sided")
-    return float(res.statistic), float(res.pvalue), ""
+    u, p = mann_whitney_u(a, b)
+    return u, p, ""
+
+
+def mann_whitney_u(x, y) -> tuple[float, float]:
+    """``(U, p)`` of the two-sided Mann-Whitney U test of ``x`` against ``y`` as
+    ``scipy.stats.mannwhitneyu(x, y)`` computes it with its defaults (``method="auto"``, continuity
+    correction), without importing scipy.stats (a second of start-up for ``arraysel report``).
+    ``U`` counts the pairs where ``x`` is the larger (ties count one half). The p-value is exact
+    (the null distribution of ``U``) when the samples have no ties and one has at most 8 values,
+    else the normal approximation with the tie correction."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    n1, n2 = int(x.size), int(y.size)
+    values, inverse, counts = np.unique(np.concatenate([x, y]), return_inverse=True, return_counts=True)
+    ranks = (np.cumsum(counts) - (counts - 1) / 2.0)[inverse]   # average ranks, 1-based
+    u1 = float(ranks[:n1].sum() - n1 * (n1 + 1) / 2)
+    u = max(u1, n1 * n2 - u1)
+    if (n1 > 8 and n2 > 8) or bool((counts > 1).any()):
+        n = n1 + n2
+        tie_term = float(np.sum(counts.astype(np.float64) ** 3 - counts))
+        sd = math.sqrt(n1 * n2 / 12 * ((n + 1) - tie_term / (n * (n - 1))))
+        # every value tied (sd = 0): no evidence either way, p = 1
+        p = math.erfc((u - n1 * n2 / 2 - 0.5) / sd / math.sqrt(2.0)) if sd > 0 else 1.0   # 2 P(Z > z)
+    else:
+        p = 2.0 * _u_tail(int(round(u)), n1, n2)
+    return u1, float(min(1.0, max(0.0, p)))
+
+
+def _u_tail(u: int, m: int, n: int) -> float:
+    """P(U >= u) under the null hypothesis for samples of ``m`` and ``n`` values without ties: the
+    counts of U are the coefficients of the Gaussian binomial [m + n choose m] in q."""
+    deg = m * n
+    c = [1] + [0] * deg
+    for i in range(1, min(m, n) + 1):   # prod_i (1 - q^(max + i)) / (1 - q^i), exact in integers
+        step = max(m, n) + i
+        for d in range(deg, step - 1, -1):
+            c[d] -= c[d - step]
+        for d in range(i, deg + 1):
+            c[d] += c[d - i]
+    return sum(c[u:]) / math.comb(m + n, m)
 
 
 def holm(pvalues) -> np.ndarray:

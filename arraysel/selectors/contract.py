@@ -28,11 +28,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
-from typing import Any, ClassVar, Iterable
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported where it is used: `arraysel list` and `report` start without it
+    import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
 from arraysel.objective.contract import hessian_by_rows
@@ -471,7 +474,7 @@ class BudgetedObjective:
     def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
         self._check_open()
         self._started()
-        if isinstance(masks, torch.Tensor):
+        if _is_tensor(masks):
             masks = masks.detach().cpu().numpy()
         masks = np.asarray(masks)
         if masks.ndim == 1:
@@ -599,8 +602,14 @@ def _hard_masks(masks: np.ndarray) -> np.ndarray:
     return hard
 
 
+def _is_tensor(x) -> bool:
+    """``x`` is a torch tensor (False without looking when torch was never imported: none can exist)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
 def _looks_like_mask(elements, n_elements) -> bool:
-    if isinstance(elements, torch.Tensor):
+    if _is_tensor(elements):
         elements = elements.detach().cpu().numpy()
     if isinstance(elements, np.ndarray):
         return elements.dtype == bool or (elements.ndim == 1 and elements.shape[0] == n_elements
@@ -634,6 +643,11 @@ class Selector:
     scores_neighbourhoods : scores one-swap neighbourhoods (``score_swaps``/``evaluate_swaps``):
         the runner prepares the objective for them before the budget starts
         (``prepare_neighbourhoods``, :mod:`arraysel.objective.neighbours`)
+    requires : Python packages (import names) the selector needs beyond arraysel's own
+        dependencies; a selector whose packages are missing is refused before a run starts
+        (:meth:`missing`, :meth:`install_hint`) and ``arraysel list`` marks it
+    extra : the arraysel extra that installs ``requires`` (``pip install 'arraysel[extra]'``);
+        None: install the packages themselves
 
     Subclasses implement :meth:`select`. Options are available as
     ``self.options`` (a dict holding every declared option). Every subclass
@@ -649,6 +663,8 @@ class Selector:
     deterministic: ClassVar[bool] = False
     needs_evaluations: ClassVar[bool] = True
     scores_neighbourhoods: ClassVar[bool] = False
+    requires: ClassVar[tuple[str, ...]] = ()
+    extra: ClassVar[str | None] = None
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -667,6 +683,36 @@ class Selector:
             values[key] = opt.validate(f"{self.name}.{key}", options[key]) if key in options else opt.default
         # instance attribute shadows the class-level declarations
         self.options = values  # type: ignore[misc]
+
+    @classmethod
+    def missing(cls) -> list[str]:
+        """The packages of :attr:`requires` that cannot be imported here (found, not imported)."""
+        import importlib.util
+
+        out = []
+        for name in cls.requires:
+            try:
+                found = importlib.util.find_spec(name) is not None
+            except (ImportError, ValueError):
+                found = False
+            if not found:
+                out.append(name)
+        return out
+
+    @classmethod
+    def install_hint(cls) -> str:
+        """The pip command that installs :attr:`requires`."""
+        return f"pip install 'arraysel[{cls.extra}]'" if cls.extra else "pip install " + " ".join(cls.requires)
+
+    @classmethod
+    def check_available(cls) -> None:
+        """Raise :class:`ParameterError` naming the missing packages and the pip command that
+        installs them, when some of :attr:`requires` are missing."""
+        missing = cls.missing()
+        if missing:
+            raise ParameterError(f"selector {cls.name!r} needs {', '.join(missing)}, which "
+                                 f"{'is' if len(missing) == 1 else 'are'} not installed; install it with: "
+                                 f"{cls.install_hint()}")
 
     @classmethod
     def parse_options(cls, pairs: dict[str, str]) -> dict[str, Any]:
@@ -704,6 +750,8 @@ def numpy_rng(seed: int, stream: int = 0) -> np.random.Generator:
 
 def torch_rng(seed: int, device: torch.device | str = "cpu", stream: int = 0) -> torch.Generator:
     """A torch Generator on ``device`` seeded from ``seed`` and ``stream``."""
+    import torch
+
     g = torch.Generator(device=torch.device(device))
     g.manual_seed(int(np.random.SeedSequence([int(seed), int(stream)]).generate_state(1, np.uint64)[0]
                       & 0x7FFF_FFFF_FFFF_FFFF))
@@ -715,7 +763,7 @@ def top_k(weights, k: int) -> list[int]:
 
     Non-finite weights rank last.
     """
-    if isinstance(weights, torch.Tensor):
+    if _is_tensor(weights):
         weights = weights.detach().cpu().double().numpy()
     w = np.asarray(weights, dtype=np.float64).copy()
     w[~np.isfinite(w)] = -np.inf
