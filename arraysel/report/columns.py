@@ -54,7 +54,7 @@ MERIT_COLUMNS = MERIT_NAMES
 #:   runs are too few for that level; :func:`arraysel.report.stats.median_ci`);
 #: * ``evaluations_median``, ``seconds_median``;
 #: * ``U_vs_random``, ``p_vs_random``: two-sided Mann-Whitney U test of the runs' Means against
-#:   those of the ``random`` configuration (``scipy.stats.mannwhitneyu``); ``p_vs_random_holm``:
+#:   those of the ``random`` configuration (as ``scipy.stats.mannwhitneyu`` computes it); ``p_vs_random_holm``:
 #:   the p-values Holm-adjusted over the configurations tested; ``A_vs_random``: Vargha-Delaney A,
 #:   the chance that a run's Mean is below a random run's (0.5: no difference);
 #: * ``note``: why a statistic is NaN (too few runs, deterministic, no ``random`` configuration, ...).
