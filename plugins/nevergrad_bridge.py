@@ -81,6 +81,8 @@ class NevergradSelector(Selector):
                             f"else {_DEFAULT_NG_BUDGET})", lo=1),
     }
     deterministic = False
+    requires = ("nevergrad",)
+    extra = "nevergrad"
 
     def __init__(self, **options):
         super().__init__(**options)

@@ -7,8 +7,9 @@ from arraysel.errors import ParameterError
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "cache", help="show or clear the on-disk cache of precomputed PSF bases",
-        description="The PSF fast path precomputes a basis per scene (about 1 GB for the paper scene, "
-                    "about 30 s on two cores) and keeps it in a cache folder: $ARRAYSEL_CACHE when set "
+        description="The PSF fast path precomputes a basis per scene (about 1 GB for the paper scene; the "
+                    "first build announces its estimated time, which follows the measured time of the "
+                    "latest build in the folder) and keeps it in a cache folder: $ARRAYSEL_CACHE when set "
                     "('off' disables the cache), else the platform's user cache folder. "
                     "'path' prints the folder, 'info' lists what it holds with sizes and state, "
                     "'clear' removes what the cache wrote there (entries are rebuilt when next needed). "
@@ -37,6 +38,7 @@ def run(args) -> int:
               + (f"; {foreign} foreign item(s) the cache did not write (never removed)" if foreign else ""))
         for e in entries:
             when = f", created {e['created']}" if e["created"] else ""
+            when += f", built in {e['build_seconds']:.0f} s" if e.get("build_seconds") else ""
             print(f"  {e['name']}  {_fmt_bytes(e['bytes'])}  {e['status']}{when}")
     else:
         n, freed = clear(folder)

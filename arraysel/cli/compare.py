@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import signal
 import sys
@@ -17,6 +18,8 @@ from arraysel.objective.build import objective_for as build_objective  # the CLI
 DEFAULT_TOTAL_S = 420.0
 DEFAULT_BUDGET_S = 120.0
 DEFAULT_MIN_S = 10.0
+
+_log = logging.getLogger(__name__)
 
 
 def default_budget_s(runs: int) -> float:
@@ -118,6 +121,8 @@ def parse_selectors(text: str, registry) -> list[str]:
                              f"{', '.join(registry.names())} (load others with --plugin)")
     if len(set(names)) != len(names):
         raise ParameterError(f"--selectors lists a selector twice: {text!r}")
+    for n in names:  # before anything is built: a missing extra is one line with its pip command
+        registry[n].check_available()
     return names
 
 
@@ -213,8 +218,8 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
         budget_s = float(previous["budget"].get("seconds") or 0)     # the runs being resumed
     elif budget_s is None:
         budget_s = default_budget_s(n_runs)
-        print(f"arraysel compare: {n_runs} run(s) of {budget_s:g} s each (the default time budget shares "
-              f"{DEFAULT_TOTAL_S / 60:g} minutes; --budget-s sets it)", file=sys.stderr)
+        _log.warning("arraysel compare: %d run(s) of %g s each (the default time budget shares %g minutes; "
+                     "--budget-s sets it)", n_runs, budget_s, DEFAULT_TOTAL_S / 60)
     evals = None if args.budget_evals is None else check_number("--budget-evals", args.budget_evals,
                                                                 lo=1, integer=True)
     budget = Budget(seconds=budget_s or None, evaluations=evals)
@@ -231,7 +236,7 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
         objective = build_objective(args.scene, args.device, args.dtype, args.aggregate)
         notice = _exact_run_notice(objective, budget, n_runs)
         if notice:
-            print(f"arraysel compare: {notice}", file=sys.stderr)
+            _log.warning("arraysel compare: %s", notice)
         result = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
                          budget=budget, registry=registry, resume=args.resume,
                          progress=not args.no_progress, figures=not args.no_figures,

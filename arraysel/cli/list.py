@@ -12,6 +12,8 @@ def _flags(cls) -> str:
         flags.append("deterministic")
     if not cls.needs_evaluations:
         flags.append("no-evaluations")
+    if cls.missing():
+        flags.append("NOT-INSTALLED")
     return ",".join(flags) or "-"
 
 
@@ -19,7 +21,10 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "list", help="list the available selectors (built-in and plugins)",
         description="List every registered selector with the plugin it comes from (origin), its "
-                    "capability flags and a one-line description.")
+                    "capability flags (gradients, deterministic: one run whatever the seed, "
+                    "no-evaluations, NOT-INSTALLED: a package it needs is missing) and a one-line "
+                    "description; a selector that is not installed is followed by the pip command "
+                    "that installs it.")
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE_OR_PATH",
                    help="load a plugin module or .py file first (repeatable)")
     p.add_argument("-v", "--verbose", action="store_true", help="also show each selector's options")
@@ -37,6 +42,8 @@ def run(args) -> int:
     if args.json:
         data = [{"name": n, "origin": reg.origin(n), "description": c.description,
                  "uses_gradients": c.uses_gradients, "deterministic": c.deterministic,
+                 "requires": list(c.requires), "missing": c.missing(),
+                 "install": c.install_hint() if c.missing() else None,
                  "options": {k: {"type": o.type.__name__, "default": o.default, "help": o.help,
                                  "choices": list(o.choices) if o.choices else None}
                              for k, o in c.options.items()}}
@@ -49,6 +56,8 @@ def run(args) -> int:
     print("  ".join(h.ljust(w) for h, w in zip(head[:3], widths)) + "  " + head[3])
     for (n, c), r in zip(reg.items(), rows):
         print("  ".join(x.ljust(w) for x, w in zip(r[:3], widths)) + "  " + r[3])
+        if c.missing():
+            print(f"      needs {', '.join(c.missing())}: {c.install_hint()}")
         if args.verbose:
             for key, opt in c.options.items():
                 print(f"      -o {n}.{key}=...  ({opt.describe()})")

@@ -7,7 +7,8 @@ torch, pandas or matplotlib only inside its ``func``, so that ``arraysel --help`
 
 The global ``-v`` / ``-q`` set the level of the ``arraysel`` logger (warnings by default;
 ``-v`` information such as the basis build's steps, ``-vv`` debug; ``-q`` errors only), whose
-records go to stderr. An error of the command is one line on stderr and exit code 2.
+records go to stderr. An error of the command is one line on stderr and exit code 2; the exit
+codes are listed in ``arraysel --help`` (:data:`EXIT_CODES`).
 """
 from __future__ import annotations
 
@@ -15,11 +16,22 @@ import argparse
 import importlib
 import logging
 import sys
+import textwrap
 
 from arraysel.errors import ArrayselError
 
 #: command modules, in the order they are listed by ``arraysel --help``
-COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "export", "list", "scenes", "cache", "train")
+COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "export", "list", "scenes", "cache", "train", "completion")
+
+#: the exit codes of every command, as ``arraysel --help`` lists them
+EXIT_CODES = (
+    (0, "success"),
+    (1, "compare finished, but some runs failed (their error column in runs.csv)"),
+    (2, "an error: bad input, a missing file or package, a selector that cannot run (one line on stderr); "
+        "also a command line argparse refuses"),
+    (130, "interrupted (Ctrl-C); compare keeps its finished runs for --resume"),
+    (143, "terminated (SIGTERM, compare); as 130"),
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,13 +40,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="arraysel",
         description="Design sparse ultrasound probes: choose which k of Ne elements stay active.",
+        epilog="exit codes:\n" + "\n".join(textwrap.fill(text, 79, initial_indent=f"  {code:<4d} ",
+                                                            subsequent_indent=" " * 7) for code, text in EXIT_CODES)
+               + "\n\nshell completion: arraysel completion bash|zsh|tcsh (see arraysel completion --help)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"arraysel {__version__}")
     level = parser.add_mutually_exclusive_group()
     level.add_argument("-v", "--verbose", dest="log_verbose", action="count", default=0,
                        help="log more: -v information (e.g. the basis build's steps), -vv debug")
     level.add_argument("-q", "--quiet", dest="log_quiet", action="count", default=0,
-                       help="log errors only (no warnings)")
+                       help="log errors only (no notices such as the basis build's, no warnings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:

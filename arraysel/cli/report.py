@@ -1,6 +1,7 @@
 """``arraysel report``: a finished comparison's table as Markdown or LaTeX."""
 from __future__ import annotations
 
+import logging
 import sys
 
 
@@ -38,5 +39,5 @@ def run(args) -> int:
     if args.out is None:
         sys.stdout.write(text)
     for path in written:
-        print(f"wrote {path}", file=sys.stderr)
+        logging.getLogger(__name__).warning("wrote %s", path)
     return 0

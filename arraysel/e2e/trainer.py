@@ -56,7 +56,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 import torch.nn as nn
-from tqdm import tqdm
+from tqdm.auto import tqdm
 
 from arraysel.e2e.config import TrainConfig
 from arraysel.e2e.data import SceneMaker
@@ -437,7 +437,7 @@ class E2ETrainer:
             self.calibrate_balance()
         every = self.config.checkpoint_every
         bar = tqdm(total=target, initial=min(self.step, target), desc="e2e",
-                   disable=not self.config.progress, dynamic_ncols=True)
+                   disable=None if self.config.progress else True, dynamic_ncols=True)  # a terminal only
         try:
             while self.step < target:
                 rec = self.train_step()

@@ -104,6 +104,7 @@ class _Plan:
         classes = {}
         for name, opts in sels:
             sel_cls = registry[name]
+            sel_cls.check_available()  # its packages are installed (else the pip command)
             sel_cls(**opts)  # validate options before anything runs
             classes[name] = sel_cls
         labels = [config_label(name, opts) for name, opts in sels]
@@ -226,7 +227,8 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
     if warm is not None:  # runs made here: this process's objective warmed before the first clock starts
         meta["warm_up"] = warm
     store.save([full] + rows, traces)
-    bar = tqdm(total=len(todo), disable=not progress, desc="compare", unit="run", file=sys.stderr)
+    # on a terminal only (disable=None): a redirected log gets no carriage-return frames
+    bar = tqdm(total=len(todo), disable=None if progress else True, desc="compare", unit="run", file=sys.stderr)
     results: dict[int, tuple[dict, list]] = {}
     try:
         _run_all(runner, todo, full, rows, traces, store, plan, bar, results)

@@ -311,7 +311,7 @@ class _RunProgress:
         from tqdm.auto import tqdm
 
         self.bar = tqdm(total=self.total, desc=self.label, unit="eval", unit_scale=True, file=sys.stderr,
-                        dynamic_ncols=True)
+                        dynamic_ncols=True, disable=None)  # on a terminal only
         self.thread = threading.Thread(target=self._loop, args=(self.bar,), daemon=True)
         self.thread.start()
         return self

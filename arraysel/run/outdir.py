@@ -141,9 +141,9 @@ def _acquire(path: str, what: str, shown: str) -> int:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):  # a file system without locks
-                import sys
-                print(f"arraysel: cannot lock {what} {shown!r} ({exc.strerror}); going on without the lock",
-                      file=sys.stderr)
+                import logging
+                logging.getLogger(__name__).warning("arraysel: cannot lock %s %r (%s); going on without the lock",
+                                                    what, shown, exc.strerror)
                 return fd
             pid = _holder(fd)
             os.close(fd)

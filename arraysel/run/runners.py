@@ -22,8 +22,8 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import math
-import sys
 from typing import Callable, Iterator
 
 import numpy as np
@@ -211,7 +211,8 @@ class IsolatedRunner(Runner):
             try:
                 compare_item(spec.config, spec.selector, spec.options, Budget(evaluations=1), 0)
             except ParameterError as exc:
-                print(f"arraysel compare: {spec.config} runs in this process, not isolated: {exc}", file=sys.stderr)
+                logging.getLogger(__name__).warning("arraysel compare: %s runs in this process, not isolated: %s",
+                                                    spec.config, exc)
                 self.here.add(spec.config)
         self.worker = IsolatedWorker(self.factory, threads=self.threads, verify=self.verify)
         return self.local.prepare([s for s in todo if s.config in self.here]) if self.here else None
