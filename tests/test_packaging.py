@@ -114,3 +114,19 @@ def test_the_version_has_one_home():
     assert re.search(rf"^version: {re.escape(arraysel.__version__)}$", cff, re.M)
     changelog = (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
     assert "## [Unreleased]" in changelog and f"## [{arraysel.__version__}]" in changelog
+
+
+def test_wheel_metadata_is_complete_and_typed(dists, wheel):
+    """Authors, keywords, classifiers, a URL, py.typed, and the documented extras (docs/install.md)."""
+    meta = _dist_info(dists, "METADATA")
+    assert re.search(r"^Author: .+", meta, re.M) and re.search(r"^Keywords: .*ultrasound", meta, re.M)
+    assert "Classifier: Intended Audience :: Science/Research" in meta and "Classifier: Typing :: Typed" in meta
+    assert re.search(r"^Project-URL: \w+, https://", meta, re.M)
+    assert "arraysel/py.typed" in wheel
+    extras = set(re.findall(r"^Provides-Extra: (\S+)$", meta, re.M))
+    assert extras >= {"dask", "nevergrad", "netcdf", "docs", "test", "all"}
+    core = [line for line in re.findall(r"^Requires-Dist: (.+)$", meta, re.M) if "extra ==" not in line]
+    assert not [d for d in core if d.split(">")[0].split("<")[0].split("[")[0] in ("nevergrad", "dask", "xarray")]
+    install = (ROOT / "docs" / "install.md").read_text(encoding="utf-8")
+    for extra in extras:
+        assert f"`{extra}`" in install, extra
