@@ -3,9 +3,9 @@
 The mask file is read twice as a stream: once to validate every line (so a bad
 line is reported, with its number, before any work or output), then in chunks
 that are scored and written as they finish. Memory stays bounded whatever the
-number of masks; the CSV (and the ``--psf-out`` npz) grow in temporary files
-next to their targets and are renamed into place at the end, so a target is
-never half-written.
+number of masks; the CSV (and the ``--psf-out`` npz or netCDF file) grow in
+temporary files next to their targets and are renamed into place at the end, so
+a target is never half-written.
 """
 from __future__ import annotations
 
@@ -30,7 +30,10 @@ def add_parser(subparsers) -> None:
                         "of arraysel.testing (Ne=64, k=32)")
     p.add_argument("--masks", required=True, metavar="FILE", help="selections, one per line (UTF-8 text)")
     p.add_argument("--out", default="metrics.csv", help="output CSV (default metrics.csv)")
-    p.add_argument("--psf-out", default=None, metavar="NPZ", help="also write the kernels (psf, psf_ref)")
+    p.add_argument("--psf-out", default=None, metavar="FILE",
+                   help="also write the kernels (psf, psf_ref; a 3-D scene's planes): .npz, or netCDF-4 (.nc, "
+                        ".nc4, .h5: coordinates in metres, units, the scene as attributes, one 'selection' per "
+                        "mask; pip install 'arraysel[netcdf]'; docs/formats.md)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -47,9 +50,15 @@ def run(args) -> int:
     from arraysel.io.outputs import check_outputs, scene_input
     from arraysel.objective.psf_objective import METRIC_NAMES
 
+    from arraysel.report import netcdf
+
     # every path, encoding and selection problem before any heavy work
-    if args.psf_out is not None and not args.psf_out.endswith(".npz"):
-        raise ParameterError(f"--psf-out must end with .npz, got {args.psf_out!r}")
+    nc = args.psf_out is not None and netcdf.is_netcdf(args.psf_out)
+    if args.psf_out is not None and not (args.psf_out.endswith(".npz") or nc):
+        raise ParameterError(f"--psf-out must end with .npz or a netCDF ending ({', '.join(netcdf.SUFFIXES)}), "
+                             f"got {args.psf_out!r}")
+    if nc:
+        netcdf.require("--psf-out")
     check_outputs([("--out", args.out), ("--psf-out", args.psf_out)],
                   inputs=[("--masks", args.masks), ("--scene", scene_input(args.scene))])
     if args.scene == "toy":
@@ -68,6 +77,8 @@ def run(args) -> int:
     names = (*METRIC_NAMES, *obj.breakdown_names) if volume else METRIC_NAMES
     kernels = args.psf_out is not None
     chunk = CHUNK_WITH_KERNELS if kernels else CHUNK
+    if nc:
+        return _evaluate_netcdf(args, obj, scene, n, k, names, volume)
     with AtomicFile(args.out) as csv, (StreamingNpz(args.psf_out) if kernels else _Null()) as npz:
         csv.write((",".join(("elements", *names)) + "\n").encode())
         if kernels and volume:
@@ -113,6 +124,55 @@ def run(args) -> int:
     print(f"scored {n} selection(s) on scene {name!r}: wrote {args.out}"
           + (f" and {args.psf_out}" if args.psf_out else ""))
     return 0
+
+
+def _evaluate_netcdf(args, obj, scene, n: int, k: int, names, volume: bool) -> int:
+    """``evaluate --psf-out FILE.nc``: the CSV and the netCDF file of the kernels, in chunks."""
+    import numpy as np
+
+    from arraysel.io.atomic import AtomicFile
+    from arraysel.io.masks import iter_mask_chunks
+    from arraysel.report import netcdf
+
+    if volume:
+        layout = netcdf.planes_layout({p: v[0].cpu().numpy() for p, v in obj.reference_planes().items()}, obj.coords)
+    else:
+        layout = netcdf.kernel_layout(obj.reference_kernel().cpu().numpy(), obj.setup.pitch, scene.points())
+    attrs = netcdf.scene_attrs(scene, f"arraysel evaluate: the PSFs of the {n} selections of {args.masks}")
+    bar = _bar(args, n)
+    with AtomicFile(args.out) as csv, netcdf.PsfFile(args.psf_out, layout, n=n, k=k, attrs=attrs,
+                                                    metrics=tuple(names)) as out:
+        csv.write((",".join(("elements", *names)) + "\n").encode())
+        for sels, masks in iter_mask_chunks(args.masks, int(obj.n_elements), k, CHUNK_WITH_KERNELS):
+            if out.done + len(sels) > n:
+                break
+            res = obj.evaluate(masks, return_planes=True) if volume else obj.evaluate(masks, return_kernels=True)
+            found = {f"psf_{p}": v for p, v in res["planes"].items()} if volume else {"psf": res["kernels"]}
+            cols = {m: np.asarray(res[m], dtype=np.float64) for m in names}
+            csv.write(_csv_lines(sels, np.stack([cols[m] for m in names], axis=1)))
+            out.write(found, [list(s) for s in sels], cols)
+            bar.update(len(sels))
+        bar.close()
+        if out.done != n:  # the file changed between the two passes
+            raise ParameterError(f"--masks: {args.masks!r} changed while it was read ({n} then {out.done} "
+                                 f"selections or more)")
+        out.commit()  # the kernels first: no CSV without its kernels
+        csv.commit()
+    print(f"scored {n} selection(s) on scene {scene.name!r}: wrote {args.out} and {args.psf_out}")
+    return 0
+
+
+def _bar(args, n: int):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=n, unit="mask", desc="evaluate", file=sys.stderr, disable=args.no_progress or None,
+                dynamic_ncols=True)
+
+
+def _csv_lines(sels, cols) -> bytes:
+    """The CSV rows of the selections ``sels`` and their metric columns ``cols`` (B, metrics)."""
+    return ("\n".join(" ".join(map(str, s)) + "," + ",".join(f"{v:.8g}" for v in row)
+                      for s, row in zip(sels, cols.tolist())) + "\n").encode()
 
 
 class _Null:
