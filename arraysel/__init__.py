@@ -5,6 +5,7 @@ arraysel`` itself loads neither torch nor pandas):
 
 * ``asel.load_scene(name_or_path)`` -- a :class:`~arraysel.scenes.schema.Scene`
 * ``asel.build_objective(scene)`` / ``asel.Objective`` -- the PSF objective
+* ``asel.evaluate(scene, selections)`` -- a DataFrame, one row per selection (:mod:`arraysel.api`)
 * ``asel.compare(scene, selectors, ...)`` -- DataFrames and Figures (:mod:`arraysel.api`)
 * ``asel.Budget``, ``asel.selectors()`` (the registered selector names), ``asel.cache_dir()``
 
@@ -22,6 +23,7 @@ _LAZY = {
     "Objective": ("arraysel.objective.psf_objective", "Objective"),
     "build_objective": ("arraysel.objective.build", "build_objective"),
     "compare": ("arraysel.api", "compare"),
+    "evaluate": ("arraysel.api", "evaluate"),
     "CompareResult": ("arraysel.run.compare", "CompareResult"),
     "Budget": ("arraysel.selectors.contract", "Budget"),
     "Selector": ("arraysel.selectors.contract", "Selector"),

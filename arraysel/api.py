@@ -4,6 +4,7 @@
 >>> scene = asel.load_scene("paper")
 >>> obj = asel.build_objective(scene)
 >>> obj.evaluate_indices([list(range(0, 64, 2))])["Mean"]
+>>> asel.evaluate("paper", [range(0, 64, 2), range(32)])   # pandas DataFrame, one row per selection
 >>> res = asel.compare("paper", ["uniform", "random"], budget_s=30)
 >>> res.table            # pandas DataFrame (table1.csv: each selector's best run)
 >>> res.stats            # pandas DataFrame (stats.csv: statistics over seeds)
@@ -19,7 +20,7 @@ import dataclasses
 import os
 from typing import Any, Sequence
 
-__all__ = ["CompareResult", "compare"]
+__all__ = ["CompareResult", "compare", "evaluate"]
 
 
 def __getattr__(name):
@@ -30,6 +31,80 @@ def __getattr__(name):
 
         return CompareResult
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _objective(scene, device: str, dtype: str):
+    """The objective of a scene name, ``.toml`` path, :class:`~arraysel.scenes.schema.Scene` or ``"toy"``."""
+    from arraysel.objective.build import objective_for
+
+    if isinstance(scene, str) and scene == "toy":
+        return objective_for("toy", device, dtype)
+    import torch
+
+    from arraysel.objective.build import build_objective
+    from arraysel.scenes.schema import Scene, load_scene
+
+    return build_objective(scene if isinstance(scene, Scene) else load_scene(scene), device=device,
+                           dtype=getattr(torch, dtype))
+
+
+def evaluate(scene: Any = "paper", selections: Sequence = (), *, device: str = "cpu", dtype: str = "float32",
+             objective=None) -> Any:
+    """Score selections on a scene, as ``arraysel evaluate`` does, and return a pandas DataFrame.
+
+    Parameters
+    ----------
+    scene : scene name, ``.toml`` path, :class:`~arraysel.scenes.schema.Scene` or ``"toy"``
+    selections : a list of selections, each a sequence of 0-based active element indices, a
+        :class:`~arraysel.selection.Selection` or a boolean mask of ``Ne`` values; or a 2-D array
+        of ``(B, Ne)`` 0/1 masks
+    device, dtype : of the objective (``"cpu"``/``"cuda"``, ``"float32"``/``"float64"``)
+    objective : an already built objective (then ``scene``, ``device``, ``dtype`` are unused)
+
+    Returns
+    -------
+    pandas DataFrame: one row per selection, in order: ``elements`` (the indices as text, ``"0 2
+    4"``), ``k``, then every metric the objective returns (the Table-1 metrics; a 3-D scene's
+    figures of merit; a several-point scene's per-point values), as float64.
+    """
+    import numpy as np
+    import pandas as pd
+
+    from arraysel.selection import format_elements, masks_from_indices
+
+    obj = _objective(scene, device, dtype) if objective is None else objective
+    rows = _indices(selections, int(obj.n_elements))
+    res = obj.evaluate(masks_from_indices(rows, int(obj.n_elements))) if rows else {}
+    out: dict[str, Any] = {"elements": [format_elements(r) for r in rows], "k": [len(r) for r in rows]}
+    for name, value in res.items():
+        v = np.asarray(value)
+        if v.ndim == 1 and v.shape[0] == len(rows) and v.dtype.kind in "fiu":
+            out[name] = v.astype(np.float64)
+    return pd.DataFrame(out)
+
+
+def _indices(selections, n: int) -> list[list[int]]:
+    """The active indices of each selection given to :func:`evaluate`."""
+    import numpy as np
+
+    from arraysel.errors import ParameterError
+    from arraysel.selection import Selection, mask_to_indices
+
+    if hasattr(selections, "detach"):   # a torch tensor of masks
+        selections = selections.detach().cpu().numpy()
+    if isinstance(selections, np.ndarray):
+        if selections.ndim != 2 or selections.shape[1] != n:
+            raise ParameterError(f"selections: an array must hold (B, {n}) masks, got shape {selections.shape}")
+        return [mask_to_indices(m) for m in selections]
+    out = []
+    for sel in selections:
+        if isinstance(sel, Selection):
+            out.append(list(sel.indices))
+        elif isinstance(sel, np.ndarray) and sel.dtype == bool:
+            out.append(mask_to_indices(sel))
+        else:
+            out.append([int(i) for i in sel])
+    return out
 
 
 def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *, seeds: Sequence[int] = (0,),
@@ -66,17 +141,7 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
 
     budget = Budget(seconds=budget_s, evaluations=budget_evals)
     if objective is None:
-        from arraysel.objective.build import objective_for as _build
-        from arraysel.scenes.schema import Scene, load_scene
-
-        if isinstance(scene, str) and scene == "toy":
-            objective = _build("toy", device, dtype)
-        else:
-            import torch
-
-            from arraysel.objective.build import build_objective
-            objective = build_objective(scene if isinstance(scene, Scene) else load_scene(scene), device=device,
-                                        dtype=getattr(torch, dtype))
+        objective = _objective(scene, device, dtype)
     if out_dir is None:
         out_dir = tempfile.mkdtemp(prefix="arraysel-compare-")
     opts = options or {}
