@@ -153,3 +153,38 @@ def test_lateral_profiles_figure_against_the_full_array():
     # the -6 dB widths in the legend: 2 sigma sqrt(2 ln 2) about, 0.47 mm and 0.94 mm along x
     assert "0.47 mm" in lines[0].get_label() and "0.94 mm" in lines[1].get_label()
     assert max(lines[0].get_ydata()) == pytest.approx(0.0)
+
+
+def test_every_figure_draws_into_the_callers_axes():
+    """ax=: one Axes for a one-panel figure, as many as its panels otherwise; the caller's Figure is
+    returned, no new figure made, and a wrong count of Axes is refused by name."""
+    from matplotlib.figure import Figure
+
+    from arraysel.errors import ParameterError
+
+    kern = np.stack([_kernel(), _kernel(width=2.0)])
+    masks = np.array([[1, 0, 1, 0], [0, 1, 0, 1]], dtype=bool)
+    trace = pd.DataFrame({"config": ["a", "a"], "seed": [0, 0], "seconds": [0.1, 1.0], "evaluations": [1, 5],
+                          "gradient_steps": [0, 0], "best_Mean": [0.5, 0.2], "event": ["improvement", "end"]})
+    c = _three_planes()
+    planes = {k: np.stack([_psf(v, 3e-4, 3e-4)]) for k, v in c.items()}
+    calls = [  # (panels, draw(ax))
+        (1, lambda ax: plots.masks_figure(["a", "b"], masks, ax=ax)),
+        (1, lambda ax: plots.trace_figure(trace, 0.1, ax=ax)),
+        (3, lambda ax: plots.psfs_figure(["a", "b"], kern, _kernel(), 1e-4, ax=ax)),
+        (2, lambda ax: plots.profiles_figure(["a", "b"], kern, _kernel(), 1e-4, ax=ax)),
+        (3, lambda ax: plots.psf_figure(_kernel(), _kernel(width=2.0), 1e-4, [0, 2], 4, ax=ax)),
+        (3, lambda ax: plots.plot_anytime(trace, full_mean=0.1, ax=ax)),
+        (2, lambda ax: plots.matrix_masks_figure(["a", "b"], masks, (2, 2), ax=ax)),
+        (3, lambda ax: plots.planes_figure(["s"], planes, c, ax=ax)),
+        (2, lambda ax: plots.lateral_profiles_figure(["s"], planes["xy"], c["xy"], ax=ax)),
+    ]
+    for panels, draw in calls:
+        fig = Figure()
+        axes = fig.subplots(1, panels, squeeze=False).ravel()
+        got = draw(axes[0] if panels == 1 else list(axes))
+        assert got is fig
+        drawn = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+        assert len(drawn) == panels and all(ax.has_data() for ax in axes), draw
+    with pytest.raises(ParameterError, match="draws 2 panel"):
+        plots.profiles_figure(["a", "b"], kern, _kernel(), 1e-4, ax=Figure().subplots())

@@ -10,6 +10,11 @@ resolution from :data:`STYLE`, applied by :func:`figure_style` while a figure is
 :data:`MASK_CMAP`, axes in millimetres from the peak when the pixel pitch is known (pixels
 otherwise, e.g. the toy objective's synthetic kernels).
 
+Every figure function also draws into a caller's matplotlib Axes: ``ax=`` one Axes for a
+one-panel figure, or a sequence of as many Axes as the figure has panels (the function's
+docstring says how many, in order); it then returns the caller's Figure, leaves its layout alone
+(no ``tight_layout``) and adds the colour bar, where there is one, next to those Axes.
+
 Public helpers for other figure modules (``arraysel.e2e.figures``): :func:`styled`,
 :func:`figure`, :func:`db`, :func:`extent_mm`, :func:`psf_image` (one PSF on an axis),
 :func:`profile_lines` (lateral and axial profiles through the peaks), :func:`mask_strip`
@@ -72,6 +77,22 @@ def styled(fn):
         with figure_style():
             return fn(*args, **kwargs)
     return wrapper
+
+
+def _axes(ax, n: int, figsize, **subplots):
+    """``(figure, [n Axes])``: a new figure of ``figsize`` with ``fig.subplots(**subplots)`` when
+    ``ax`` is None, else the caller's ``ax`` (one Axes, or a sequence of ``n``) and its figure."""
+    if ax is None:
+        fig = figure(figsize)
+        return fig, list(np.atleast_1d(fig.subplots(**subplots)).ravel())
+    axes = [ax] if hasattr(ax, "figure") and not isinstance(ax, (list, tuple, np.ndarray)) else \
+        list(np.asarray(ax, dtype=object).ravel())
+    if len(axes) != n:
+        from arraysel.errors import ParameterError
+
+        raise ParameterError(f"ax: this figure draws {n} panel(s); give {'one Axes' if n == 1 else f'{n} Axes'}, "
+                             f"got {len(axes)}")
+    return axes[0].figure, axes
 
 
 def figure(figsize):
@@ -170,29 +191,32 @@ def mask_strip(ax, labels: Sequence[str], masks: np.ndarray) -> None:
 # ---------------------------------------------------------------------------
 
 @styled
-def masks_figure(labels: Sequence[str], masks: np.ndarray):
-    """``masks.png``: the active elements of every configuration (``masks`` ``(rows, Ne)``)."""
-    fig = figure((8, 0.4 * max(len(labels), 1) + 1.2))
-    mask_strip(fig.subplots(), labels, masks)
+def masks_figure(labels: Sequence[str], masks: np.ndarray, *, ax=None):
+    """``masks.png``: the active elements of every configuration (``masks`` ``(rows, Ne)``); one panel."""
+    fig, (axis,) = _axes(ax, 1, (8, 0.4 * max(len(labels), 1) + 1.2))
+    mask_strip(axis, labels, masks)
     return fig
 
 
-def selections_figure(selections: Mapping[str, Selection]):
-    """``masks.png`` of named :class:`~arraysel.selection.Selection` s (the empty ones left out)."""
+def selections_figure(selections: Mapping[str, Selection], *, ax=None):
+    """``masks.png`` of named :class:`~arraysel.selection.Selection` s (the empty ones left out); one panel."""
     kept = {name: sel for name, sel in selections.items() if len(sel)}
     n = max((sel.n_elements for sel in kept.values()), default=1)
     masks = np.array([sel.mask for sel in kept.values()], dtype=bool).reshape(len(kept), n)
-    return masks_figure(list(kept), masks)
+    return masks_figure(list(kept), masks, ax=ax)
 
 
 @styled
-def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
-    """``psfs.png``: the full array's PSF, then each configuration's, in dB relative to the full array's peak."""
+def psfs_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None, *,
+                ax=None):
+    """``psfs.png``: the full array's PSF, then each configuration's, in dB relative to the full
+    array's peak; ``len(labels) + 1`` panels (the full array's first)."""
     peak = float(np.abs(ref).max())
     cols = min(4, len(labels) + 1)
     rows = math.ceil((len(labels) + 1) / cols)
-    fig = figure((3 * cols, 3 * rows))
-    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    fig, axes = _axes(ax, len(labels) + 1, (3 * cols, 3 * rows), nrows=rows, ncols=cols)
+    if ax is not None:
+        cols = len(axes)  # the caller's layout: labels on every panel but the first's y label
     im = None
     for i, (ax, (lab, kk)) in enumerate(zip(axes, [("full (reference)", ref)] + list(zip(labels, kernels)))):
         im = psf_image(ax, kk, pitch, ref_peak=peak, title=lab)
@@ -233,20 +257,20 @@ def profile_lines(ax_l, ax_a, kernels: dict, pitch: float | None = None, *, ref_
 
 
 @styled
-def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None):
-    """``profiles.png``: lateral and axial profiles through each PSF's peak, against the full array's."""
-    fig = figure((10, 4))
-    ax_l, ax_a = fig.subplots(1, 2)
+def profiles_figure(labels: Sequence[str], kernels: np.ndarray, ref: np.ndarray, pitch: float | None = None, *,
+                    ax=None):
+    """``profiles.png``: lateral and axial profiles through each PSF's peak, against the full
+    array's; two panels (lateral, axial)."""
+    fig, (ax_l, ax_a) = _axes(ax, 2, (10, 4), nrows=1, ncols=2)
     profile_lines(ax_l, ax_a, {"full": ref, **dict(zip(labels, kernels))}, pitch,
                   ref_peak=float(np.abs(ref).max()))
     return fig
 
 
 @styled
-def trace_figure(trace, full_mean: float | None = None):
-    """``trace.png``: the best Mean against time of every run (log time)."""
-    fig = figure((7, 4.5))
-    ax = fig.subplots()
+def trace_figure(trace, full_mean: float | None = None, *, ax=None):
+    """``trace.png``: the best Mean against time of every run (log time); one panel."""
+    fig, (ax,) = _axes(ax, 1, (7, 4.5))
     if trace is not None and len(trace):
         for (config, seed), g in trace.groupby(["config", "seed"], sort=False):
             g = g.sort_values("seconds")
@@ -270,11 +294,11 @@ def trace_figure(trace, full_mean: float | None = None):
 
 @styled
 def psf_figure(kernel: np.ndarray, ref: np.ndarray, pitch: float | None, elements: Sequence[int] | Selection,
-               n_elements: int):
+               n_elements: int, *, ax=None):
     """One selection's PSF and the full array's, each in dB of its own peak, with the mask
-    (``elements``: a :class:`~arraysel.selection.Selection` or its indices)."""
-    fig = figure((12, 4))
-    axes = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 1, 1.2]})
+    (``elements``: a :class:`~arraysel.selection.Selection` or its indices); three panels (the
+    selection's PSF, the full array's, the mask)."""
+    fig, axes = _axes(ax, 3, (12, 4), nrows=1, ncols=3, gridspec_kw={"width_ratios": [1, 1, 1.2]})
     im = None
     for ax, k, title in ((axes[0], kernel, "selection"), (axes[1], ref, "full array")):
         im = psf_image(ax, k, pitch, title=f"PSF, {title}")
@@ -322,8 +346,9 @@ def ecdf_targets(trace, count: int = 51) -> np.ndarray:
 
 
 @styled
-def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | None = None):
-    """Anytime comparison over seeds; returns a matplotlib ``Figure`` (the caller saves it).
+def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | None = None, *, ax=None):
+    """Anytime comparison over seeds; returns a matplotlib ``Figure`` (the caller saves it); three
+    panels (against seconds, against evaluations, the ECDF).
 
     Panels: per config, the median over its runs of the best-so-far Mean with
     the interquartile band, (a) against wall seconds and (b) against
@@ -335,8 +360,8 @@ def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | No
     starts at that point, marked, and holds to the end of the x range).
     ``full_mean`` draws the full array's Mean as a dashed line.
     """
-    fig = figure((15, 4.6))
-    ax_t, ax_e, ax_c = fig.subplots(1, 3)
+    own = ax is None  # a caller's figure keeps its layout
+    fig, (ax_t, ax_e, ax_c) = _axes(ax, 3, (15, 4.6), nrows=1, ncols=3)
     if trace is None or not len(trace):
         for ax in (ax_t, ax_e, ax_c):
             ax.text(0.5, 0.5, "no trace", ha="center", va="center", transform=ax.transAxes)
@@ -392,7 +417,8 @@ def plot_anytime(trace, full_mean: float | None = None, targets: np.ndarray | No
     ax_c.set_xlabel("seconds")
     ax_c.set_ylabel("fraction of (run, target) pairs reached")
     ax_c.set_title(f"ECDF, {len(targets)} targets in [{targets.min():.3g}, {targets.max():.3g}]")
-    fig.tight_layout()
+    if own:
+        fig.tight_layout()
     return fig
 
 
@@ -419,12 +445,13 @@ def _panels(n: int, cols: int = 4, size: float = 3.0, extra_width: float = 0.0):
 
 
 @styled
-def matrix_masks_figure(labels: Sequence[str], masks: np.ndarray, grid: tuple[int, int]):
+def matrix_masks_figure(labels: Sequence[str], masks: np.ndarray, grid: tuple[int, int], *, ax=None):
     """The active elements of each selection on a matrix array: one ``ny x nx`` image per label
-    (element index ``iy * nx + ix``; black = active), columns ``ix`` across, rows ``iy`` up."""
+    (element index ``iy * nx + ix``; black = active), columns ``ix`` across, rows ``iy`` up; one
+    panel per label."""
     ny, nx = (int(v) for v in grid)
     masks = _as_numpy(masks).astype(float).reshape(len(labels), ny * nx)
-    fig, axes = _panels(len(labels), size=2.6)
+    fig, axes = _panels(len(labels), size=2.6) if ax is None else _axes(ax, len(labels), None)
     for ax, lab, m in zip(axes, labels, masks):
         ax.imshow(m.reshape(ny, nx), cmap="Greys", vmin=0, vmax=1, origin="lower", interpolation="nearest",
                   extent=(-0.5, nx - 0.5, -0.5, ny - 0.5))
@@ -473,22 +500,24 @@ def plane_image(ax, plane, coords, *, ref_peak: float | None = None, title: str 
 
 
 @styled
-def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict | None = None):
+def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict | None = None, *, ax=None):
     """The planes of 3-D PSFs at :data:`DYN_RANGE_DB`, axes in mm: one row per selection (the full
     array's first when ``ref`` is given), one column per plane (the C-plane ``xy``, ``xz``, ``yz``).
 
     ``planes`` maps each plane name to an array ``(B, H, W)``, B = ``len(labels)``; ``coords`` to
     its ``(H, W, 3)`` pixel positions (metres); ``ref`` to the full array's ``(H, W)`` (or
     ``(1, H, W)``). Every row is in dB of its own peak over its planes (a sparse array's echo is
-    weaker than the full array's: its shape is what the figure compares).
+    weaker than the full array's: its shape is what the figure compares). Panels: rows x planes,
+    row by row.
     """
     names = list(planes)
     rows = [(lab, {n: _as_numpy(planes[n])[i] for n in names}) for i, lab in enumerate(labels)]
     if ref is not None:
         ref = {n: _as_numpy(ref[n]).reshape(_as_numpy(ref[n]).shape[-2:]) for n in names}
         rows.insert(0, ("full array", ref))
-    fig = figure((3.2 * len(names) + 1.0, 3.0 * len(rows)))
-    axes = np.array(fig.subplots(len(rows), len(names), squeeze=False))
+    fig, flat = _axes(ax, len(rows) * len(names), (3.2 * len(names) + 1.0, 3.0 * len(rows)), nrows=len(rows),
+                      ncols=len(names), squeeze=False)
+    axes = np.array(flat, dtype=object).reshape(len(rows), len(names))
     im = None
     for r, (lab, row) in enumerate(rows):
         own = max(float(np.abs(v).max()) for v in row.values())
@@ -499,13 +528,13 @@ def planes_figure(labels: Sequence[str], planes: dict, coords: dict, ref: dict |
 
 
 @styled
-def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
+def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None, *, ax=None):
     """Lateral profiles of the C-plane through its peak, along x and along y, each in dB of its own
     peak, the full array (``ref``) in black; the legend
     gives each -6 dB width (:func:`arraysel.objective.metrics3d.main_lobe_widths`).
 
     ``c_planes`` ``(B, H, W)`` (B = ``len(labels)``), ``coords`` ``(H, W, 3)`` metres, ``ref``
-    ``(H, W)`` or ``(1, H, W)``.
+    ``(H, W)`` or ``(1, H, W)``. Two panels (along x, along y).
     """
     from arraysel.objective.metrics3d import c_plane_profiles, main_lobe_widths
 
@@ -514,8 +543,7 @@ def lateral_profiles_figure(labels: Sequence[str], c_planes, coords, ref=None):
     if ref is not None:
         ref = _as_numpy(ref).reshape(_as_numpy(ref).shape[-2:])
         items.insert(0, ("full", ref))
-    fig = figure((10, 4))
-    ax_x, ax_y = fig.subplots(1, 2)
+    fig, (ax_x, ax_y) = _axes(ax, 2, (10, 4), nrows=1, ncols=2)
     for lab, plane in items:
         prof = c_plane_profiles(plane, c)
         widths = main_lobe_widths(plane, c)
