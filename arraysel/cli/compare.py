@@ -97,7 +97,8 @@ def add_parser(subparsers) -> None:
                    help="headline metrics of a scene with several field points: the mean over the points or "
                         "the worst point (default: the scene's metrics.aggregate, 'mean')")
     p.add_argument("--no-figures", action="store_true", help="write tables only")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (without it: bars when stderr is a terminal, none in a redirected log)")
     p.set_defaults(func=run)
 
 
@@ -239,7 +240,7 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
             _log.warning("arraysel compare: %s", notice)
         result = compare(objective, [(n, options[n]) for n in names], out_dir=args.out, seeds=seeds,
                          budget=budget, registry=registry, resume=args.resume,
-                         progress=not args.no_progress, figures=not args.no_figures,
+                         progress=False if args.no_progress else None, figures=not args.no_figures,
                          command_line=["arraysel", *sys.argv[1:]], executor=executor, force=args.force,
                          isolate=not args.in_process, grace_s=grace_s, threads=threads)
     finally:

@@ -561,7 +561,7 @@ class E2ETrainer:
         losses = []
         recon.train()
         try:
-            for _ in tqdm(range(steps), desc="finetune", disable=not self.config.progress):
+            for _ in tqdm(range(steps), desc="finetune", disable=None if self.config.progress else True):
                 i_s, i_ref = self.scenes(self._next_batch(), self.generator)
                 i_hat = self.reconstruct(recon, self._noise(op.A(i_s), self.generator), op)
                 loss = l_rec(i_hat, i_ref.to(i_hat.dtype))

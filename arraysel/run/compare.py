@@ -130,7 +130,7 @@ class _Plan:
 
 
 def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds: Sequence[int] | None = None,
-            budget: Budget | None = None, registry=None, resume: bool = False, progress: bool = True,
+            budget: Budget | None = None, registry=None, resume: bool = False, progress: bool | None = True,
             figures: bool = True, command_line: Sequence[str] | None = None,
             info: dict | None = None, executor=None, objective_factory=None, force: bool = False,
             isolate: bool = False, grace_s: float | None = None, threads: int | None = None) -> CompareResult:
@@ -147,7 +147,8 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     budget : per-run limits (default: 120 s)
     registry : selector registry (default: the process-wide one)
     resume : keep the finished, error-free runs found in ``out_dir/runs.csv`` and run the rest
-    progress : show a tqdm progress bar on stderr
+    progress : show tqdm progress bars on stderr (True), none (False), or only when stderr is a
+        terminal (None, the command line's choice: a redirected log gets no carriage-return frames)
     figures : write the PNG figures at the end
     command_line : recorded in ``run.json``
     info : extra entries for ``run.json``
@@ -227,8 +228,9 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
     if warm is not None:  # runs made here: this process's objective warmed before the first clock starts
         meta["warm_up"] = warm
     store.save([full] + rows, traces)
-    # on a terminal only (disable=None): a redirected log gets no carriage-return frames
-    bar = tqdm(total=len(todo), disable=None if progress else True, desc="compare", unit="run", file=sys.stderr)
+    # progress None: on a terminal only (disable=None), a redirected log gets no carriage-return frames
+    bar = tqdm(total=len(todo), disable=None if progress is None else not progress, desc="compare", unit="run",
+               file=sys.stderr)
     results: dict[int, tuple[dict, list]] = {}
     try:
         _run_all(runner, todo, full, rows, traces, store, plan, bar, results)

@@ -100,7 +100,8 @@ class Experiment:
     config : label in the tables (default from name and options)
     registry : where to look the name up (default: the process-wide registry)
     progress : show a progress bar of the run (evaluations against the budget or the
-        selector's plan, gradient steps, best Mean so far) on stderr
+        selector's plan, gradient steps, best Mean so far) on stderr; None: only when stderr is
+        a terminal (a redirected log gets no carriage-return frames)
 
     After :meth:`run`, ``trace`` holds the improvement rows and ``selection``
     the selected elements (or ``None``).
@@ -114,7 +115,7 @@ class Experiment:
     k: int | None = None
     config: str | None = None
     registry: Any = None
-    progress: bool = False
+    progress: bool | None = False
     trace: list = dataclasses.field(default_factory=list, init=False)
     selection: list | None = dataclasses.field(default=None, init=False)
 
@@ -144,8 +145,8 @@ class Experiment:
         selection = None
         started: list[float] = []  # when the selector first called the objective
         t0 = time.perf_counter()
-        watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k)) if self.progress \
-            else contextlib.nullcontext()
+        watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k),
+                             auto=self.progress is None) if self.progress is not False else contextlib.nullcontext()
         polish = float(selector.options.get("polish") or 0.0)
         try:
             with watch:
@@ -287,8 +288,8 @@ class _RunProgress:
     planned number), rate, gradient steps and the best Mean so far."""
 
     def __init__(self, label: str, budget: Budget, recorder: Recorder, planned: int | None,
-                 interval: float = 0.5):
-        self.label, self.budget, self.recorder = label, budget, recorder
+                 interval: float = 0.5, auto: bool = False):
+        self.label, self.budget, self.recorder, self.auto = label, budget, recorder, auto
         caps = [v for v in (budget.evaluations, planned) if v is not None]
         self.total = min(caps) if caps else None
         self.interval = interval
@@ -311,7 +312,7 @@ class _RunProgress:
         from tqdm.auto import tqdm
 
         self.bar = tqdm(total=self.total, desc=self.label, unit="eval", unit_scale=True, file=sys.stderr,
-                        dynamic_ncols=True, disable=None)  # on a terminal only
+                        dynamic_ncols=True, disable=None if self.auto else False)  # auto: a terminal only
         self.thread = threading.Thread(target=self._loop, args=(self.bar,), daemon=True)
         self.thread.start()
         return self

@@ -146,7 +146,7 @@ class InProcessRunner(Runner):
     (:class:`_Fingerprint`): a run that changed it is yielded with an error, then the comparison
     stops (:class:`~arraysel.errors.ArrayselError`)."""
 
-    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool = False,
+    def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool | None = False,
                  threads: int | None = None):
         self.objective, self.budget, self.grace = objective, budget, grace
         self.full_mean, self.progress, self.threads = full_mean, progress, threads
@@ -297,7 +297,7 @@ def scores_neighbourhoods(spec: RunSpec) -> bool:
 
 
 def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, executor=None, objective_factory=None,
-                isolate: bool = False, threads: int | None = None, progress: bool = False,
+                isolate: bool = False, threads: int | None = None, progress: bool | None = False,
                 neighbourhoods: bool = False) -> Runner:
     """The runner of a comparison: on ``executor`` (unless it runs in this process), else isolated
     child processes (``isolate``), else this process. A run that scores one-swap neighbourhoods
