@@ -20,6 +20,7 @@ switches), as padded index rows.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Sequence
 
@@ -102,7 +103,17 @@ def format_elements(indices: Iterable[int] | None) -> str:
 def parse_element_text(text: Any) -> list[int]:
     """The indices of an ``elements`` column entry written by :func:`format_elements` (``[]`` when
     empty or missing)."""
-    return [int(i) for i in text.split()] if isinstance(text, str) else []
+    if not isinstance(text, str):
+        return []
+    tokens = text.split()
+    bad = next((t for t in tokens if not _DIGITS.fullmatch(t)), None)
+    if bad is not None:  # int() would also take "6_2" and full-width digits
+        raise ValueError(f"{bad[:40]!r} is not an element index")
+    return [int(t) for t in tokens]
+
+
+#: an element index as text: ASCII digits only
+_DIGITS = re.compile(r"[0-9]+")
 
 
 @dataclass(frozen=True)

@@ -191,9 +191,14 @@ def _run(args) -> int:
     check_outputs(folder_files("--out", args.out, [n for n in RESULT_FILES if n != "ioh"]),
                   folders=[("--out", args.out), ("--out (ioh)", f"{args.out}/ioh")],
                   inputs=[("--scene", scene_input(args.scene)), *(("--plugin", p) for p in args.plugin)])
+    from arraysel.run.guard import describe, watched_reductions
+
+    reductions = watched_reductions()  # what a plugin must not replace while it loads
     for spec in args.plugin:
         load_plugin(spec)
+        _untouched(reductions, f"--plugin {spec}", describe)
     registry = get_registry()
+    _untouched(reductions, "an installed plugin", describe)
     names = parse_selectors(args.selectors, registry)
     options = parse_options(args.option, names, registry)
     seeds = None if args.seeds is None else parse_seeds(args.seeds)
@@ -208,6 +213,14 @@ def _run(args) -> int:
     with lock_out_dir(args.out):  # held until the end; compare() takes it again (re-entrant)
         return _run_locked(args, registry, names, options, seeds, budget_s, grace_s,
                            check_out_dir(args.out, resume=args.resume, force=args.force))
+
+
+def _untouched(reductions, what: str, describe) -> None:
+    """Refuse a plugin that replaced, while it loaded, a function the tables are computed with."""
+    changed = reductions.restore()
+    if changed:
+        raise ParameterError(f"{what} replaced {describe(changed)} while it was loaded; the tables of a "
+                             f"comparison are computed with these, so it is refused")
 
 
 def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previous) -> int:

@@ -16,7 +16,10 @@ from arraysel.errors import ParameterError, SelectionError
 #: longest line of a mask file (characters); longer ones are refused without reading them whole
 MAX_LINE = 1 << 20
 _SPLIT = re.compile(r"[,\s]+")
-_INT = re.compile(r"[+-]?\d+")
+#: an element index: ASCII digits only (Python's ``int`` also takes ``6_2`` and full-width digits)
+_INT = re.compile(r"[+-]?[0-9]+")
+#: a UTF-8 byte-order mark, allowed at the start of a file
+_BOM = "\ufeff"
 
 
 def parse_elements(text: str, n_elements: int, k: int | None = None, where: str = "--elements") -> list[int]:
@@ -29,11 +32,11 @@ def parse_elements(text: str, n_elements: int, k: int | None = None, where: str 
     tokens = [t for t in _SPLIT.split(text.strip()) if t]
     if not tokens:
         raise SelectionError(f"{where}: no element index given")
-    try:
-        idx = [int(t) for t in tokens]
-    except ValueError:
-        bad = next(t for t in tokens if not _INT.fullmatch(t))
-        raise SelectionError(f"{where}: {bad[:40]!r} is not an integer element index") from None
+    bad = next((t for t in tokens if not _INT.fullmatch(t)), None)
+    if bad is not None:
+        raise SelectionError(f"{where}: {bad[:40]!r} is not an integer element index (digits 0-9, "
+                             f"optionally signed)")
+    idx = [int(t) for t in tokens]
     out_of_range = [i for i in idx if i < 0 or i >= n_elements]
     if out_of_range:
         raise SelectionError(f"{where}: element indices must be in [0, {n_elements - 1}], got "
@@ -85,6 +88,8 @@ def iter_mask_lines(path: str, n_elements: int, k: int | None, what: str = "--ma
             if not line:
                 return
             no += 1
+            if no == 1 and line.startswith(_BOM):  # a byte-order mark some editors write
+                line = line[1:]
             if len(line) > MAX_LINE:
                 raise SelectionError(f"{path}, line {no}: longer than {MAX_LINE} characters")
             body = line.split("#", 1)[0].strip()

@@ -28,6 +28,10 @@ import math
 import numba
 import numpy as np
 
+from arraysel.io.numba_cache import ensure_cache_dir
+
+ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
+
 
 #: fast-math flags of the float64 sums: reordered (so that they vectorise) and contracted, but
 #: NaN and Inf kept (a non-finite kernel gives NaN metrics, as the torch path does)

@@ -28,6 +28,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from arraysel.io.numba_cache import ensure_cache_dir
+
+ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
+
 #: side of the square blocks of a pixel's matrix ``D`` read together when it is symmetrised
 #: (``D_ej + D_je`` reads ``D`` by columns; blocks keep those reads in the first-level cache)
 _SYM_BLOCK = 16

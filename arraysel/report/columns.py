@@ -15,8 +15,9 @@ ROW_COLUMNS = ("config", "selector", "seed", "k", "n_elements", *METRICS, "secon
                "gradient_steps", "objective_seconds", "overhead_seconds", "elements", "options", "error",
                "budget_flag")
 #: columns of ``trace.csv``: one ``improvement`` row per new best, then one ``end`` row at the
-#: run's last evaluation and time
-TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean", "event")
+#: run's last evaluation and time; ``elements``, on the ``end`` row only, is the selection that
+#: scored its ``best_Mean``
+TRACE_COLUMNS = ("config", "seed", "seconds", "evaluations", "gradient_steps", "best_Mean", "event", "elements")
 #: the metrics of ``table1.csv``'s leading columns (``L_SLR``, their mean, comes later)
 TABLE1_METRICS = tuple(m for m in METRICS if m != "L_SLR")
 

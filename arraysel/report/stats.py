@@ -286,11 +286,22 @@ def _median(values) -> float:
 def _dat_rows(rows) -> list[tuple[int, float]]:
     """``(evaluations, best_Mean)`` of one run's trace rows as its IOHprofiler ``.dat`` holds them
     (:func:`arraysel.report.tables.write_ioh`): by evaluations (an ``end`` row last), evaluations
-    at least 1, and a first row ``(1, inf)`` when the first scored selection came later."""
+    at least 1, one row per evaluation count (the last: readers start a new run at each
+    ``evaluations == 1``), and a first row ``(1, inf)`` when the first scored selection came later."""
+    return [(ev, y) for ev, y, _ in dat_lines(rows)]
+
+
+def dat_lines(rows) -> list[tuple[int, float, float]]:
+    """``(evaluations, best_Mean, seconds)`` of each line of one run's IOHprofiler ``.dat`` block
+    (see :func:`_dat_rows`)."""
     rows = sorted(rows, key=lambda t: (int(t["evaluations"]), str(t.get("event")) == "end"))
-    out = [(max(1, int(t["evaluations"])), float(t["best_Mean"])) for t in rows]
+    last: dict[int, tuple[int, float, float]] = {}
+    for t in rows:
+        ev = max(1, int(t["evaluations"]))
+        last[ev] = (ev, float(t["best_Mean"]), float(t["seconds"]))
+    out = list(last.values())
     if out and int(rows[0]["evaluations"]) > 1:
-        out.insert(0, (1, math.inf))
+        out.insert(0, (1, math.inf, 0.0))
     return out
 
 

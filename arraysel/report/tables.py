@@ -188,13 +188,15 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
     One algorithm per config: ``folder/<config>/IOHprofiler_f<id>_<problem>.json``
     lists one run per seed (``instance`` 1, ``evals`` = the run's evaluations
     in ``runs.csv``; ``best.y`` and ``best.evals`` = the best row of its ``.dat`` lines, so the two
-    agree by construction; ``best.x`` = its 0/1 mask when its ``Mean`` is that best),
-    and ``data_f<id>_<problem>/IOHprofiler_f<id>_DIM<Ne>.dat`` holds, per run,
+    agree by construction; ``best.x`` = the 0/1 mask of the selection that scored it: the
+    ``elements`` of the trace's ``end`` row), and
+    ``data_f<id>_<problem>/IOHprofiler_f<id>_DIM<Ne>.dat`` holds, per run,
     a header line ``evaluations raw_y seconds`` and one row per improvement of
-    the trace, then the trace's ``end`` row. IOHprofiler readers split runs at
+    the trace, then the trace's ``end`` row, one row per evaluation count
+    (:func:`arraysel.report.stats.dat_lines`). IOHprofiler readers split runs at
     ``evaluations == 1``, so a run whose first scored ``k``-selection came later
     (after gradient steps, or greedy's larger masks) starts with a row
-    ``1 inf 0``. Runs without a finite Mean are left out. Minimisation.
+    ``1 inf 0``. Runs without a finite Mean or a trace are left out. Minimisation.
     Returns the JSON paths written; older files of the folder are replaced.
     """
     import shutil
@@ -222,25 +224,11 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
         (adir / rel).parent.mkdir(parents=True, exist_ok=True)
         lines, jruns = [], []
         for r in runs:
-            rows_t = sorted(by_run[(config, str(r["seed"]))],
-                            key=lambda t: (int(t["evaluations"]), str(t.get("event")) == "end"))
-            lines.append("evaluations raw_y seconds")
-            if int(rows_t[0]["evaluations"]) > 1:
-                lines.append("1 inf 0")
-            best_evals = None
-            best_y = math.inf
-            for t in rows_t:
-                ev = max(1, int(t["evaluations"]))
-                y = repr(float(t["best_Mean"]))  # the shortest text that reads back as the same float
-                lines.append(f"{ev} {y} {float(t['seconds']):.6f}")
-                if float(y) < best_y:  # the value as the .dat holds it
-                    best_y, best_evals = float(y), ev
-            # the json's best is the .dat's best (the same trace rows); its x is the run's selection
-            # when that selection scored this best, else left out
-            best = {"evals": int(best_evals or r["evaluations"]), "y": best_y}
-            mean = pd_float(r["Mean"])
-            if abs(mean - best_y) <= 1e-6 * abs(best_y):
-                best["x"] = Selection.from_text(str(r.get("elements") or ""), dim).mask.astype(int).tolist()
+            run_trace = by_run[(config, str(r["seed"]))]
+            block, best = _ioh_block(run_trace)
+            best["x"] = _best_x(run_trace, r, best["y"], dim)
+            best["evals"] = int(best["evals"] or r["evaluations"])
+            lines += ["evaluations raw_y seconds", *block]
             jruns.append({"instance": 1, "evals": int(r["evaluations"]), "best": best, "seed": int(r["seed"])})
         atomic_write_text(adir / rel, "\n".join(lines) + "\n")
         meta = {
@@ -253,6 +241,33 @@ def write_ioh(folder: Path, rows: list[dict], trace: list[dict], problem: str,
         write_json(path, meta)
         written.append(path)
     return written
+
+
+def _ioh_block(run_trace: list[dict]) -> tuple[list[str], dict]:
+    """The ``.dat`` lines of one run and its best (``{"evals", "y"}``, as the lines hold it)."""
+    from arraysel.report.stats import dat_lines
+
+    out, best_y, best_evals = [], math.inf, None
+    for ev, y, seconds in dat_lines(run_trace):
+        text = repr(float(y))  # the shortest text that reads back as the same float
+        out.append(f"{ev} {text} {seconds:.6f}")
+        if float(text) < best_y:
+            best_y, best_evals = float(text), ev
+    return out, {"evals": best_evals, "y": best_y}
+
+
+def _best_x(run_trace: list[dict], row: dict, best_y: float, dim: int) -> list[int]:
+    """The 0/1 mask of the selection that scored ``best_y``: the ``elements`` of the run's ``end``
+    row; for a trace written before it had them, the run's selection (its Mean is the best, to
+    float32 rounding: the same selection scored in another batch), else the empty list."""
+    end = [t for t in run_trace if str(t.get("event")) == "end"]
+    text = str(end[-1].get("elements") or "").strip() if end else ""
+    if text and text.lower() != "nan":
+        return Selection.from_text(text, dim).mask.astype(int).tolist()
+    mean = pd_float(row.get("Mean"))
+    if abs(mean - best_y) <= 1e-4 * abs(best_y):
+        return Selection.from_text(str(row.get("elements") or ""), dim).mask.astype(int).tolist()
+    return []
 
 
 def pd_float(v) -> float:

@@ -27,10 +27,10 @@ from typing import Any, Sequence
 
 from arraysel.errors import ParameterError, check_number, error_text as _error_text
 from arraysel.report import tables as reporting
-from arraysel.run.experiment import budget_flag, config_label, full_row
-from arraysel.run.isolation import DEFAULT_GRACE_S
+from arraysel.run.experiment import budget_flag, config_label, full_row, with_end_row
+from arraysel.run.isolation import DEFAULT_GRACE_S, UNTIMED_LIMIT_S
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir
-from arraysel.run.runners import Runner, RunSpec, make_runner, scores_neighbourhoods
+from arraysel.run.runners import Runner, RunSpec, check_isolated, make_runner, scores_neighbourhoods
 from arraysel.run.store import CompareStore, write_figures
 from arraysel.selection import Selection
 from arraysel.selectors.contract import Budget
@@ -113,15 +113,26 @@ class _Plan:
         if budget.seconds is not None and not math.isfinite(budget.seconds):
             raise ParameterError(f"budget seconds = {budget.seconds} is not allowed; give a finite number of "
                                  f"seconds > 0, or None with an evaluation budget")
-        grace = DEFAULT_GRACE_S if grace_s is None else float(check_number("grace_s", grace_s, lo=0, hi=1e6))
+        if grace_s is None:  # without a time budget, the grace period is the run's whole limit
+            grace = DEFAULT_GRACE_S if budget.seconds is not None else UNTIMED_LIMIT_S
+        else:
+            grace = float(check_number("grace_s", grace_s, lo=0, hi=1e6))
         return cls(sels, labels, classes, seeds, budget, grace, registry)
 
     def todo(self, done: set) -> list[RunSpec]:
         """The runs to make: each configuration once per seed (a deterministic one with the first
         seed), less those ``done``."""
-        return [RunSpec(lab, self.classes[name], opts, seed) for lab, (name, opts) in zip(self.labels, self.sels)
+        return [RunSpec(lab, self.classes[name], opts, seed, self.origin(name))
+                for lab, (name, opts) in zip(self.labels, self.sels)
                 for seed in (self.seeds[:1] if self.classes[name].deterministic else self.seeds)
                 if (lab, seed) not in done]
+
+    def origin(self, name: str) -> str | None:
+        """The registry's origin of the selector ``name`` (None when the registry cannot say)."""
+        try:
+            return self.registry.origin(name)
+        except Exception:  # a registry of another kind
+            return None
 
     def selectors_meta(self) -> list[dict]:
         return [{"config": lab, "selector": n, "options": o, "origin": self.registry.origin(n),
@@ -166,9 +177,14 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     isolate : run each ``(selector, seed)`` in a child process (built from ``objective_factory``)
         that is stopped ``grace_s`` seconds after its time budget: a selector that hangs, exits
         the process (``sys.exit``) or crashes it gets an error row and the other runs go on.
-        A selector class that cannot be sent to a child process runs in this process.
-    grace_s : seconds past the time budget before an isolated run is stopped (default
-        :data:`arraysel.run.isolation.DEFAULT_GRACE_S`)
+        A selector class that can reach a child process neither pickled by name nor through the
+        plugin that registered it is refused (:class:`~arraysel.errors.ParameterError`, before
+        anything is written); run it with ``isolate=False``. Runs in this process are stopped at
+        the same deadline (:mod:`arraysel.run.deadline`).
+    grace_s : seconds past the time budget before a run is stopped (default
+        :data:`arraysel.run.isolation.DEFAULT_GRACE_S`); without a time budget (an evaluation
+        budget only), the seconds a run may take (default
+        :data:`arraysel.run.isolation.UNTIMED_LIMIT_S`)
     threads : threads of each local run (torch, numba, BLAS): an isolated run's child has them;
         with ``isolate=False`` they are set in this process for each run (and its warm-up) and
         restored after it (default: an isolated run gets this process's torch threads, a run in
@@ -213,6 +229,8 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
         check_resume(old_meta, {"scene": scene_dict, "n_elements": int(objective.n_elements),
                                 "k": int(objective.k), "dtype": str(getattr(objective, "dtype", "")),
                                 "budget": plan.budget.to_dict()}, out)
+    if isolate or (executor is not None and not getattr(executor, "in_process", False)):
+        check_isolated(plan.todo(set()))  # refused before anything is written
     store = CompareStore(out, plan.budget, scene_name)
     store.start(force)
     rows, traces = store.previous(int(objective.n_elements)) if resume else ([], [])
@@ -255,7 +273,7 @@ def _run_all(runner: Runner, todo: list[RunSpec], full: dict, rows: list, traces
         for i, row, trace in runs:
             spec = todo[i]
             row = {**row, "budget_flag": budget_flag(row, plan.budget, plan.grace)}
-            results[i] = (row, [{"config": spec.config, "seed": spec.seed, **t} for t in trace])
+            results[i] = (row, [{"config": spec.config, "seed": spec.seed, **t} for t in with_end_row(row, trace)])
             rows[:] = kept_rows + [results[j][0] for j in sorted(results)]
             traces[:] = kept_traces + [t for j in sorted(results) for t in results[j][1]]
             store.save([full] + rows, traces)

@@ -48,7 +48,7 @@ from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceed
                                          Selector, check_selection, indices_to_mask, numpy_rng)
 
 __all__ = ["METRICS", "ROW_COLUMNS", "TRACE_COLUMNS", "Experiment", "full_row", "config_label", "budget_flag",
-           "late_start_flag"]
+           "late_start_flag", "with_end_row"]
 
 
 def config_label(name: str, options: dict | None = None) -> str:
@@ -183,6 +183,9 @@ class Experiment:
                          f"(Mean = {metrics['Mean']})")
         self.selection = selection
         self.trace = [dict(r) for r in recorder.rows]
+        if self.trace and self.trace[-1].get("event") == "end" and recorder.best is not None:
+            # the selection that scored the run's best Mean (the IOHprofiler files' best.x)
+            self.trace[-1]["elements"] = Selection(tuple(recorder.best), n)
         obj_seconds = s1 - s0
         extra = _breakdown(metrics)
         return {
@@ -195,6 +198,30 @@ class Experiment:
             "error": error,
             "budget_flag": late_start_flag(started[0] if started else None, budget), **extra,
         }
+
+
+def with_end_row(row: dict, trace: list[dict]) -> list[dict]:
+    """``trace`` with the ``end`` row every finished run has: a run with a selection and a finite
+    Mean (no error) whose trace has none (its selector returned a selection it never scored, or
+    scored no ``k``-selection) gets its row's Mean, the selection scored again by the comparison,
+    as its ``end`` row, at its seconds, evaluations and gradient steps."""
+    sel = row.get("elements")
+    mean = _number(row.get("Mean"))
+    if any(t.get("event") == "end" for t in trace) or str(row.get("error") or "").strip() \
+            or not isinstance(sel, Selection) or not len(sel) or not math.isfinite(mean):
+        return trace
+    seconds, evals, steps = (_number(row.get(c)) for c in ("seconds", "evaluations", "gradient_steps"))
+    return [*trace, {"seconds": seconds if math.isfinite(seconds) else 0.0,
+                     "evaluations": int(evals) if math.isfinite(evals) else 0,
+                     "gradient_steps": int(steps) if math.isfinite(steps) else 0,
+                     "best_Mean": mean, "event": "end", "elements": sel}]
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 #: a run whose first objective call comes after this share of its time budget is flagged

@@ -25,11 +25,14 @@ from arraysel.errors import error_text as _error_text
 from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end,  # noqa: F401
                                   _process_init, _watch, mp_context as _mp_context)
 
-__all__ = ["DEFAULT_GRACE_S", "BUILD_LIMIT_S", "OneShot", "IsolatedWorker", "run_one_shot"]
+__all__ = ["DEFAULT_GRACE_S", "UNTIMED_LIMIT_S", "BUILD_LIMIT_S", "OneShot", "IsolatedWorker", "run_one_shot"]
 
 
 #: seconds a run may go past its time budget before its process is stopped
 DEFAULT_GRACE_S = 30.0
+#: seconds a run without a time budget (an evaluation budget only) may take, unless a grace
+#: period is given (which is then its limit)
+UNTIMED_LIMIT_S = 3600.0
 
 
 def _one_shot_main(conn, factory, fn, item, threads: int, alive, timeout, verify, env) -> None:

@@ -28,28 +28,37 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from arraysel.errors import ArrayselError, ParameterError, error_text as _error_text
+from arraysel.errors import ArrayselError, error_text as _error_text
 from arraysel.objective.contract import WorkerFactory
 from arraysel.objective.neighbours import prepare_neighbourhoods
 from arraysel.report.columns import METRICS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
+from arraysel.run.deadline import RunStopped, call_with_deadline
+from arraysel.run.guard import Reductions, describe
 from arraysel.run.experiment import Experiment, _final_metrics
 from arraysel.run.workers import TaskFailed, objective_factory_for
 from arraysel.selection import indices_to_mask
 from arraysel.selectors.contract import Budget, BudgetExceededError
 
-__all__ = ["RunSpec", "Runner", "InProcessRunner", "IsolatedRunner", "ExecutorRunner", "make_runner",
+__all__ = ["RunSpec", "Runner", "InProcessRunner", "IsolatedRunner", "ExecutorRunner", "make_runner", "check_isolated",
            "failure_row"]
 
 
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
-    """One ``(selector, seed)`` run of a comparison: its config label, selector class and options."""
+    """One ``(selector, seed)`` run of a comparison: its config label, selector class and options;
+    ``origin``: the registry's origin of the selector (how a run's process finds a class that does
+    not pickle by name, :func:`~arraysel.run.compare_task.compare_item`)."""
 
     config: str
     selector: type
     options: dict
     seed: int
+    origin: str | None = None
+
+    def item(self, budget: Budget) -> dict:
+        """The run as a task for another process (:func:`~arraysel.run.compare_task.compare_item`)."""
+        return compare_item(self.config, self.selector, self.options, budget, self.seed, origin=self.origin)
 
 
 def failure_row(objective, spec: RunSpec, failure: BaseException | TaskFailed, budget: Budget, grace: float,
@@ -64,6 +73,9 @@ def failure_row(objective, spec: RunSpec, failure: BaseException | TaskFailed, b
             return _error_row(objective, spec, _error_text(failure))
         failure = TaskFailed(_error_text(failure))
     msg = failure.message
+    if failure.kind == "timeout" and budget.seconds is None:
+        return _error_row(objective, spec, f"run failed: BudgetExceededError: {msg}; the run had no time budget "
+                                           f"and a limit of {grace:g} s (the grace period)")
     if failure.kind == "timeout":
         return _error_row(objective, spec, f"run failed: BudgetExceededError: {msg}; the budget was "
                                            f"{budget.seconds:g} s and the grace period {grace:g} s")
@@ -82,9 +94,10 @@ def _error_row(objective, spec: RunSpec, message: str) -> dict:
     }
 
 
-def _timeout(budget: Budget, grace: float) -> float | None:
-    """Seconds a run's process may take: its time budget plus the grace period."""
-    return None if budget.seconds is None else budget.seconds + grace
+def _timeout(budget: Budget, grace: float) -> float:
+    """Seconds a run may take: its time budget plus the grace period (without a time budget, the
+    grace period alone)."""
+    return grace if budget.seconds is None else budget.seconds + grace
 
 
 def _report_rtol(objective) -> float:
@@ -142,15 +155,19 @@ class Runner:
 class InProcessRunner(Runner):
     """The runs one after another in this process, on ``objective`` itself (warmed first), each
     with ``threads`` threads (torch, numba, BLAS; :func:`~arraysel.run.template.thread_counts`,
-    restored after it; ``None``: as they are). After each, the objective must be as it was
-    (:class:`_Fingerprint`): a run that changed it is yielded with an error, then the comparison
-    stops (:class:`~arraysel.errors.ArrayselError`)."""
+    restored after it; ``None``: as they are), each stopped ``grace`` seconds after its time
+    budget as an isolated run is (:func:`~arraysel.run.deadline.call_with_deadline`). After each,
+    the objective must be as it was (:class:`_Fingerprint`), and so must the functions the tables
+    are computed with (:class:`~arraysel.run.guard.Reductions`; those a run replaced are put back
+    before its row is saved): a run that changed either is yielded with an error, then the
+    comparison stops (:class:`~arraysel.errors.ArrayselError`)."""
 
     def __init__(self, objective, budget: Budget, grace: float, full_mean: float, progress: bool | None = False,
                  threads: int | None = None):
         self.objective, self.budget, self.grace = objective, budget, grace
         self.full_mean, self.progress, self.threads = full_mean, progress, threads
         self.fingerprint: _Fingerprint | None = None
+        self.reductions: Reductions | None = None
 
     def prepare(self, todo: list[RunSpec]) -> dict | None:
         from arraysel.run.template import thread_counts, warm_objective
@@ -160,6 +177,7 @@ class InProcessRunner(Runner):
             if warm is not None and any(scores_neighbourhoods(s) for s in todo):
                 warm["neighbourhoods_s"] = prepare_neighbourhoods(self.objective)
         self.fingerprint = _Fingerprint(self.objective, self.full_mean)  # taken once warm
+        self.reductions = Reductions()
         return warm
 
     def run(self, todo, on_start=None):
@@ -178,57 +196,62 @@ class InProcessRunner(Runner):
 
         exp = Experiment(self.objective, spec.selector, options=spec.options, budget=self.budget, seed=spec.seed,
                          config=spec.config, progress=self.progress)
+        limit = _timeout(self.budget, self.grace)
         try:
             with thread_counts(self.threads):
-                row, trace = exp.execute(), exp.trace
+                row = call_with_deadline(exp.execute, limit)
+                trace = exp.trace
         except BudgetExceededError as exc:
             row, trace = failure_row(self.objective, spec, exc, self.budget, self.grace), []
-        changed = self.fingerprint.changed() if self.fingerprint is not None else ""
-        if not changed:
+        except RunStopped as exc:  # its deadline, as a child process is killed at it
+            failure = TaskFailed(f"stopped after {getattr(exc, 'elapsed', limit):.1f} s (its limit was {limit:.1f} s): "
+                                 f"the run did not return in time", kind="timeout")
+            row, trace = failure_row(self.objective, spec, failure, self.budget, self.grace), []
+        why = self._changes()
+        if not why:
             return row, trace, ""
         # its numbers, and those of every later run here, cannot be trusted
-        why = f"the selector changed the objective it was given ({changed}); run it isolated (without --in-process)"
+        why = f"{why}; run it isolated (without --in-process)"
         return {**row, "error": "; ".join(e for e in (str(row.get("error") or ""), why) if e)}, trace, why
+
+    def _changes(self) -> str:
+        """What the last run changed in this process ('' when nothing): the objective, or the
+        functions the tables use (put back here, before its row is saved)."""
+        parts = []
+        changed = self.fingerprint.changed() if self.fingerprint is not None else ""
+        if changed:
+            parts.append(f"the selector changed the objective it was given ({changed})")
+        replaced = self.reductions.restore() if self.reductions is not None else []
+        if replaced:
+            parts.append(f"the selector replaced {describe(replaced)} in this process (put back before any table "
+                         f"was written)")
+        return "; ".join(parts)
 
 
 class IsolatedRunner(Runner):
     """Each run in a fresh child process forked from a warm template
     (:class:`~arraysel.run.isolation.IsolatedWorker`), stopped ``grace`` seconds after its time
-    budget. A config whose selector class cannot be sent to a child runs in this process
-    (``local``, an :class:`InProcessRunner`)."""
+    budget. A selector class that can reach a child neither pickled by name nor through its
+    plugin is refused before any run (:func:`check_isolated`), never run here instead."""
 
-    def __init__(self, objective, factory, budget: Budget, grace: float, local: InProcessRunner,
-                 threads: int | None = None, verify: str | None = None):
+    def __init__(self, objective, factory, budget: Budget, grace: float, threads: int | None = None,
+                 verify: str | None = None):
         self.objective, self.factory, self.budget, self.grace = objective, factory, budget, grace
-        self.local, self.threads, self.verify = local, threads, verify
+        self.threads, self.verify = threads, verify
         self.worker = None
-        self.here: set[str] = set()
 
     def prepare(self, todo):
         from arraysel.run.isolation import IsolatedWorker
 
-        for spec in todo:
-            try:
-                compare_item(spec.config, spec.selector, spec.options, Budget(evaluations=1), 0)
-            except ParameterError as exc:
-                logging.getLogger(__name__).warning("arraysel compare: %s runs in this process, not isolated: %s",
-                                                    spec.config, exc)
-                self.here.add(spec.config)
+        check_isolated(todo)
         self.worker = IsolatedWorker(self.factory, threads=self.threads, verify=self.verify)
-        return self.local.prepare([s for s in todo if s.config in self.here]) if self.here else None
+        return None
 
     def run(self, todo, on_start=None):
         for i, spec in enumerate(todo):
             if on_start is not None:
                 on_start(spec)
-            if spec.config in self.here:
-                row, trace, why = self.local.run_one(spec)
-                yield i, row, trace
-                if why:
-                    raise ArrayselError(f"{spec.config} seed {spec.seed}: {why}")
-                continue
-            item = compare_item(spec.config, spec.selector, spec.options, self.budget, spec.seed)
-            res = self.worker.run(compare_task, item, _timeout(self.budget, self.grace))
+            res = self.worker.run(compare_task, spec.item(self.budget), _timeout(self.budget, self.grace))
             if isinstance(res, _Raise) and not isinstance(res.exception, BudgetExceededError):
                 raise res.exception
             if isinstance(res, (_Raise, TaskFailed)):
@@ -255,7 +278,7 @@ class ExecutorRunner(Runner):
         self.items: list[dict] = []
 
     def prepare(self, todo):
-        self.items = [compare_item(s.config, s.selector, s.options, self.budget, s.seed) for s in todo]
+        self.items = [s.item(self.budget) for s in todo]
         return None
 
     def run(self, todo, on_start=None):
@@ -305,10 +328,9 @@ def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, ex
     (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before its clock starts: here
     by :meth:`InProcessRunner.prepare`, on workers by the recipe :class:`PreparedForNeighbourhoods`
     when ``neighbourhoods`` (some run of the comparison scores them)."""
-    local = InProcessRunner(objective, budget, grace, full_mean, progress, threads)
     remote = executor is not None and not getattr(executor, "in_process", False)
     if not remote and not isolate:
-        return local
+        return InProcessRunner(objective, budget, grace, full_mean, progress, threads)
     factory = objective_factory if objective_factory is not None else objective_factory_for(objective)
     if neighbourhoods:
         factory = PreparedForNeighbourhoods(factory)
@@ -316,7 +338,15 @@ def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, ex
     verify = "size" if objective_factory is None else None
     if remote:
         return ExecutorRunner(objective, factory, executor, budget, grace, verify)
-    return IsolatedRunner(objective, factory, budget, grace, local, threads, verify)
+    return IsolatedRunner(objective, factory, budget, grace, threads, verify)
+
+
+def check_isolated(todo: list[RunSpec]) -> None:
+    """Refuse (:class:`ParameterError` naming the selector and ``--in-process``) a run whose
+    selector class can reach another process neither pickled by name nor through the plugin that
+    registered it (:func:`~arraysel.run.compare_task.compare_item`)."""
+    for spec in {s.config: s for s in todo}.values():
+        spec.item(Budget(evaluations=1))
 
 
 #: the objective's counters (they change with every call)

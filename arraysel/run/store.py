@@ -10,11 +10,12 @@ reads it back into a ``Selection`` for a resumed folder: the one edge between th
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from arraysel.errors import ParameterError, error_text as _error_text
+from arraysel.errors import ParameterError, SelectionError, error_text as _error_text
 from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
@@ -49,12 +50,31 @@ class CompareStore:
 
     def previous(self, n_elements: int) -> tuple[list[dict], list[dict]]:
         """The finished, error-free runs of ``runs.csv`` (their ``elements`` as a :class:`Selection`)
-        and their trace rows, for ``--resume``; ``([], [])`` without ``runs.csv``."""
+        and their trace rows, for ``--resume``; ``([], [])`` without ``runs.csv``. A run whose
+        ``trace.csv`` rows lack their ``end`` row, or hold more than one (the file was deleted,
+        cut short or edited), is left out, so that it is run again: a line on stderr names those."""
+        rows = self._previous_rows(n_elements)
+        traces = self._previous_traces(n_elements)
+        ends: dict[tuple, int] = {}
+        for t in traces:
+            if t.get("event") == "end":
+                ends[(t["config"], t["seed"])] = ends.get((t["config"], t["seed"]), 0) + 1
+        lost = [r for r in rows if ends.get((r["config"], r["seed"]), 0) != 1]
+        if lost:
+            names = ", ".join(f"{r['config']} seed {r['seed']}" for r in lost)
+            print(f"arraysel compare: --resume: {len(lost)} finished run(s) of runs.csv have no single end row in "
+                  f"{self.out / 'trace.csv'} and are run again: {names}", file=sys.stderr)
+        done = {(r["config"], r["seed"]) for r in rows if ends.get((r["config"], r["seed"]), 0) == 1}
+        return [r for r in rows if (r["config"], r["seed"]) in done], \
+            [t for t in traces if (t["config"], t["seed"]) in done]
+
+    def _previous_rows(self, n_elements: int) -> list[dict]:
+        """The finished, error-free rows of ``runs.csv`` (``[]`` without it)."""
         import pandas as pd
 
         runs_path = self.out / "runs.csv"
         if not runs_path.exists():
-            return [], []
+            return []
         try:
             old = pd.read_csv(runs_path, dtype={"elements": str})  # "5" stays text
             missing = [c for c in ("config", "seed", "error", "options") if c not in old.columns]
@@ -74,16 +94,28 @@ class CompareStore:
             rec["elements"] = Selection.from_text(text, n_elements) if isinstance(text, str) and text.strip() else None
             rows.append({**{c: rec.get(c, "") for c in ROW_COLUMNS},  # and a scene's per-point columns
                          **{c: v for c, v in rec.items() if c not in ROW_COLUMNS}})
-        done = {(r["config"], r["seed"]) for r in rows}
-        traces: list[dict] = []
+        return rows
+
+    def _previous_traces(self, n_elements: int) -> list[dict]:
+        """The rows of ``trace.csv`` (``[]`` without it), ``seed`` a whole number and an ``end``
+        row's ``elements`` a :class:`Selection`."""
+        import pandas as pd
+
         tpath = self.out / "trace.csv"
-        if tpath.exists():
-            try:
-                t = pd.read_csv(tpath)
-                traces = [r for r in t.to_dict("records") if (r["config"], int(r["seed"])) in done]
-            except (ValueError, KeyError, UnicodeDecodeError, pd.errors.ParserError) as exc:
-                raise self._damaged(tpath, exc) from None
-        return rows, traces
+        if not tpath.exists():
+            return []
+        try:
+            t = pd.read_csv(tpath, dtype={"config": str, "elements": str}, keep_default_na=False,
+                            na_values=["", "nan", "NaN"])
+            traces = t.to_dict("records")
+            for r in traces:
+                r["seed"] = int(r["seed"])
+                text = r.get("elements")
+                r["elements"] = Selection.from_text(text, n_elements) if isinstance(text, str) and text.strip() \
+                    else None
+        except (ValueError, KeyError, UnicodeDecodeError, SelectionError, pd.errors.ParserError) as exc:
+            raise self._damaged(tpath, exc) from None
+        return traces
 
     @staticmethod
     def _damaged(path: Path, exc: BaseException) -> ParameterError:
@@ -97,8 +129,8 @@ class CompareStore:
     def save(self, rows: list[dict], traces: list[dict]) -> reporting.WrittenTables:
         """Write the rows (the ``full`` row first) and their traces: ``trace.csv`` and ``ioh/``
         before ``runs.csv``, then ``table1.csv`` and ``stats.csv``."""
-        self.tables = reporting.write_runs(self.out, [file_row(r) for r in rows], traces, self.budget,
-                                           problem=self.problem)
+        self.tables = reporting.write_runs(self.out, [file_row(r) for r in rows], [file_row(t) for t in traces],
+                                           self.budget, problem=self.problem)
         return self.tables
 
     def write_figures(self, objective, selections: dict[str, Selection], table, trace) -> list[str]:

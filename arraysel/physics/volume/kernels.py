@@ -11,6 +11,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from arraysel.io.numba_cache import ensure_cache_dir
+
+ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
+
 
 #: pixels a thread accumulates together: for each (transmit, element) it reads that element's
 #: I/Q row once (it stays in the first-level cache) for all of them
