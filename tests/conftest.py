@@ -35,3 +35,15 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True)
+def _ioh_folders_load_in_iohinspector(request):
+    """Every IOHprofiler folder a test writes under its ``tmp_path`` loads whole in the installed
+    iohinspector (a reader's view of ``arraysel compare``'s ioh/)."""
+    yield
+    tmp = request.node.funcargs.get("tmp_path") if hasattr(request.node, "funcargs") else None
+    if tmp is not None:
+        from support import ioh_folders_load
+
+        ioh_folders_load(tmp)

@@ -40,3 +40,65 @@ def own_plugin_manager(monkeypatch):
         yield
     finally:
         registry.reset()
+
+
+
+def ioh_dat_rows(folder) -> dict:
+    """``{(algorithm, run number): rows of its .dat block}`` of an IOHprofiler folder, from the files."""
+    import json
+    from pathlib import Path
+
+    out = {}
+    for js in Path(folder).glob("*/IOHprofiler_*.json"):
+        meta = json.loads(js.read_text())
+        scen = meta["scenarios"][0]
+        blocks = (js.parent / scen["path"]).read_text().split("evaluations raw_y seconds\n")[1:]
+        assert len(blocks) == len(scen["runs"]), js
+        for number, block in enumerate(blocks, 1):
+            out[(meta["algorithm"]["name"], number)] = len(block.strip().splitlines())
+    return out
+
+
+def ioh_read(folder) -> dict:
+    """``{(algorithm, run number): data rows}`` as the installed iohinspector reads the IOHprofiler
+    folder (a file it refuses, or a warning it gives, raises AssertionError naming the folder)."""
+    import warnings
+
+    import iohinspector
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            manager = iohinspector.DataManager()
+            manager.add_folder(str(folder))
+            overview = manager.overview
+            data = manager.load(monotonic=False) if len(overview) else None
+        except Exception as exc:  # noqa: BLE001 - whatever the reader says is the failure
+            raise AssertionError(f"iohinspector cannot load {folder}: {type(exc).__name__}: {exc}") from None
+    counts = {}
+    if data is not None:
+        rows = data.group_by("data_id").len()
+        counts = dict(zip(rows["data_id"].to_list(), rows["len"].to_list()))
+    return {(a, r): counts.get(d, 0) for a, r, d in zip(overview["algorithm_name"].to_list(),
+                                                       overview["run_id"].to_list(), overview["data_id"].to_list())}
+
+
+def ioh_folders_load(root) -> int:
+    """Load every IOHprofiler folder (``ioh/`` of a comparison) under ``root`` with the installed
+    ``iohinspector``: it must read every run the files hold, each with all the rows of its
+    ``.dat`` block (AssertionError naming the folder otherwise). Returns the folders loaded (0
+    without iohinspector)."""
+    from pathlib import Path
+
+    folders = sorted({p.parent.parent for p in Path(root).rglob("IOHprofiler_*.json")
+                      if p.parent.parent.name == "ioh"})
+    if not folders:
+        return 0
+    try:
+        import iohinspector  # noqa: F401
+    except ImportError:  # pragma: no cover - a test dependency
+        return 0
+    for folder in folders:
+        want, got = ioh_dat_rows(folder), ioh_read(folder)
+        assert got == want, f"iohinspector reads {folder} as {got}, its files hold {want}"
+    return len(folders)
