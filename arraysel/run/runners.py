@@ -349,8 +349,9 @@ def check_isolated(todo: list[RunSpec]) -> None:
         spec.item(Budget(evaluations=1))
 
 
-#: the objective's counters (they change with every call)
-_COUNTERS = ("evaluations", "gradient_steps", "seconds")
+#: the objective's counters (they change with every call; ``fallbacks``: masks its fast path
+#: handed to the exact one)
+_COUNTERS = ("evaluations", "gradient_steps", "seconds", "fallbacks")
 
 
 class _Fingerprint:

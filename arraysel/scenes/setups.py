@@ -44,7 +44,12 @@ class SceneSetups:
             kind, other = ("a matrix", "1-D") if matrix else ("a 1-D", "matrix")
             raise ParameterError(f"probe.{wrong[0]} applies to {other} probes only; probe.name = {name!r} is "
                                  f"{kind} probe")
-        return get_probe(name, **p)
+        try:
+            return get_probe(name, **p)
+        except ParameterError as exc:  # a check across fields ("width = ... (0, pitch]"): name the key
+            if str(exc).split(" = ", 1)[0] in p:
+                raise ParameterError(f"probe.{exc}") from None
+            raise
 
     def matrix_probe(self):
         """The scene's probe for a 3-D scene: refused, naming ``probe.name``, unless it is a matrix probe."""
@@ -159,11 +164,48 @@ class SceneSetups:
         tilts = tuple(np.deg2rad(np.linspace(-tilt, tilt, n_tx))) if n_tx > 1 else (0.0,)
         pixel = self.pixel
         options = self._sim_options()
-        return PSFSetup(probe=probe, acq=acq, tilts=tilts, n_x=int(self.length("grid", "n_x")),
-                        n_z=int(self.length("grid", "n_z")), pixel=pixel, z_offset=z_offset, x_offset=x_offset,
-                        scatterer=scatterer, reflectivity=float(self.value("medium", "reflectivity")),
-                        window=int(self.length("grid", "window")), fnumber=float(self.value("receive", "fnumber")),
-                        iq_bandwidth=self.value("receive", "iq_bandwidth"), options=options)
+        setup = PSFSetup(probe=probe, acq=acq, tilts=tilts, n_x=int(self.length("grid", "n_x")),
+                         n_z=int(self.length("grid", "n_z")), pixel=pixel, z_offset=z_offset, x_offset=x_offset,
+                         scatterer=scatterer, reflectivity=float(self.value("medium", "reflectivity")),
+                         window=int(self.length("grid", "window")), fnumber=float(self.value("receive", "fnumber")),
+                         iq_bandwidth=self.value("receive", "iq_bandwidth"), options=options)
+        scatterer_on_grid(setup)
+        aperture_at_scatterer(setup)
+        return setup
+
+
+def scatterer_on_grid(setup) -> None:
+    """Refuse a scatterer off its grid (its PSF would be cut from the grid's edge: a number that
+    means nothing), naming the key(s) and the grid's extent."""
+    row, col = setup.scatterer_pixel
+    off = [key for key, inside in (("medium.scatterer_x", 0 <= col < setup.n_x),
+                                   ("medium.scatterer_z", 0 <= row < setup.n_z)) if not inside]
+    if off:
+        x, z = setup.scatterer_position
+        raise ParameterError(
+            f"{' and '.join(off)}: the scatterer at x = {x:g} m, z = {z:g} m lies outside the grid (x from "
+            f"{setup.x[0]:g} to {setup.x[-1]:g} m, z from {setup.z[0]:g} to {setup.z[-1]:g} m: grid.n_x x grid.n_z = "
+            f"{setup.n_x} x {setup.n_z} pixels of {setup.pitch:g} m); move it onto the grid or enlarge the grid")
+
+
+def aperture_at_scatterer(setup) -> None:
+    """Refuse an f-number whose receive aperture holds no element at the scatterer (its image
+    would be all zero), naming ``receive.fnumber``."""
+    f = float(setup.fnumber)
+    if f <= 0:
+        return
+    xs, zs = setup.scatterer_position
+    xe, ze, theta, _ = setup.probe.element_positions()
+    dx = xs - xe
+    if setup.probe.is_linear:
+        inside = np.abs(dx) <= zs / 2 / f
+    else:
+        inside = np.abs(np.arcsin(dx / np.hypot(dx, zs - ze)) - theta) <= np.arctan(1 / 2 / f)
+    if not inside.any():
+        raise ParameterError(
+            f"receive.fnumber = {f:g} leaves no element in the receive aperture at the scatterer (x = {xs:g} m, "
+            f"z = {zs:g} m: an aperture {zs / f:.3g} m wide, elements {setup.probe.pitch:g} m apart); lower it "
+            f"(0: every element receives)")
 
 
 def memory_check(scene, n_elements: int) -> None:
