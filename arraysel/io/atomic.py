@@ -166,8 +166,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             fh.write(data)
         check_replaceable(path)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         _discard(tmp)
+        if isinstance(exc, OSError) and exc.filename in (None, tmp):  # name the file the user knows
+            exc.filename = path
         raise
 
 

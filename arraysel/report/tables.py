@@ -155,7 +155,8 @@ def write_runs(out: Path, rows: list[dict], trace: list[dict], budget, problem: 
         from arraysel.errors import ArrayselError
 
         raise ArrayselError(f"the IOHprofiler files could not be written in {out / 'ioh'} ({failed}); runs.csv, "
-                            "trace.csv, table1.csv and stats.csv were written") from failed
+                            "trace.csv, table1.csv and stats.csv were written: make room, then rerun the same "
+                            "command with --resume") from failed
     return WrittenTables(runs, traces, table, stats)
 
 

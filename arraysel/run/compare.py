@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-from arraysel.errors import ParameterError, check_number, error_text as _error_text
+from arraysel.errors import ArrayselError, ParameterError, check_number, error_text as _error_text
 from arraysel.report import tables as reporting
 from arraysel.run.experiment import budget_flag, config_label, full_row, with_end_row
 from arraysel.run.isolation import DEFAULT_GRACE_S, UNTIMED_LIMIT_S
@@ -297,7 +297,10 @@ def _stopped(store: CompareStore, meta: dict, exc: BaseException, saved: int, le
     out = store.out
     meta["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed: {_error_text(exc)}"
     meta["finished"] = _now()
-    store.write_meta(meta)
+    try:
+        store.write_meta(meta)
+    except ArrayselError:  # a full disk: the error that stopped the comparison says so already
+        pass
     what = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"stopped by {_error_text(exc)}"
     print(f"arraysel compare {what}: {saved} finished run(s) are saved in {out}/runs.csv "
           f"and {out}/table1.csv; {left} run(s) left. Rerun the same command with --resume "

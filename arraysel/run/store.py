@@ -10,12 +10,13 @@ reads it back into a ``Selection`` for a resumed folder: the one edge between th
 """
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from arraysel.errors import ParameterError, SelectionError, error_text as _error_text
+from arraysel.errors import ArrayselError, ParameterError, SelectionError, error_text as _error_text
 from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
@@ -124,14 +125,28 @@ class CompareStore:
 
     def write_meta(self, meta: dict) -> None:
         """``run.json``."""
-        reporting.write_json(self.out / "run.json", meta)
+        with self._writing():
+            reporting.write_json(self.out / "run.json", meta)
 
     def save(self, rows: list[dict], traces: list[dict]) -> reporting.WrittenTables:
         """Write the rows (the ``full`` row first) and their traces: ``trace.csv`` and ``ioh/``
         before ``runs.csv``, then ``table1.csv`` and ``stats.csv``."""
-        self.tables = reporting.write_runs(self.out, [file_row(r) for r in rows], [file_row(t) for t in traces],
-                                           self.budget, problem=self.problem)
+        with self._writing():
+            self.tables = reporting.write_runs(self.out, [file_row(r) for r in rows],
+                                               [file_row(t) for t in traces], self.budget, problem=self.problem)
         return self.tables
+
+    @contextlib.contextmanager
+    def _writing(self):
+        """A file that cannot be written (a full disk, a quota) is an :class:`ArrayselError` naming
+        it; every file is replaced whole or not at all, so those written before stay as they were."""
+        try:
+            yield
+        except OSError as exc:
+            where = exc.filename or self.out
+            raise ArrayselError(f"cannot write {where}: {exc.strerror or _error_text(exc)}; the files written "
+                                f"before it are whole: make room, then rerun the same command with --resume") \
+                from exc
 
     def write_figures(self, objective, selections: dict[str, Selection], table, trace) -> list[str]:
         """The figures (:func:`write_figures`); returns the problems met."""
