@@ -52,7 +52,7 @@ def load_comparison(folder, level: float = CI_LEVEL) -> Comparison:
     import pandas as pd
 
     from arraysel.report.stats import deterministic_configs, stats_table
-    from arraysel.report.tables import best_known_mean, read_runs, table1
+    from arraysel.report.tables import best_known_mean, read_runs, read_trace, table1
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -83,7 +83,10 @@ def load_comparison(folder, level: float = CI_LEVEL) -> Comparison:
         raise ParameterError(f"{runs_path} lacks the column(s) {', '.join(missing)}")
     if not len(runs):
         raise ParameterError(f"{runs_path} holds no runs")
-    trace = pd.read_csv(folder / "trace.csv") if (folder / "trace.csv").is_file() else None
+    try:
+        trace = read_trace(folder / "trace.csv") if (folder / "trace.csv").is_file() else None
+    except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError) as exc:
+        raise ParameterError(f"{folder / 'trace.csv'} cannot be read ({type(exc).__name__}: {exc})") from None
     stats = stats_table(runs, trace, best_known_mean(folder), level=level,
                         deterministic=deterministic_configs(runs, meta.get("selectors")))
     return Comparison(folder=folder, meta=meta, runs=runs, table=table1(runs, dict(zip(stats["config"], stats["AOCC"]))),

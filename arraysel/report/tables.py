@@ -28,18 +28,19 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
-from arraysel.report.columns import MERIT_COLUMNS, ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
+from arraysel.report.columns import METRICS as METRIC_NAMES, MERIT_COLUMNS, ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
 from arraysel.report.stats import deterministic_configs, stats_table
 from arraysel.selection import Selection
 
 __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "best_rows", "stats_table",
-           "read_runs", "typed_runs", "rebuild_tables", "TABLE1_COLUMNS", "WrittenTables"]
+           "read_runs", "read_trace", "check_table", "typed_runs", "rebuild_tables", "TABLE1_COLUMNS", "WrittenTables"]
 
 #: text columns of ``runs.csv`` (read as text, an empty cell as "")
 _TEXT_COLUMNS = ("config", "selector", "elements", "options", "error", "budget_flag")
@@ -59,9 +60,7 @@ def write_tables(out: Path, runs, trace=None) -> tuple[Any, Any]:
     scene and ``k`` of the folder's ``run.json``. Returns the two tables written."""
     out = Path(out)
     if trace is None and (out / "trace.csv").is_file():
-        import pandas as pd
-
-        trace = pd.read_csv(out / "trace.csv")
+        trace = read_trace(out / "trace.csv")
     selectors = _run_meta(out).get("selectors")
     stats = stats_table(runs, trace, best_known_mean(out),
                         deterministic=deterministic_configs(runs, selectors if isinstance(selectors, list) else None))
@@ -93,11 +92,73 @@ def _run_meta(folder) -> dict:
 
 def read_runs(path):
     """``runs.csv`` as a DataFrame: the text columns as text (an empty cell as ``""``), the numbers
-    as numbers (``nan`` as NaN)."""
+    as numbers (``nan`` as NaN). A file cut short or edited into something else is refused
+    (:func:`check_table`: ``ValueError`` naming the line)."""
     import pandas as pd
 
+    check_table(path, "runs")
     return typed_runs(pd.read_csv(path, dtype={c: str for c in _TEXT_COLUMNS}, keep_default_na=False,
                                   na_values=["", "nan", "NaN"]))
+
+
+def read_trace(path):
+    """``trace.csv`` as a DataFrame, checked as :func:`read_runs` checks ``runs.csv``."""
+    import pandas as pd
+
+    check_table(path, "trace")
+    return pd.read_csv(path, dtype={"config": str, "event": str, "elements": str}, keep_default_na=False,
+                       na_values=["", "nan", "NaN"])
+
+
+#: the number columns of each table :func:`check_table` checks (``seed``: a whole number)
+_NUMBERS = {"runs": (*METRIC_NAMES, "seconds", "evaluations", "gradient_steps", "objective_seconds",
+                     "overhead_seconds", "k", "n_elements"),
+            "trace": ("seconds", "evaluations", "gradient_steps", "best_Mean")}
+_NUMBER_RE = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|nan|inf|infinity)", re.IGNORECASE)
+
+
+def _whole(text: str) -> bool:
+    """Whether ``text`` is a whole number >= 0 (``3``, or ``3.0`` as a table edited with pandas holds it)."""
+    return bool(_NUMBER_RE.fullmatch(text)) and math.isfinite(float(text)) and float(text) >= 0 and \
+        float(text).is_integer()
+
+
+def check_table(path, kind: str) -> None:
+    """Refuse (``ValueError`` naming the line) a ``runs.csv`` or ``trace.csv`` (``kind``) that was
+    cut short or edited into something its readers would take silently: a line with another
+    number of fields than the header, a number column holding text, a run without a whole-number
+    seed, a ``runs.csv`` run listed twice."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None:
+            return  # an empty file: the reader says so
+        col = {c: i for i, c in enumerate(header)}
+        numbers = [c for c in _NUMBERS[kind] if c in col]
+        seen: dict[tuple, int] = {}
+        for row in reader:
+            line = reader.line_num
+            if not row:
+                continue
+            if len(row) != len(header):
+                raise ValueError(f"line {line} has {len(row)} fields, the header {len(header)}: the file was cut "
+                                 f"short or edited")
+            for c in numbers:
+                cell = row[col[c]].strip()
+                if cell and not _NUMBER_RE.fullmatch(cell):
+                    raise ValueError(f"line {line}: {c} = {cell[:30]!r} is not a number")
+            config = row[col["config"]] if "config" in col else ""
+            seed = row[col["seed"]].strip() if "seed" in col else ""
+            if "seed" in col and not _whole(seed) and not (kind == "runs" and config == "full" and seed == ""):
+                raise ValueError(f"line {line}: {config} has seed {seed!r}, not a whole number >= 0")
+            seed = str(int(float(seed))) if seed else seed
+            if kind == "runs":
+                key = (config, seed)
+                if key in seen:
+                    raise ValueError(f"lines {seen[key]} and {line} both list {config} seed {seed or '(none)'}")
+                seen[key] = line
 
 
 def typed_runs(runs):

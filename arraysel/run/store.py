@@ -77,6 +77,7 @@ class CompareStore:
         if not runs_path.exists():
             return []
         try:
+            reporting.check_table(runs_path, "runs")  # cut short or edited: damaged
             old = pd.read_csv(runs_path, dtype={"elements": str})  # "5" stays text
             missing = [c for c in ("config", "seed", "error", "options") if c not in old.columns]
             if missing:
@@ -106,8 +107,7 @@ class CompareStore:
         if not tpath.exists():
             return []
         try:
-            t = pd.read_csv(tpath, dtype={"config": str, "elements": str}, keep_default_na=False,
-                            na_values=["", "nan", "NaN"])
+            t = reporting.read_trace(tpath)
             traces = t.to_dict("records")
             for r in traces:
                 r["seed"] = int(r["seed"])
