@@ -34,8 +34,14 @@ def __getattr__(name):
 
 
 def _objective(scene, device: str, dtype: str):
-    """The objective of a scene name, ``.toml`` path, :class:`~arraysel.scenes.schema.Scene` or ``"toy"``."""
+    """The objective of a scene name, ``.toml`` path, :class:`~arraysel.scenes.schema.Scene` or ``"toy"``
+    (a ``dtype`` or ``device`` it cannot take refused by name)."""
+    from arraysel.errors import ParameterError, check_choice
     from arraysel.objective.build import objective_for
+
+    check_choice("dtype", dtype, ("float32", "float64"))
+    if not isinstance(device, str) or device.split(":")[0] not in ("cpu", "cuda"):
+        raise ParameterError(f"device must be 'cpu' or 'cuda', got {device!r}")
 
     if isinstance(scene, str) and scene == "toy":
         return objective_for("toy", device, dtype)
@@ -139,15 +145,28 @@ def compare(scene: Any = "paper", selectors: Sequence = ("uniform", "random"), *
     from arraysel.run.compare import compare as _compare
     from arraysel.selectors.contract import Budget
 
+    from arraysel.errors import ParameterError
+
     budget = Budget(seconds=budget_s, evaluations=budget_evals)
+    if isinstance(selectors, str):  # "random,uniform", as --selectors takes them
+        selectors = [s.strip() for s in selectors.split(",") if s.strip()]
+    try:
+        selectors = list(selectors)
+    except TypeError:
+        raise ParameterError(f"selectors must be a list of selector names, got {type(selectors).__name__}") from None
+    if options is not None and not isinstance(options, dict):
+        raise ParameterError(f"options must be a dict {{selector: {{option: value}}}}, got {type(options).__name__}")
+    stray = [name for name in (options or {}) if name not in selectors]
+    if stray:
+        raise ParameterError(f"options names selector(s) {', '.join(map(repr, stray))}, not in selectors")
     if objective is None:
         objective = _objective(scene, device, dtype)
     if out_dir is None:
         out_dir = tempfile.mkdtemp(prefix="arraysel-compare-")
     opts = options or {}
-    sels = [(name, opts.get(name, {})) for name in selectors]
+    sels = [(name, opts.get(name) or {}) for name in selectors]
     with plots.collect_figures() as figs:
-        result = _compare(objective, sels, out_dir=out_dir, seeds=list(seeds), budget=budget, resume=resume,
+        result = _compare(objective, sels, out_dir=out_dir, seeds=seeds, budget=budget, resume=resume,
                           force=force, progress=progress, figures=figures, isolate=isolate, grace_s=grace_s,
                           command_line=["arraysel.compare(...)"])
     return dataclasses.replace(result, figures=dict(figs))

@@ -37,6 +37,10 @@ def build_objective(scene="paper", device="cpu", dtype=None, **kw):
     from arraysel.objective import psf_objective
     from arraysel.scenes.schema import Scene, load_scene
 
+    try:
+        torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ParameterError(f"device must be 'cpu' or 'cuda' (or a torch device), got {device!r}") from None
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
     cls = None
     if sc.is_volume:

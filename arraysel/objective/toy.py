@@ -15,7 +15,7 @@ import time
 import numpy as np
 import torch
 
-from arraysel.errors import ParameterError, check_number
+from arraysel.errors import ParameterError, SelectionError, check_number
 from arraysel.objective.contract import WorkerFactory, check_element_grid, dtype_name
 from arraysel.objective.losses import DEFAULT_WEIGHTS, PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.metrics import METRIC_NAMES
@@ -144,6 +144,8 @@ class ToyObjective:
             w = w[None, :]
         if w.ndim != 2 or w.shape[1] != self.n_elements:
             raise ParameterError(f"masks must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
+        if not bool(torch.isfinite(w).all()):  # as the scene objectives refuse them
+            raise SelectionError("masks contain NaN or Inf")
         return w
 
     def _terms(self, w: torch.Tensor) -> dict[str, torch.Tensor]:

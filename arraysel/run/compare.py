@@ -98,7 +98,7 @@ class _Plan:
         registry = get_registry() if registry is None else registry
         budget = Budget(seconds=120.0) if budget is None else budget
         sels = _normalise_selectors(selectors)
-        seeds = [int(check_number("seed", s, lo=0, integer=True)) for s in (DEFAULT_SEEDS if seeds is None else seeds)]
+        seeds = _checked_seeds(DEFAULT_SEEDS if seeds is None else seeds)
         if not sels:
             raise ParameterError("compare needs at least one selector")
         classes = {}
@@ -110,6 +110,9 @@ class _Plan:
         labels = [config_label(name, opts) for name, opts in sels]
         if len(set(labels)) != len(labels):
             raise ParameterError(f"the same selector configuration is listed twice: {labels}")
+        if budget.unlimited:
+            raise ParameterError("the budget has no limit: give a time budget (budget_s, --budget-s) or an "
+                                 "evaluation budget (budget_evals, --budget-evals)")
         if budget.seconds is not None and not math.isfinite(budget.seconds):
             raise ParameterError(f"budget seconds = {budget.seconds} is not allowed; give a finite number of "
                                  f"seconds > 0, or None with an evaluation budget")
@@ -208,6 +211,7 @@ def compare(objective, selectors: Sequence, *, out_dir: str | os.PathLike, seeds
     finished row is already on disk; a message on stderr says how to resume,
     and the exception is re-raised.
     """
+    _check_objective(objective)
     plan = _Plan.of(selectors, seeds, budget, registry, grace_s)
     out = Path(out_dir)
     if resume and force:
@@ -384,11 +388,39 @@ def _scene_info(objective) -> tuple[str, Any]:
 
 
 def _normalise_selectors(selectors) -> list[tuple[str, dict]]:
+    """``[(name, options)]`` of ``selectors``: names, ``(name, options)`` pairs, or one string of
+    comma-separated names (as ``--selectors`` takes them)."""
+    if isinstance(selectors, str):
+        selectors = [s.strip() for s in selectors.split(",") if s.strip()]
+    if isinstance(selectors, (bytes, dict)) or not hasattr(selectors, "__iter__"):
+        raise ParameterError(f"selectors must be a list of selector names or (name, options) pairs, got "
+                             f"{type(selectors).__name__}")
     out = []
     for s in selectors:
         if isinstance(s, str):
             out.append((s, {}))
+        elif isinstance(s, (tuple, list)) and len(s) == 2 and isinstance(s[1], (dict, type(None))):
+            out.append((s[0], dict(s[1] or {})))
         else:
-            name, opts = s
-            out.append((name, dict(opts or {})))
+            raise ParameterError(f"selectors: {s!r} is neither a selector name nor a (name, options) pair")
     return out
+
+
+def _checked_seeds(seeds) -> list[int]:
+    """The seeds, each a whole number >= 0, at least one, none twice."""
+    if isinstance(seeds, (str, bytes, dict)) or not hasattr(seeds, "__iter__"):
+        raise ParameterError(f"seeds must be a list of whole numbers >= 0 (e.g. [0, 1, 2]), got {seeds!r}")
+    out = [int(check_number("seed", s, lo=0, integer=True)) for s in seeds]
+    if not out:
+        raise ParameterError("seeds is empty: give at least one seed")
+    twice = sorted({s for s in out if out.count(s) > 1})
+    if twice:
+        raise ParameterError(f"seeds lists {', '.join(map(str, twice))} more than once")
+    return out
+
+
+def _check_objective(objective) -> None:
+    missing = [a for a in ("n_elements", "k", "evaluate") if not hasattr(objective, a)]
+    if missing:
+        raise ParameterError(f"objective must follow the Objective contract (arraysel.objective.contract; "
+                             f"it lacks {', '.join(missing)}), got {type(objective).__name__}")
