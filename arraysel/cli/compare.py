@@ -71,11 +71,12 @@ def add_parser(subparsers) -> None:
                         "of a compare run is refused)")
     p.add_argument("--grace-s", type=float, default=None, metavar="S",
                    help="seconds a run may go past --budget-s before its process is stopped and it gets "
-                        "an error row (default 30)")
+                        "an error row (default 30); with --budget-s 0, the seconds a run may take (default 3600)")
     p.add_argument("--in-process", action="store_true",
                    help="run the selectors in this process instead of a fresh child process per run "
-                        "(faster start, not isolated: a selector that hangs or exits then stops the whole "
-                        "compare, one that changes the objective stops it with an error)")
+                        "(faster start, not isolated: a run is still stopped at its deadline, but one that "
+                        "exits the process stops the whole compare, and one that changes the objective or "
+                        "the functions the tables use stops it with an error)")
     g = p.add_argument_group("parallel runs (see docs/distributed.md)")
     g.add_argument("--executor", choices=("local", "process", "dask"), default="local",
                    help="where the (selector, seed) runs are computed: local (default: this process, "
