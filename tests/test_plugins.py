@@ -178,7 +178,11 @@ def test_plugin_object_registered_on_the_manager(isolated_pm, tmp_path, capsys):
         assert cli.main(["list"]) == 0
         out = capsys.readouterr().out
         assert any(l.split()[:2] == ["last-k", "last-plugin"] for l in out.splitlines())
-        assert cli.main(_compare_args(tmp_path, "last-k", "-o", "last-k.unused=3")) == 0
+        # its class reaches no child process (not pickled by name, no plugin a child can load):
+        # refused naming --in-process, with which it runs
+        assert cli.main(_compare_args(tmp_path, "last-k", "-o", "last-k.unused=3")) == 2
+        assert "selector 'last-k' cannot run isolated" in capsys.readouterr().err
+        assert cli.main(_compare_args(tmp_path, "last-k", "-o", "last-k.unused=3", "--in-process")) == 0
         table = pd.read_csv(tmp_path / "table1.csv", keep_default_na=False)
         assert "last-k(unused=3)" in list(table["config"])
         assert table.set_index("config").loc["last-k(unused=3)", "elements"] == " ".join(map(str, range(32, 64)))

@@ -10,6 +10,7 @@ so, naming it).
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
 import pickle
 import sys
@@ -41,7 +42,12 @@ def plugin_spec(origin: str | None) -> str | None:
         return origin[len("file:"):]
     if origin in BUILTIN_PLUGINS or " (" in origin:  # built-in, or installed: "name (dist version)"
         return ""
-    return origin if all(part.isidentifier() for part in origin.split(".")) else None
+    if not all(part.isidentifier() for part in origin.split(".")):
+        return None
+    try:  # a module a child can import (not a plugin object registered by hand under that name)
+        return origin if importlib.util.find_spec(origin) is not None else None
+    except (ImportError, ValueError):
+        return None
 
 
 def compare_item(config: str, cls, options: dict, budget, seed: int, origin: str | None = None) -> dict:
