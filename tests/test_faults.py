@@ -92,7 +92,7 @@ def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder, ca
                                     seconds_hint=20, progress=True)
     (note,) = [r.getMessage() for r in caplog.records if "building" in r.getMessage()]
     assert "building a test state" in note and f"cached in {cache_folder} (about 3.0 MB)" in note
-    assert "about 20 s" in note and "/~20 s" in capsys.readouterr().err  # the announcement and the progress bar
+    assert "an estimate: about 20 s" in note and "/~20 s" in capsys.readouterr().err  # the announcement, the bar
     second = cache.load_or_build("t", ("k", 1), build, what="a test state")
     assert calls == [1] and _same(first, _state()) and _same(second, _state())
     entry = _entry(cache_folder)
