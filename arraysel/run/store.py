@@ -11,7 +11,7 @@ reads it back into a ``Selection`` for a resumed folder: the one edge between th
 from __future__ import annotations
 
 import contextlib
-import sys
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +63,9 @@ class CompareStore:
         lost = [r for r in rows if ends.get((r["config"], r["seed"]), 0) != 1]
         if lost:
             names = ", ".join(f"{r['config']} seed {r['seed']}" for r in lost)
-            print(f"arraysel compare: --resume: {len(lost)} finished run(s) of runs.csv have no single end row in "
-                  f"{self.out / 'trace.csv'} and are run again: {names}", file=sys.stderr)
+            logging.getLogger(__name__).warning(
+                "arraysel compare: --resume: %d finished run(s) of runs.csv have no single end row in %s and are "
+                "run again: %s", len(lost), self.out / "trace.csv", names)
         done = {(r["config"], r["seed"]) for r in rows if ends.get((r["config"], r["seed"]), 0) == 1}
         return [r for r in rows if (r["config"], r["seed"]) in done], \
             [t for t in traces if (t["config"], t["seed"]) in done]

@@ -90,46 +90,29 @@ def test_head_of_the_list_gets_its_line_and_no_traceback():
 
 
 # ------------------------------------------------------------------ item 6: the first build's time notice
-def _entry(folder: Path, name: str, **meta) -> None:
-    (folder / name).mkdir(parents=True)
-    (folder / name / "manifest.json").write_text(json.dumps({"format": 1, "tensors": {}, **meta}))
-
-
-def test_the_build_estimate_comes_from_earlier_builds_and_the_load(tmp_path, monkeypatch):
-    from arraysel.io import buildtime
-
-    monkeypatch.setattr(buildtime, "_cores", lambda: 2)
-    monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # 10 runnable on 2 cores: 5x
-    assert buildtime.load_factor() == 5.0
-    seconds, how = buildtime.estimate(str(tmp_path), "psf", 2.0)
-    assert seconds == 10.0 and how == "the sizes (no earlier build here to time) and the load now (5.0x)"
-    # earlier builds here took 20x, 30x and 40x their own figure once their load is taken out
-    for i, (took, load) in enumerate([(40.0, 1.0), (120.0, 2.0), (80.0, 1.0)]):
-        _entry(tmp_path, f"psf-{i:024x}", estimate_s=2.0, build_s=took, load_factor=load, created=f"2026-0{i + 1}")
-    _entry(tmp_path, "other-" + "0" * 24, estimate_s=1.0, build_s=1000.0, load_factor=1.0)  # another kind
-    seconds, how = buildtime.estimate(str(tmp_path), "psf", 2.0)
-    assert seconds == pytest.approx(2.0 * 30.0 * 5.0) and how.startswith("3 earlier build(s) here")
-
-
-def test_the_first_build_notice_says_it_is_an_estimate_and_records_what_it_took(tmp_path, monkeypatch, capsys):
+def test_the_first_build_notice_says_it_is_an_estimate_from_the_measured_cost(tmp_path, monkeypatch, caplog):
     """Issue 77, item 6: before, the notice said 'about 2 s' from the sizes alone (a build that
-    took 48 s on a loaded machine)."""
+    took 48 s on a loaded machine), and did not say it was an estimate."""
+    import logging
+
     import numpy as np
 
-    from arraysel.io import buildtime, cache
+    from arraysel.io import cache
 
-    monkeypatch.setenv("ARRAYSEL_CACHE", str(tmp_path / "c"))
-    monkeypatch.setattr(buildtime, "load_factor", lambda: 4.0)
-    _entry(tmp_path / "c", "psf-" + "1" * 24, estimate_s=2.0, build_s=16.0, load_factor=1.0)  # 8x here
-    state = cache.load_or_build("psf", ("k",), lambda: {"a": np.arange(3)}, what="a test basis", seconds_hint=2.0,
-                                progress=False)
+    folder = tmp_path / "c"
+    monkeypatch.setenv("ARRAYSEL_CACHE", str(folder))
+    earlier = folder / ("psf-" + "1" * 24)  # an earlier build here took 4 x its own estimate
+    earlier.mkdir(parents=True)
+    (earlier / "manifest.json").write_text(json.dumps({"format": 1, "tensors": {}, "build_seconds": 16.0,
+                                                       "estimated_seconds": 4.0, "created": "2026-01-01T00:00:00Z"}))
+    with caplog.at_level(logging.WARNING, logger="arraysel.io.cache"):
+        state = cache.load_or_build("psf", ("k",), lambda: {"a": np.arange(3)}, what="a test basis",
+                                    seconds_hint=2.0, progress=False)
     assert list(state["a"]) == [0, 1, 2]
-    notice = [line for line in capsys.readouterr().err.splitlines() if "building a test basis" in line]
-    assert len(notice) == 1 and ("an estimate: about 64 s, from 1 earlier build(s) here and the load now (4.0x)"
-                                 in notice[0]), notice
-    entry = cache.entry_name("psf", ("k",))
-    manifest = json.loads((tmp_path / "c" / entry / "manifest.json").read_text())
-    assert manifest["estimate_s"] == 2.0 and manifest["load_factor"] == 4.0 and manifest["build_s"] >= 0
+    notice = [r.getMessage() for r in caplog.records if "building a test basis" in r.getMessage()]
+    assert len(notice) == 1 and "(first run with these settings; an estimate: about 8 s)" in notice[0], notice
+    manifest = json.loads((folder / cache.entry_name("psf", ("k",)) / "manifest.json").read_text())
+    assert manifest["estimated_seconds"] == 2.0 and manifest["build_seconds"] >= 0  # the next build's measure
 
 
 # ------------------------------------------------------------------ item 7: a home folder that cannot be written
