@@ -571,8 +571,7 @@ def load_or_build(kind: str, key_parts, build: Callable[[], Mapping], *, what: s
         size = f" (about {_fmt_bytes(size_hint)})" if size_hint else ""
         eta = build_seconds_estimate(folder, seconds_hint)
         _log.warning("arraysel: building %s (first run with these settings%s); it will be cached in %s%s",
-                     what, f"; an estimate: about {eta:.2g} s" if eta and eta < 10 else
-                     f"; an estimate: about {eta:.0f} s" if eta else "", folder, size)
+                     what, f"; an estimate: about {eta:.0f} s" if eta else "", folder, size)
         t0 = time.monotonic()
         with _BuildProgress(f"building {what}", eta) if _want_bar(progress) else _Null():
             state = dict(build())

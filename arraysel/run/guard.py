@@ -106,7 +106,7 @@ def watched_reductions() -> Reductions:
     takes it before it loads any plugin)."""
     import importlib
 
-    for name in ("numpy", "torch", "pandas", "scipy.stats", "arraysel.report.stats", "arraysel.report.tables",
+    for name in ("numpy", "torch", "pandas", "arraysel.report.stats", "arraysel.report.tables",
                  "arraysel.report.summary", "arraysel.run.store"):
         importlib.import_module(name)
     return Reductions()
