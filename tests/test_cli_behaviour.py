@@ -34,7 +34,7 @@ def test_report_help_prints_percent_signs_once(capsys):
     assert "%%" not in text and "93.8 %" in text
 
 
-@pytest.mark.parametrize("shell, marker", [("bash", "complete -o filenames -F _shtab_arraysel arraysel"),
+@pytest.mark.parametrize("shell, marker", [("bash", "-F _shtab_arraysel arraysel"),
                                            ("zsh", "#compdef arraysel")])
 def test_completion_scripts_know_every_command(shell, marker, capsys):
     pytest.importorskip("shtab")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 
 import pytest
 import torch
@@ -235,7 +236,9 @@ def test_conv_reduction(images):
     torch.testing.assert_close(b, a * N * N)
 
 
-def test_training_gives_k_distinct_elements_and_progress_bar(images, capsys):
+def test_training_gives_k_distinct_elements_and_progress_bar(images, capsys, monkeypatch):
+    """progress=True draws the bar on a terminal (stderr stands in for one here)."""
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
     t = make_trainer(images, progress=True, max_steps=3)
     hist = t.train()
     assert len(hist) == 3 and all(math.isfinite(h["total"]) for h in hist)
@@ -244,6 +247,12 @@ def test_training_gives_k_distinct_elements_and_progress_bar(images, capsys):
     assert int(idx.min()) >= 0 and int(idx.max()) < NE
     err = capsys.readouterr().err
     assert "e2e" in err and "rec=" in err
+
+
+def test_training_draws_no_bar_into_a_redirected_log(images, capsys):
+    """stderr not a terminal (a log file, CI): no carriage-return frames, progress=True or not."""
+    make_trainer(images, progress=True, max_steps=2).train()
+    assert "e2e" not in capsys.readouterr().err
 
 
 def test_checkpoint_resume_gives_identical_continuation(images, tmp_path):
