@@ -25,7 +25,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import machine, set_threads  # noqa: E402
 
-CONFIG = dict(guide=0.875, model="quadratic", scan=0.125, shift=6, shift_scan=512)
+CONFIG = dict(guide=0.875, model="quadratic", scan=0.125, shift=6, shift_scan=512, gradient="exact")
 
 
 def main(argv=None) -> int:

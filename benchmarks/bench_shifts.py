@@ -65,7 +65,7 @@ def main(argv=None) -> int:
                 budget = Budget(seconds=1e9).start(obj)
                 view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
                 search = SwapSearch(view, k, np.random.default_rng(i), guide=0.875, model="quadratic", scan=0.125,
-                                    shift=6, shift_scan=scan, guide_shifts=guided)
+                                    shift=6, shift_scan=scan, guide_shifts=guided, gradient="exact")
                 t0 = time.perf_counter()
                 _, value = search.descend(start, float(search.score(start[None])[0]))
                 seconds.append(time.perf_counter() - t0)

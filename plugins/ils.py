@@ -5,16 +5,21 @@ descents (first or best improvement, the neighbours scored in one call each) int
 the best distinct ones form an elite pool. Each round then either relinks two elites (a greedy
 swap path from one towards the other, whose best intermediate selection is descended) or
 perturbs an elite by a number of random swaps that grows while no round finds a new best; a
-long run without a new best brings a fresh random start. See
-:class:`arraysel.selectors.localsearch.EliteSearch`.
+long run without a new best brings a fresh random start. The descents are ``swap``'s (the
+settings :data:`arraysel.selectors.swapsettings.ILS`). See
+:class:`arraysel.selectors.elite.EliteSearch`.
 """
 from __future__ import annotations
 
 from arraysel.selectors.contract import Option, Selector, numpy_rng
+from arraysel.selectors.elite import ELITE, RELINK, STARTS, EliteSearch
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.localsearch import FRESH_CHIRPS, FRESH_CHOICES, EliteSearch
-from arraysel.selectors.moves import shift_options
 from arraysel.selectors.starts import start_options, start_selection
+from arraysel.selectors.swapsettings import ILS, settings_from, swap_options
+
+#: the settings of the swap engine ils declares as options (the others are the ILS preset's)
+ILS_OPTIONS = ("mode", "chunk", "guide", "scan", "perturb", "max_perturb", "restart_after", "fresh", "shift",
+               "shift_len", "shift_scan", "model")
 
 
 class IteratedLocalSearch(Selector):
@@ -22,24 +27,11 @@ class IteratedLocalSearch(Selector):
     description = "multi-start iterated swap local search: elite pool, path relinking, growing perturbations"
     options = {
         **start_options("greedy"),
-        "starts": Option(int, 2, "starting selections (the start and random ones), each descended first", lo=1),
-        "elite": Option(int, 8, "distinct local optima kept in the elite pool", lo=1),
-        "relink": Option(float, 0.3, "probability that a round relinks two elites (else it perturbs one)",
+        "starts": Option(int, STARTS, "starting selections (the start and random ones), each descended first", lo=1),
+        "elite": Option(int, ELITE, "distinct local optima kept in the elite pool", lo=1),
+        "relink": Option(float, RELINK, "probability that a round relinks two elites (else it perturbs one)",
                          lo=0.0, hi=1.0),
-        "mode": Option(str, "first", "descent: first (move at the first chunk holding an improvement) or best "
-                       "(all k(Ne-k) neighbours a move)", choices=("first", "best")),
-        "chunk": Option(int, 64, "neighbours per objective call in first-improvement mode", lo=1),
-        "guide": Option(float, 0.5, "first share of each first-mode chunk taken in the order the loss's "
-                        "gradient predicts (adapts to where improvements come from; 0: random order)",
-                        lo=0.0, hi=1.0),
-        "perturb": Option(int, 2, "random swaps of the first perturbation after a new best", lo=1),
-        "max_perturb": Option(int, 8, "most random swaps of a perturbation", lo=1),
-        "restart_after": Option(int, 40, "rounds in a row without a new best before a fresh random start "
-                                "(0: never)", lo=0),
-        "fresh": Option(str, "random", "extra starts and restarts: random selections, chirp (the best of "
-                        f"{FRESH_CHIRPS} random chirped layouts each, scored in one call), or mixed (chirped "
-                        "and random in turn)", choices=FRESH_CHOICES),
-        **shift_options(),
+        **swap_options(ILS, ILS_OPTIONS),
     }
     deterministic = False
     scores_neighbourhoods = True
@@ -48,10 +40,8 @@ class IteratedLocalSearch(Selector):
         o = self.options
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
-        search = EliteSearch(objective, k, rng, starts=o["starts"], elite=o["elite"], relink=o["relink"],
-                             mode=o["mode"], chunk=o["chunk"], guide=o["guide"], perturb=o["perturb"],
-                             max_perturb=o["max_perturb"], restart_after=o["restart_after"], fresh=o["fresh"],
-                             shift=o["shift"], shift_len=o["shift_len"], shift_scan=o["shift_scan"])
+        search = EliteSearch(objective, k, rng, settings_from(ILS, o), starts=o["starts"], elite=o["elite"],
+                             relink=o["relink"])
         return search.run(start)[0]
 
 

@@ -4,13 +4,21 @@
   than its limit: ``_bounded = time_limit(120)`` in a module;
 * :func:`own_plugin_manager` -- a process-wide plugin manager of the built-ins only (no installed
   entry points, no disable list from the environment), restored afterwards:
-  ``from support import own_plugin_manager`` in a module, with ``pytestmark`` or autouse as it needs.
+  ``from support import own_plugin_manager`` in a module, with ``pytestmark`` or autouse as it needs;
+* :data:`PLAIN` -- the swap engine's settings for tests of its mechanics.
 """
 from __future__ import annotations
 
 import signal
 
 import pytest
+
+from arraysel.selectors.swapsettings import SwapSettings
+
+#: the swap engine with one plain descent (no race, no shifts, the linear model, a full scan, restarts
+#: off), not ``swap``'s defaults: the tests of the engine's mechanics were written against it
+PLAIN = SwapSettings(guide=0.5, scan=1.0, restart_after=0, fresh="random", race=1, race_quota=500,
+                     race_chirps=256, shift=0, shift_scan=4096, model="linear", gradient="exact")
 
 
 def time_limit(seconds: int):

@@ -16,6 +16,7 @@ from arraysel.selectors.localsearch import (SwapSearch, loss_quadratic, move_cha
                                            shift_segments, shifted_masks, swap_changes)
 from arraysel.testing import ToyObjective
 from scene_texts import TINY_SCENE
+from support import PLAIN
 
 
 class Quadratic:
@@ -148,7 +149,7 @@ def test_quadratic_descents_without_a_loss_take_the_random_order():
             return self.inner.evaluate(masks)
 
     view = _budgeted(Plain(), 10_000)
-    search = SwapSearch(view, 6, np.random.default_rng(3), model="quadratic", scan=0.5)
+    search = SwapSearch(view, 6, np.random.default_rng(3), PLAIN, model="quadratic", scan=0.5)
     start = np.arange(12) < 6
     mask, value = search.descend(start, float(view.score(start[None])[0]))
     assert search.hessians == 0 and not search._guided and value <= float(view.score(start[None])[0])
@@ -158,7 +159,7 @@ def test_quadratic_descents_without_a_loss_take_the_random_order():
 def test_quadratic_descents_at_extreme_k(k):
     obj = ToyObjective(16, k)
     view = _budgeted(obj, 2000)
-    search = SwapSearch(view, k, np.random.default_rng(0), model="quadratic", refresh=2, scan=0.25, max_rounds=5)
+    search = SwapSearch(view, k, np.random.default_rng(0), PLAIN, model="quadratic", refresh=2, scan=0.25, max_rounds=5)
     sel, value = search.run(np.arange(16) < k)
     assert len(sel) == k and np.isfinite(value)
 
@@ -170,9 +171,9 @@ def test_swap_search_predictions_by_the_linear_and_the_quadratic_model():
     a, b = swap_pairs(mask)
     exact = obj.f(swap_masks(mask, a, b).astype(float)) - obj.f(mask[None].astype(float))
     g = obj.q + obj.Q @ mask
-    lin = SwapSearch(obj, 5, np.random.default_rng(0))
+    lin = SwapSearch(obj, 5, np.random.default_rng(0), PLAIN)
     np.testing.assert_allclose(lin._predict(mask, a, b), g[b] - g[a], rtol=1e-12)
-    quad = SwapSearch(obj, 5, np.random.default_rng(0), model="quadratic", refresh=3)
+    quad = SwapSearch(obj, 5, np.random.default_rng(0), PLAIN, model="quadratic", refresh=3)
     rng = np.random.default_rng(1)
     for _ in range(7):  # at seven selections in turn (a descent's moves)
         other = random_swaps(mask, 2, rng)
@@ -215,7 +216,7 @@ def test_guided_shifts_take_the_best_predicted_shift_first_and_stop_at_shift_sca
     # shift_scan shifts, not all of them
     obj = Quadratic(n=16, k=7, hessian=False, seed=8)
     view = _budgeted(obj, 1_000_000)
-    search = SwapSearch(view, 7, np.random.default_rng(2), model="quadratic", guide=1.0, shift=3, shift_len=8,
+    search = SwapSearch(view, 7, np.random.default_rng(2), PLAIN, model="quadratic", guide=1.0, shift=3, shift_len=8,
                         shift_scan=40, chunk=16)
     search.shift_guide.hi = 1.0
     mask = np.arange(16) % 2 == 0
@@ -247,7 +248,7 @@ def test_quadratic_descents_confirm_local_optima_from_a_small_scan():
     # would: on a quadratic loss the model is exact, so no improving swap is left outside that fifth
     obj = Quadratic(n=14, k=7, hessian=False, seed=6)
     view = _budgeted(obj, 100_000)
-    search = SwapSearch(view, 7, np.random.default_rng(1), model="quadratic", refresh=1, scan=0.2, guide=1.0)
+    search = SwapSearch(view, 7, np.random.default_rng(1), PLAIN, model="quadratic", refresh=1, scan=0.2, guide=1.0)
     mask, value = search.descend(np.arange(14) < 7, float(view.score((np.arange(14) < 7)[None])[0]))
     a, b = swap_pairs(mask)
     assert (view.score(swap_masks(mask, a, b)) >= value - 1e-12).all()
@@ -257,9 +258,9 @@ def test_quadratic_descents_confirm_local_optima_from_a_small_scan():
 def test_bad_model_options_name_the_option():
     obj = ToyObjective(12, 6)
     with pytest.raises(Exception, match="model"):
-        SwapSearch(obj, 6, np.random.default_rng(0), model="cubic")
+        SwapSearch(obj, 6, np.random.default_rng(0), PLAIN, model="cubic")
     with pytest.raises(Exception, match="refresh"):
-        SwapSearch(obj, 6, np.random.default_rng(0), model="quadratic", refresh=0)
+        SwapSearch(obj, 6, np.random.default_rng(0), PLAIN, model="quadratic", refresh=0)
 
 
 def test_updated_gradients_follow_the_exact_ones_on_a_quadratic_loss():
@@ -270,8 +271,8 @@ def test_updated_gradients_follow_the_exact_ones_on_a_quadratic_loss():
     for gradient in ("exact", "update"):
         obj = Quadratic(n=24, k=10, hessian=False, seed=4)
         view = _budgeted(obj, 1_000_000)
-        search = SwapSearch(view, 10, np.random.default_rng(5), model="quadratic", refresh=3, scan=0.3, guide=1.0,
-                            gradient=gradient)
+        search = SwapSearch(view, 10, np.random.default_rng(5), PLAIN, model="quadratic", refresh=3, scan=0.3,
+                            guide=1.0, gradient=gradient)
         start = np.arange(24) < 10
         mask, value = search.descend(start, float(view.score(start[None])[0]))
         runs[gradient] = (mask, value, search.moves, obj.gradient_steps, search.gradients_updated)
@@ -283,7 +284,7 @@ def test_updated_gradients_follow_the_exact_ones_on_a_quadratic_loss():
 
 def test_an_updated_gradient_is_taken_afresh_beyond_two_swaps():
     obj = Quadratic(n=12, k=6, hessian=False, seed=2)
-    search = SwapSearch(obj, 6, np.random.default_rng(0), model="quadratic", refresh=100, gradient="update")
+    search = SwapSearch(obj, 6, np.random.default_rng(0), PLAIN, model="quadratic", refresh=100, gradient="update")
     mask = np.arange(12) < 6
     search._model(mask)
     near = random_swaps(mask, 2, np.random.default_rng(1))
@@ -294,7 +295,7 @@ def test_an_updated_gradient_is_taken_afresh_beyond_two_swaps():
     search._model(far)
     assert search.gradients_updated == 1
     with pytest.raises(ParameterError, match="gradient"):
-        SwapSearch(obj, 6, np.random.default_rng(0), gradient="carried")
+        SwapSearch(obj, 6, np.random.default_rng(0), PLAIN, gradient="carried")
 
 
 def test_compound_steps_take_several_improving_swaps_of_a_chunk_at_once():
@@ -306,7 +307,7 @@ def test_compound_steps_take_several_improving_swaps_of_a_chunk_at_once():
         obj = Quadratic(n=30, k=12, hessian=False, seed=6)
         obj.Q[:] = 0.0
         view = _budgeted(obj, 1_000_000)
-        search = SwapSearch(view, 12, np.random.default_rng(2), chunk=64, scan=1.0, guide=0.0, compound=compound)
+        search = SwapSearch(view, 12, np.random.default_rng(2), PLAIN, chunk=64, scan=1.0, guide=0.0, compound=compound)
         start = np.argsort(obj.q)[-12:]
         mask0 = np.zeros(30, dtype=bool)
         mask0[start] = True
@@ -323,7 +324,7 @@ def test_compound_steps_take_several_improving_swaps_of_a_chunk_at_once():
 
 def test_a_compound_step_is_the_best_of_its_prefixes_and_the_best_swap():
     obj = Quadratic(n=16, k=7, hessian=False, seed=3)
-    search = SwapSearch(_budgeted(obj, 1_000_000), 7, np.random.default_rng(0), compound=4)
+    search = SwapSearch(_budgeted(obj, 1_000_000), 7, np.random.default_rng(0), PLAIN, compound=4)
     mask = np.arange(16) < 7
     value = float(obj.f(mask[None].astype(float))[0])
     a, b = swap_pairs(mask)
@@ -347,4 +348,4 @@ def test_a_compound_step_is_the_best_of_its_prefixes_and_the_best_swap():
     assert v == pytest.approx(float(fv.min()), rel=1e-12) and v == pytest.approx(float(obj.f(got[None] * 1.0)[0]))
     assert int(got.sum()) == 7
     with pytest.raises(ParameterError, match="compound"):
-        SwapSearch(obj, 7, np.random.default_rng(0), compound=-1)
+        SwapSearch(obj, 7, np.random.default_rng(0), PLAIN, compound=-1)

@@ -18,6 +18,8 @@ from arraysel.run.compare import DEFAULT_SEEDS, compare
 from arraysel.run.experiment import Experiment
 from arraysel.selectors.contract import Budget, BudgetedObjective, BudgetExhausted, Recorder, Selector, numpy_rng
 from arraysel.testing import ToyObjective
+from support import PLAIN
+
 
 
 @pytest.fixture(scope="module")
@@ -191,6 +193,35 @@ def test_swap_s_search_is_the_one_its_runs_use_with_its_options(reg):
     row = Experiment(ToyObjective(16, 8), "swap", options={"lead": 4, "race": 3, "chunk": 16, "start": "random"},
                      budget=Budget(evaluations=400), seed=7, registry=reg).run()
     assert row["elements"] == " ".join(map(str, rec.best)) and row["Mean"] == pytest.approx(rec.best_mean)
+
+
+def test_swap_settings_are_one_set_of_defaults_and_the_searches_are_presets_of_it(reg):
+    """``SwapSettings()`` holds swap's measured defaults; swap, polish, memetic and ils are presets of
+    it that differ where docs/selectors.md says; a selector's declared options default to its preset."""
+    import dataclasses
+
+    from arraysel.selectors.swapsettings import GROUPS, ILS, MEMETIC, POLISH, SWAP, SwapSettings, swap_options
+
+    assert SWAP == SwapSettings() and dataclasses.asdict(SWAP) == dict(
+        mode="first", chunk=64, lead=0, guide=0.875, scan=0.125, compound=0, model=None, refresh=8,
+        gradient="update", shift=6, shift_len=24, shift_scan=512, pairs=0, guide_shifts=True, perturb=2,
+        max_perturb=2, restart_after=30, fresh="mixed", race=16, race_quota=None, race_chirps=None)
+
+    def changes(preset):
+        return {k: v for k, v in dataclasses.asdict(preset).items() if getattr(SWAP, k) != v}
+
+    assert changes(POLISH) == {"race": 1} and changes(MEMETIC) == {}
+    assert changes(ILS) == {"max_perturb": 8, "restart_after": 40, "fresh": "random", "race": 1}
+    grouped = [n for names in GROUPS.values() for n in names]
+    assert sorted(grouped + ["guide_shifts"]) == sorted(dataclasses.asdict(SWAP))   # every setting, once
+    for name, preset in (("swap", SWAP), ("ils", ILS), ("memetic", MEMETIC)):
+        declared = {k: o.default for k, o in reg[name].options.items() if k in grouped}
+        assert declared == {k: getattr(preset, k) for k in declared}, name
+    assert set(swap_options(SWAP)) == set(grouped) and {k for k in reg["swap"].options if k in grouped} == set(grouped)
+    with pytest.raises(ParameterError, match="no setting bogus"):
+        SWAP.replace(bogus=1)
+    with pytest.raises(ParameterError, match="scan"):
+        SwapSettings(scan=0.0)
 
 
 def test_bad_options_name_the_option(reg):
@@ -452,7 +483,8 @@ def test_guided_chunks_with_a_lead_start_small_and_double_up_to_the_chunk():
     obj = ToyObjective(12, 4)
     budget = Budget(evaluations=100).start(obj)
     with pytest.raises(ParameterError, match="lead"):
-        SwapSearch(BudgetedObjective(obj, budget, Recorder(obj, budget), 4), 4, np.random.default_rng(0), lead=-1)
+        SwapSearch(BudgetedObjective(obj, budget, Recorder(obj, budget), 4), 4, np.random.default_rng(0), PLAIN,
+                   lead=-1)
 
 
 def test_guided_share_follows_where_improvements_come_from_and_probes_at_zero():
@@ -508,7 +540,7 @@ def test_a_guided_descent_follows_an_exact_gradient_to_the_optimum_in_fewer_eval
         obj = _LinearObjective(n, k, cost)
         budget = Budget(evaluations=100000).start(obj)
         view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
-        search = SwapSearch(view, k, numpy_rng(0), chunk=8, guide=guide, max_rounds=0)
+        search = SwapSearch(view, k, numpy_rng(0), PLAIN, chunk=8, guide=guide, max_rounds=0)
         start = np.zeros(n, dtype=bool)
         start[np.argsort(cost)[-k:]] = True                     # the worst selection
         mask, value = search.descend(start, float(start @ cost))
@@ -535,7 +567,7 @@ def test_a_guided_descent_without_a_usable_gradient_scores_like_an_unguided_one(
     for o in (obj, plain):
         budget = Budget(evaluations=5000).start(o)
         view = BudgetedObjective(o, budget, Recorder(o, budget), 6)
-        search = SwapSearch(view, 6, numpy_rng(1), chunk=4, guide=0.5, max_rounds=3)
+        search = SwapSearch(view, 6, numpy_rng(1), PLAIN, chunk=4, guide=0.5, max_rounds=3)
         got.append(search.run(list(range(14, 20))))
     assert got[0] == got[1]
 
@@ -566,7 +598,7 @@ def test_perturbation_strength_grows_without_a_new_best_and_falls_back_after_one
 
     for max_perturb in (2, 6):
         calls.clear()
-        search = holder["search"] = localsearch.SwapSearch(Rugged(), k, numpy_rng(0), perturb=2,
+        search = holder["search"] = localsearch.SwapSearch(Rugged(), k, numpy_rng(0), PLAIN, perturb=2,
                                                            max_perturb=max_perturb, restart_after=0,
                                                            max_rounds=60)
         search.run(list(range(k)))
@@ -580,8 +612,10 @@ def test_perturbation_strength_grows_without_a_new_best_and_falls_back_after_one
     obj = ToyObjective(n, k)
     budget = Budget(evaluations=1000).start(obj)
     view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
+    # max_perturb at or below perturb: a fixed strength of perturb swaps (one meaning for every preset)
+    assert localsearch.SwapSearch(view, k, numpy_rng(0), PLAIN, perturb=3, max_perturb=2).max_perturb == 3
     with pytest.raises(ParameterError, match="max_perturb"):
-        localsearch.SwapSearch(view, k, numpy_rng(0), perturb=3, max_perturb=2)
+        localsearch.SwapSearch(view, k, numpy_rng(0), PLAIN, max_perturb=-1)
 
 
 def test_a_race_keeps_the_better_half_after_each_turn_and_doubles_the_quota(monkeypatch):
@@ -589,7 +623,7 @@ def test_a_race_keeps_the_better_half_after_each_turn_and_doubles_the_quota(monk
     from arraysel.selectors.localsearch import SwapSearch
 
     obj, view, _ = _view(evaluations=1000, k=4, n=8)
-    search = SwapSearch(view, 4, numpy_rng(0), race=4, race_quota=20)
+    search = SwapSearch(view, 4, numpy_rng(0), PLAIN, race=4, race_quota=20)
     starts = [np.array([c == "1" for c in bits]) for bits in ("11110000", "01111000", "00111100", "00011110")]
     paths = {"a": [5, 4, 3, 2, 1, 0.5], "b": [3, 2.5, 2.4, 2.3, 2.2, 2.1, 2.0], "c": [9, 8, 7], "d": [4, 1.0]}
     names = dict(zip((m.tobytes() for m in starts), "abcd"))
@@ -623,20 +657,20 @@ def test_a_raced_search_descends_from_fresh_starts_and_returns_its_best(monkeypa
         return real(self, rng)
 
     monkeypatch.setattr(localsearch.SwapSearch, "_fresh_mask", counted)
-    search = localsearch.SwapSearch(view, 10, numpy_rng(3), race=6, race_quota=40, max_rounds=6,
+    search = localsearch.SwapSearch(view, 10, numpy_rng(3), PLAIN, race=6, race_quota=40, max_rounds=6,
                                     restart_after=0)
     elements, value = search.run(list(range(10)))
     assert len(fresh) == 5 and len(elements) == 10
     mask = np.zeros(40, dtype=bool)
     mask[elements] = True
     assert value == search.best_value == pytest.approx(float(obj.evaluate(mask[None])["Mean"][0]))
-    again = localsearch.SwapSearch(view, 10, numpy_rng(3), race=6, race_quota=40, max_rounds=6,
+    again = localsearch.SwapSearch(view, 10, numpy_rng(3), PLAIN, race=6, race_quota=40, max_rounds=6,
                                    restart_after=0).run(list(range(10)))
     assert again == (elements, value)  # reproducible per seed
     with pytest.raises(ParameterError, match="race"):
-        localsearch.SwapSearch(view, 10, numpy_rng(0), race=0)
+        localsearch.SwapSearch(view, 10, numpy_rng(0), PLAIN, race=0)
     with pytest.raises(ParameterError, match="race_quota"):
-        localsearch.SwapSearch(view, 10, numpy_rng(0), race_quota=0)
+        localsearch.SwapSearch(view, 10, numpy_rng(0), PLAIN, race_quota=0)
 
 
 def test_runs_that_score_neighbourhoods_get_a_prepared_objective_before_their_clock(reg, tmp_path):
@@ -715,12 +749,12 @@ def test_fresh_chirp_restarts_are_the_best_of_their_layouts():
     from arraysel.selectors.starts import chirp_masks
 
     obj, view, _ = _view(evaluations=10_000, k=10, n=20)
-    search = SwapSearch(view, 10, numpy_rng(0), fresh="chirp")
+    search = SwapSearch(view, 10, numpy_rng(0), PLAIN, fresh="chirp")
     mask = search._fresh_mask(numpy_rng(5))
     masks = chirp_masks(obj, 10, numpy_rng(5), FRESH_CHIRPS)
     assert (mask == masks[int(np.argmin(obj.evaluate(masks)["Mean"]))]).all()
     with pytest.raises(ParameterError, match="fresh"):
-        SwapSearch(view, 10, numpy_rng(0), fresh="sometimes")
+        SwapSearch(view, 10, numpy_rng(0), PLAIN, fresh="sometimes")
 
 
 def _best_distinct(masks, values, m):
@@ -738,12 +772,12 @@ def test_chirped_race_starts_are_the_best_distinct_layouts_of_one_call():
     from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks
 
     obj, view, _ = _view(evaluations=100_000, k=10, n=20)
-    starts = SwapSearch(view, 10, numpy_rng(7), fresh="chirp", race=4)._race_starts(3)
+    starts = SwapSearch(view, 10, numpy_rng(7), PLAIN, fresh="chirp", race=4)._race_starts(3)
     masks = chirp_masks(obj, 10, numpy_rng(7), 3 * CHIRP_CANDIDATES)
     values = obj.evaluate(masks)["Mean"]
     expected = _best_distinct(masks, values, 3)
     assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, expected))
-    randoms = SwapSearch(view, 10, numpy_rng(7), race=4)._race_starts(3)  # fresh = random
+    randoms = SwapSearch(view, 10, numpy_rng(7), PLAIN, race=4)._race_starts(3)  # fresh = random
     assert len(randoms) == 3 and all(int(m.sum()) == 10 for m in randoms)
 
 
@@ -755,7 +789,7 @@ def test_race_chirps_sets_the_chirped_layouts_scored_for_each_chirped_race_start
     obj, view, _ = _view(evaluations=100_000, k=10, n=20)
     before = view.evaluations
     # fresh = mixed with 5 extra starts: 3 chirped, chosen from 3 x 6 layouts in one call, then 2 random
-    starts = SwapSearch(view, 10, numpy_rng(4), fresh="mixed", race=6, race_chirps=6)._race_starts(5)
+    starts = SwapSearch(view, 10, numpy_rng(4), PLAIN, fresh="mixed", race=6, race_chirps=6)._race_starts(5)
     assert view.evaluations - before == 3 * 6  # the chirped layouts' call, nothing else
     masks = chirp_masks(obj, 10, numpy_rng(4), 3 * 6)
     values = obj.evaluate(masks)["Mean"]
@@ -763,7 +797,7 @@ def test_race_chirps_sets_the_chirped_layouts_scored_for_each_chirped_race_start
     assert len(starts) == 5 and all((a == b).all() for a, b in zip(starts[:3], expected))
     assert all(int(m.sum()) == 10 for m in starts)
     with pytest.raises(ParameterError, match="race_chirps"):
-        SwapSearch(view, 10, numpy_rng(0), race_chirps=0)
+        SwapSearch(view, 10, numpy_rng(0), PLAIN, race_chirps=0)
 
 
 def test_mixed_fresh_selections_are_chirped_and_random_in_turn():
@@ -774,13 +808,13 @@ def test_mixed_fresh_selections_are_chirped_and_random_in_turn():
     from arraysel.selectors.starts import CHIRP_CANDIDATES, chirp_masks, random_mask
 
     obj, view, _ = _view(evaluations=100_000, k=10, n=20)
-    starts = SwapSearch(view, 10, numpy_rng(7), fresh="mixed", race=6)._race_starts(5)
-    chirped = SwapSearch(view, 10, numpy_rng(7), fresh="chirp", race=4)._race_starts(3)
+    starts = SwapSearch(view, 10, numpy_rng(7), PLAIN, fresh="mixed", race=6)._race_starts(5)
+    chirped = SwapSearch(view, 10, numpy_rng(7), PLAIN, fresh="chirp", race=4)._race_starts(3)
     rng = numpy_rng(7)
     masks = chirp_masks(obj, 10, rng, 3 * CHIRP_CANDIDATES)
     randoms = [random_mask(rng, 20, 10) for _ in range(2)]
     assert len(starts) == 5 and all((a == b).all() for a, b in zip(starts, chirped + randoms))
-    search = SwapSearch(view, 10, numpy_rng(0), fresh="mixed")
+    search = SwapSearch(view, 10, numpy_rng(0), PLAIN, fresh="mixed")
     first, second = search._fresh_mask(numpy_rng(5)), search._fresh_mask(numpy_rng(5))
     layouts = chirp_masks(obj, 10, numpy_rng(5), FRESH_CHIRPS)
     assert (first == layouts[int(np.argmin(obj.evaluate(layouts)["Mean"]))]).all()
@@ -862,7 +896,7 @@ def test_a_shift_descent_re_phases_a_comb_that_swaps_cannot(mode):
         obj = _PhaseObjective(n, k, target=10)
         budget = Budget(evaluations=100_000).start(obj)
         view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
-        search = SwapSearch(view, k, numpy_rng(0), mode=mode, chunk=8, guide=0.0, shift=shift, shift_len=8,
+        search = SwapSearch(view, k, numpy_rng(0), PLAIN, mode=mode, chunk=8, guide=0.0, shift=shift, shift_len=8,
                             shift_scan=10_000)
         mask, value = search.descend(start, float(obj.evaluate(start[None])["Mean"][0]))
         results[shift] = (list(np.flatnonzero(mask)), value, search.shifts)
@@ -903,7 +937,7 @@ def test_a_shift_descent_scores_its_shifts_as_moves():
         obj = cls(n, k, target=10)
         budget = Budget(evaluations=100_000).start(obj)
         view = BudgetedObjective(obj, budget, Recorder(obj, budget), k)
-        search = SwapSearch(view, k, numpy_rng(0), chunk=8, guide=0.0, shift=2, shift_len=8, shift_scan=10_000)
+        search = SwapSearch(view, k, numpy_rng(0), PLAIN, chunk=8, guide=0.0, shift=2, shift_len=8, shift_scan=10_000)
         mask, value = search.descend(start, float(obj.evaluate(start[None])["Mean"][0]))
         results.append((np.flatnonzero(mask).tolist(), value, obj.evaluations, search.scored))
     assert results[0] == results[1] and results[1][:2] == ([7, 9, 11, 13], 0.0)
@@ -941,20 +975,20 @@ def test_automatic_race_chirps_spend_their_share_of_the_budget():
     for evaluations, expected in ((2000, int(RACE_CHIRP_SHARE * 2000)), (300, 3 * RACE_CHIRP_PROBE),
                                   (10 ** 6, 3 * CHIRP_CANDIDATES)):
         obj, view, _ = _view(evaluations=evaluations, k=10, n=20)
-        search = SwapSearch(view, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)
+        search = SwapSearch(view, 10, numpy_rng(2), PLAIN, fresh="chirp", race=4, race_chirps=None)
         masks, values = search._race_chirps(3)
         assert masks.shape == (expected, 20) and masks.sum(axis=1).tolist() == [10] * expected
         assert view.budget.used_evaluations() == search.scored <= expected  # nothing else was scored
         np.testing.assert_allclose(values, obj.evaluate(masks)["Mean"])
     # without a limited budget: CHIRP_CANDIDATES a start
     _, unlimited, _ = _view(k=10, n=20)
-    masks, _ = SwapSearch(unlimited, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_chirps(2)
+    masks, _ = SwapSearch(unlimited, 10, numpy_rng(2), PLAIN, fresh="chirp", race=4, race_chirps=None)._race_chirps(2)
     assert masks.shape == (2 * CHIRP_CANDIDATES, 20)
     # the race's chirped starts are the best distinct of those layouts
     obj, view, _ = _view(evaluations=2000, k=10, n=20)
-    starts = SwapSearch(view, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_starts(3)
+    starts = SwapSearch(view, 10, numpy_rng(2), PLAIN, fresh="chirp", race=4, race_chirps=None)._race_starts(3)
     _, again, _ = _view(evaluations=2000, k=10, n=20)
-    masks, values = SwapSearch(again, 10, numpy_rng(2), fresh="chirp", race=4, race_chirps=None)._race_chirps(3)
+    masks, values = SwapSearch(again, 10, numpy_rng(2), PLAIN, fresh="chirp", race=4, race_chirps=None)._race_chirps(3)
     assert len(starts) == 3 and all((a == b).all() for a, b in zip(starts, _best_distinct(masks, values, 3)))
 
 
@@ -981,7 +1015,7 @@ class _CountingRace:
                     self.log.append((who, self.scored - before))
                     yield m, v
 
-        search = Search(view, view.k, numpy_rng(0), race=race, race_quota=race_quota, model="quadratic",
+        search = Search(view, view.k, numpy_rng(0), PLAIN, race=race, race_quota=race_quota, model="quadratic",
                         refresh=4)
         search.started, search.log = 0, []
         return search
@@ -1030,11 +1064,11 @@ def test_automatic_model_is_quadratic_up_to_its_element_limit():
     from arraysel.selectors.contract import numpy_rng
     from arraysel.selectors.localsearch import QUADRATIC_MAX_ELEMENTS, SwapSearch
 
-    small = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS, 8), 8, numpy_rng(0), model=None)
-    large = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS + 4, 8), 8, numpy_rng(0), model=None)
+    small = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS, 8), 8, numpy_rng(0), PLAIN, model=None)
+    large = SwapSearch(ToyObjective(QUADRATIC_MAX_ELEMENTS + 4, 8), 8, numpy_rng(0), PLAIN, model=None)
     assert (small.model, large.model) == ("quadratic", "linear")
     with pytest.raises(ParameterError, match="model"):
-        SwapSearch(ToyObjective(16, 8), 8, numpy_rng(0), model="cubic")
+        SwapSearch(ToyObjective(16, 8), 8, numpy_rng(0), PLAIN, model="cubic")
 
 
 def test_best_pair_swaps_are_the_two_swaps_the_quadratic_model_predicts_best():
@@ -1076,7 +1110,7 @@ def test_a_pair_step_takes_the_best_improving_two_swap_of_the_first_chunk_that_h
         mask = np.zeros(24, dtype=bool)
         mask[rng.choice(24, 8, replace=False)] = True
         value = float(obj.evaluate(mask[None])["Mean"][0])
-        search = SwapSearch(view, 8, numpy_rng(0), model="quadratic", guide=1.0, pairs=48, chunk=16)
+        search = SwapSearch(view, 8, numpy_rng(0), PLAIN, model="quadratic", guide=1.0, pairs=48, chunk=16)
         found = search._pair_step(mask, value)
         g, H = loss_quadratic(view, mask)
         out, into, _ = best_pair_swaps(g, H, mask, 48)
@@ -1091,13 +1125,13 @@ def test_a_pair_step_takes_the_best_improving_two_swap_of_the_first_chunk_that_h
             j = first + int(np.argmin(values[first:first + 16]))
             assert (found[0] == cands[j]).all() and found[1] == pytest.approx(values[j])
             assert int(found[0].sum()) == 8 and int((found[0] != mask).sum()) == 4
-    assert SwapSearch(view, 8, numpy_rng(0), model="linear", pairs=48)._pair_step(mask, value) is None
+    assert SwapSearch(view, 8, numpy_rng(0), PLAIN, model="linear", pairs=48)._pair_step(mask, value) is None
     # at the optimum no two-swap improves
     best, best_value = brute_force_optimum(12, 4)
     _, small, _ = _view(evaluations=100_000, k=4, n=12)
     at = np.zeros(12, dtype=bool)
     at[best] = True
-    assert SwapSearch(small, 4, numpy_rng(0), model="quadratic", guide=1.0, pairs=10 ** 4)._pair_step(
+    assert SwapSearch(small, 4, numpy_rng(0), PLAIN, model="quadratic", guide=1.0, pairs=10 ** 4)._pair_step(
         at, best_value) is None
     with pytest.raises(ParameterError, match="pairs"):
-        SwapSearch(view, 8, numpy_rng(0), pairs=-1)
+        SwapSearch(view, 8, numpy_rng(0), PLAIN, pairs=-1)

@@ -294,11 +294,13 @@ def _share_of(budget: Budget, obj, fraction: float) -> Budget:
 
 
 def _polish(obj, k: int, budget: Budget, seed: int, recorder: Recorder, start: list[int]) -> list[int]:
-    """First-improvement swap local search from ``start`` with what is left of ``budget``."""
+    """Swap local search from ``start`` with what is left of ``budget`` (the settings
+    :data:`~arraysel.selectors.swapsettings.POLISH`: ``swap``'s, without a race)."""
     from arraysel.selectors.localsearch import SwapSearch
+    from arraysel.selectors.swapsettings import POLISH
 
     view = BudgetedObjective(obj, budget, recorder, k)
-    search = SwapSearch(view, k, numpy_rng(seed, stream=7))
+    search = SwapSearch(view, k, numpy_rng(seed, stream=7), POLISH)
     try:
         search.run(start)
     except BudgetExhausted:

@@ -622,8 +622,8 @@ def _looks_like_mask(elements, n_elements) -> bool:
 # ---------------------------------------------------------------------------
 
 #: the option every selector has (added to each subclass's ``options``)
-POLISH_OPTION = Option(float, 0.0, "fraction of the budget kept for a final swap local search "
-                       "(first improvement) started from this selector's result; 0: none", lo=0.0, hi=0.9)
+POLISH_OPTION = Option(float, 0.0, "fraction of the budget kept for a final swap local search (swap's "
+                       "settings without a race) started from this selector's result; 0: none", lo=0.0, hi=0.9)
 
 
 class Selector:
@@ -653,7 +653,7 @@ class Selector:
     ``self.options`` (a dict holding every declared option). Every subclass
     also has the option ``polish`` (:data:`POLISH_OPTION`), carried out by the
     runner: the selector runs on ``1 - polish`` of the budget and a swap local
-    search from its result spends the rest.
+    search from its result (:data:`arraysel.selectors.swapsettings.POLISH`) spends the rest.
     """
 
     name: ClassVar[str] = ""
