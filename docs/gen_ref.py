@@ -73,7 +73,8 @@ API_PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
         "What a selector plugin implements and receives (see [Write your own selector]"
         "(../../selectors.md)), the hook specifications, and the conformance suite a plugin "
         "can run in its own tests.",
-        ("arraysel.selectors.contract", "arraysel.selectors.hookspecs", "arraysel.testing"),
+        ("arraysel.selectors.contract", "arraysel.selectors.budget", "arraysel.selectors.hookspecs",
+         "arraysel.testing"),
     ),
     "run": (
         "Running comparisons",

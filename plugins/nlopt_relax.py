@@ -101,20 +101,7 @@ class NLoptSelector(Selector):
             if budget.seconds is not None:
                 opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
             if gradient:
-                tol = 1e-6 * max(1, k)
-
-                def over(x, grad):
-                    if grad.size > 0:
-                        grad[:] = 1.0
-                    return float(np.sum(x) - k)
-
-                if alg == "SLSQP":
-                    opt.add_equality_constraint(over, tol)
-                else:
-                    # MMA takes inequalities only, and its dual solver stalls on the pair
-                    # sum(w) <= k, sum(w) >= k; the losses prefer more active weight, so
-                    # sum(w) <= k is active at the optimum
-                    opt.add_inequality_constraint(over, tol)
+                _constrain_sum(opt, alg, k)
             try:
                 opt.optimize(x0)
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
@@ -135,6 +122,23 @@ class NLoptSelector(Selector):
         if objective.best is not None:
             return objective.best
         return state["last"] if state["last"] is not None else top_k(first, k)
+
+
+def _constrain_sum(opt, alg: str, k: int) -> None:
+    """Constrain ``sum(w)`` to ``k``: an equality for SLSQP; for MMA, which takes inequalities only and
+    whose dual solver stalls on the pair ``sum(w) <= k``, ``sum(w) >= k``, the inequality
+    ``sum(w) <= k`` (the losses prefer more active weight, so it is active at the optimum)."""
+    tol = 1e-6 * max(1, k)
+
+    def over(x, grad):
+        if grad.size > 0:
+            grad[:] = 1.0
+        return float(np.sum(x) - k)
+
+    if alg == "SLSQP":
+        opt.add_equality_constraint(over, tol)
+    else:
+        opt.add_inequality_constraint(over, tol)
 
 
 @hookimpl

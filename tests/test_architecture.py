@@ -233,7 +233,7 @@ def test_training_settings_have_one_home():
     holds one (``train``) and declares none of its fields again (nor ``steps``, its
     ``max_steps``)."""
     train = _dataclass_fields("arraysel.e2e.config", "TrainConfig")
-    pipeline = _dataclass_fields("arraysel.e2e.pipeline", "E2ESettings")
+    pipeline = _dataclass_fields("arraysel.e2e.config", "E2ESettings")
     assert {"batch_size", "lr_mask", "tau_steps", "seed", "max_steps"} <= train  # the parse works
     assert "train" in pipeline and "image_size" in pipeline
     assert not pipeline & (train | {"steps"}), sorted(pipeline & (train | {"steps"}))
@@ -436,3 +436,39 @@ def test_the_cli_and_api_use_the_result_not_the_files():
     for m in ("arraysel.cli.compare", "arraysel.api"):
         calls = _calls(_tree(m))
         assert not calls & {"read_csv", "read_runs", "read_text", "read_bytes", "open", "load", "loads"}, (m, calls)
+
+
+# -- sizes a newcomer can read ----------------------------------------------------------------
+
+#: the most lines of a module, a class and a function (its ``def`` line to its last line)
+SIZE_LIMITS = {"module": 600, "class": 400, "function": 80}
+#: the packages held to the limits (``("arraysel", "arraysel_plugins")``: all of them)
+SIZED = ("arraysel.cli", "arraysel.e2e", "arraysel.io", "arraysel.report", "arraysel.run", "arraysel.scenes",
+         "arraysel.selectors", "arraysel_plugins")
+
+
+def oversized(name: str, text: str) -> list[str]:
+    """What in the module ``name`` (source ``text``) is longer than :data:`SIZE_LIMITS` allows."""
+    out = []
+    lines = len(text.splitlines())
+    if lines > SIZE_LIMITS["module"]:
+        out.append(f"module {name}: {lines} lines")
+    for node in ast.walk(ast.parse(text)):
+        kind = {ast.ClassDef: "class", ast.FunctionDef: "function", ast.AsyncFunctionDef: "function"}.get(type(node))
+        if kind is not None and node.end_lineno - node.lineno + 1 > SIZE_LIMITS[kind]:
+            out.append(f"{kind} {name}.{node.name} (line {node.lineno}): {node.end_lineno - node.lineno + 1} lines")
+    return out
+
+
+def test_modules_classes_and_functions_are_a_size_a_newcomer_can_read():
+    sized = sorted(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in SIZED))
+    assert {"arraysel.selectors.localsearch", "arraysel.io.cache", "arraysel_plugins.swap"} <= set(sized)
+    too_big = [line for m in sized for line in oversized(m, MODULES[m].read_text(encoding="utf-8"))]
+    assert not too_big, "split by concept:\n" + "\n".join(too_big)
+
+
+def test_the_size_check_can_fail():
+    body = "\n".join(f"        x{i} = {i}" for i in range(80))
+    text = f"class C:\n    def long(self):\n{body}\n" + "\n" * (SIZE_LIMITS["module"] - 80)
+    assert [line.split(":")[0] for line in oversized("m", text)] == ["module m", "function m.long (line 2)"]
+    assert oversized("m", "def short():\n    return 1\n") == []

@@ -15,7 +15,8 @@ be deterministic (it then gives the learned selection). Element ``i`` is
 active when row ``i`` of ``P`` sums to 1; the trainer passes
 ``weights = P.sum(1)`` to ``kernel_fn``. :class:`HardSTESelection` is the
 HARD-STE module of the paper (:mod:`arraysel.e2e.hardste`). The settings are in
-:mod:`arraysel.e2e.config`, the kernel resampling in :mod:`arraysel.e2e.kernels`;
+:mod:`arraysel.e2e.config`, the kernel resampling in :mod:`arraysel.e2e.kernels`, the
+learned selection's evaluation (fine-tuning, held-out metrics) in :mod:`arraysel.e2e.evaluation`;
 this module keeps the trainer and re-exports those names.
 
 Loss (``docs/metrics.md``)
@@ -60,16 +61,15 @@ from tqdm.auto import tqdm
 
 from arraysel.e2e.config import TrainConfig
 from arraysel.e2e.data import SceneMaker
+# the learned selection's evaluation lives in its own module; its names stay importable from here
+from arraysel.e2e.evaluation import E2EEvaluation, as_images, blurred_image, mask_to_weights
 from arraysel.e2e.hardste import HardSTESelection, tau_schedule
 from arraysel.e2e.kernels import decimate_kernel, fit_kernel
-from arraysel.errors import (NumericalError, ParameterError, SelectionError,
-                             check_number)
+from arraysel.e2e.recon import ConvolutionOperator, LinearConvolutionOperator, Reconstructor
+from arraysel.errors import NumericalError, ParameterError, check_number
 from arraysel.io.atomic import AtomicFile
 from arraysel.objective.losses import (DATA_WEIGHT_KEYS, PSF_WEIGHT_KEYS, l_conv, l_ent, l_rec, l_row,
                                        training_loss)
-from arraysel.e2e.recon import (ConvolutionOperator, LinearConvolutionOperator, Reconstructor, mse,
-                                psnr, ssim)
-from arraysel.selection import masks_from_indices
 
 __all__ = ["tau_schedule", "HardSTESelection", "TrainConfig", "E2ETrainer",
            "train_e2e", "mask_to_weights", "entropy_loss", "row_loss", "fit_kernel", "decimate_kernel",
@@ -104,41 +104,11 @@ def balanced_total(terms: Mapping[str, torch.Tensor], weights: Mapping[str, floa
     return training_loss({t: v for t, v in terms.items() if t != "total"}, weights, scales=scales)[0]
 
 
-def mask_to_weights(mask: Any, n_elements: int, device: torch.device | str | None = None
-                    ) -> torch.Tensor:
-    """Turn a mask into ``(Ne,)`` float weights.
-
-    ``mask``: a sequence/tensor of integer element indices (distinct, in
-    ``[0, Ne)``; checked and converted by :func:`arraysel.selection.masks_from_indices`),
-    or a bool/float tensor of length ``Ne`` (used as is, so a gradient flows through it).
-    """
-    t = torch.as_tensor(mask)
-    if t.dtype == torch.bool or t.is_floating_point():
-        if t.shape != (n_elements,):
-            raise SelectionError(f"a weight mask must have shape ({n_elements},), got {tuple(t.shape)}")
-        return t.to(device=device, dtype=torch.float32)
-    # element indices: validated and converted by the one home, arraysel.selection
-    w = masks_from_indices([t.flatten().long().tolist()], n_elements)[0]
-    return torch.as_tensor(w, dtype=torch.float32, device=device)
-
-
 # ---------------------------------------------------------------------------
 # Trainer
 # ---------------------------------------------------------------------------
 
-def _as_images(data: Any) -> torch.Tensor:
-    if isinstance(data, (tuple, list)):
-        data = data[0]
-    x = torch.as_tensor(data)
-    if x.ndim == 3:
-        x = x[:, None]
-    if x.ndim != 4 or x.shape[1] != 1 or x.shape[0] < 1:
-        raise ParameterError(f"images must be (N, 1, H, W) (or an (images, labels) pair), "
-                             f"got {tuple(x.shape)}")
-    return x.float()
-
-
-class E2ETrainer:
+class E2ETrainer(E2EEvaluation):
     """Joint training of a selection module and a :class:`~arraysel.e2e.recon.Reconstructor`.
 
     Parameters
@@ -184,7 +154,7 @@ class E2ETrainer:
         self.n = kernel_ref.shape[-1]
         self.image_size = self.n if image_size is None else check_number("image_size", image_size,
                                                                          lo=1, integer=True)
-        self.images = _as_images(train_images)
+        self.images = as_images(train_images)
         self.selection = selection.to(self.device)
         if reconstructor is None:
             with torch.random.fork_rng(devices=[]):
@@ -505,143 +475,6 @@ class E2ETrainer:
         wb = state.get("warm_best")
         self.warm_best = None if wb is None else (float(wb[0]), [int(i) for i in wb[1]])
 
-    # -- after training -----------------------------------------------------
-    @torch.no_grad()
-    def learned_weights(self) -> torch.Tensor:
-        """The learned selection as ``(Ne,)`` 0/1 weights (selection in eval mode)."""
-        was = self.selection.training
-        self.selection.eval()
-        try:
-            P, _ = self.selection(self.tau(), None)
-        finally:
-            self.selection.train(was)
-        return (P.sum(1) > 0.5).float()
-
-    def learned_indices(self) -> torch.Tensor:
-        """Sorted indices ``(k,)`` of the learned active elements."""
-        return torch.nonzero(self.learned_weights()).flatten().cpu()
-
-    def _mask_weights(self, mask: Any) -> torch.Tensor:
-        ne = self.learned_weights().numel()
-        return mask_to_weights(mask, ne, self.device)
-
-    def finetune_head(self, steps: int, *, mask: Any = None, lr: float | None = None,
-                      include_ista: bool = False, reconstructor: nn.Module | None = None
-                      ) -> list[float]:
-        """Train the head alone (and the ISTA parameters with ``include_ista``) on ``L_rec``.
-
-        The selection is frozen: ``mask=None`` uses the learned selection,
-        otherwise ``mask`` (indices or ``(Ne,)`` weights, e.g. a baseline).
-        ``reconstructor`` (default: the trainer's own) is the model trained;
-        pass ``copy.deepcopy(trainer.reconstructor)`` to keep the original.
-        Uses a fresh Adam (``lr`` default ``config.lr_head``, and
-        ``config.lr_ista`` for the ISTA parameters); batches and noise come
-        from the trainer's generator. With a freshly initialised
-        ``reconstructor`` and ``include_ista=True`` this trains a
-        reconstructor from scratch for a fixed selection (the baselines'
-        reconstructors in :func:`arraysel.e2e.pipeline.run_training`).
-        Returns the loss per step.
-        """
-        steps = check_number("steps", steps, lo=0, integer=True)
-        recon = self.reconstructor if reconstructor is None else reconstructor.to(self.device)
-        with torch.no_grad():
-            w = self.learned_weights() if mask is None else self._mask_weights(mask)
-            op = self.operator(self._kernel(w.to(self.device)).detach())
-        params = list(recon.head.parameters()) if hasattr(recon, "head") else list(recon.parameters())
-        groups = [{"params": params, "lr": self.config.lr_head if lr is None else lr}]
-        if include_ista and hasattr(recon, "ista"):
-            ista = list(recon.ista.parameters())
-            groups.append({"params": ista, "lr": self.config.lr_ista if lr is None else lr})
-            params = params + ista
-        trainable = {id(p) for p in params}
-        frozen = [p for p in recon.parameters() if id(p) not in trainable and p.requires_grad]
-        for p in frozen:
-            p.requires_grad_(False)
-        opt = torch.optim.Adam(groups)
-        losses = []
-        recon.train()
-        try:
-            for _ in tqdm(range(steps), desc="finetune", disable=None if self.config.progress else True):
-                i_s, i_ref = self.scenes(self._next_batch(), self.generator)
-                i_hat = self.reconstruct(recon, self._noise(op.A(i_s), self.generator), op)
-                loss = l_rec(i_hat, i_ref.to(i_hat.dtype))
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                losses.append(float(loss.detach()))
-        finally:
-            for p in frozen:
-                p.requires_grad_(True)
-        return losses
-
-    @torch.no_grad()
-    def evaluate(self, images: Any, masks: Mapping[str, Any] | None = None, *,
-                 batch_size: int = 64, clamp: bool = True, seed: int | None = None,
-                 reconstructors: Mapping[str, nn.Module] | None = None, blurred: bool = False
-                 ) -> dict[str, dict[str, Any]]:
-        """MSE, PSNR (dB, data range 1) and SSIM on held-out images.
-
-        Returns ``{name: {'mse', 'psnr', 'ssim': float, 'indices': list of int}}``.
-        With ``blurred=True`` each row also holds ``'mse_blurred'``,
-        ``'psnr_blurred'``, ``'ssim_blurred'``: the same metrics of the
-        measurement's magnitude ``|Y|`` (the input of the reconstructor) as an
-        image, scaled per image by its least-squares gain to ``I_ref``
-        (:func:`blurred_image`) and clamped like ``I_hat``.
-
-        Rows: ``'learned'`` (the learned selection) and one per entry of
-        ``masks`` (name -> indices or ``(Ne,)`` weights). Each selection's
-        kernel comes from ``kernel_fn``; the reconstruction uses the trainer's
-        reconstructor, or ``reconstructors[name]`` when given (e.g. one
-        fine-tuned for that mask). ``I_hat`` is clamped to ``[0, 1]`` before
-        the metrics unless ``clamp=False``. Scenes and noise use a generator
-        seeded with ``seed`` (default ``config.seed + 1``), the same for every
-        row, so all masks see the same scenes.
-        """
-        imgs = _as_images(images)
-        bs = check_number("batch_size", batch_size, lo=1, integer=True)
-        rows = {"learned": self.learned_weights()}
-        for name, m in (masks or {}).items():
-            if name == "learned":
-                raise ParameterError("mask name 'learned' is reserved for the learned selection")
-            rows[name] = self._mask_weights(m)
-        out = {}
-        for name, w in rows.items():
-            recon = (reconstructors or {}).get(name, self.reconstructor)
-            was = recon.training
-            recon.eval()
-            gen = torch.Generator().manual_seed(self.config.seed + 1 if seed is None else seed)
-            op = self.operator(self._kernel(w.to(self.device)))
-            vals: dict[str, list] = {}
-            for start in range(0, len(imgs), bs):
-                i_s, i_ref = self.scenes(imgs[start:start + bs], gen)
-                y = self._noise(op.A(i_s), gen)
-                i_hat = self.reconstruct(recon, y, op)
-                i_ref = i_ref.to(i_hat.dtype)
-                pairs = [("", i_hat)]
-                if blurred:
-                    pairs.append(("_blurred", blurred_image(y, i_ref)))
-                for suffix, img in pairs:
-                    if clamp:
-                        img = img.clamp(0, 1)
-                    for key, fn in (("mse", mse), ("psnr", psnr), ("ssim", ssim)):
-                        vals.setdefault(key + suffix, []).append(fn(img, i_ref, reduction="none"))
-            recon.train(was)
-            out[name] = {k: float(torch.cat(v).mean()) for k, v in vals.items()}
-            out[name]["indices"] = torch.nonzero(w).flatten().cpu().tolist()
-        return out
-
-
-def blurred_image(y: torch.Tensor, i_ref: torch.Tensor) -> torch.Tensor:
-    """``g |y|`` with the per-image gain ``g = <|y|, I_ref> / <|y|, |y|>`` (least squares).
-
-    The measurement ``Y = kappa (*) I_s`` of a unit-norm kernel has an
-    arbitrary scale; this gain gives the plain blurred image its best fit to
-    the target before it is scored against it.
-    """
-    m = y.abs().to(i_ref.dtype)
-    num = (m * i_ref).flatten(1).sum(1)
-    den = (m * m).flatten(1).sum(1).clamp_min(torch.finfo(m.dtype).tiny)
-    return m * (num / den).view(-1, *([1] * (m.dim() - 1)))
 
 
 def train_e2e(selection: nn.Module, kernel_fn: KernelFn, kernel_ref: torch.Tensor, train_images: Any,
