@@ -81,13 +81,7 @@ def run(args) -> int:
         return _evaluate_netcdf(args, obj, scene, n, k, names, volume)
     with AtomicFile(args.out) as csv, (StreamingNpz(args.psf_out) if kernels else _Null()) as npz:
         csv.write((",".join(("elements", *names)) + "\n").encode())
-        if kernels and volume:
-            ref_planes = {k: v[0].cpu().numpy() for k, v in obj.reference_planes().items()}
-            ref = np.concatenate([v.reshape(-1) for v in ref_planes.values()])
-            npz.begin("psf", (n, ref.size), ref.dtype)
-        elif kernels:
-            ref = obj.reference_kernel().cpu().numpy()
-            npz.begin("psf", (n, *ref.shape), ref.dtype)
+        ref, ref_planes = _begin_npz(npz, obj, n, volume) if kernels else (None, None)
         bar = tqdm(total=n, unit="mask", desc="evaluate", file=sys.stderr, disable=args.no_progress or None,
                    dynamic_ncols=True)
         done = 0
@@ -110,20 +104,42 @@ def run(args) -> int:
             raise ParameterError(f"--masks: {args.masks!r} changed while it was read ({n} then {done} "
                                  f"selections)")
         if kernels:
-            npz.end()
-            npz.add("psf_ref", ref)
-            if volume:  # the planes' pixels in the columns of psf, and each plane on its own
-                npz.add("coords", np.concatenate([c.reshape(-1, 3) for c in obj.coords.values()]))
-                npz.add("planes", np.array(list(obj.coords)))
-                npz.add("plane_shapes", np.array([c.shape[:2] for c in obj.coords.values()]))
-                for k, v in ref_planes.items():
-                    npz.add(f"psf_ref_{k}", v)
-                    npz.add(f"coords_{k}", obj.coords[k])
-            npz.commit()  # the kernels first: no CSV without its npz
+            _finish_npz(npz, obj, ref, ref_planes)  # the kernels first: no CSV without its npz
         csv.commit()
     print(f"scored {n} selection(s) on scene {name!r}: wrote {args.out}"
           + (f" and {args.psf_out}" if args.psf_out else ""))
     return 0
+
+
+def _begin_npz(npz, obj, n: int, volume: bool):
+    """Start ``--psf-out``'s ``psf`` array for ``n`` selections; return the reference kernel (a 3-D
+    scene: its planes' pixels in one row) and the reference planes (None for a 1-D scene)."""
+    import numpy as np
+
+    if volume:
+        ref_planes = {k: v[0].cpu().numpy() for k, v in obj.reference_planes().items()}
+        ref = np.concatenate([v.reshape(-1) for v in ref_planes.values()])
+        npz.begin("psf", (n, ref.size), ref.dtype)
+        return ref, ref_planes
+    ref = obj.reference_kernel().cpu().numpy()
+    npz.begin("psf", (n, *ref.shape), ref.dtype)
+    return ref, None
+
+
+def _finish_npz(npz, obj, ref, ref_planes) -> None:
+    """End ``psf``, add the reference (and a 3-D scene's plane coordinates) and commit the file."""
+    import numpy as np
+
+    npz.end()
+    npz.add("psf_ref", ref)
+    if ref_planes is not None:  # the planes' pixels in the columns of psf, and each plane on its own
+        npz.add("coords", np.concatenate([c.reshape(-1, 3) for c in obj.coords.values()]))
+        npz.add("planes", np.array(list(obj.coords)))
+        npz.add("plane_shapes", np.array([c.shape[:2] for c in obj.coords.values()]))
+        for k, v in ref_planes.items():
+            npz.add(f"psf_ref_{k}", v)
+            npz.add(f"coords_{k}", obj.coords[k])
+    npz.commit()
 
 
 def _evaluate_netcdf(args, obj, scene, n: int, k: int, names, volume: bool) -> int:
