@@ -14,7 +14,17 @@ The layers, bottom up: :mod:`arraysel.physics`, :mod:`arraysel.scenes`, :mod:`ar
 :mod:`arraysel.cli` (``docs/architecture.md``).
 """
 
+import os as _os
+
 __version__ = "0.1.0"
+
+# OpenMP threads that sleep when idle instead of spinning, unless the user chose a policy. Scoring a
+# batch alternates torch's OpenMP pool and numba's (each its own libgomp): with the default policy
+# the idle pool's threads spin and take the cores the other pool needs (issue 78: 128-element
+# scenes 3x slower a mask, more on a loaded machine; docs/performance.md). Read by each OpenMP
+# runtime when it loads, so this must run before torch and numba are imported.
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+del _os
 
 #: public name -> (module, attribute)
 _LAZY = {
