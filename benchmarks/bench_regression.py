@@ -7,7 +7,8 @@ Per scene (``--scenes``, default paper, l11-5v, c5-2v, matrix-1024), whole-proce
 evaluate`` runs, each a fresh process as a user starts it: one mask, and ``--masks`` random masks
 (``--paper-masks`` on the paper scene, as the PyMUST comparison of the README counts it). The
 marginal cost of a mask is ``(t_N - t_1) / (N - 1)``: what a mask adds once the process has started,
-its imports and its basis loaded. Then the neighbourhood rate: a fresh process scores
+its imports and its basis loaded; the same difference of the processes' CPU seconds (every thread,
+spinning ones too) is its CPU cost, which the machine's load moves less. Then the neighbourhood rate: a fresh process scores
 ``--swap-rounds`` one-swap neighbourhoods of ``--pairs`` neighbours each
 (``arraysel.objective.neighbours.evaluate_swaps``, the objective prepared for neighbourhoods first)
 on ``--swap-scene``, from its uniform layout, moving to the best neighbour after each, and reports
@@ -121,15 +122,25 @@ def write_masks(path: str, n: int, n_elements: int, k: int, seed: int) -> None:
             fh.write(" ".join(map(str, np.sort(rng.choice(n_elements, k, replace=False)))) + "\n")
 
 
-def timed(cmd: list[str], env: dict) -> tuple[float, float, str]:
-    """(seconds, 1-minute load average at the start, stdout) of one command; SystemExit on failure."""
+def _children_cpu_s() -> float:
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+def timed(cmd: list[str], env: dict) -> tuple[float, float, str, float]:
+    """(seconds, 1-minute load average at the start, stdout, CPU seconds) of one command; SystemExit
+    on failure. The CPU seconds (user + system, every thread) count threads that spin too, and
+    depend less on the machine's load than the wall time."""
     load = os.getloadavg()[0]
+    cpu0 = _children_cpu_s()
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     s = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
-    return s, load, proc.stdout
+    return s, load, proc.stdout, _children_cpu_s() - cpu0
 
 
 def pymust_seconds(masks: int) -> float:
@@ -191,11 +202,13 @@ def measure_batches(args, tmp: str) -> dict:
         for scene in scenes:
             for label, changes in order:
                 for m, path in files[scene].items():
-                    s, load, _ = timed(evaluate + ["--scene", scene, "--masks", path, "--out",
-                                                   os.path.join(tmp, "o.csv")], variant_env(changes))
+                    s, load, _, cpu = timed(evaluate + ["--scene", scene, "--masks", path, "--out",
+                                                        os.path.join(tmp, "o.csv")], variant_env(changes))
                     row = times.setdefault(scene, {}).setdefault(label, {"n": max(files[scene]), "t1_s": [],
-                                                                         "tN_s": [], "loads": []})
+                                                                         "tN_s": [], "cpu1_s": [], "cpuN_s": [],
+                                                                         "loads": []})
                     row["t1_s" if m == 1 else "tN_s"].append(round(s, 3))
+                    row["cpu1_s" if m == 1 else "cpuN_s"].append(round(cpu, 3))
                     row["loads"].append(round(load, 2))
                 print(f"round {r + 1} {scene} {label}: 1 mask {row['t1_s'][-1]:.2f} s, {row['n']} masks "
                       f"{row['tN_s'][-1]:.2f} s (load {row['loads'][-1]})", file=sys.stderr, flush=True)
@@ -204,6 +217,8 @@ def measure_batches(args, tmp: str) -> dict:
             marg = [(b - a) / (row["n"] - 1) * 1e3 for a, b in zip(row["t1_s"], row["tN_s"])]
             row["ms_per_mask"] = round(statistics.median(marg), 3)
             row["ms_per_mask_runs"] = [round(v, 3) for v in marg]
+            cpu = [(b - a) / (row["n"] - 1) * 1e3 for a, b in zip(row["cpu1_s"], row["cpuN_s"])]
+            row["cpu_ms_per_mask"] = round(statistics.median(cpu), 3)
     return times
 
 
@@ -216,7 +231,7 @@ def measure_swaps(args) -> dict:
     for r in range(args.rounds):
         order = args.variants[r % len(args.variants):] + args.variants[:r % len(args.variants)]
         for label, changes in order:
-            _, load, text = timed(cmd, variant_env(changes))
+            _, load, text, _ = timed(cmd, variant_env(changes))
             rec = json.loads(text.strip().splitlines()[-1])
             row = out.setdefault(label, {"runs": [], "loads": []})
             row["runs"].append(None if rec["swaps_per_s"] is None else round(rec["swaps_per_s"], 1))
@@ -245,11 +260,12 @@ def main(argv=None) -> int:
         for label, row in by.items():
             rows.append([scene, label, row["n"], f"{statistics.median(row['t1_s']):.2f}",
                          f"{statistics.median(row['tN_s']):.2f}", f"{row['ms_per_mask']:.2f}",
-                         row.get("x_pymust_whole_process", ""), f"{statistics.mean(row['loads']):.1f}"])
+                         f"{row['cpu_ms_per_mask']:.2f}", row.get("x_pymust_whole_process", ""),
+                         f"{statistics.mean(row['loads']):.1f}"])
     for label, row in record["swaps"].items():
         rows.append([f"neighbours {args.swap_scene}", label, args.pairs, "", "",
-                     f"{row['swaps_per_s']} /s", "", f"{statistics.mean(row['loads']):.1f}"])
-    print(C.table(rows, ["scene", "variant", "masks", "1 mask s", "N masks s", "ms/mask", "x PyMUST", "load"]))
+                     f"{row['swaps_per_s']} /s", "", "", f"{statistics.mean(row['loads']):.1f}"])
+    print(C.table(rows, ["scene", "variant", "masks", "1 mask s", "N masks s", "ms/mask", "CPU ms/mask", "x PyMUST", "load"]))
     if args.out:
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(args.out, "w") as fh:

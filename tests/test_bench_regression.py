@@ -43,5 +43,7 @@ def test_runs_on_the_toy_scene(tmp_path):
     row = record["batches"]["toy"]["plain"]
     assert row["n"] == 3 and len(row["t1_s"]) == len(row["tN_s"]) == 1 and len(row["loads"]) == 2
     assert row["ms_per_mask"] == pytest.approx((row["tN_s"][0] - row["t1_s"][0]) / 2 * 1e3, abs=1e-2)
+    assert len(row["cpu1_s"]) == len(row["cpuN_s"]) == 1 and row["cpuN_s"][0] > 0
+    assert row["cpu_ms_per_mask"] == pytest.approx((row["cpuN_s"][0] - row["cpu1_s"][0]) / 2 * 1e3, abs=1e-2)
     assert record["swaps"] == {}
     assert "toy" in proc.stdout and "ms/mask" in proc.stdout
