@@ -74,3 +74,39 @@ def test_separate_transmit_and_receive_match_pymust(psf):
     # and the shared aperture of the same transmit weights is another PSF (the test can fail)
     shared = setup_kernels(psf.setup, np.asarray(TX[1:2], dtype=float))[0]
     assert si_mse(ours[1], shared) > 1e-3
+
+
+# --------------------------------------------------------------------------- matrix probes (3-D exact path)
+@pytest.fixture(scope="module")
+def psf3():
+    from arraysel.physics.volume import MatrixPSF
+    from test_matrix_physics import _psf_setup
+
+    return MatrixPSF(_psf_setup(), dtype=torch.float64)
+
+
+def _w3(n, seeds, k=16):
+    out = np.zeros((len(seeds), n))
+    for i, s in enumerate(seeds):
+        out[i, np.random.default_rng(s).choice(n, k, replace=False)] = 1
+    return torch.tensor(out)
+
+
+def test_3d_the_same_transmit_and_receive_is_todays_result_exactly(psf3):
+    w = _w3(psf3.n_elements, [0, 1])
+    assert torch.equal(psf3.image(w, receive=w.clone()), psf3.image(w))
+    full = torch.ones(1, psf3.n_elements, dtype=torch.float64)
+    assert torch.equal(psf3.image(full, receive=full.clone()), psf3.image(full))
+
+
+def test_3d_the_image_is_bilinear_and_transmit_receive_differ(psf3):
+    n = psf3.n_elements
+    t, r1, r2 = _w3(n, [2]), _w3(n, [3]), _w3(n, [4])
+    a = psf3.image(t, receive=2.0 * r1 - 0.5 * r2)
+    b = 2.0 * psf3.image(t, receive=r1) - 0.5 * psf3.image(t, receive=r2)
+    torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12 * float(a.abs().max()))
+    full = torch.ones(1, n, dtype=torch.float64)
+    sparse_rx = psf3.image(full, receive=r1)                 # full transmit, sparse receive
+    assert float((sparse_rx - psf3.image(r1)).abs().max()) > 1e-3 * float(sparse_rx.abs().max())
+    with pytest.raises(SelectionError, match="receive"):
+        psf3.image(torch.cat([t, t]), receive=r1)
