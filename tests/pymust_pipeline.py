@@ -107,9 +107,10 @@ def setup_param(setup):
     return param
 
 
-def transmit_rf(param, delays, point, reflectivity: float, mask: np.ndarray) -> np.ndarray:
+def transmit_rf(param, delays, point, reflectivity: float, mask: np.ndarray, receive=None) -> np.ndarray:
     """RF (n_t, Ne) of one transmit (``delays``) by the active elements of ``mask`` (their TX
-    apodization), received by them (the other channels zero), from one point scatterer."""
+    apodization), received by them (the other channels zero), from one point scatterer; with
+    ``receive`` (Ne,), the channels are weighted by it instead (separate receive aperture)."""
     pm = _pymust()
     w = np.asarray(mask, dtype=np.float32).reshape(1, -1)
     param.TXapodization = w.copy()
@@ -117,19 +118,22 @@ def transmit_rf(param, delays, point, reflectivity: float, mask: np.ndarray) -> 
         RF, _ = pm.simus(np.array([point[0]]), np.array([point[1]]), np.array([reflectivity]), delays, param)
     finally:
         del param.TXapodization
-    return RF * np.asarray(mask, dtype=RF.dtype).reshape(1, -1)
+    rx = mask if receive is None else receive
+    return RF * np.asarray(rx, dtype=RF.dtype).reshape(1, -1)
 
 
 def compound_images(param, tilts, X, Z, point, reflectivity: float, masks: np.ndarray,
-                    das_cache: dict | None = None) -> np.ndarray:
+                    das_cache: dict | None = None, receive: np.ndarray | None = None) -> np.ndarray:
     """The coherently compounded complex images (B, *X.shape) of 0/1 ``masks`` (B, Ne): per
     plane-wave ``tilt``, ``txdelay``, ``simus`` (:func:`transmit_rf`), ``rf2iq`` and the
-    ``dasmtx`` product on the pixels ``X``, ``Z``; ``das_cache`` keeps the DAS matrices."""
+    ``dasmtx`` product on the pixels ``X``, ``Z``; ``das_cache`` keeps the DAS matrices.
+    ``receive`` (B, Ne): separate receive weights (``masks`` then transmit alone)."""
     pm = _pymust()
     total = np.zeros((len(masks),) + X.shape, dtype=np.complex128)
+    rxs = [None] * len(masks) if receive is None else list(receive)
     for tilt in tilts:
         delays = pm.txdelay(param, float(tilt))
-        iqs = [pm.rf2iq(transmit_rf(param, delays, point, reflectivity, m), param) for m in masks]
+        iqs = [pm.rf2iq(transmit_rf(param, delays, point, reflectivity, m, r), param) for m, r in zip(masks, rxs)]
         n = max(iq.shape[0] for iq in iqs)
         iqs = [np.pad(iq, ((0, n - iq.shape[0]), (0, 0))) for iq in iqs]
         key = (float(tilt), iqs[0].shape)
@@ -143,14 +147,14 @@ def compound_images(param, tilts, X, Z, point, reflectivity: float, masks: np.nd
     return total
 
 
-def setup_kernels(setup, masks: np.ndarray) -> list[np.ndarray]:
+def setup_kernels(setup, masks: np.ndarray, receive: np.ndarray | None = None) -> list[np.ndarray]:
     """The kernels of 0/1 ``masks`` (B, Ne) on an arraysel 1-D setup's scene, through
     PyMUST (:func:`compound_images` on the setup's own grid), for scenes unlike the paper's:
     another probe, a convex one, attenuation, a longer pulse, an f-number, a point off the axis,
-    other transmits."""
+    other transmits. ``receive`` (B, Ne): separate receive weights, ``masks`` transmit."""
     X, Z = np.meshgrid(np.asarray(setup.x, dtype=float), np.asarray(setup.z, dtype=float))
     images = compound_images(setup_param(setup), setup.tilts, X, Z, setup.scatterer_position, setup.reflectivity,
-                             masks)
+                             masks, receive=receive)
     return [window_kernel(img, setup.window) for img in images]
 
 

@@ -50,15 +50,17 @@ class PyMUSTScene3:
     _das: dict = field(default_factory=dict, repr=False)
     das_seconds: float = 0.0
 
-    def iq(self, mask: np.ndarray, tx: int) -> np.ndarray:
-        """I/Q (n_t, Ne) of transmit ``tx`` for a 0/1 (or weight) mask."""
+    def iq(self, mask: np.ndarray, tx: int, receive: np.ndarray | None = None) -> np.ndarray:
+        """I/Q (n_t, Ne) of transmit ``tx`` for a 0/1 (or weight) mask; ``receive``: separate
+        receive channel weights (``mask`` then the transmit apodization alone)."""
         pm = _pymust()
         param = must_param(self.probe, self.acq)
         mask = np.asarray(mask, dtype=np.float64).reshape(-1)
         param.TXapodization = mask.reshape(1, -1).copy()
         x, y, z = (np.array([v]) for v in self.scatterer)
         RF, _ = pm.simus3(x, y, z, np.array([1.0]), np.asarray(self.delays[tx]).reshape(1, -1), param)
-        RF = RF * mask.reshape(1, -1)
+        rx = mask if receive is None else np.asarray(receive, dtype=np.float64).reshape(-1)
+        RF = RF * rx.reshape(1, -1)
         return pm.rf2iq(RF, param)
 
     def das(self, shape, tx: int, plane: str):
@@ -74,11 +76,11 @@ class PyMUSTScene3:
             self.das_seconds += time.perf_counter() - t
         return self._das[key]
 
-    def planes(self, mask: np.ndarray) -> dict:
-        """The compound image on each plane: {name: complex (H, W)}."""
+    def planes(self, mask: np.ndarray, receive: np.ndarray | None = None) -> dict:
+        """The compound image on each plane: {name: complex (H, W)}; ``receive`` as in :meth:`iq`."""
         out = {k: np.zeros(np.asarray(v).shape[:2], dtype=np.complex128) for k, v in self.coords.items()}
         for tx in range(len(self.delays)):
-            IQ = self.iq(mask, tx)
+            IQ = self.iq(mask, tx, receive)
             flat = IQ.flatten(order="F")
             for name in out:
                 M = self.das(IQ.shape, tx, name)

@@ -21,7 +21,7 @@ import textwrap
 from arraysel.errors import ArrayselError
 
 #: command modules, in the order they are listed by ``arraysel --help``
-COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "export", "list", "scenes", "cache", "train", "completion")
+COMMAND_MODULES = ("psf", "evaluate", "compare", "report", "export", "apodize", "list", "scenes", "cache", "train", "completion")
 
 #: the exit codes of every command, as ``arraysel --help`` lists them
 EXIT_CODES = (

@@ -6,7 +6,13 @@ and the complex 128 x 128 window centred on the peak of its magnitude,
 normalised to unit L2 norm, is the PSF kernel ``kappa``.
 
 A selection enters as element weights ``m`` (``(B, Ne)``, 0/1 masks or soft
-weights in [0, 1]) used both as TX apodization and as RX channel weights.
+weights in [0, 1]) used both as TX apodization and as RX channel weights. The exact
+path also takes separate receive weights ``r`` (``receive=``; ``m`` is then the TX
+apodization alone): the image is bilinear, ``I(p) = sum_{e, j} m_j r_e G_ej(p)``
+with ``G_ej`` the image of the echo sent by ``j`` and received by ``e``; ``r = m``
+is the shared selection, the same computation. The pair basis of the fast path
+holds ``H_ej = G_ej + G_je``, which is enough only for ``r = m``, so a separate
+receive aperture is evaluated on the exact path.
 For one scatterer the echo received by element ``e`` is a superposition of
 the contributions transmitted by every element ``j``, and every later step
 (inverse FFT, demodulation, DAS, compounding) is linear, so the compound
@@ -259,20 +265,34 @@ class PSFModel:
         w = w.to(device=self.device, dtype=self.dtype)
         return w
 
-    def spectra(self, weights, tx: int) -> torch.Tensor:
-        """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne), in units of ``image_scale``."""
+    def _receive(self, w: torch.Tensor, receive) -> torch.Tensor:
+        """The receive weights: ``w`` (the shared selection) when ``receive`` is None, else
+        ``receive`` checked, of ``w``'s batch size."""
+        if receive is None:
+            return w
+        r = self._weights(receive)
+        if r.shape != w.shape:
+            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
+                                 f"got {tuple(r.shape)}")
+        return r
+
+    def spectra(self, weights, tx: int, receive=None) -> torch.Tensor:
+        """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne), in units of ``image_scale``;
+        ``weights`` are the TX apodization and the RX channel weights, or the TX apodization
+        alone when ``receive`` (B, Ne) gives the RX channel weights."""
         t = self.transmits[tx]
         w = self._weights(weights)
+        r = self._receive(w, receive)
         G = t.tx_field.to(self.device, self.cdtype)
         RC = t.rx_factor.to(self.device, self.cdtype)
         field_ = w.to(self.cdtype) @ G  # (B, F): field at the scatterer
-        return w.to(self.cdtype)[:, :, None] * RC[None] * field_[:, None, :]
+        return r.to(self.cdtype)[:, :, None] * RC[None] * field_[:, None, :]
 
-    def rf(self, weights, tx: int) -> torch.Tensor:
+    def rf(self, weights, tx: int, receive=None) -> torch.Tensor:
         """RF signals (B, Ne, T) of transmit ``tx`` (element-major, time last), in units of ``image_scale``."""
-        return spectra_to_rf(self.spectra(weights, tx), self.transmits[tx].grid)
+        return spectra_to_rf(self.spectra(weights, tx, receive), self.transmits[tx].grid)
 
-    def iq(self, weights, tx: int) -> torch.Tensor:
+    def iq(self, weights, tx: int, receive=None) -> torch.Tensor:
         """I/Q signals (B, Ne, T) of transmit ``tx``: the I/Q demodulation of :meth:`rf`, computed
         from the spectra in one product with the composed linear map (:meth:`Transmit.iq_map`,
         formed on first use and kept in the model's dtype).
@@ -285,7 +305,7 @@ class PSFModel:
         """
         if tx not in self._iq_maps:
             self._iq_maps[tx] = self.transmits[tx].iq_map().to(self.device, self.dtype)
-        s = self.spectra(weights, tx)
+        s = self.spectra(weights, tx, receive)
         y = torch.cat([s.real, s.imag], dim=-1) @ self._iq_maps[tx]
         t = y.shape[-1] // 2
         return torch.complex(y[..., :t], y[..., t:])
@@ -309,15 +329,17 @@ class PSFModel:
         return plan
 
     def image(self, weights, rows: slice | None = None, cols: slice | None = None,
-              rows_per_chunk: int | None = None) -> torch.Tensor:
+              rows_per_chunk: int | None = None, receive=None) -> torch.Tensor:
         """Exact compound image (B, nz', nx') on grid rows/cols (default: whole grid).
 
-        In units of :attr:`image_scale`; differentiable with respect to ``weights``.
+        In units of :attr:`image_scale`; differentiable with respect to ``weights`` (and
+        ``receive``: separate RX channel weights (B, Ne), ``weights`` then the TX apodization).
         """
         rows = rows or slice(0, self.setup.n_z)
         cols = cols or slice(0, self.setup.n_x)
         w = self._weights(weights)
-        iqs = [self.iq(w, n) for n in range(len(self.transmits))]
+        r = self._receive(w, receive)
+        iqs = [self.iq(w, n, None if receive is None else r) for n in range(len(self.transmits))]
         nz = rows.stop - rows.start
         nx = cols.stop - cols.start
         if rows_per_chunk is None:
@@ -339,24 +361,32 @@ class PSFModel:
             out.append(acc.reshape(w.shape[0], r.stop - r.start, nx))
         return torch.cat(out, dim=1) if len(out) > 1 else out[0].reshape(w.shape[0], nz, nx)
 
-    def kernels_exact(self, weights) -> torch.Tensor:
+    def kernels_exact(self, weights, receive=None) -> torch.Tensor:
         """PSF kernels (B, window, window) from the exact whole-grid image, in batches of
-        :meth:`exact_chunking`'s size (bounded memory whatever B)."""
+        :meth:`exact_chunking`'s size (bounded memory whatever B); ``receive``: separate RX
+        channel weights (B, Ne), ``weights`` then the TX apodization."""
         w = self._weights(weights)
+        r = None if receive is None else self._receive(w, receive)
         step = self.exact_chunking()[0]
         if w.shape[0] <= step:
-            return window_and_normalise(self.image(w), self.setup.window)
-        return torch.cat([window_and_normalise(self.image(w[i:i + step]), self.setup.window)
+            return window_and_normalise(self.image(w, receive=r), self.setup.window)
+        return torch.cat([window_and_normalise(self.image(w[i:i + step], receive=None if r is None else
+                                                          r[i:i + step]), self.setup.window)
                           for i in range(0, w.shape[0], step)])
 
     # ------------------------------------------------------------------ fast path
-    def kernels(self, weights, return_info: bool = False):
+    def kernels(self, weights, return_info: bool = False, receive=None):
         """PSF kernels (B, window, window) complex; differentiable w.r.t. weights.
 
         Uses the precomputed pair basis when the peak provably lies in its
-        region, the exact path otherwise.
+        region, the exact path otherwise. With ``receive`` (separate RX channel weights (B, Ne),
+        ``weights`` then the TX apodization) the exact path (the pair basis is symmetric in
+        transmit and receive).
         """
         w = self._weights(weights)
+        if receive is not None:
+            k = self.kernels_exact(w, receive=receive)
+            return (k, torch.ones(w.shape[0], dtype=torch.bool)) if return_info else k
         if self.basis is None:
             k = self.kernels_exact(w)
             return (k, torch.zeros(w.shape[0], dtype=torch.bool)) if return_info else k

@@ -277,39 +277,55 @@ class MatrixPSF:
     def _weights(self, weights) -> torch.Tensor:
         return check_element_weights(weights, self.n_elements, self.dtype, self.device)
 
-    def iq(self, weights, tx: int, elements: torch.Tensor | None = None) -> torch.Tensor:
+    def _receive(self, w: torch.Tensor, receive) -> torch.Tensor:
+        """The receive weights: ``w`` when ``receive`` is None, else ``receive`` of ``w``'s shape."""
+        if receive is None:
+            return w
+        r = self._weights(receive)
+        if r.shape != w.shape:
+            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
+                                 f"got {tuple(r.shape)}")
+        return r
+
+    def iq(self, weights, tx: int, elements: torch.Tensor | None = None, receive=None) -> torch.Tensor:
         """I/Q signals (B, n, T) of transmit ``tx`` for the receive ``elements`` (default all),
-        on the samples the planes read (``_samples[tx]``), in units of ``image_scale``."""
+        on the samples the planes read (``_samples[tx]``), in units of ``image_scale``;
+        ``receive`` (B, Ne): separate RX channel weights (``weights`` then the TX apodization)."""
         t = self.transmits[tx]
         w = self._weights(weights)
+        r = self._receive(w, receive)
         G = t.tx_field.to(self.device, self.cdtype)
         RC = t.rx_factor.to(self.device, self.cdtype)
         field_ = w.to(self.cdtype) @ G  # (B, F): the field at the scatterer
         if elements is not None:
-            RC, wr = RC[elements], w[:, elements]
+            RC, wr = RC[elements], r[:, elements]
         else:
-            wr = w
+            wr = r
         spectra = wr.to(self.cdtype)[:, :, None] * RC[None] * field_[:, None, :]
         y = torch.cat([spectra.real, spectra.imag], dim=-1) @ self._maps[tx]
         n = y.shape[-1] // 2
         return torch.complex(y[..., :n], y[..., n:])
 
-    def image(self, weights) -> torch.Tensor:
-        """Compound image (B, Npix) on the planes' pixels, concatenated in :attr:`coords` order."""
+    def image(self, weights, receive=None) -> torch.Tensor:
+        """Compound image (B, Npix) on the planes' pixels, concatenated in :attr:`coords` order;
+        ``receive`` (B, Ne): separate RX channel weights (``weights`` then the TX apodization;
+        None: the same weights transmit and receive)."""
         w = self._weights(weights)
+        r = self._receive(w, receive)
         elements = None
-        if not w.requires_grad:
-            support = (w != 0)
+        if not (w.requires_grad or r.requires_grad):
+            support = (r != 0)
             if w.shape[0] > 1 and int(support.any(0).sum()) > 1.5 * int(support.sum(1).max()):
                 # sparse selections with different supports: each one's own elements are fewer
                 # reads than their union for all (a selection's zero weights receive nothing)
-                return torch.cat([self.image(w[i:i + 1]) for i in range(w.shape[0])])
+                return torch.cat([self.image(w[i:i + 1], None if receive is None else r[i:i + 1])
+                                  for i in range(w.shape[0])])
             used = torch.nonzero(support.any(0)).flatten()
             if used.numel() == 0:
                 raise SelectionError("every selection is empty (all weights zero)")
             if used.numel() < self.n_elements:
                 elements = used  # an element of weight 0 everywhere receives nothing
-        iqs = [self.iq(w, n, elements) for n in range(len(self.transmits))]
+        iqs = [self.iq(w, n, elements, None if receive is None else r) for n in range(len(self.transmits))]
         npix, ne = self._rx_pos.shape[0], (self.n_elements if elements is None else elements.numel())
         if self.device.type == "cpu" and npix * ne * len(iqs) >= COMPILED_MIN_ENTRIES:
             return self._image_compiled(iqs, elements)
@@ -343,7 +359,8 @@ class MatrixPSF:
                np.array([t.grid.n_time for t in self.transmits], dtype=np.int64))
         return _CompiledDAS.apply(iq.contiguous(), geo).T
 
-    def planes(self, weights) -> dict[str, torch.Tensor]:
+    def planes(self, weights, receive=None) -> dict[str, torch.Tensor]:
         """The compound image on each plane: ``{name: complex (B, H, W)}`` (:attr:`coords` order
-        and pixels), in units of ``image_scale``; differentiable in ``weights``."""
-        return split_planes(self.image(weights), self._shapes)
+        and pixels), in units of ``image_scale``; differentiable in ``weights`` (and ``receive``:
+        separate RX channel weights, :meth:`image`)."""
+        return split_planes(self.image(weights, receive), self._shapes)
