@@ -37,7 +37,7 @@ import numpy as np
 from arraysel.errors import ParameterError, SelectionError
 
 __all__ = ["Constraints", "ConstraintError", "GROUP_MODES", "SYMMETRIES", "mux_groups", "read_group_csv",
-           "group_map", "mirror_orbits", "constraints_of", "group_constraints"]
+           "group_map", "mirror_orbits", "constraints_of", "group_constraints", "refuse_groups"]
 
 GROUP_MODES = ("exactly-one", "at-most-one")
 SYMMETRIES = ("none", "x", "y", "xy")
@@ -452,15 +452,21 @@ class Constraints:
         m = np.asarray(mask, dtype=bool)
         on, off = np.flatnonzero(m), np.flatnonzero(~m)
         a, b = np.repeat(on, off.size), np.tile(off, on.size)
+        keep = self.allowed_swaps(m, a, b)
+        return a[keep], b[keep]
+
+    def allowed_swaps(self, mask: np.ndarray, out: np.ndarray, into: np.ndarray) -> np.ndarray:
+        """Which swaps ``(out[i], into[i])`` of the unit mask ``mask`` keep it feasible."""
+        out, into = np.asarray(out, dtype=np.int64), np.asarray(into, dtype=np.int64)
         if self.unit_groups is None:
-            return a, b
+            return np.ones(out.size, dtype=bool)
         g = self.unit_groups
-        keep = g[a] == g[b]
+        keep = g[out] == g[into]
         if self.group_mode == "at-most-one":
             occupied = np.zeros(int(g.max()) + 1, dtype=bool)
-            occupied[g[on]] = True
-            keep |= ~occupied[g[b]]
-        return a[keep], b[keep]
+            occupied[g[np.flatnonzero(mask)]] = True
+            keep |= ~occupied[g[into]]
+        return keep
 
     def random_swap_pairs(self, mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """``min(b, all)`` distinct random feasible swaps of a unit mask (:meth:`swap_pairs`)."""
@@ -509,3 +515,12 @@ def group_constraints(objective) -> Constraints | None:
         raise ParameterError(f"this objective has constraints ({c.describe()}) that only the runner's "
                              f"reduced problem resolves; run the selector through arraysel.run.Experiment")
     return c
+
+
+def refuse_groups(objective, selector: str) -> None:
+    """Raise :class:`ParameterError` when ``objective`` carries channel groups, which ``selector``
+    cannot honour by construction (forced elements and symmetry it meets on the reduced problem)."""
+    gc = group_constraints(objective)
+    if gc is not None:
+        raise ParameterError(f"selector {selector!r} cannot honour the constraint groups ({gc.describe()}); "
+                             f"use swap, anneal, ils, memetic, genetic, ste, gumbel, random, uniform or spiral")

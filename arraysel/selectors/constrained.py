@@ -71,7 +71,12 @@ class ConstrainedObjective:
 
     def _moves(self, out, into) -> tuple[np.ndarray, np.ndarray]:
         b = out.shape[0]
-        return self._units[out].reshape(b, -1), self._units[into].reshape(b, -1)
+
+        def elements(idx):  # -1 pads a row that switches fewer units: its elements pad too
+            e = self._units[np.maximum(idx, 0)]
+            return np.where((idx >= 0)[..., None], e, -1).reshape(b, -1)
+
+        return elements(out), elements(into)
 
     # -- the Objective contract in units -------------------------------------------------------
     def evaluate(self, masks, **kwargs):
