@@ -67,22 +67,36 @@ def chirp_masks(objective, k: int, rng: np.random.Generator, m: int) -> np.ndarr
 
 def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     """A layout's selection ``chosen`` made feasible under the objective's channel groups, as a
-    mask: in each group the element of the layout kept (the lowest index where it holds several),
-    or else the one nearest the layout (:meth:`~arraysel.constraints.Constraints.project` of
-    ``1`` on the layout minus the distance to its nearest element over the aperture)."""
+    mask: every group that holds elements of the layout keeps one (the lowest index); the other
+    groups the selection needs (all of them under ``exactly-one``, as many as ``k`` still
+    allows under ``at-most-one``) each take, one after the other, the element farthest from those
+    already kept (the lowest index first without element positions)."""
     n = int(objective.n_elements)
     gc = group_constraints(objective) if gc is None else gc
     mask = np.zeros(n, dtype=bool)
     mask[np.asarray(chosen, dtype=np.int64)] = True
     if gc is None:
         return mask
-    _, pos = element_layout(objective)
-    scores = mask.astype(np.float64)
-    if pos is not None and mask.any():
-        d = np.sqrt(((pos[:, None, :] - pos[None, mask, :]) ** 2).sum(-1)).min(axis=1)
-        scores -= d / max(float(np.ptp(pos)), 1e-12) * 0.5
+    g = gc.unit_groups
     out = np.zeros(n, dtype=bool)
-    out[gc.project(scores)] = True
+    for e in np.flatnonzero(mask):
+        if not out[g == g[e]].any() and out.sum() < gc.k_units:
+            out[e] = True
+    _, pos = element_layout(objective)
+    filled = np.zeros(int(g.max()) + 1, dtype=bool)
+    filled[g[out]] = True
+    if pos is None:
+        dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
+    elif out.any():
+        dmin = np.sqrt(((pos[:, None, :] - pos[None, out, :]) ** 2).sum(-1)).min(axis=1)
+    else:
+        dmin = np.zeros(n)
+    while int(out.sum()) < gc.k_units:
+        cand = np.where(filled[g], -np.inf, dmin)
+        e = int(np.argmax(cand))
+        out[e], filled[g[e]] = True, True
+        if pos is not None:
+            dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
     return out
 
 
