@@ -159,9 +159,10 @@ class Experiment:
                 result = _run_selector(selector, obj, k, stage, seed, recorder, started, constraints)
                 if polish > 0:
                     result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k), constraints)
-            selection = check_selection(result, n, k)
+            checked = check_selection(result, n, k)
             if constraints is not None:
-                constraints.check(selection)  # names the constraint a selector's result breaks
+                constraints.check(checked)  # names the constraint a selector's result breaks
+            selection = checked
         except (KeyboardInterrupt, BudgetExceededError):
             raise
         except Exception as exc:  # the selector's (or objective's) failure goes in the row
