@@ -130,7 +130,8 @@ class EliteSearch(SwapDescent):
             else:
                 half = max(1, (len(self.pool) + 1) // 2)
                 base = self.pool[int(self.rng.integers(half))][2]
-                m = random_swaps(base, strength, self.rng, self.constraints)
+                m = (random_swaps(base, strength, self.rng) if self.constraints is None
+                              else random_swaps(base, strength, self.rng, self.constraints))
                 v = float(self.score(m[None])[0])
             m, v = self.descend(m, v)
             self.local_optima += 1
