@@ -240,3 +240,15 @@ def test_scene_constraints_and_the_builtin_mux_scene():
     assert load_scene("matrix-1024").constraints() is None
     sym = load_scene(_scene(symmetry="xy")).constraints()
     assert sym.unit_size == 4 and sym.k_units == 4
+
+
+def test_group_masks_figure_marks_a_shared_channel():
+    from arraysel.report.layout_plots import group_masks_figure
+
+    groups = mux_groups("mux-16-4", 16)
+    masks = np.zeros((2, 16), dtype=bool)
+    masks[0, [0, 5, 10, 15]] = True      # one element per group
+    masks[1, [0, 4, 8, 12]] = True       # all four in group 0 (mux-16-4: group = e mod 4)
+    fig = group_masks_figure(["ok", "shared"], masks, POS8[:16], groups)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_visible()]
+    assert titles[0] == "ok: 4/4 groups, max 1" and titles[1] == "shared: 1/4 groups, max 4"
