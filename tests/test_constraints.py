@@ -252,3 +252,12 @@ def test_group_masks_figure_marks_a_shared_channel():
     fig = group_masks_figure(["ok", "shared"], masks, POS8[:16], groups)
     titles = [ax.get_title() for ax in fig.axes if ax.get_visible()]
     assert titles[0] == "ok: 4/4 groups, max 1" and titles[1] == "shared: 1/4 groups, max 4"
+
+
+@pytest.mark.parametrize("cons", [Constraints(64, 16, groups="mux-64-4"),
+                                  Constraints(64, 16, symmetry="xy", positions=POS8, forced_off=[0])],
+                         ids=["groups", "symmetry"])
+def test_polish_keeps_the_constraints(cons):
+    row = Experiment(ToyObjective(64, 16, grid=(8, 8), constraints=cons), "random", options={"polish": 0.5},
+                     budget=Budget(evaluations=300), seed=2).run()
+    assert row["error"] == "" and cons.feasible([int(i) for i in row["elements"].split()])
