@@ -119,6 +119,26 @@ class SelectorConformance:
         assert row["error"] == "", row["error"]
         assert row["seconds"] <= self.budget_seconds + self.time_grace, row["seconds"]
 
+    def test_meets_constraints(self):
+        """On a 4 x 4 toy matrix under each kind of constraint (forced elements, four-fold symmetry,
+        channel groups with exactly one and at most one element each): a selection that meets them,
+        or, for channel groups only, a refusal that names them (\"cannot honour ... groups\")."""
+        from arraysel.constraints import Constraints
+        pos = ToyObjective(16, 4, grid=(4, 4)).element_positions
+        cases = {"forced": Constraints(16, 6, forced_on=[5], forced_off=[0, 15]),
+                 "symmetry": Constraints(16, 8, symmetry="xy", positions=pos),
+                 "groups": Constraints(16, 4, groups="mux-16-4"),
+                 "groups at-most-one": Constraints(16, 3, groups="mux-16-4", group_mode="at-most-one")}
+        for label, cons in cases.items():
+            obj = ToyObjective(16, cons.k, grid=(4, 4), constraints=cons)
+            _, row = self.run_experiment(obj, k=cons.k, seed=1)
+            if row["error"]:
+                assert cons.groups is not None and "cannot honour" in row["error"] and "groups" in row["error"], \
+                    f"{label}: {row['error']}"
+                continue
+            sel = self._selection(row)
+            assert cons.feasible(sel), f"{label}: {sel} breaks the constraints ({cons.describe()})"
+
     def test_same_seed_same_result(self):
         cls = self.get_class()
         rows = [self.run_experiment(self.make_objective(), seed=s)[1] for s in (3, 3)]

@@ -22,6 +22,9 @@ class CentreSelector(Selector):
     def select(self, objective, k, seed):
         start = (objective.n_elements - k) // 2
         chosen = list(range(start, start + k))
+        groups = getattr(objective, "constraints", None)  # a scene's channel groups (docs/constraints.md)
+        if groups is not None:  # the feasible selection nearest the centre block
+            chosen = groups.project(indices_to_mask(chosen, objective.n_elements))
         objective.evaluate(indices_to_mask(chosen, objective.n_elements)[None])  # scored for the trace
         return chosen
 

@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from arraysel.constraints import group_constraints
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.moves import random_swap_pairs
@@ -53,6 +54,7 @@ class AnnealSelector(Selector):
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
         start = start_selection(o["start"], objective, k, rng, o["elements"])
+        gc = group_constraints(objective)  # swaps stay inside the channel groups
         if k in (0, n):
             return start
         budget = objective.budget
@@ -61,7 +63,7 @@ class AnnealSelector(Selector):
         f_cur = float(objective.score(cur[None])[0])
         t0 = o["t0"]
         if t0 is None:
-            a, b = random_swap_pairs(cur, 32, rng)
+            a, b = random_swap_pairs(cur, 32, rng, gc)
             with np.errstate(invalid="ignore"):
                 d = objective.score_swaps(cur, a, b) - f_cur
             up = d[np.isfinite(d) & (d > 0)]
@@ -76,7 +78,7 @@ class AnnealSelector(Selector):
                 min(1.0, (objective.evaluations - used0) / o["horizon"])
             temp = t0 * o["ratio"] ** frac
             b = int(np.clip(math.ceil(2.0 / max(accept_rate, 1e-3)), lo, hi))
-            a, bb = random_swap_pairs(cur, b, rng)
+            a, bb = random_swap_pairs(cur, b, rng, gc)
             values = objective.score_swaps(cur, a, bb)
             with np.errstate(over="ignore", invalid="ignore"):
                 delta = values - f_cur

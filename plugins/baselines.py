@@ -5,11 +5,12 @@ import time
 
 import numpy as np
 
+from arraysel.constraints import group_constraints
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.layouts import is_planar, planar_uniform_layout, uniform_layout
 from arraysel.selectors.contract import Option, Selector, numpy_rng
-from arraysel.selectors.starts import random_subsets
+from arraysel.selectors.starts import layout_projection, random_subsets
 
 
 class UniformSelector(Selector):
@@ -35,8 +36,9 @@ class UniformSelector(Selector):
             chosen = planar_uniform_layout(positions, k)
         else:
             chosen = uniform_layout(n, k, grid)
-        objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
-        return chosen
+        mask = layout_projection(objective, chosen)  # channel groups: the documented projection
+        objective.evaluate(mask[None])
+        return [int(i) for i in np.flatnonzero(mask)]
 
 
 class RandomSelector(Selector):
@@ -62,6 +64,7 @@ class RandomSelector(Selector):
         rng = numpy_rng(seed)
         total, chunk = self.options["n"], self.options["chunk"]
         budget = objective.budget
+        gc = group_constraints(objective)  # channel groups: uniform random feasible selections
         best, best_mean = None, np.inf
         first = None
         drawn = 0
@@ -73,7 +76,8 @@ class RandomSelector(Selector):
             b = int(min(size, total - drawn, objective.remaining()))
             if b <= 0:
                 break
-            subsets = random_subsets(rng, b, n, k)
+            subsets = random_subsets(rng, b, n, k) if gc is None else \
+                np.nonzero(gc.random_masks(rng, b))[1].reshape(b, k)
             t0 = time.perf_counter()
             if first is None:
                 first = subsets[0]
@@ -87,7 +91,8 @@ class RandomSelector(Selector):
             if means[i] < best_mean:
                 best, best_mean = subsets[i], float(means[i])
         if best is None:  # no finite score (or no budget): one random subset
-            best = first if first is not None else random_subsets(rng, 1, n, k)[0]
+            best = first if first is not None else (random_subsets(rng, 1, n, k)[0] if gc is None else
+                                                    np.flatnonzero(gc.random_masks(rng, 1)[0]))
         return [int(i) for i in best]
 
 

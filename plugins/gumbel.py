@@ -32,7 +32,8 @@ class GumbelSelector(MatrixSelector):
         from arraysel.selectors.relax import gumbel_noise, sequential_selection
 
         noise = gumbel_noise(tuple(logits.shape), generator, device=logits.device, dtype=logits.dtype)
-        return sequential_selection(logits, tau, noise=noise, hard=self.options["variant"] == "hard")
+        return sequential_selection(logits, tau, noise=noise, hard=self.options["variant"] == "hard",
+                                    **(self._groups or {}))
 
 
 @hookimpl

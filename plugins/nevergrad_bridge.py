@@ -38,6 +38,7 @@ import warnings
 
 import numpy as np
 
+from arraysel.constraints import refuse_groups
 from arraysel.errors import ParameterError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, numpy_rng, top_k
@@ -124,6 +125,7 @@ class NevergradSelector(Selector):
         return mask
 
     def select(self, objective, k, seed):
+        refuse_groups(objective, self.name)
         ng = _nevergrad()
         n = int(objective.n_elements)
         rng = numpy_rng(seed)

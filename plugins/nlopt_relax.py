@@ -25,6 +25,7 @@ import math
 
 import numpy as np
 
+from arraysel.constraints import refuse_groups
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k
@@ -49,6 +50,7 @@ class NLoptSelector(Selector):
     deterministic = False
 
     def select(self, objective, k, seed):
+        refuse_groups(objective, self.name)
         import nlopt
         import torch  # here, not at the top: `arraysel list` loads the plugin without torch
 

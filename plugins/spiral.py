@@ -15,6 +15,7 @@ import numpy as np
 from arraysel.objective.contract import element_layout
 from arraysel.selectors.contract import Option, Selector
 from arraysel.selectors.hookspecs import hookimpl
+from arraysel.selectors.starts import layout_projection
 from arraysel.selectors.layouts import TAPERS, fermat_spiral_layout, is_planar, tapered_line_layout
 
 
@@ -40,8 +41,9 @@ class SpiralSelector(Selector):
         else:
             layout = positions if positions is not None else grid
             chosen = fermat_spiral_layout(layout, k, taper, self.options["rotation_deg"])
-        objective.evaluate(np.array([np.isin(np.arange(n), chosen)]))
-        return chosen
+        mask = layout_projection(objective, chosen)  # channel groups: the documented projection
+        objective.evaluate(mask[None])
+        return [int(i) for i in np.flatnonzero(mask)]
 
 
 @hookimpl

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from arraysel.constraints import group_constraints
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, indices_to_mask, torch_rng
@@ -46,6 +47,7 @@ class MatrixSelector(Selector):
     uses_gradients = True
     deterministic = False
     options = dict(_COMMON)
+    _groups: dict | None = None  # the channel groups of the run (set by select)
     #: consecutive NaN/Inf losses after which the loop stops (the logits no longer move)
     MAX_BAD_STEPS = 50
 
@@ -60,6 +62,11 @@ class MatrixSelector(Selector):
 
         n = int(objective.n_elements)
         device, dtype = objective.device, objective.dtype
+        gc = group_constraints(objective)
+        # a channel group is a categorical choice among its elements (one column a group), or
+        # with at most one a group, a draw that takes the group out of the later columns
+        self._groups = None if gc is None else {"groups": gc.unit_groups,
+                                                "by_column": gc.group_mode == "exactly-one"}
         o = self.options
         gen = torch_rng(seed, device)
         init = torch.randn((n, k), generator=gen, device=device, dtype=dtype) * o["init_std"]
@@ -98,7 +105,7 @@ class MatrixSelector(Selector):
         # the noise-free arg-max selection of the final logits
         with torch.no_grad():
             tau = cosine_temperature(o["steps"], o["tau_start"], o["tau_end"], o["tau_steps"])
-            final = sequential_selection(logits.detach(), tau).indices
+            final = sequential_selection(logits.detach(), tau, **(self._groups or {})).indices
         last = final
         score(final)
         if objective.best is not None:
@@ -121,7 +128,7 @@ class STESelector(MatrixSelector):
         from arraysel.selectors.relax import sequential_selection
 
         return sequential_selection(logits, tau, hard=True, sample=self.options["draw"] == "sample",
-                                    generator=generator)
+                                    generator=generator, **(self._groups or {}))
 
 
 @hookimpl

@@ -132,6 +132,8 @@ class MatrixObjective(Objective):
         #: with blank rows or columns, or a planar layout, has no full grid: None, and its positions
         self.element_grid = probe.layout_grid
         self.element_positions = probe.element_positions()
+        #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
+        self.constraints = self.scene.constraints()
         self.n_points = 1
         self.points = [self.setup.scatterer]
         self.fast_requested = bool(fast) and st.fast

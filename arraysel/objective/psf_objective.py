@@ -122,6 +122,8 @@ class Objective:
         self.element_grid = None
         xe, ze, _, _ = setup.probe.element_positions()
         self.element_positions = np.stack([xe, np.zeros_like(xe), ze], axis=1)
+        #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
+        self.constraints = self.scene.constraints()
         #: field points (x, z) in metres, one PSF model each (``self.psfs``; ``self.psf`` is the first)
         self.points = self.scene.points()
         self.n_points = len(self.setups)

@@ -64,6 +64,8 @@ class ToyObjective:
     delay : seconds slept in each call (to test time budgets)
     grid : ``(ny, nx)`` with ``ny * nx = n_elements``: a toy matrix array (element index
         ``iy * nx + ix``, ``element_grid``); ``None`` (default): a 1-D array
+    constraints : :class:`~arraysel.constraints.Constraints` for ``k`` of ``n_elements``
+        (``docs/constraints.md``), None: none
 
     Layout: ``element_grid`` (the grid or None) and ``element_positions`` ``(Ne, 3)``, the element
     centres on a :data:`TOY_PITCH` grid centred on the origin (on the x axis for a 1-D array).
@@ -87,7 +89,8 @@ class ToyObjective:
     def __init__(self, n_elements: int = 16, k: int = 8, *, device: str | torch.device = "cpu",
                  dtype: torch.dtype = torch.float32, seed: int = 0, chunk: int = 4096,
                  fail_after: int | None = None, nan_element: int | None = None,
-                 always_nan: bool = False, delay: float = 0.0, grid: tuple[int, int] | None = None):
+                 always_nan: bool = False, delay: float = 0.0, grid: tuple[int, int] | None = None,
+                 constraints=None):
         self.n_elements = int(check_number("n_elements", n_elements, lo=1, integer=True))
         self.k = int(check_number("k", k, lo=1, hi=self.n_elements, integer=True))
         if dtype not in (torch.float32, torch.float64):
@@ -107,6 +110,11 @@ class ToyObjective:
         t[self.target] = 1.0
         self._t = t
         self.element_grid = None if grid is None else check_element_grid(grid, self.n_elements)
+        if constraints is not None and (constraints.n_elements, constraints.k) != (self.n_elements, self.k):
+            raise ParameterError(f"constraints are for k = {constraints.k} of {constraints.n_elements} elements; "
+                                 f"the toy objective has k = {self.k} of {self.n_elements}")
+        #: a :class:`~arraysel.constraints.Constraints` every run on this objective meets (None: none)
+        self.constraints = constraints
         if self.element_grid is None:
             nfft = 4 * self.n_elements
             u = torch.fft.fftfreq(nfft, dtype=torch.float64).to(self.device)

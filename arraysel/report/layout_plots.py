@@ -14,7 +14,7 @@ import numpy as np
 
 from arraysel.report.plots import MASK_CMAP, _as_numpy, _panels, figure, styled
 
-__all__ = ["layout_masks_figure", "aperture_figure", "TX_COLOUR", "RX_COLOUR"]
+__all__ = ["layout_masks_figure", "group_masks_figure", "aperture_figure", "TX_COLOUR", "RX_COLOUR"]
 
 #: face colour of an element that only transmits, and of one that only receives
 TX_COLOUR = "tab:red"
@@ -66,6 +66,34 @@ def layout_masks_figure(labels: Sequence[str], masks, positions, element_size=No
         faces = [cmap(0.95) if v > 0.5 else "white" for v in m]
         _draw(ax, pos * 1e3, (size[0] * 1e3, size[1] * 1e3), faces, "0.6")
         ax.set_title(f"{lab} ({int((m > 0.5).sum())} of {len(m)})", fontsize=8)
+    return fig
+
+
+@styled
+def group_masks_figure(labels: Sequence[str], masks, positions, groups, element_size=None):
+    """The active elements of each selection drawn with their channel groups
+    (:mod:`arraysel.constraints`): an active element is coloured by its place in its group (for
+    ``mux-1024-4``, the bank it comes from), an inactive one white; a group holding more than one
+    active element is edged red. The title gives the groups used and the most elements of one
+    group."""
+    import matplotlib
+
+    pos = np.asarray(positions, dtype=np.float64)[:, :2]
+    g = np.asarray(groups, dtype=np.int64).reshape(len(pos))
+    masks = _as_numpy(masks).astype(bool).reshape(len(labels), len(pos))
+    member = np.zeros(len(pos), dtype=np.int64)  # the place of each element in its group
+    for grp in np.unique(g):
+        idx = np.flatnonzero(g == grp)
+        member[idx] = np.arange(idx.size)
+    colours = matplotlib.colormaps["tab10"]
+    size = _element_size(pos) if element_size is None else tuple(float(v) for v in element_size)
+    fig, axes = _panels(len(labels), size=2.6)
+    for ax, lab, m in zip(axes, labels, masks):
+        count = np.bincount(g[m], minlength=int(g.max()) + 1)
+        faces = [colours(int(member[e]) % 10) if m[e] else "white" for e in range(len(pos))]
+        edges = ["red" if m[e] and count[g[e]] > 1 else "0.6" for e in range(len(pos))]
+        _draw(ax, pos * 1e3, (size[0] * 1e3, size[1] * 1e3), faces, edges)
+        ax.set_title(f"{lab}: {int((count > 0).sum())}/{count.size} groups, max {int(count.max())}", fontsize=7)
     return fig
 
 

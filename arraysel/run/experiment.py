@@ -41,9 +41,11 @@ from typing import Any
 
 import numpy as np
 
-from arraysel.errors import SelectionError, check_number, error_text as _error_text
+from arraysel.errors import ParameterError, SelectionError, check_number, error_text as _error_text
 from arraysel.report.columns import METRICS, ROW_COLUMNS, TRACE_COLUMNS  # noqa: F401  (re-exported)
 from arraysel.selection import Selection
+from arraysel.constraints import constraints_of
+from arraysel.selectors.constrained import ConstrainedObjective
 from arraysel.selectors.contract import (Budget, BudgetedObjective, BudgetExceededError, BudgetExhausted, Recorder,
                                          Selector, check_selection, indices_to_mask, numpy_rng)
 
@@ -137,6 +139,9 @@ class Experiment:
         check_number("k", k, lo=1, hi=n, integer=True)
         seed = int(check_number("seed", self.seed, lo=0, integer=True))
         config = self.config or config_label(cls.name, self.options)
+        constraints = constraints_of(obj)
+        if constraints is not None and constraints.k != k:
+            raise ParameterError(f"k = {k} differs from the k of the objective's constraints ({constraints.k})")
 
         e0, g0, s0 = _counters(obj)
         budget = self.budget.fresh().start(obj)
@@ -151,10 +156,13 @@ class Experiment:
         try:
             with watch:
                 stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
-                result = _run_selector(selector, obj, k, stage, seed, recorder, started)
+                result = _run_selector(selector, obj, k, stage, seed, recorder, started, constraints)
                 if polish > 0:
-                    result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k))
-            selection = check_selection(result, n, k)
+                    result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k), constraints)
+            checked = check_selection(result, n, k)
+            if constraints is not None:
+                constraints.check(checked)  # names the constraint a selector's result breaks
+            selection = checked
         except (KeyboardInterrupt, BudgetExceededError):
             raise
         except Exception as exc:  # the selector's (or objective's) failure goes in the row
@@ -257,13 +265,20 @@ def budget_flag(row: dict, budget: Budget, grace_s: float) -> str:
     return "; ".join(flags + own[:1])
 
 
-def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder, started: list):
+def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder, started: list,
+                  constraints=None):
     """Call ``selector.select(objective, k, seed)`` on the budgeted view of ``obj``; return what it
     returned (or, when the budget ended the search, the best selection recorded). ``started``
-    receives the seconds into the budget of the selector's first objective call (when it made one)."""
-    view = BudgetedObjective(obj, budget, recorder, k)
+    receives the seconds into the budget of the selector's first objective call (when it made one).
+    Under ``constraints`` the selector runs on the reduced problem
+    (:class:`~arraysel.selectors.constrained.ConstrainedObjective`) and its units are expanded to
+    elements here."""
+    view = BudgetedObjective(obj, budget, recorder, k, constraints=constraints)
     try:
-        return selector.select(view, k, seed)
+        if constraints is None:
+            return selector.select(view, k, seed)
+        units = selector.select(ConstrainedObjective(view, constraints), constraints.k_units, seed)
+        return constraints.expand_indices(check_selection(units, len(constraints.units), constraints.k_units))
     except BudgetExhausted:
         return _best_or_first(recorder)
     finally:
@@ -293,14 +308,18 @@ def _share_of(budget: Budget, obj, fraction: float) -> Budget:
     return sub
 
 
-def _polish(obj, k: int, budget: Budget, seed: int, recorder: Recorder, start: list[int]) -> list[int]:
+def _polish(obj, k: int, budget: Budget, seed: int, recorder: Recorder, start: list[int],
+            constraints=None) -> list[int]:
     """Swap local search from ``start`` with what is left of ``budget`` (the settings
     :data:`~arraysel.selectors.swapsettings.POLISH`: ``swap``'s, without a race)."""
     from arraysel.selectors.localsearch import SwapSearch
     from arraysel.selectors.swapsettings import POLISH
 
-    view = BudgetedObjective(obj, budget, recorder, k)
-    search = SwapSearch(view, k, numpy_rng(seed, stream=7), POLISH)
+    view = BudgetedObjective(obj, budget, recorder, k, constraints=constraints)
+    space, ks = view, k
+    if constraints is not None:
+        space, ks, start = ConstrainedObjective(view, constraints), constraints.k_units, constraints.reduce_indices(start)
+    search = SwapSearch(space, ks, numpy_rng(seed, stream=7), POLISH)
     try:
         search.run(start)
     except BudgetExhausted:

@@ -123,6 +123,7 @@ def check_scene(scene):
     if not 1 <= int(k) <= probe.n_elements:
         raise ParameterError(f"selection.k = {k} is out of range; allowed: [1, {probe.n_elements}] "
                              f"(the probe has {probe.n_elements} elements)")
+    scene.constraints()  # the [constraints] section against the probe and k (ParameterError naming the key)
     if scene.is_volume:
         volume_checks(scene)
         return scene

@@ -119,6 +119,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "selection": {
         "k": Key("int", (1, 4096), None, "number of active elements (required)"),
     },
+    "constraints": {  # docs/constraints.md; arraysel.constraints checks them against the probe
+        "groups": Key("str", None, None, "channel groups: a rule 'mux-N-B' (e.g. 'mux-1024-4': 4 banks, channel "
+                      "c reaches element c of each) or a CSV file element,group"),
+        "mode": Key("str", ("exactly-one", "at-most-one"), "exactly-one", "elements a selection holds in "
+                    "each channel group"),
+        "forced_on": Key("ints", (0, 4095), None, "elements always selected"),
+        "forced_off": Key("ints", (0, 4095), None, "elements never selected (dead elements, unconnected rows)"),
+        "forced_off_rows": Key("ints", (0, 4095), None, "grid rows iy whose elements are never selected "
+                               "(matrix probes)"),
+        "symmetry": Key("str", ("none", "x", "y", "xy"), "none", "mirror symmetry of the selection: in x, in "
+                        "y or both (four-fold)"),
+    },
     "metrics": {
         "r_main": Key("length", (0, 1000, True), 1.5, "main-lobe radius", "wl", _GRID_UNITS),
         "r_guard": Key("length", (0, 1000, True), 2.5, "side-lobe region starts at this radius", "wl",

@@ -62,6 +62,12 @@ def _read_file(path: str) -> dict:
         where = os.path.expanduser(probe["file"].strip())
         if not os.path.isabs(where):
             probe["file"] = os.path.join(os.path.dirname(os.path.abspath(path)), where)
+    cons = tree.get("constraints")
+    if isinstance(cons, dict) and isinstance(cons.get("groups"), str) and cons["groups"].strip().endswith(".csv"):
+        # a relative group file, like a probe file, names a file next to this one
+        where = os.path.expanduser(cons["groups"].strip())
+        if not os.path.isabs(where):
+            cons["groups"] = os.path.join(os.path.dirname(os.path.abspath(path)), where)
     base = tree.get("base")
     if isinstance(base, str) and base.endswith(".toml") and not os.path.isabs(os.path.expanduser(base)):
         # a relative base names a file next to this one, not in the working directory

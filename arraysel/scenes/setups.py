@@ -51,6 +51,42 @@ class SceneSetups:
                 raise ParameterError(f"probe.{exc}") from None
             raise
 
+    def constraints(self):
+        """The scene's :class:`~arraysel.constraints.Constraints` (its ``[constraints]`` section
+        checked against the probe and ``selection.k``), None without the section."""
+        sec = self.section("constraints")
+        if not sec:
+            return None
+        import numpy as np
+
+        from arraysel.constraints import Constraints
+
+        probe = self.probe()
+        n = int(probe.n_elements)
+        if probe.is_matrix:
+            positions = probe.element_positions()
+        else:
+            positions = np.stack([probe.element_positions()[0], np.zeros(n)], axis=1)
+        off = list(sec.get("forced_off") or [])
+        rows = sec.get("forced_off_rows")
+        if rows:
+            if not probe.is_matrix or not hasattr(probe, "element_grid"):
+                raise ParameterError("constraints.forced_off_rows needs a gridded matrix probe; list the elements "
+                                     "in constraints.forced_off")
+            ny = probe.grid_shape[0]
+            bad = [r for r in rows if r >= ny]
+            if bad:
+                raise ParameterError(f"constraints.forced_off_rows = {rows}: row {bad[0]} is out of range "
+                                     f"[0, {ny - 1}]")
+            iy = probe.element_grid(np.arange(n))[1]
+            off += np.flatnonzero(np.isin(iy, rows)).tolist()
+        groups = sec.get("groups")
+        return Constraints(n, int(self.get("selection", "k")), groups=groups,
+                           group_mode=sec.get("mode", "exactly-one"), forced_on=sec.get("forced_on") or (),
+                           forced_off=off, symmetry=sec.get("symmetry", "none"), positions=positions,
+                           source=groups if isinstance(groups, str) and not groups.endswith(".csv") else
+                           (f"the group file {groups}" if groups else ""))
+
     def matrix_probe(self):
         """The scene's probe for a 3-D scene: refused, naming ``probe.name``, unless it is a matrix probe."""
         probe = self.probe()

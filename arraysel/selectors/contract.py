@@ -184,8 +184,12 @@ class BudgetedObjective:
     :meth:`remaining` (evaluations the budget allows now).
     """
 
-    def __init__(self, objective, budget: Budget, recorder: Recorder, k: int, piece: int | None = None):
+    def __init__(self, objective, budget: Budget, recorder: Recorder, k: int, piece: int | None = None,
+                 constraints=None):
         self._inner = objective
+        #: the run's :class:`~arraysel.constraints.Constraints` (None: none): only the masks that
+        #: meet them are recorded, so ``best`` is always a selection the scanner can drive
+        self.constraints = constraints
         self.budget = budget
         self.recorder = recorder
         self.k = int(k)
@@ -199,7 +203,7 @@ class BudgetedObjective:
         self.first_call_s: float | None = None
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
-        if name.startswith("__") or name in ("_inner", "_closed"):
+        if name.startswith("__") or name in ("_inner", "_closed", "constraints"):
             raise AttributeError(name)
         self._check_open()
         return getattr(self._inner, name)
@@ -248,6 +252,8 @@ class BudgetedObjective:
 
     def _record(self, masks: np.ndarray, means: np.ndarray, before: int) -> None:
         ok = masks.sum(axis=1) == self.k
+        if self.constraints is not None:
+            ok &= self.constraints.feasible_rows(masks)
         if not ok.any():
             return
         finite = np.where(ok & np.isfinite(means), means, np.inf)

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from arraysel.objective.neighbours import move_masks, swap_pairs
+from arraysel.objective.neighbours import move_masks
 from arraysel.selectors.lossmodel import GuidedOrder, best_pair_swaps, move_changes
 from arraysel.selectors.moves import apply_shifts, shift_moves, shift_segments
 from arraysel.selectors.searchstate import SearchState
@@ -46,7 +46,7 @@ class SwapDescent(SearchState):
         """:meth:`descend` one move at a time: yields ``(mask, value)`` after each improving swap
         and ends at a local optimum."""
         while True:
-            a, b = swap_pairs(mask, self.rng)
+            a, b = self._swap_pairs(mask)
             if a.size == 0:
                 return
             moved = False

@@ -79,6 +79,11 @@ class EliteSearch(SwapDescent):
                 return best
             o = np.repeat(outs, ins.size)
             i = np.tile(ins, outs.size)
+            if self.constraints is not None:
+                keep = self.constraints.allowed_swaps(cur, o, i)
+                o, i = o[keep], i[keep]
+                if o.size == 0:
+                    return best
             if o.size > self.relink_batch:
                 pick = self.rng.choice(o.size, self.relink_batch, replace=False)
                 o, i = o[pick], i[pick]
@@ -125,7 +130,8 @@ class EliteSearch(SwapDescent):
             else:
                 half = max(1, (len(self.pool) + 1) // 2)
                 base = self.pool[int(self.rng.integers(half))][2]
-                m = random_swaps(base, strength, self.rng)
+                m = (random_swaps(base, strength, self.rng) if self.constraints is None
+                              else random_swaps(base, strength, self.rng, self.constraints))
                 v = float(self.score(m[None])[0])
             m, v = self.descend(m, v)
             self.local_optima += 1

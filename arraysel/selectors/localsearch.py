@@ -155,7 +155,8 @@ class SwapSearch(SwapDescent):
             if restart:
                 start_mask, stale, strength = self._fresh_mask(self.rng), 0, self.perturb
             else:
-                start_mask = random_swaps(base, strength, self.rng)
+                start_mask = (random_swaps(base, strength, self.rng) if self.constraints is None
+                              else random_swaps(base, strength, self.rng, self.constraints))
             v = float(self.score(start_mask[None])[0])
             self._note(start_mask, v)
             cand, cand_value = self.descend(start_mask, v)

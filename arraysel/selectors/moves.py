@@ -40,16 +40,23 @@ def shift_options(shift: int = 0, shift_scan: int = SHIFT_SCAN) -> dict[str, Opt
     }
 
 
-def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``min(b, k (Ne - k))`` distinct random swaps ``(out, into)`` of a boolean mask."""
+def random_swap_pairs(mask: np.ndarray, b: int, rng: np.random.Generator,
+                      constraints=None) -> tuple[np.ndarray, np.ndarray]:
+    """``min(b, k (Ne - k))`` distinct random swaps ``(out, into)`` of a boolean mask (only
+    those that keep it feasible under channel-group ``constraints``)."""
+    if constraints is not None:
+        return constraints.random_swap_pairs(mask, b, rng)
     on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
     total = on.size * off.size
     pick = rng.choice(total, size=min(b, total), replace=False)
     return on[pick // off.size], off[pick % off.size]
 
 
-def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
-    """``mask`` after ``m`` random swaps (distinct elements swapped out and in)."""
+def random_swaps(mask: np.ndarray, m: int, rng: np.random.Generator, constraints=None) -> np.ndarray:
+    """``mask`` after ``m`` random swaps (distinct elements swapped out and in; feasible ones
+    under channel-group ``constraints``)."""
+    if constraints is not None:
+        return constraints.random_swaps(mask, m, rng)
     out = mask.copy()
     on, off = np.flatnonzero(mask), np.flatnonzero(~mask)
     m = min(m, on.size, off.size)

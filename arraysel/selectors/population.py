@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from arraysel.constraints import group_constraints
 from arraysel.selection import mask_key, survivors
 from arraysel.selectors.contract import Option
 from arraysel.selectors.layouts import uniform_layout
@@ -42,8 +43,11 @@ POPULATION_OPTIONS = {
 }
 
 
-def initial_population(rng: np.random.Generator, mu: int, n: int, k: int) -> np.ndarray:
-    """``(mu, n)`` boolean masks: the uniform layout first, then random ``k``-selections."""
+def initial_population(rng: np.random.Generator, mu: int, n: int, k: int, constraints=None) -> np.ndarray:
+    """``(mu, n)`` boolean masks: the uniform layout first, then random ``k``-selections (under
+    channel-group ``constraints``: random feasible selections only)."""
+    if constraints is not None:
+        return constraints.random_masks(rng, mu)
     pop = np.zeros((mu, n), dtype=bool)
     np.put_along_axis(pop, random_subsets(rng, mu, n, k), True, axis=1)
     pop[0] = False
@@ -51,9 +55,12 @@ def initial_population(rng: np.random.Generator, mu: int, n: int, k: int) -> np.
     return pop
 
 
-def exact_k_crossover(p1: np.ndarray, p2: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def exact_k_crossover(p1: np.ndarray, p2: np.ndarray, rng: np.random.Generator, constraints=None) -> np.ndarray:
     """A child mask with exactly ``p1.sum()`` elements: the common ones plus a random fill
-    from the symmetric difference."""
+    from the symmetric difference (under channel-group ``constraints`` their
+    :meth:`~arraysel.constraints.Constraints.crossover`)."""
+    if constraints is not None:
+        return constraints.crossover(p1, p2, rng)
     child = p1 & p2
     need = int(p1.sum()) - int(child.sum())
     if need > 0:
@@ -69,7 +76,7 @@ def tournament(fit: np.ndarray, size: int, rng: np.random.Generator) -> int:
 
 
 def breed(pop: np.ndarray, fit: np.ndarray, children: int, rng: np.random.Generator, *, tournament_size: int = 3,
-          crossover: float = 0.9, mutation: float = 1.0) -> np.ndarray:
+          crossover: float = 0.9, mutation: float = 1.0, constraints=None) -> np.ndarray:
     """``(children, n)`` child masks: parents by tournaments of ``tournament_size``; with
     probability ``crossover`` an :func:`exact_k_crossover` of two parents, else a copy of one;
     then ``Poisson(mutation)`` random swaps; a child equal to a member or an earlier child gets
@@ -80,13 +87,13 @@ def breed(pop: np.ndarray, fit: np.ndarray, children: int, rng: np.random.Genera
         i = tournament(fit, tournament_size, rng)
         if rng.random() < crossover:
             j = tournament(fit, tournament_size, rng)
-            child = exact_k_crossover(pop[i], pop[j], rng)
+            child = exact_k_crossover(pop[i], pop[j], rng, constraints)
         else:
             child = pop[i].copy()
-        child = random_swaps(child, int(rng.poisson(mutation)), rng)
+        child = random_swaps(child, int(rng.poisson(mutation)), rng, constraints)
         key = mask_key(child)
         if key in known:
-            child = random_swaps(child, 1, rng)
+            child = random_swaps(child, 1, rng, constraints)
             key = mask_key(child)
         known.add(key)
         out[c] = child
@@ -100,7 +107,8 @@ def next_generation(objective, pop: np.ndarray, fit: np.ndarray, rng: np.random.
     budget every generation, and raises :class:`~arraysel.selectors.contract.BudgetExhausted` when
     the budget ends) and keep the :func:`survivors`."""
     children = breed(pop, fit, options["children"], rng, tournament_size=options["tournament"],
-                     crossover=options["crossover"], mutation=options["mutation"])
+                     crossover=options["crossover"], mutation=options["mutation"],
+                     constraints=group_constraints(objective))
     cfit = objective.score(children)
     return survivors(np.concatenate([pop, children]), np.concatenate([fit, cfit]), options["population"])
 
@@ -120,10 +128,10 @@ def first_population(objective, k: int, rng: np.random.Generator,
         pool = chirp_masks(objective, k, rng, CHIRP_POOL * mu)
         pop, fit = survivors(pool, objective.score(pool), mu)
         if pop.shape[0] < mu:  # duplicate layouts (a tiny array): random selections fill the rest
-            extra = initial_population(rng, mu - pop.shape[0], n, k)
+            extra = initial_population(rng, mu - pop.shape[0], n, k, group_constraints(objective))
             pop, fit = np.concatenate([pop, extra]), np.concatenate([fit, objective.score(extra)])
         return pop, fit
-    pop = initial_population(rng, mu, n, k)
+    pop = initial_population(rng, mu, n, k, group_constraints(objective))
     return pop, objective.score(pop)
 
 

@@ -69,7 +69,8 @@ class Relaxation:
 
 def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tensor | None = None,
                          hard: bool = True, sample: bool = False,
-                         generator: torch.Generator | None = None) -> Relaxation:
+                         generator: torch.Generator | None = None, groups: np.ndarray | None = None,
+                         by_column: bool = False) -> Relaxation:
     """Draw ``k`` distinct elements, one column of ``logits`` (shape ``(Ne, k)``) at a time.
 
     Parameters
@@ -81,6 +82,11 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
     hard : return the straight-through matrix as ``P`` (else ``P = P_soft``)
     sample : draw each element from ``p_j`` with ``generator`` instead of
         taking its arg-max (with Gumbel noise the arg-max already is a sample)
+
+    groups : channel groups (one group number per element, :mod:`arraysel.constraints`): an
+        element drawn takes its whole group out of the later columns (at most one element per
+        group); with ``by_column`` column ``j`` is the categorical choice among the elements of
+        group ``j`` (exactly one per group, ``k`` = the number of groups)
 
     The drawn element of each column is always one not chosen before, even
     when scores are NaN or infinite.
@@ -105,17 +111,22 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
     available = np.ones((k, n), dtype=bool)
     left = np.ones(n, dtype=bool)
     chosen = []
+    if by_column and groups is not None:
+        if int(np.max(groups)) + 1 != k:
+            raise ValueError(f"by_column needs one column per group: {int(np.max(groups)) + 1} groups, k = {k}")
     for j in range(k):
-        available[j] = left
-        i = int(np.argmax(np.where(left, picks[j], -np.inf)))
+        available[j] = left if not (by_column and groups is not None) else left & (groups == j)
+        i = int(np.argmax(np.where(available[j], picks[j], -np.inf)))
         if sample:
             with torch.no_grad():
-                gone = torch.from_numpy(~left).to(logits.device)
+                gone = torch.from_numpy(~available[j]).to(logits.device)
                 probs = torch.exp(torch.log_softmax(scores_all[:, j].detach().masked_fill(gone, -math.inf), dim=0))
                 if bool(torch.isfinite(probs).all()) and float(probs.sum()) > 0:
                     i = int(torch.multinomial(probs, 1, generator=generator))
         chosen.append(i)
         left[i] = False
+        if groups is not None:
+            left[groups == groups[i]] = False
     available = torch.from_numpy(available).to(logits.device)
     # All k masked softmax columns at once, as rows of the transposed scores (each row is
     # reduced exactly as one column on its own would be).

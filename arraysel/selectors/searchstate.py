@@ -13,7 +13,8 @@ from typing import Callable
 import numpy as np
 
 from arraysel.errors import ParameterError
-from arraysel.objective.neighbours import moves_between, swap_masks
+from arraysel.constraints import group_constraints
+from arraysel.objective.neighbours import moves_between, swap_masks, swap_pairs
 from arraysel.selection import mask_key
 from arraysel.selectors.lossmodel import (GRADIENT_UPDATE_MAX, QUADRATIC_MAX_ELEMENTS, loss_gradient, loss_quadratic,
                                           swap_changes)
@@ -53,6 +54,11 @@ class SearchState:
         for name in FIELDS:  # read as attributes as the search goes (a benchmark may change pairs)
             setattr(self, name, getattr(settings, name))
         self.objective = objective
+        #: the channel groups a selection must meet (:func:`~arraysel.constraints.group_constraints`):
+        #: swaps stay inside a group, moves that leave the feasible set are never scored
+        self.constraints = group_constraints(objective)
+        if self.constraints is not None:
+            self.shift = 0  # a segment shift moves elements across groups
         self.n = int(objective.n_elements)
         self.k = int(k)
         self.rng = rng
@@ -97,6 +103,13 @@ class SearchState:
         ones not seen before are scored as moves from ``mask`` in one call of the objective's
         ``score_moves`` (:mod:`arraysel.objective.neighbours`) when it has one."""
         own = getattr(self.objective, "score_moves", None)
+        if self.constraints is not None:  # a move that leaves the feasible set is not scored
+            ok = self.constraints.feasible_rows(cands)
+            if not ok.all():
+                out = np.full(len(cands), math.inf)
+                if ok.any():
+                    out[ok] = self.score_moved(mask, cands[ok])
+                return out
         if own is None:
             return self.score(cands)
         return self._cached(cands, lambda todo: own(mask, *moves_between(mask, cands[todo])))
@@ -186,7 +199,17 @@ class SearchState:
 
     # -- where selections come from ------------------------------------------------
     def _random_mask(self, rng: np.random.Generator) -> np.ndarray:
+        if self.constraints is not None:
+            return self.constraints.random_masks(rng, 1)[0]
         return random_mask(rng, self.n, self.k)
+
+    def _swap_pairs(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The one-swaps of ``mask`` a descent tries, in a random order (feasible ones only)."""
+        if self.constraints is None:
+            return swap_pairs(mask, self.rng)
+        a, b = self.constraints.swap_pairs(mask)
+        order = self.rng.permutation(a.size)
+        return a[order], b[order]
 
     def _fresh_mask(self, rng: np.random.Generator) -> np.ndarray:
         """A fresh selection for a restart or an extra start: ``restart_from``'s, else by ``fresh``

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from arraysel.constraints import group_constraints
 from arraysel.errors import ParameterError, check_number
 from arraysel.io.masks import parse_elements
 from arraysel.objective.contract import element_layout
@@ -59,7 +60,44 @@ def chirp_masks(objective, k: int, rng: np.random.Generator, m: int) -> np.ndarr
     """``m`` random chirped selections (:func:`~arraysel.selectors.layouts.chirped_layouts`) of
     ``k`` of the objective's elements, on its element grid when it has one: ``(m, Ne)`` bool."""
     grid, _ = element_layout(objective)
-    return chirped_layouts(rng, int(objective.n_elements), k, m, grid)
+    masks = chirped_layouts(rng, int(objective.n_elements), k, m, grid)
+    gc = group_constraints(objective)
+    return masks if gc is None else np.stack([layout_projection(objective, np.flatnonzero(r), gc) for r in masks])
+
+
+def layout_projection(objective, chosen, gc=None) -> np.ndarray:
+    """A layout's selection ``chosen`` made feasible under the objective's channel groups, as a
+    mask: every group that holds elements of the layout keeps one (the lowest index); the other
+    groups the selection needs (all of them under ``exactly-one``, as many as ``k`` still
+    allows under ``at-most-one``) each take, one after the other, the element farthest from those
+    already kept (the lowest index first without element positions)."""
+    n = int(objective.n_elements)
+    gc = group_constraints(objective) if gc is None else gc
+    mask = np.zeros(n, dtype=bool)
+    mask[np.asarray(chosen, dtype=np.int64)] = True
+    if gc is None:
+        return mask
+    g = gc.unit_groups
+    out = np.zeros(n, dtype=bool)
+    for e in np.flatnonzero(mask):
+        if not out[g == g[e]].any() and out.sum() < gc.k_units:
+            out[e] = True
+    _, pos = element_layout(objective)
+    filled = np.zeros(int(g.max()) + 1, dtype=bool)
+    filled[g[out]] = True
+    if pos is None:
+        dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
+    elif out.any():
+        dmin = np.sqrt(((pos[:, None, :] - pos[None, out, :]) ** 2).sum(-1)).min(axis=1)
+    else:
+        dmin = np.zeros(n)
+    while int(out.sum()) < gc.k_units:
+        cand = np.where(filled[g], -np.inf, dmin)
+        e = int(np.argmax(cand))
+        out[e], filled[g[e]] = True, True
+        if pos is not None:
+            dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
+    return out
 
 
 def chirp_selection(objective, k: int, rng: np.random.Generator, m: int = CHIRP_CANDIDATES) -> list[int]:
@@ -96,6 +134,10 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     anyway, the remaining steps follow the ranking of the last scored batch (or an evenly spaced
     choice when none was scored), so a selection is returned either way.
     """
+    gc = group_constraints(objective)
+    if gc is not None:
+        raise ParameterError(f"greedy elimination cannot honour the channel groups ({gc.describe()}); "
+                             f"constraints.groups needs another selector (swap, anneal, ste, ...)")
     check_number("share", share, lo=0.0, hi=1.0, lo_open=True)
     n = int(objective.n_elements)
     current = list(range(n)) if backward else []
@@ -185,6 +227,18 @@ class _GreedyPace:
         return int(min(left, max(1, math.ceil(left / (steps + 1)))))
 
 
+class _Unconstrained:
+    """``objective`` seen without its channel groups (its layouts, before they are projected)."""
+
+    constraints = None
+
+    def __init__(self, objective):
+        self._o = objective
+
+    def __getattr__(self, name):
+        return getattr(self._o, name)
+
+
 def start_options(default: str = "uniform") -> dict[str, Option]:
     """The declared options ``start`` (one of :data:`START_CHOICES`, default ``default``) and
     ``elements`` (an element list; given, it implies ``start = elements``)."""
@@ -220,6 +274,15 @@ def _start(how: str, objective, k: int, rng: np.random.Generator, elements: str 
     n = int(objective.n_elements)
     if elements is not None:
         how = "elements"
+    gc = group_constraints(objective)
+    if gc is not None and how != "elements":
+        if how == "greedy":  # greedy elimination cannot honour the groups: the chirped start instead
+            how = "chirp"
+        if how == "random":
+            return [int(i) for i in np.flatnonzero(gc.random_masks(rng, 1)[0])]
+        if how == "uniform":
+            layout = _start(how, _Unconstrained(objective), k, rng, None, option)
+            return [int(i) for i in np.flatnonzero(layout_projection(objective, layout, gc))]
     if how == "uniform":
         grid, positions = element_layout(objective)
         if 0 < k and grid is None and is_planar(positions):  # a grid with blank rows, an imported layout

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from arraysel.constraints import refuse_groups
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, numpy_rng
 
@@ -25,6 +26,9 @@ class SwapSelector(Selector):
         return self.options["batch"]
 
     def select(self, objective, k, seed):
+        # forced elements and symmetry are the runner's (this search sees the free elements only);
+        # channel groups it does not honour, and says so (docs/constraints.md)
+        refuse_groups(objective, self.name)
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
         current = np.zeros(n, dtype=bool)
