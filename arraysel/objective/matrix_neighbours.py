@@ -1,0 +1,246 @@
+"""The neighbours of a selection on a 3-D scene, scored from the selection's own image.
+
+The fast path (:class:`~arraysel.physics.volume.fast.MatrixFastPSF`) forms the image of pixel
+``p`` as a sum over its columns ``j``:
+
+    img(p) = sum_{j in p} gamma_j(w) z_j(w),   gamma(w) = w @ B,   z(w) = w @ Z,
+
+with ``B`` the receive matrix and ``Z = C Psi`` the transmit rows of the elements (``Z_e = C_e Psi``),
+so the image is bilinear in the element weights ``w``, the same mask on transmit and receive. A
+move ``w' = w + d`` (``d = +1`` on the elements switched on, ``-1`` on those switched off) changes it
+by
+
+    img'(p) = img(p) + sum_e d_e S_e(p) + sum_{j in p} (d @ B)_j (d @ Z)_j,
+    S_e(p) = sum_{j in p} (B_ej z_j + gamma_j Z_ej)
+
+(``S_e``: the receive-side and transmit-side single-element images of the selection). For a swap
+(``a`` off, ``b`` on) the last term is ``D_a + D_b - X_ab`` with ``D_e = sum_j B_ej Z_ej`` and the
+cross term ``X_ab = sum_j (B_aj Z_bj + Z_aj B_bj)``. Nothing is approximated: these are the fast
+path's own planes, to rounding.
+
+:class:`MatrixNeighbourhood` keeps ``Z``, ``D`` and, per selection, its image and the ``S_e`` it has
+needed; it scores
+
+* a dense set of swaps (many ``b`` for each ``a``, a whole neighbourhood) by one batched matrix
+  product per pixel group for a block of ``a``: ``X`` of the block against every element;
+* any other moves (a few swaps, moves of ``m`` elements) one by one from ``d @ B`` and ``d @ Z``.
+
+The neighbours' planes then go through the objective's metrics (:meth:`MatrixObjective._metrics`),
+the same function :meth:`MatrixObjective.evaluate` scores masks with.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from arraysel.errors import SelectionError
+from arraysel.physics.volume.psf import split_planes
+
+__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "MOVE_CHUNK", "DENSE_SHARE"]
+
+#: outgoing elements per batched product of the dense path (its output: rows x Ne images)
+BLOCK_ROWS = 4
+#: moves per step of the move-by-move path
+MOVE_CHUNK = 32
+#: the dense path is taken when the requested swaps fill at least this share of the
+#: (distinct outgoing elements) x Ne block it computes
+DENSE_SHARE = 0.25
+
+
+class MatrixNeighbourhood:
+    """Exact neighbourhood scoring of a :class:`~arraysel.objective.matrix_objective.MatrixObjective`
+    whose planes come from the fast path (module docstring). ``objective.model`` must be a
+    :class:`~arraysel.physics.volume.fast.MatrixFastPSF`."""
+
+    def __init__(self, objective):
+        model = objective.model
+        self.objective = objective
+        self.model = model
+        self.n_elements = ne = model.n_elements
+        self.cols = model._Psi.shape[1]
+        self.cdtype = model.cdtype
+        #: (pixels, width, column offset) per pixel group, in the fast path's column order
+        self.groups = list(model._groups)
+        self.n_pixels = sum(n for n, _, _ in self.groups)
+        self.unsort = model._unsort
+        self._B = torch.view_as_complex(model._B.reshape(ne, self.cols, 2))   # (Ne, cols), no copy
+        self._Z = None          # (Ne, cols) transmit rows C_e Psi
+        self._D = None          # (Ne, P) sum_j B_ej Z_ej, group order
+        self._right = None      # per group (n, 4 w, Ne) real: [Re Z | Re B | Im Z | Im B] by column
+        self._key = None        # the selection whose image and S_e are held
+        self._img = None
+        self._S = None
+        self._have = None
+
+    # ---------------------------------------------------------------- shared tensors
+    def _segsum(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-pixel sums ``(..., P)`` (group order) of per-column values ``(..., cols)``."""
+        lead = x.shape[:-1]
+        parts = [x[..., o:o + n * w].reshape(*lead, n, w).sum(-1) for n, w, o in self.groups]
+        return torch.cat(parts, dim=-1)
+
+    def _rows(self, elements: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The receive and transmit rows ``(B_e, Z_e)`` of ``elements``, each ``(E, cols)``."""
+        return self._B.index_select(0, elements), self.transmit_rows().index_select(0, elements)
+
+    def transmit_rows(self) -> torch.Tensor:
+        """``Z = C Psi`` (Ne, cols): the transmit rows of the elements (formed once)."""
+        if self._Z is None:
+            m = self.model
+            c = m._C.permute(1, 0, 2).reshape(self.n_elements, -1)            # (Ne, n_tx r)
+            self._Z = c @ m._Psi
+        return self._Z
+
+    def diagonal(self) -> torch.Tensor:
+        """``D_e(p) = sum_j B_ej Z_ej`` (Ne, P), group order (formed once)."""
+        if self._D is None:
+            Z = self.transmit_rows()
+            self._D = torch.cat([self._segsum(self._B[i:i + 64] * Z[i:i + 64])
+                                 for i in range(0, self.n_elements, 64)])
+        return self._D
+
+    def _rights(self) -> list[torch.Tensor]:
+        """Per pixel group, the right factor ``(n, 4 w, Ne)`` (real) of the cross terms."""
+        if self._right is None:
+            Z = self.transmit_rows()
+            rdt = self.model._B.dtype
+            out = []
+            for n, w, o in self.groups:
+                r = torch.empty(n, 4 * w, self.n_elements, dtype=rdt)
+                zr = torch.view_as_real(Z[:, o:o + n * w]).reshape(-1, n, w, 2)
+                br = torch.view_as_real(self._B[:, o:o + n * w]).reshape(-1, n, w, 2)
+                for k, src in enumerate((zr[..., 0], br[..., 0], zr[..., 1], br[..., 1])):
+                    r[:, k * w:(k + 1) * w] = src.permute(1, 2, 0)
+                out.append(r)
+            self._right = out
+        return self._right
+
+    # ---------------------------------------------------------------- the selection
+    def forget(self) -> None:
+        """Drop the held selection (the next one is formed afresh)."""
+        self._key = self._img = self._S = self._have = None
+
+    def select(self, mask: np.ndarray) -> None:
+        """Hold the image of the 0/1 selection ``mask`` (Ne,) (kept while it stays the same)."""
+        key = mask.tobytes()
+        if key == self._key:
+            return
+        m = self.model
+        w = torch.as_tensor(mask, dtype=m.dtype, device=m.device)[None]
+        gamma = torch.view_as_complex((w @ m._B).reshape(1, -1, 2))[0]
+        c = torch.einsum("be,ner->bnr", w.to(self.cdtype), m._C).reshape(1, -1)
+        z = (c @ m._Psi)[0]
+        self._gamma, self._z = gamma, z
+        self._img = self._segsum(gamma * z)
+        self._S = torch.zeros(self.n_elements, self.n_pixels, dtype=self.cdtype)
+        self._have = torch.zeros(self.n_elements, dtype=torch.bool)
+        self._key = key
+
+    def _single(self, elements: torch.Tensor) -> torch.Tensor:
+        """``S_e`` (E, P) of ``elements`` for the held selection (formed when first needed)."""
+        need = torch.unique(elements[~self._have[elements]])
+        for i in range(0, need.numel(), 64):
+            e = need[i:i + 64]
+            Be, Ze = self._rows(e)
+            self._S[e] = self._segsum(Be * self._z + self._gamma * Ze)
+            self._have[e] = True
+        return self._S.index_select(0, elements)
+
+    # ---------------------------------------------------------------- images
+    def _natural(self, img: torch.Tensor) -> torch.Tensor:
+        return img.index_select(-1, self.unsort)
+
+    def move_images(self, out: np.ndarray, into: np.ndarray) -> torch.Tensor:
+        """Images (B, P), natural pixel order, of the moves ``out[i]`` off, ``into[i]`` on
+        (``(B, m)``, ``-1`` pads) of the held selection, move by move."""
+        a = torch.as_tensor(out, dtype=torch.long)
+        b = torch.as_tensor(into, dtype=torch.long)
+        imgs = []
+        for i in range(0, a.shape[0], MOVE_CHUNK):
+            ai, bi = a[i:i + MOVE_CHUNK], b[i:i + MOVE_CHUNK]
+            elems = torch.cat([ai, bi], 1)
+            sign = torch.cat([-torch.ones_like(ai), torch.ones_like(bi)], 1).to(self.model.dtype)
+            sign = torch.where(elems >= 0, sign, torch.zeros_like(sign))
+            idx = elems.clamp_min(0)
+            flat = idx.reshape(-1)
+            Be, Ze = self._rows(flat)
+            s = sign.reshape(-1, 1).to(self.cdtype)
+            nb, width = idx.shape
+            dB = (Be * s).reshape(nb, width, -1).sum(1)
+            dZ = (Ze * s).reshape(nb, width, -1).sum(1)
+            lin = (self._single(flat) * s).reshape(nb, width, -1).sum(1)
+            imgs.append(self._img + lin + self._segsum(dB * dZ))
+        return self._natural(torch.cat(imgs))
+
+    def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
+        """Images (A, Ne, P), group order, of the swaps ``outs[i]`` off and every element on
+        (the columns of elements that are active are meaningless), by one batched product per
+        pixel group."""
+        A = outs.numel()
+        Ba, Za = self._rows(outs)
+        rights = self._rights()
+        rdt = self.model._B.dtype
+        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=rdt)
+        p0 = 0
+        for (n, w, o), r in zip(self.groups, rights):
+            L = torch.view_as_real(torch.cat([Ba[:, o:o + n * w].reshape(A, n, w),
+                                              Za[:, o:o + n * w].reshape(A, n, w)], 2)).permute(1, 0, 2, 3)
+            left = torch.empty(n, 2, A, 4 * w, dtype=rdt)   # [re rows; im rows] x [re | im] of (B_a, Z_a)
+            left[:, 0, :, :2 * w] = L[..., 0]
+            left[:, 0, :, 2 * w:] = -L[..., 1]
+            left[:, 1, :, :2 * w] = L[..., 1]
+            left[:, 1, :, 2 * w:] = L[..., 0]
+            torch.bmm(left.reshape(n, 2 * A, 4 * w), r, out=X[p0:p0 + n])
+            p0 += n
+        X = torch.complex(X[:, :A], X[:, A:]).permute(1, 2, 0)                 # (A, Ne, P)
+        D = self.diagonal()
+        Sa = self._single(outs)
+        allS = self._single(torch.arange(self.n_elements))
+        base = (self._img - Sa + D.index_select(0, outs))[:, None]            # (A, 1, P)
+        return base + (allS + D)[None] - X
+
+    def swap_images(self, out: np.ndarray, into: np.ndarray):
+        """Yield ``(positions, images)``: the images (natural order) of the swaps ``(out[i],
+        into[i])`` at ``positions`` of the request, in pieces, by the dense or the
+        move-by-move path."""
+        order = np.argsort(out, kind="stable")
+        a_sorted = out[order]
+        starts = np.flatnonzero(np.r_[True, a_sorted[1:] != a_sorted[:-1]])
+        ends = np.r_[starts[1:], a_sorted.size]
+        dense = a_sorted.size >= DENSE_SHARE * starts.size * self.n_elements
+        if not dense:
+            for i in range(0, out.size, 4 * MOVE_CHUNK):
+                sl = slice(i, i + 4 * MOVE_CHUNK)
+                yield np.arange(out.size)[sl], self.move_images(out[sl, None], into[sl, None])
+            return
+        for g in range(0, starts.size, BLOCK_ROWS):
+            s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]
+            outs = torch.as_tensor(a_sorted[s0], dtype=torch.long)
+            block = self.swap_block(outs)
+            rows = np.concatenate([np.full(e - s, i) for i, (s, e) in enumerate(zip(s0, s1))])
+            pos = np.concatenate([order[s:e] for s, e in zip(s0, s1)])
+            img = block[torch.as_tensor(rows), torch.as_tensor(into[pos])]
+            yield pos, self._natural(img)
+
+
+def check_selection(mask: np.ndarray, n_elements: int) -> None:
+    """SelectionError when ``mask`` is not one non-empty selection of the scene's elements."""
+    if mask.size != n_elements:
+        raise SelectionError(f"mask must have shape ({n_elements},), got ({mask.size},)")
+    if not mask.any():
+        raise SelectionError("empty selection (no active element): mask")
+
+
+def score_images(objective, pieces, total: int) -> dict[str, np.ndarray]:
+    """The metrics ``{name: float64 (total,)}`` of the images ``pieces`` yields as
+    ``(positions, images (B, P))``, through the objective's metrics in batches of its chunk."""
+    out: dict[str, np.ndarray] = {}
+    for pos, img in pieces:
+        for i in range(0, img.shape[0], objective.chunk):
+            planes = split_planes(img[i:i + objective.chunk], objective.model._shapes)
+            met = objective._metrics(planes)
+            for k, v in met.items():
+                if k not in out:
+                    out[k] = np.empty(total, dtype=np.float64)
+                out[k][pos[i:i + objective.chunk]] = v.double().cpu().numpy()
+    return out
