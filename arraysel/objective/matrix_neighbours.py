@@ -34,7 +34,6 @@ import numpy as np
 import torch
 
 from arraysel.errors import SelectionError
-from arraysel.physics.volume.psf import split_planes
 
 __all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "MOVE_CHUNK", "DENSE_SHARE"]
 
@@ -71,6 +70,8 @@ class MatrixNeighbourhood:
         self._img = None
         self._S = None
         self._have = None
+        self._U = None          # S_e + D_e as columns, per selection (dense path)
+        self._metrics = None
 
     # ---------------------------------------------------------------- shared tensors
     def _segsum(self, x: torch.Tensor) -> torch.Tensor:
@@ -118,7 +119,7 @@ class MatrixNeighbourhood:
     # ---------------------------------------------------------------- the selection
     def forget(self) -> None:
         """Drop the held selection (the next one is formed afresh)."""
-        self._key = self._img = self._S = self._have = None
+        self._key = self._img = self._S = self._have = self._U = None
 
     def select(self, mask: np.ndarray) -> None:
         """Hold the image of the 0/1 selection ``mask`` (Ne,) (kept while it stays the same)."""
@@ -134,6 +135,7 @@ class MatrixNeighbourhood:
         self._img = self._segsum(gamma * z)
         self._S = torch.zeros(self.n_elements, self.n_pixels, dtype=self.cdtype)
         self._have = torch.zeros(self.n_elements, dtype=torch.bool)
+        self._U = None
         self._key = key
 
     def _single(self, elements: torch.Tensor) -> torch.Tensor:
@@ -146,16 +148,13 @@ class MatrixNeighbourhood:
             self._have[e] = True
         return self._S.index_select(0, elements)
 
-    # ---------------------------------------------------------------- images
-    def _natural(self, img: torch.Tensor) -> torch.Tensor:
-        return img.index_select(-1, self.unsort)
-
-    def move_images(self, out: np.ndarray, into: np.ndarray) -> torch.Tensor:
-        """Images (B, P), natural pixel order, of the moves ``out[i]`` off, ``into[i]`` on
-        (``(B, m)``, ``-1`` pads) of the held selection, move by move."""
+    # ---------------------------------------------------------------- images, as columns
+    def move_columns(self, out: np.ndarray, into: np.ndarray):
+        """Yield ``(positions, re, im, None)``: the images of the moves ``out[i]`` off, ``into[i]``
+        on (``(B, m)``, ``-1`` pads) of the held selection as columns ``(P, M)`` (rows in the fast
+        path's pixel order), move by move."""
         a = torch.as_tensor(out, dtype=torch.long)
         b = torch.as_tensor(into, dtype=torch.long)
-        imgs = []
         for i in range(0, a.shape[0], MOVE_CHUNK):
             ai, bi = a[i:i + MOVE_CHUNK], b[i:i + MOVE_CHUNK]
             elems = torch.cat([ai, bi], 1)
@@ -169,13 +168,20 @@ class MatrixNeighbourhood:
             dB = (Be * s).reshape(nb, width, -1).sum(1)
             dZ = (Ze * s).reshape(nb, width, -1).sum(1)
             lin = (self._single(flat) * s).reshape(nb, width, -1).sum(1)
-            imgs.append(self._img + lin + self._segsum(dB * dZ))
-        return self._natural(torch.cat(imgs))
+            img = (self._img + lin + self._segsum(dB * dZ)).T
+            yield np.arange(i, i + nb), img.real, img.imag, None
+
+    def _pairs_part(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``S_e + D_e`` of every element as columns (P, Ne), real and imaginary (per selection)."""
+        if self._U is None:
+            u = (self._single(torch.arange(self.n_elements)) + self.diagonal()).T
+            self._U = (u.real.contiguous(), u.imag.contiguous())
+        return self._U
 
     def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
-        """Images (A, Ne, P), group order, of the swaps ``outs[i]`` off and every element on
-        (the columns of elements that are active are meaningless), by one batched product per
-        pixel group."""
+        """The images of the swaps ``outs[i]`` off and every element on (the columns of active
+        elements are meaningless) as real ``(P, 2, A, Ne)``: real and imaginary parts, rows in
+        the fast path's pixel order; one batched product per pixel group."""
         A = outs.numel()
         Ba, Za = self._rows(outs)
         rights = self._rights()
@@ -192,35 +198,58 @@ class MatrixNeighbourhood:
             left[:, 1, :, 2 * w:] = L[..., 0]
             torch.bmm(left.reshape(n, 2 * A, 4 * w), r, out=X[p0:p0 + n])
             p0 += n
-        X = torch.complex(X[:, :A], X[:, A:]).permute(1, 2, 0)                 # (A, Ne, P)
-        D = self.diagonal()
-        Sa = self._single(outs)
-        allS = self._single(torch.arange(self.n_elements))
-        base = (self._img - Sa + D.index_select(0, outs))[:, None]            # (A, 1, P)
-        return base + (allS + D)[None] - X
+        X = X.reshape(self.n_pixels, 2, A, self.n_elements).neg_()
+        v = (self._img[None] - self._single(outs) + self.diagonal().index_select(0, outs)).T   # (P, A)
+        ur, ui = self._pairs_part()
+        X[:, 0].add_(ur[:, None]).add_(v.real[:, :, None])
+        X[:, 1].add_(ui[:, None]).add_(v.imag[:, :, None])
+        return X
 
-    def swap_images(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, images)``: the images (natural order) of the swaps ``(out[i],
-        into[i])`` at ``positions`` of the request, in pieces, by the dense or the
-        move-by-move path."""
+    def swap_columns(self, out: np.ndarray, into: np.ndarray):
+        """Yield ``(positions, re, im, cols)``: the images of the swaps ``(out[i], into[i])`` of
+        the held selection at ``positions`` of the request as the columns ``cols`` (None: all) of
+        ``(P, M)`` real and imaginary parts, by the dense path (a block of outgoing elements
+        against every element) or move by move."""
         order = np.argsort(out, kind="stable")
         a_sorted = out[order]
         starts = np.flatnonzero(np.r_[True, a_sorted[1:] != a_sorted[:-1]])
         ends = np.r_[starts[1:], a_sorted.size]
-        dense = a_sorted.size >= DENSE_SHARE * starts.size * self.n_elements
-        if not dense:
-            for i in range(0, out.size, 4 * MOVE_CHUNK):
-                sl = slice(i, i + 4 * MOVE_CHUNK)
-                yield np.arange(out.size)[sl], self.move_images(out[sl, None], into[sl, None])
+        if a_sorted.size < DENSE_SHARE * starts.size * self.n_elements:
+            yield from self.move_columns(out[:, None], into[:, None])
             return
+        ne = self.n_elements
         for g in range(0, starts.size, BLOCK_ROWS):
             s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]
-            outs = torch.as_tensor(a_sorted[s0], dtype=torch.long)
-            block = self.swap_block(outs)
-            rows = np.concatenate([np.full(e - s, i) for i, (s, e) in enumerate(zip(s0, s1))])
+            X = self.swap_block(torch.as_tensor(a_sorted[s0], dtype=torch.long))
+            A = s0.size
             pos = np.concatenate([order[s:e] for s, e in zip(s0, s1)])
-            img = block[torch.as_tensor(rows), torch.as_tensor(into[pos])]
-            yield pos, self._natural(img)
+            rows = np.concatenate([np.full(e - s, i) for i, (s, e) in enumerate(zip(s0, s1))])
+            idx = torch.as_tensor(rows * ne + into[pos])
+            re = X[:, 0].reshape(self.n_pixels, A * ne)
+            im = X[:, 1].reshape(self.n_pixels, A * ne)
+            yield pos, re, im, idx
+
+    def metrics(self):
+        """The :class:`~arraysel.objective.columns3d.ColumnMetrics` of the objective (formed once)."""
+        if self._metrics is None:
+            from arraysel.objective.columns3d import ColumnMetrics
+
+            obj = self.objective
+            ref = {k: v.detach().cpu() for k, v in obj.reference_planes().items()}
+            self._metrics = ColumnMetrics(obj.coords, ref, torch.argsort(self.unsort.cpu()),
+                                          dtype=self.model.dtype, **obj.metric_kw)
+        return self._metrics
+
+    def score(self, pieces, total: int) -> dict[str, np.ndarray]:
+        """``{name: float64 (total,)}`` of the columns ``pieces`` yields as ``(positions, re, im, cols)``."""
+        cm = self.metrics()
+        out: dict[str, np.ndarray] = {}
+        for pos, re, im, cols in pieces:
+            for k, v in cm(re, im, cols).items():
+                if k not in out:
+                    out[k] = np.empty(total, dtype=np.float64)
+                out[k][pos] = v
+        return out
 
 
 def check_selection(mask: np.ndarray, n_elements: int) -> None:
@@ -229,18 +258,3 @@ def check_selection(mask: np.ndarray, n_elements: int) -> None:
         raise SelectionError(f"mask must have shape ({n_elements},), got ({mask.size},)")
     if not mask.any():
         raise SelectionError("empty selection (no active element): mask")
-
-
-def score_images(objective, pieces, total: int) -> dict[str, np.ndarray]:
-    """The metrics ``{name: float64 (total,)}`` of the images ``pieces`` yields as
-    ``(positions, images (B, P))``, through the objective's metrics in batches of its chunk."""
-    out: dict[str, np.ndarray] = {}
-    for pos, img in pieces:
-        for i in range(0, img.shape[0], objective.chunk):
-            planes = split_planes(img[i:i + objective.chunk], objective.model._shapes)
-            met = objective._metrics(planes)
-            for k, v in met.items():
-                if k not in out:
-                    out[k] = np.empty(total, dtype=np.float64)
-                out[k][pos[i:i + objective.chunk]] = v.double().cpu().numpy()
-    return out

@@ -249,7 +249,7 @@ class MatrixObjective(Objective):
         fast path the neighbours' planes are the selection's planes plus the low-rank change of
         each move (:mod:`arraysel.objective.matrix_neighbours`): the same planes, to rounding, and
         the same metrics as scoring the masks; on the exact path, the masks."""
-        from arraysel.objective.matrix_neighbours import check_selection, score_images
+        from arraysel.objective.matrix_neighbours import check_selection
         from arraysel.objective.neighbours import check_moves, move_masks
 
         m, a, b = check_moves(mask, out, into)
@@ -260,10 +260,10 @@ class MatrixObjective(Objective):
         with torch.no_grad(), self._timed():
             nb.select(m)
             if a.shape[1] == 1 and (a >= 0).all():
-                pieces = nb.swap_images(a[:, 0], b[:, 0])
+                pieces = nb.swap_columns(a[:, 0], b[:, 0])
             else:
-                pieces = [(np.arange(a.shape[0]), nb.move_images(a, b))]
-            res = score_images(self, pieces, int(a.shape[0]))
+                pieces = nb.move_columns(a, b)
+            res = nb.score(pieces, int(a.shape[0]))
             self.evaluations += int(a.shape[0])
         return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
 
