@@ -100,7 +100,7 @@ class MatrixNeighbourhood:
                                  for i in range(0, self.n_elements, 64)])
         return self._D
 
-    def _rights(self) -> list[torch.Tensor]:
+    def rights(self) -> list[torch.Tensor]:
         """Per pixel group, the right factor ``(n, 4 w, Ne)`` (real) of the cross terms."""
         if self._right is None:
             Z = self.transmit_rows()
@@ -184,7 +184,7 @@ class MatrixNeighbourhood:
         the fast path's pixel order; one batched product per pixel group."""
         A = outs.numel()
         Ba, Za = self._rows(outs)
-        rights = self._rights()
+        rights = self.rights()
         rdt = self.model._B.dtype
         X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=rdt)
         p0 = 0
