@@ -1,6 +1,7 @@
 """Neighbourhoods of a 3-D scene (arraysel.objective.matrix_neighbours): the neighbours' scores
 from the selection's image equal the neighbour masks scored independently (every metric, float64,
-both paths: dense blocks and move by move, moves of several elements), gradients are untouched,
+a whole neighbourhood from the selection's image, a few swaps and moves of several elements as
+masks), gradients are untouched,
 and the swap engine uses it and finds a planted optimum."""
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ def test_whole_neighbourhood_equals_independent_masks(small, seed):
     out, into = swap_pairs(m, np.random.default_rng(seed))
     assert out.size == 16 * 48
     before = small.evaluations
+    assert small._neighbourhood().dense(out)
     got = small.evaluate_swaps(m, out, into)
     assert small.evaluations - before == out.size
     _same(got, small.evaluate(swap_masks(m, out, into)))
@@ -58,7 +60,8 @@ def test_whole_neighbourhood_equals_independent_masks(small, seed):
 def test_a_few_swaps_move_by_move_equal_independent_masks(small):
     m = _mask(small, 2)
     out, into = swap_pairs(m, np.random.default_rng(2))
-    out, into = out[:7], into[:7]       # sparse: the move-by-move path
+    out, into = out[:7], into[:7]       # sparse: scored as masks
+    assert not small._neighbourhood().dense(out)
     _same(small.evaluate_swaps(m, out, into), small.evaluate(swap_masks(m, out, into)))
 
 
@@ -78,8 +81,9 @@ def test_a_walk_of_selections_keeps_each_image_right(small):
     rng = np.random.default_rng(4)
     for _ in range(3):
         out, into = swap_pairs(m, rng)
-        got = small.evaluate_swaps(m, out[:40], into[:40])
-        _same(got, small.evaluate(swap_masks(m, out[:40], into[:40])))
+        got = small.evaluate_swaps(m, out, into)
+        assert small._neighbourhood()._key == m.tobytes()
+        _same(got, small.evaluate(swap_masks(m, out, into)))
         m = swap_masks(m, out[:1], into[:1])[0]
 
 

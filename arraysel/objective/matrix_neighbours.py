@@ -21,9 +21,10 @@ path's own planes, to rounding.
 :class:`MatrixNeighbourhood` keeps ``Z``, ``D`` and, per selection, its image and the ``S_e`` it has
 needed; it scores
 
-* a dense set of swaps (many ``b`` for each ``a``, a whole neighbourhood) by one batched matrix
-  product per pixel group for a block of ``a``: ``X`` of the block against every element;
-* any other moves (a few swaps, moves of ``m`` elements) one by one from ``d @ B`` and ``d @ Z``.
+a dense set of swaps (many ``b`` for each ``a``, a whole neighbourhood) by one batched matrix
+product per pixel group for a block of ``a``: ``X`` of the block against every element. Sparser
+requests, and moves of several elements, are scored as masks (one by one, a move's image is no
+cheaper to form than a mask's in a batch: it reads whole rows of ``B`` and ``Z``).
 
 The neighbours' planes then go through the objective's metrics (:meth:`MatrixObjective._metrics`),
 the same function :meth:`MatrixObjective.evaluate` scores masks with.
@@ -35,15 +36,14 @@ import torch
 
 from arraysel.errors import SelectionError
 
-__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "MOVE_CHUNK", "DENSE_SHARE"]
+__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "DENSE_SHARE", "check_selection"]
 
 #: outgoing elements per batched product of the dense path (its output: rows x Ne images)
 BLOCK_ROWS = 4
-#: moves per step of the move-by-move path
-MOVE_CHUNK = 32
-#: the dense path is taken when the requested swaps fill at least this share of the
-#: (distinct outgoing elements) x Ne block it computes
-DENSE_SHARE = 0.25
+#: the neighbourhood path is taken when the requested swaps fill at least this share of the
+#: (distinct outgoing elements) x Ne block it computes (on matrix-1024 a neighbour of a block costs
+#: about a sixteenth of a mask scored by ``evaluate``; sparser requests are scored as masks)
+DENSE_SHARE = 1 / 16
 
 
 class MatrixNeighbourhood:
@@ -149,28 +149,6 @@ class MatrixNeighbourhood:
         return self._S.index_select(0, elements)
 
     # ---------------------------------------------------------------- images, as columns
-    def move_columns(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, re, im, None)``: the images of the moves ``out[i]`` off, ``into[i]``
-        on (``(B, m)``, ``-1`` pads) of the held selection as columns ``(P, M)`` (rows in the fast
-        path's pixel order), move by move."""
-        a = torch.as_tensor(out, dtype=torch.long)
-        b = torch.as_tensor(into, dtype=torch.long)
-        for i in range(0, a.shape[0], MOVE_CHUNK):
-            ai, bi = a[i:i + MOVE_CHUNK], b[i:i + MOVE_CHUNK]
-            elems = torch.cat([ai, bi], 1)
-            sign = torch.cat([-torch.ones_like(ai), torch.ones_like(bi)], 1).to(self.model.dtype)
-            sign = torch.where(elems >= 0, sign, torch.zeros_like(sign))
-            idx = elems.clamp_min(0)
-            flat = idx.reshape(-1)
-            Be, Ze = self._rows(flat)
-            s = sign.reshape(-1, 1).to(self.cdtype)
-            nb, width = idx.shape
-            dB = (Be * s).reshape(nb, width, -1).sum(1)
-            dZ = (Ze * s).reshape(nb, width, -1).sum(1)
-            lin = (self._single(flat) * s).reshape(nb, width, -1).sum(1)
-            img = (self._img + lin + self._segsum(dB * dZ)).T
-            yield np.arange(i, i + nb), img.real, img.imag, None
-
     def _pairs_part(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``S_e + D_e`` of every element as columns (P, Ne), real and imaginary (per selection)."""
         if self._U is None:
@@ -205,18 +183,19 @@ class MatrixNeighbourhood:
         X[:, 1].add_(ui[:, None]).add_(v.imag[:, :, None])
         return X
 
+    def dense(self, out: np.ndarray) -> bool:
+        """Whether swaps with the outgoing elements ``out`` are cheaper here than as masks: at
+        least :data:`DENSE_SHARE` of the block (distinct outgoing elements x Ne) they need."""
+        return out.size >= DENSE_SHARE * np.unique(out).size * self.n_elements
+
     def swap_columns(self, out: np.ndarray, into: np.ndarray):
         """Yield ``(positions, re, im, cols)``: the images of the swaps ``(out[i], into[i])`` of
-        the held selection at ``positions`` of the request as the columns ``cols`` (None: all) of
-        ``(P, M)`` real and imaginary parts, by the dense path (a block of outgoing elements
-        against every element) or move by move."""
+        the held selection at ``positions`` of the request as the columns ``cols`` of ``(P, M)``
+        real and imaginary parts, a block of outgoing elements against every element at a time."""
         order = np.argsort(out, kind="stable")
         a_sorted = out[order]
         starts = np.flatnonzero(np.r_[True, a_sorted[1:] != a_sorted[:-1]])
         ends = np.r_[starts[1:], a_sorted.size]
-        if a_sorted.size < DENSE_SHARE * starts.size * self.n_elements:
-            yield from self.move_columns(out[:, None], into[:, None])
-            return
         ne = self.n_elements
         for g in range(0, starts.size, BLOCK_ROWS):
             s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]

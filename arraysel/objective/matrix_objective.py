@@ -246,24 +246,22 @@ class MatrixObjective(Objective):
         """:meth:`evaluate` of the neighbours of a 0/1 selection ``mask`` (Ne,) that switch the
         elements ``out[i]`` off and ``into[i]`` on (int ``(B, m)`` each, ``-1`` pads;
         :class:`~arraysel.objective.contract.ScoresMoves`), counted as ``B`` evaluations. On the
-        fast path the neighbours' planes are the selection's planes plus the low-rank change of
-        each move (:mod:`arraysel.objective.matrix_neighbours`): the same planes, to rounding, and
-        the same metrics as scoring the masks; on the exact path, the masks."""
+        fast path a dense set of swaps (many for each outgoing element, a whole neighbourhood) is
+        scored from the selection's planes plus the low-rank change of each swap
+        (:mod:`arraysel.objective.matrix_neighbours`): the same planes, to rounding, and the same
+        metrics as scoring the masks; sparser requests, moves of several elements and the exact
+        path score the masks."""
         from arraysel.objective.matrix_neighbours import check_selection
         from arraysel.objective.neighbours import check_moves, move_masks
 
         m, a, b = check_moves(mask, out, into)
         nb = self._neighbourhood()
-        if nb is None or a.shape[0] == 0:
+        if nb is None or a.shape[0] == 0 or a.shape[1] != 1 or not (a >= 0).all() or not nb.dense(a[:, 0]):
             return self.evaluate(move_masks(m, a, b))
         check_selection(m, self.n_elements)
         with torch.no_grad(), self._timed():
             nb.select(m)
-            if a.shape[1] == 1 and (a >= 0).all():
-                pieces = nb.swap_columns(a[:, 0], b[:, 0])
-            else:
-                pieces = nb.move_columns(a, b)
-            res = nb.score(pieces, int(a.shape[0]))
+            res = nb.score(nb.swap_columns(a[:, 0], b[:, 0]), int(a.shape[0]))
             self.evaluations += int(a.shape[0])
         return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
 
