@@ -223,9 +223,59 @@ class MatrixObjective(Objective):
         return MatrixObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
                                       chunk=int(self.chunk))
 
+    # ------------------------------------------------------------------ neighbourhoods
+    def _neighbourhood(self):
+        """The :class:`~arraysel.objective.matrix_neighbours.MatrixNeighbourhood` of the fast path
+        (None on the exact path or off the CPU: neighbours are then scored as their masks)."""
+        if not self.fast or self.device.type != "cpu":
+            return None
+        if getattr(self, "_neigh", None) is None:
+            from arraysel.objective.matrix_neighbours import MatrixNeighbourhood
+
+            self._neigh = MatrixNeighbourhood(self)
+        return self._neigh
+
+    def evaluate_swaps(self, mask, out, into) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element
+        ``out[i]`` switched off and ``into[i]`` on (:class:`~arraysel.objective.contract.ScoresSwaps`):
+        :meth:`evaluate_moves` with one element a move."""
+        from arraysel.objective.neighbours import check_swaps
+
+        m, a, b = check_swaps(mask, out, into)
+        return self.evaluate_moves(m, a[:, None], b[:, None])
+
+    def evaluate_moves(self, mask, out, into) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` of the neighbours of a 0/1 selection ``mask`` (Ne,) that switch the
+        elements ``out[i]`` off and ``into[i]`` on (int ``(B, m)`` each, ``-1`` pads;
+        :class:`~arraysel.objective.contract.ScoresMoves`), counted as ``B`` evaluations. On the
+        fast path a dense set of swaps (many for each outgoing element, a whole neighbourhood) is
+        scored from the selection's planes plus the low-rank change of each swap
+        (:mod:`arraysel.objective.matrix_neighbours`): the same planes, to rounding, and the same
+        metrics as scoring the masks; sparser requests, moves of several elements and the exact
+        path score the masks."""
+        from arraysel.objective.matrix_neighbours import check_selection
+        from arraysel.objective.neighbours import check_moves, move_masks
+
+        m, a, b = check_moves(mask, out, into)
+        nb = self._neighbourhood()
+        if nb is None or a.shape[0] == 0 or a.shape[1] != 1 or not (a >= 0).all() or not nb.dense(a[:, 0]):
+            return self.evaluate(move_masks(m, a, b))
+        check_selection(m, self.n_elements)
+        with torch.no_grad(), self._timed():
+            nb.select(m)
+            res = nb.score(nb.swap_columns(a[:, 0], b[:, 0]), int(a.shape[0]))
+            self.evaluations += int(a.shape[0])
+        return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
+
     def prepare_neighbourhoods(self) -> bool:
-        """Nothing to prepare: a 3-D scene scores a neighbourhood as its masks (:meth:`evaluate`),
-        with no pair-image rows to form. Returns True."""
+        """Form now what :meth:`evaluate_swaps` shares between selections on the fast path (the
+        elements' transmit rows, their diagonal terms and the right factors of the cross terms,
+        :mod:`arraysel.objective.matrix_neighbours`; about 1.3 GiB on matrix-1024), so that a
+        search's first neighbourhoods do not pay for them. Returns True."""
+        nb = self._neighbourhood()
+        if nb is not None:
+            nb.diagonal()
+            nb.rights()
         return True
 
 
