@@ -198,3 +198,34 @@ def test_tiny_sector_scene_through_compare(tmp_path):
         assert not ((front["worst_PSL_dB"] > r["worst_PSL_dB"]) & (front["mean_width_mm"] > r["mean_width_mm"])).any() \
             or not r["on_front"]
     assert (tmp_path / "pareto.png").stat().st_size > 1000
+
+
+# --------------------------------------------------------------------------- every selector on it
+def _selector_names():
+    from arraysel.selectors.registry import get_registry
+
+    reg = get_registry()
+    out = []
+    for name in sorted(reg.names()):
+        try:
+            reg[name].check_available()
+        except Exception:  # an optional package that is not installed
+            continue
+        out.append(name)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", _selector_names())
+def test_every_selector_on_a_tiny_sector_scene(tiny, name):
+    """The conformance essentials on a sector objective: k distinct elements, the evaluation
+    budget kept, a finite Mean, the same seed the same selection."""
+    from arraysel.run.experiment import Experiment
+    from arraysel.selectors.contract import Budget
+
+    rows = [Experiment(tiny, name, budget=Budget(evaluations=60), seed=3).execute() for _ in range(2)]
+    sel = list(rows[0]["elements"])
+    assert not str(rows[0].get("error") or "").strip(), rows[0].get("error")
+    assert len(sel) == tiny.k == len(set(sel)) and all(0 <= e < tiny.n_elements for e in sel)
+    assert rows[0]["evaluations"] <= 60 and math.isfinite(rows[0]["Mean"])
+    assert list(rows[1]["elements"]) == sel
