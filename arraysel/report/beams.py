@@ -95,7 +95,8 @@ def pareto_figure(table):
                     xytext=(4, 4), fontsize=7)
     ax.set_xlabel("mean -6 dB main-lobe width over the points (mm)")
     ax.set_ylabel("worst side lobe over the points, PSL (dB)")
-    ax.set_title(f"Pareto front at k = {int(table['k'].max()) if len(table) else 0}: lower left is better")
+    ks = table.loc[table["on_front"].astype(bool), "k"] if table["on_front"].astype(bool).any() else table["k"]
+    ax.set_title(f"Pareto front at k = {int(ks.min()) if len(ks) else 0}: lower left is better")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     return fig
