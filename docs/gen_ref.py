@@ -176,6 +176,8 @@ def _allowed(key) -> str:
         lo, hi = cons
         text = f"{_fmt(lo)} … {_fmt(hi)}"
         return {"points": f"{text} points", "ints": f"a list of {text}"}.get(kind, text)
+    if kind == "beams":
+        return f"{_fmt(cons[0])} … {_fmt(cons[1])} points [theta_x, theta_y, range]"
     lo, hi, lo_open = cons
     text = f"{'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}{')' if hi == float('inf') else ']'}"
     if kind == "length":

@@ -25,8 +25,9 @@ class SpiralSelector(Selector):
     name = "spiral"
     description = "density-tapered Fermat spiral snapped to the grid (a tapered line on a 1-D array)"
     options = {
-        "taper": Option(str, "cosine", "radial density taper: none (plain sunflower), cosine "
-                        "(cos(pi rho / 2)) or blackman", choices=TAPERS),
+        "taper": Option(str, "none", "radial density taper: none (plain sunflower, the default: on a "
+                        "grid of a few hundred elements a taper widens the main lobe), cosine (cos(pi rho / 2)) "
+                        "or blackman", choices=TAPERS),
         "rotation_deg": Option(float, 0.0, "angle of the spiral's first point (degrees; matrix arrays)",
                                lo=-360.0, hi=360.0),
     }

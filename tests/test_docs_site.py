@@ -34,7 +34,8 @@ PAGES = {
     "matrix-1024": FIGURES_3D,
 }
 #: built-in scenes without a results page of their own (and where they are shown instead)
-NO_PAGE = {"paper-e2e": "training.md", "matrix-1024-mux": "constraints.md"}
+NO_PAGE = {"paper-e2e": "training.md", "matrix-1024-mux": "constraints.md",
+           "matrix-1024-sector": "sector.md"}
 
 
 def embedded_images(page: Path) -> list[Path]:

@@ -270,7 +270,7 @@ def test_uniform_selector_is_unchanged_in_1d_and_thins_a_matrix():
 
 def test_spiral_selector_on_a_matrix_and_on_a_line():
     sel, row = _run("spiral", ToyObjective(64, 16, grid=(8, 8)), 16)
-    assert sel == fermat_spiral_layout((8, 8), 16, "cosine") and row["evaluations"] == 1
+    assert sel == fermat_spiral_layout((8, 8), 16, "none") and row["evaluations"] == 1
     sel, _ = _run("spiral", ToyObjective(64, 16, grid=(8, 8)), 16, taper="none", rotation_deg=30.0)
     assert sel == fermat_spiral_layout((8, 8), 16, "none", 30.0)
     sel, _ = _run("spiral", ToyObjective(64, 16), 16, taper="blackman")

@@ -229,7 +229,7 @@ def test_uniform_and_spiral_on_a_grid_with_blank_rows():
     ix, iy = p.element_grid(np.array(sel))
     assert sorted(set(ix.tolist())) == [0, 2, 4, 6] and sorted(set(iy.tolist())) == [0, 2, 5, 7]
     sel = _run("spiral", _toy_on(p, 16), 16)
-    assert sel == fermat_spiral_layout(p.element_positions(), 16) and len(set(sel)) == 16
+    assert sel == fermat_spiral_layout(p.element_positions(), 16, "none") and len(set(sel)) == 16
     # a grid missing single elements: the rule on the grid with holes; an irregular layout: spread
     pos = np.delete(get_probe("MATRIX-32x32", nx=6, ny=6).element_positions(), [3, 20], axis=0)
     holed = PlanarProbe("holed", pos, 2.5e-4, 2.5e-4, 3e6)

@@ -485,9 +485,9 @@ def build_objective(scene="paper", device="cpu", dtype=torch.float32, objective_
     3-D scenes' :class:`~arraysel.objective.matrix_objective.MatrixObjective`)."""
     sc = load_scene(scene) if not isinstance(scene, Scene) else scene
     cls = Objective if objective_class is None else objective_class
-    if sc.is_volume and cls is Objective:
+    if (sc.is_volume or sc.is_sector) and cls is Objective:
         raise ParameterError(f"scene {sc.name!r} is a 3-D scene: build it with arraysel.build_objective "
-                             "(arraysel.objective.build), which gives its MatrixObjective")
+                             "(arraysel.objective.build), which gives its MatrixObjective or SectorObjective")
     key = (cls.__name__, repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
     obj = _CACHE.get(key)
     if obj is None:

@@ -323,6 +323,13 @@ def _finish(objective, store: CompareStore, meta: dict, full: dict, rows: list, 
     tables = store.tables
     if figures:
         meta["figure_errors"] = store.write_figures(objective, selections, tables.table, pd.DataFrame(traces))
+    if hasattr(objective, "beam_metrics"):  # a sector scene: beams.csv, pareto.csv, pareto.png
+        try:
+            found = store.write_sector(objective, [full] + rows, figures)
+        except Exception as exc:  # scoring on the points must never lose the tables
+            found = [f"beams.csv/pareto.csv: {type(exc).__name__}: {exc}"]
+        if found:
+            meta["figure_errors"] = list(meta.get("figure_errors", [])) + found
     failed = [f"{r['config']} seed {r['seed']}" for r in [full] + rows if str(r.get("error") or "").strip()]
     meta["error_rows"] = len(failed)
     meta["failed_runs"] = failed

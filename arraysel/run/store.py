@@ -149,6 +149,25 @@ class CompareStore:
                                 f"before it are whole: make room, then rerun the same command with --resume") \
                 from exc
 
+    def write_sector(self, objective, rows: list[dict], figures: bool = True) -> list[str]:
+        """A sector scene's ``beams.csv``, ``pareto.csv`` and (``figures``) ``pareto.png``
+        (:mod:`arraysel.run.sector_report`); returns the problems met."""
+        from arraysel.report.beams import pareto_figure
+        from arraysel.report.tables import write_csv
+        from arraysel.run.sector_report import sector_tables
+
+        beams, pareto = sector_tables(objective, rows)
+        with self._writing():
+            write_csv(self.out / "beams.csv", beams)
+            write_csv(self.out / "pareto.csv", pareto)
+        if not figures:
+            return []
+        try:
+            plots.save_figure(pareto_figure(pareto), self.out / "pareto.png")
+        except Exception as exc:  # a figure must never lose the tables
+            return [f"pareto.png: {type(exc).__name__}: {exc}"]
+        return []
+
     def write_figures(self, objective, selections: dict[str, Selection], table, trace) -> list[str]:
         """The figures (:func:`write_figures`); returns the problems met."""
         return write_figures(objective, selections, table, trace, self.out)
@@ -173,7 +192,7 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
             _planes_figures(objective, labels, masks, out)
         except Exception as exc:
             problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
-    elif len(labels):
+    elif len(labels) and not hasattr(objective, "beam_metrics"):  # a sector scene has pareto.png instead
         try:
             _psf_figures(objective, labels, masks, out)
         except Exception as exc:

@@ -114,6 +114,56 @@ def volume_checks(scene) -> None:
                              f"scatterer's depth medium.scatterer_z = {depth:.4g} m; allowed: planes below z = 0")
 
 
+def sector_checks(scene) -> None:
+    """A sector scene: a matrix probe, points inside the sector, steering the probe's lattice
+    allows, surfaces fine enough to resolve a side lobe (errors name the key)."""
+    scene.matrix_probe()
+    if scene.is_volume:
+        raise ParameterError("[sector] and [volume] are exclusive: a sector scene images its points on surfaces "
+                             "over the sector, not on planes")
+    for sec in PLANAR_ONLY_SECTIONS:
+        if scene.section(sec):
+            raise ParameterError(f"{sec}.{next(iter(scene.section(sec)))} does not apply to a sector scene")
+    wrong = [f"{sec}.{key}" for sec, key in PLANAR_ONLY_KEYS + (("medium", "scatterer_x"), ("medium", "scatterer_y"),
+                                                                ("medium", "scatterer_z")) if key in scene.section(sec)]
+    if wrong:
+        raise ParameterError(f"{wrong[0]} does not apply to a sector scene (its points are sector.points)")
+    if scene.get("sector", "points") is None:
+        raise ParameterError("sector.points is required: [[theta_x_deg, theta_y_deg, range], ...]")
+    geo = scene.sector_geometry()
+    lam, pitch = scene.wavelength, geo["pitch"]
+    limit = lam / max(pitch) - 1.0      # sin of the steering at which the lattice's grating lobe turns visible
+    tx, ty = geo["tilts"]
+    for key, tilt in (("transmit.max_tilt_deg", tx), ("transmit.max_tilt_deg_y", ty)):
+        if math.sin(math.radians(tilt)) >= limit:
+            top = math.degrees(math.asin(limit)) if -1 < limit < 1 else 0.0
+            raise ParameterError(f"{key} = {tilt:g} degrees steers past what the probe's grid allows: its grating "
+                                 f"lobe (lambda0 / pitch = {lam / max(pitch):.3g}) enters the visible region beyond "
+                                 f"{top:.1f} degrees; allowed: below {top:.1f}")
+    hx, hy = geo["half_angles"]
+    if min(hx, hy) <= 0:
+        raise ParameterError("the sector is empty: give sector.half_angle_deg > 0 or steered transmits "
+                             "(transmit.max_tilt_deg > 0)")
+    for i, (ax, ay, _r) in enumerate(scene.get("sector", "points")):
+        if abs(ax) > hx + 1e-9 or abs(ay) > hy + 1e-9:
+            raise ParameterError(f"sector.points[{i}] = [{ax:g}, {ay:g}, ...] lies outside the sector: allowed "
+                                 f"|theta_x| <= {hx:g} and |theta_y| <= {hy:g} degrees (sector.half_angle_deg)")
+    spl = float(scene.value("sector", "samples_per_lobe"))
+    if spl < 2:
+        raise ParameterError(f"sector.samples_per_lobe = {spl:g} is too coarse to resolve the main lobe and a side "
+                             "lobe; allowed: at least 2 samples per lambda0 / D")
+    hu, hv = geo["half_uv"]
+    n = [2 * math.ceil(h / geo["step"]) + 1 for h in (hu, hv)]
+    if max(n) > 1024:
+        raise ParameterError(f"sector.samples_per_lobe = {spl:g} gives {max(n)} samples an axis; allowed: at most "
+                             "1024 (lower it, or sector.margin)")
+    cu, cv = (math.ceil(h / geo["step"] - 1e-9) * geo["step"] for h in (hu, hv))   # the grid's corner
+    if cu * cu + cv * cv > 1:
+        raise ParameterError(f"sector.margin = {scene.value('sector', 'margin'):g}: the surfaces (|u| <= {hu:.3f}, "
+                             f"|v| <= {hv:.3f}, on the grid {cu:.3f}, {cv:.3f}) leave the visible region; lower it or "
+                             "sector.half_angle_deg")
+
+
 def check_scene(scene):
     """``scene`` if it is complete and consistent, else a :class:`ParameterError` naming the key."""
     probe = scene.probe()
@@ -124,6 +174,9 @@ def check_scene(scene):
         raise ParameterError(f"selection.k = {k} is out of range; allowed: [1, {probe.n_elements}] "
                              f"(the probe has {probe.n_elements} elements)")
     scene.constraints()  # the [constraints] section against the probe and k (ParameterError naming the key)
+    if scene.is_sector:
+        sector_checks(scene)
+        return scene
     if scene.is_volume:
         volume_checks(scene)
         return scene

@@ -19,7 +19,8 @@ class Key:
 
     kind: ``float``, ``int``, ``bool``, ``str``, ``length`` (a number in
     ``unit`` or a string with one of ``units``), ``points`` (a list of
-    ``[x, z]`` lengths) or ``ints`` (a list of integers). cons: for numbers
+    ``[x, z]`` lengths), ``beams`` (a list of ``[theta_x_deg, theta_y_deg, range]``, the range a
+    length) or ``ints`` (a list of integers). cons: for numbers
     ``(lo, hi, lo_open)`` (ints and lists of ints: ``(lo, hi)``), in ``unit`` for lengths; for strings the allowed choices
     (None: any). default: the value used when no scene sets the key (None:
     none, or derived as ``help`` says).
@@ -111,6 +112,22 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "half_z": Key("length", (0, 1000, True), 4.0, "half-size of the planes along z", "wl", _POS_UNITS),
         "pixels_per_wavelength": Key("float", (0.1, 100, False), 3.0, "pixel = lambda0 / this, every plane"),
         "fast": Key("bool", None, True, "use the fast 3-D path when its check passes (else the exact path)"),
+    },
+    "sector": {  # its presence makes a scene a sector scene (a matrix probe, points over a steered sector)
+        "points": Key("beams", (1, 32), None, "point targets [[theta_x, theta_y, range], ...]: angles in "
+                      "degrees (u = sin theta_x, v = sin theta_y), range a length from the array centre "
+                      "(m by default); each imaged on its own surface over the sector (required)", "m",
+                      _POS_UNITS),
+        "half_angle_deg": Key("float", (0, 80, True), None, "half-angle of the sector in x and y, degrees "
+                              "(default: the transmits' largest tilts, transmit.max_tilt_deg and "
+                              "max_tilt_deg_y)"),
+        "margin": Key("float", (0, 10, False), 1.0, "how far the surfaces reach past the sector's edge, in "
+                      "main lobes lambda0 / D (D the aperture along each axis)"),
+        "samples_per_lobe": Key("float", (0, 64, True), 3.0, "samples of the surfaces per lambda0 / D in u "
+                                "and v (at least 2 to resolve a side lobe)"),
+        "n_freq": Key("int", (1, 64), 8, "frequencies of the search's broadband beam pattern"),
+        "fresh_random": Key("int", (0, 10000), 16, "fresh random selections scored on the points for the "
+                            "random baseline's median (0: none)"),
     },
     "receive": {
         "fnumber": Key("float", (0, 100, False), 0.0, "receive f-number (0 = full aperture)"),

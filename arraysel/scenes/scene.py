@@ -171,6 +171,12 @@ class Scene(SceneSetups):
         """True for a 3-D scene (a ``[volume]`` section: a matrix probe imaged on planes)."""
         return "volume" in self.tree
 
+    @property
+    def is_sector(self) -> bool:
+        """True for a sector scene (a ``[sector]`` section: a matrix probe's point targets over a
+        steered sector, ``docs/sector.md``)."""
+        return "sector" in self.tree
+
     def resolved(self) -> dict:
         """Every key of :data:`SCHEMA` for this scene: ``{section: {key: (value, resolved, source)}}``.
 

@@ -98,18 +98,13 @@ class SceneSetups:
 
     def matrix_setup(self):
         """The :class:`~arraysel.physics.volume.MatrixPSFSetup` of a 3-D scene (``[volume]``)."""
-        from arraysel.physics.volume import MatrixPSFSetup, diverging_delays3, plane_wave_delays3, tilt_grid
+        from arraysel.physics.volume import MatrixPSFSetup
 
         if not self.is_volume:
             raise ParameterError(f"scene {self.name!r} has no [volume] section: it is not a 3-D scene")
         probe = self.matrix_probe()
         acq = self.acquisition()
-        tx = self.value("transmit", "max_tilt_deg")
-        ty = self.value("transmit", "max_tilt_deg_y")
-        ax, ay = tilt_grid(int(self.value("transmit", "n_tx_x")), int(self.value("transmit", "n_tx_y")),
-                           float(tx), float(tx if ty is None else ty))
-        dist = float(self.length("transmit", "source_distance"))
-        delays = (diverging_delays3(probe, ax, ay, dist, acq) if dist > 0 else plane_wave_delays3(probe, ax, ay, acq))
+        delays = self._delays3(probe, acq)
         lam = self.wavelength
         half = {k: float(self.length("volume", k)) * lam for k in ("half_x", "half_y", "half_z")}
         x = self.length("medium", "scatterer_x")
@@ -120,6 +115,55 @@ class SceneSetups:
                               pixel=lam / float(self.value("volume", "pixels_per_wavelength")),
                               planes=self.planes(), reflectivity=float(self.value("medium", "reflectivity")),
                               iq_bandwidth=self.value("receive", "iq_bandwidth"), options=self._sim_options(), **half)
+
+    def _delays3(self, probe, acq):
+        """The full-array delays of a 3-D scene's transmits (``[transmit]``)."""
+        from arraysel.physics.volume import diverging_delays3, plane_wave_delays3, tilt_grid
+
+        tx = self.value("transmit", "max_tilt_deg")
+        ty = self.value("transmit", "max_tilt_deg_y")
+        ax, ay = tilt_grid(int(self.value("transmit", "n_tx_x")), int(self.value("transmit", "n_tx_y")),
+                           float(tx), float(tx if ty is None else ty))
+        dist = float(self.length("transmit", "source_distance"))
+        return diverging_delays3(probe, ax, ay, dist, acq) if dist > 0 else plane_wave_delays3(probe, ax, ay, acq)
+
+    def sector_geometry(self) -> dict:
+        """A sector scene's geometry (``docs/sector.md``): ``tilts`` (the largest transmit tilts in x
+        and y, degrees), ``half_angles`` (the sector's, degrees), ``aperture`` (m, along x and y),
+        ``pitch`` (m), ``lobe`` (lambda0 / D along x and y), ``step`` (the surfaces' u-v step) and
+        ``half_uv`` (how far the surfaces reach in u and v)."""
+        probe = self.matrix_probe()
+        pos = probe.element_positions()
+        ap = (float(np.ptp(pos[:, 0])) + probe.width, float(np.ptp(pos[:, 1])) + probe.height)
+        pitch = (float(getattr(probe, "pitch_x", ap[0])), float(getattr(probe, "pitch_y", ap[1])))
+        tx = float(self.value("transmit", "max_tilt_deg"))
+        ty = self.value("transmit", "max_tilt_deg_y")
+        ty = tx if ty is None else float(ty)
+        half = self.value("sector", "half_angle_deg")
+        halves = (tx, ty) if half is None else (float(half), float(half))
+        lam = self.wavelength
+        lobe = (lam / ap[0], lam / ap[1])
+        step = min(lobe) / float(self.value("sector", "samples_per_lobe"))
+        margin = float(self.value("sector", "margin"))
+        half_uv = tuple(math.sin(math.radians(h)) + margin * lb for h, lb in zip(halves, lobe))
+        return {"tilts": (tx, ty), "half_angles": halves, "aperture": ap, "pitch": pitch, "lobe": lobe,
+                "step": step, "half_uv": half_uv}
+
+    def sector_setup(self):
+        """The :class:`~arraysel.physics.volume.sector.SectorSetup` of a sector scene (``[sector]``)."""
+        from arraysel.physics.volume.sector import SectorSetup, beam_point, sector_grid
+
+        if not self.is_sector:
+            raise ParameterError(f"scene {self.name!r} has no [sector] section: it is not a sector scene")
+        probe = self.matrix_probe()
+        acq = self.acquisition()
+        geo = self.sector_geometry()
+        pts = [beam_point(ax, ay, float(self.length("sector", "points", r))) for ax, ay, r in self.get("sector", "points")]
+        u, v = sector_grid(*geo["half_uv"], geo["step"])
+        return SectorSetup(probe=probe, acq=acq, delays=self._delays3(probe, acq), points=pts, u=u, v=v,
+                           sines=tuple(math.sin(math.radians(h)) for h in geo["half_angles"]),
+                           reflectivity=float(self.value("medium", "reflectivity")),
+                           iq_bandwidth=self.value("receive", "iq_bandwidth"), options=self._sim_options())
 
     def planes(self) -> tuple[str, ...]:
         """The planes of a 3-D scene (``volume.planes``), checked."""

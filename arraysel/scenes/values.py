@@ -92,6 +92,20 @@ def _check_value(key: str, value: Any, spec: Key) -> Any:
                                      f"got {pt!r}")
             out.append([_check_length(f"{key}[{i}].x", pt[0], xs), _check_length(f"{key}[{i}].z", pt[1], zs)])
         return out
+    if kind == "beams":
+        lo, hi = cons
+        if not isinstance(value, list) or not lo <= len(value) <= hi:
+            raise ParameterError(f"{key} must be a list of {lo} to {hi} points [theta_x_deg, theta_y_deg, range], "
+                                 f"got {value!r}")
+        rs = Key("length", (0, 2, True), unit=spec.unit, units=spec.units)
+        out = []
+        for i, pt in enumerate(value):
+            if not isinstance(pt, list) or len(pt) != 3:
+                raise ParameterError(f"{key}[{i}] must be [theta_x_deg, theta_y_deg, range], got {pt!r}")
+            ax = check_number(f"{key}[{i}].theta_x", pt[0], lo=-80, hi=80)
+            ay = check_number(f"{key}[{i}].theta_y", pt[1], lo=-80, hi=80)
+            out.append([ax, ay, _check_length(f"{key}[{i}].range", pt[2], rs)])
+        return out
     raise AssertionError(kind)
 
 

@@ -173,6 +173,22 @@ def plane_axes(setup: MatrixPSFSetup) -> dict[str, torch.Tensor]:
     return out
 
 
+def check_surfaces(coords) -> dict[str, torch.Tensor]:
+    """``coords`` ``{name: (H, W, 3)}`` as float64 tensors, checked: a non-empty dict of finite
+    positions in metres below the array (z > 0), at least 1 x 1 pixels each."""
+    if not isinstance(coords, dict) or not coords:
+        raise ParameterError("coords must be a non-empty dict {name: array (H, W, 3)} of positions in metres")
+    out = {}
+    for name, c in coords.items():
+        t = torch.as_tensor(np.asarray(c.detach().cpu() if isinstance(c, torch.Tensor) else c, dtype=np.float64))
+        if t.dim() != 3 or t.shape[-1] != 3 or t.shape[0] < 1 or t.shape[1] < 1:
+            raise ParameterError(f"coords[{name!r}] must have shape (H, W, 3), got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()) or not bool((t[..., 2] > 0).all()):
+            raise ParameterError(f"coords[{name!r}] must be finite positions below the array (z > 0, metres)")
+        out[str(name)] = t
+    return out
+
+
 def split_planes(img: torch.Tensor, shapes: dict[str, tuple[int, int]]) -> dict[str, torch.Tensor]:
     """The planes ``{name: (B, H, W)}`` of an image (B, Npix) whose pixels are the planes'
     pixels concatenated in ``shapes`` order (``{name: (H, W)}``)."""
@@ -210,10 +226,14 @@ class MatrixPSF:
     """The exact 3-D PSF on three planes, batched over selections and differentiable in the weights.
 
     Parameters: setup (:class:`MatrixPSFSetup`); dtype torch.float32 or torch.float64 (the
-    precomputation runs in float64); device; ``pixel_chunk`` pixels per DAS call.
+    precomputation runs in float64); device; ``pixel_chunk`` pixels per DAS call; ``coords``:
+    any set of surfaces ``{name: (H, W, 3)}`` (metres, z > 0) to image instead of the setup's
+    planes (e.g. :func:`~arraysel.physics.beampattern.sphere_surface`, a surface sampled in angle
+    at the scatterer's range); :meth:`planes` then returns those surfaces.
     """
 
-    def __init__(self, setup: MatrixPSFSetup, dtype=torch.float32, device="cpu", pixel_chunk: int = 512):
+    def __init__(self, setup: MatrixPSFSetup, dtype=torch.float32, device="cpu", pixel_chunk: int = 512,
+                 coords: dict | None = None):
         if dtype not in (torch.float32, torch.float64):
             raise ParameterError(f"dtype = {dtype} is not allowed; choose torch.float32 or torch.float64")
         self.setup = setup
@@ -223,7 +243,7 @@ class MatrixPSF:
         self.n_elements = setup.probe.n_elements
         self.pixel_chunk = int(check_number("pixel_chunk", pixel_chunk, lo=1, hi=1 << 20, integer=True))
         #: pixel coordinates of each plane, float64 (H, W, 3) metres
-        self.coords = plane_axes(setup)
+        self.coords = plane_axes(setup) if coords is None else check_surfaces(coords)
         self._shapes = {k: tuple(v.shape[:2]) for k, v in self.coords.items()}
         pts = torch.cat([v.reshape(-1, 3) for v in self.coords.values()])
         self._build_transmits()

@@ -1,0 +1,92 @@
+"""A sector scene's comparison, scored the way a designer reads it: ``beams.csv``, ``pareto.csv`` and
+``pareto.png`` next to ``table1.csv`` (``docs/sector.md``; the tables' columns in
+:mod:`arraysel.report.beams`).
+
+The selections the runs made (every run's, each distinct one scored once) and ``sector.fresh_random``
+fresh random selections are scored on the points' exact PSFs
+(:meth:`~arraysel.objective.sector_objective.SectorObjective.beam_metrics`), after the runs, never
+charged to them. An objective without ``beam_metrics`` gets none of these files.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import numpy as np
+
+from arraysel.report import beams as B
+from arraysel.report import tables as reporting
+
+__all__ = ["sector_tables", "effective_options"]
+
+_log = logging.getLogger(__name__)
+
+
+def effective_options(row: dict) -> str:
+    """A run's options with its selector's defaults filled in (``taper=none; rotation_deg=0.0``),
+    so that the output states them; the row's own text when the selector is unknown."""
+    given = row.get("options") or ""
+    try:
+        from arraysel.selectors.registry import get_registry
+
+        opts = {k: o.default for k, o in get_registry()[str(row.get("selector") or row["config"])].options.items()}
+        opts.update(json.loads(given) if given else {})
+    except Exception:  # a config that is not a registered selector (full) or a plugin gone
+        return str(given)
+    return "; ".join(f"{k}={v}" for k, v in opts.items())
+
+
+def _point_info(objective) -> list[tuple]:
+    from arraysel.objective.sector_objective import point_label
+
+    out = []
+    for i in range(objective.n_points):
+        u, v = objective.setup.direction_of(i)
+        out.append((point_label(objective, i), math.degrees(math.asin(u)), math.degrees(math.asin(v)),
+                    objective.setup.range_of(i)))
+    return out
+
+
+def sector_tables(objective, rows: list[dict]):
+    """Score the selections of ``rows`` (the ``full`` row and every run's row) on the points:
+    ``(beams, pareto)`` DataFrames (``beams.csv``, ``pareto.csv``; the store writes them)."""
+    import pandas as pd
+
+    n = int(objective.n_elements)
+    keyed: dict[tuple, int] = {}
+    masks = []
+    for r in rows:
+        sel = r.get("elements")
+        if sel is not None and len(sel) and tuple(sel) not in keyed:
+            keyed[tuple(sel)] = len(masks)
+            masks.append(np.isin(np.arange(n), list(sel)))
+    fresh = objective.fresh_random_masks()
+    _log.info("scoring %d selections and %d fresh random ones on %d points", len(masks), len(fresh),
+              objective.n_points)
+    allm = np.array(masks + list(fresh), dtype=bool).reshape(-1, n)
+    if not len(allm):
+        return pd.DataFrame(columns=list(B.BEAMS_COLUMNS)), pd.DataFrame(columns=list(B.PARETO_COLUMNS))
+    met = objective.beam_metrics(allm)
+    pts = _point_info(objective)
+    beams, pareto = [], []
+    for config, r in reporting.best_rows(rows).items():
+        sel = r.get("elements")
+        if sel is None or not len(sel):
+            continue
+        beams += B.beam_rows(config, r.get("seed"), effective_options(r), pts, met, keyed[tuple(sel)])
+    for r in rows:
+        sel = r.get("elements")
+        if sel is None or not len(sel):
+            continue
+        pareto.append({"config": r["config"], "seed": r.get("seed"), "k": len(sel),
+                       **B.summary(met, keyed[tuple(sel)]), "Mean": r.get("Mean")})
+    if len(fresh):
+        idx = np.arange(len(masks), len(allm))
+        med = {k: np.median(v[idx], axis=0)[None] for k, v in met.items()}
+        beams += B.beam_rows(B.FRESH_RANDOM, "", f"n={len(fresh)}; seed=0", pts, med, 0)
+        sums = [B.summary(met, i) for i in idx]
+        pareto.append({"config": B.FRESH_RANDOM, "seed": "", "k": int(objective.k), "Mean": math.nan,
+                       **{k: float(np.median([s[k] for s in sums])) for k in sums[0]}})
+    beams = pd.DataFrame(beams, columns=list(B.BEAMS_COLUMNS))
+    return beams, pd.DataFrame(B.pareto_rows(pareto, int(objective.k)), columns=list(B.PARETO_COLUMNS))
