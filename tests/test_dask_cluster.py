@@ -96,6 +96,7 @@ def _same(a: pd.DataFrame, b: pd.DataFrame) -> None:
             assert list(x.astype(str)) == list(y.astype(str)), c
 
 
+@pytest.mark.slow
 def test_compare_on_a_cli_started_cluster_gives_the_local_tables(cluster, tmp_path):
     common = ["compare", "--scene", "toy", "--selectors", "random,swap,uniform", "--seeds", "0,1",
               "--budget-s", "0", "--budget-evals", "300", "--no-figures", "--no-progress"]

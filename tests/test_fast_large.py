@@ -148,6 +148,7 @@ def test_windowed_channels_cover_every_grid_read(no_cache):
         assert float((ch - want).abs().max()) <= 1e-9 * float(want.abs().max())
 
 
+@pytest.mark.slow
 def test_gradcheck_fast_path_128_elements(no_cache):
     """Gradients of the fast kernels of a 128-element probe (sketched build) in float64."""
     setup = _setup(n_elements=128, probe="L11-5v", fc=7.6e6, n=32, pixel=2.5e-5, depth=6e-3, window=12)

@@ -337,6 +337,7 @@ def _small_kernel(seed=6):
     return k
 
 
+@pytest.mark.slow
 def test_psf_metrics_gradcheck():
     # pitch 0.5, wavelength 1: main r <= 3 px, side r >= 5 px; random values -> no ties
     k = _small_kernel().requires_grad_(True)

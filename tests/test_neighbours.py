@@ -368,6 +368,7 @@ def test_refinement_channels_of_neighbours_from_the_held_sums_equal_the_product(
 
 
 @pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+@pytest.mark.slow
 def test_neighbourhood_refined_block_by_block_equals_independent_masks(monkeypatch, dtype, rtol):
     # block bounds made loose (x 1000): every neighbour's peak is settled by the refinement's block
     # delay-and-sums, from channels corrected from the selection's sums; the scores are those
@@ -478,6 +479,7 @@ def test_empty_or_bad_neighbourhoods(monkeypatch):
         obj.evaluate_swaps(_mask(9, [0]), [0], [1])
 
 
+@pytest.mark.slow
 def test_paper_neighbourhood_equals_independent_masks_where_the_peak_moves(paper_objective, monkeypatch):
     # the outer elements only: a wide gap, strong sidelobes, and neighbours whose peaks lie on
     # many different pixels (and off the base's); every key and kernel as the masks scored alone
