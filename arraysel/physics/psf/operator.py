@@ -266,15 +266,7 @@ class PSFModel:
         return w
 
     def _receive(self, w: torch.Tensor, receive) -> torch.Tensor:
-        """The receive weights: ``w`` (the shared selection) when ``receive`` is None, else
-        ``receive`` checked, of ``w``'s batch size."""
-        if receive is None:
-            return w
-        r = self._weights(receive)
-        if r.shape != w.shape:
-            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
-                                 f"got {tuple(r.shape)}")
-        return r
+        return receive_weights(w, receive, self._weights)
 
     def spectra(self, weights, tx: int, receive=None) -> torch.Tensor:
         """Received spectra (B, Ne, F) of transmit ``tx`` for weights (B, Ne), in units of ``image_scale``;
@@ -433,3 +425,15 @@ class PSFModel:
             with torch.no_grad():
                 self._ref = self.kernels(torch.ones(1, self.n_elements))[0]
         return self._ref
+
+
+def receive_weights(w: torch.Tensor, receive, check) -> torch.Tensor:
+    """The receive weights of a batch whose transmit weights are ``w``: ``w`` itself (one shared
+    aperture) when ``receive`` is None, else ``receive`` checked by ``check`` and of ``w``'s shape."""
+    if receive is None:
+        return w
+    r = check(receive)
+    if r.shape != w.shape:
+        raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
+                             f"got {tuple(r.shape)}")
+    return r

@@ -31,7 +31,7 @@ import torch
 from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.physics.beamform import das_apply
 from arraysel.physics.probes import MATRIX_PLANES, Acquisition, MatrixProbe, PlanarProbe, check_sampling
-from arraysel.physics.psf.operator import normalised_transmits
+from arraysel.physics.psf.operator import normalised_transmits, receive_weights
 from arraysel.physics.psf.window import scale_complex
 from arraysel.physics.simus import SimOptions, probe_response, pulse_spectrum
 from arraysel.physics.volume.beamform import receive_distance3, transmit_distance3
@@ -298,14 +298,7 @@ class MatrixPSF:
         return check_element_weights(weights, self.n_elements, self.dtype, self.device)
 
     def _receive(self, w: torch.Tensor, receive) -> torch.Tensor:
-        """The receive weights: ``w`` when ``receive`` is None, else ``receive`` of ``w``'s shape."""
-        if receive is None:
-            return w
-        r = self._weights(receive)
-        if r.shape != w.shape:
-            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
-                                 f"got {tuple(r.shape)}")
-        return r
+        return receive_weights(w, receive, self._weights)
 
     def iq(self, weights, tx: int, elements: torch.Tensor | None = None, receive=None) -> torch.Tensor:
         """I/Q signals (B, n, T) of transmit ``tx`` for the receive ``elements`` (default all),
