@@ -78,24 +78,12 @@ def _weights(text: str | None):
 
 def _compare_source(folder: str, config: str | None):
     """(scene, selection text) of a comparison folder's run.json and table1.csv row ``config``."""
-    import csv
-    import json
-
+    from arraysel.report.tables import compare_folder
     from arraysel.scenes.schema import load_scene
 
     if config is None:
         raise ParameterError("--compare needs --config NAME (the row of table1.csv to export)")
-    run_json, table = os.path.join(folder, "run.json"), os.path.join(folder, "table1.csv")
-    for path in (run_json, table):
-        if not os.path.isfile(path):
-            raise ParameterError(f"--compare: {path!r} does not exist (a folder written by arraysel compare holds it)")
-    try:
-        with open(run_json, encoding="utf-8") as fh:
-            scene = json.load(fh)["scene"]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ParameterError(f"--compare: {run_json!r} holds no scene ({type(exc).__name__})") from None
-    with open(table, encoding="utf-8", newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    scene, rows, table = compare_folder(folder, "--compare")
     names = [r.get("config") for r in rows]
     row = next((r for r in rows if r.get("config") == config), None)
     if row is None or not (row.get("elements") or "").strip():

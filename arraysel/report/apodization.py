@@ -33,18 +33,10 @@ def compare_selections(folder: str, configs=None) -> tuple[dict, list[tuple[str,
     """``(scene dict, [(config, elements text), ...])`` of a folder written by ``arraysel compare``:
     the scene of its ``run.json`` and every row of its ``table1.csv`` that holds a selection (only
     the ``configs`` named, when given; an unknown name is refused, listing the folder's)."""
-    run_json, table = os.path.join(folder, "run.json"), os.path.join(folder, "table1.csv")
-    for path in (run_json, table):
-        if not os.path.isfile(path):
-            raise ParameterError(f"--from-compare: {path!r} does not exist (a folder written by arraysel compare "
-                                 "holds it)")
-    try:
-        with open(run_json, encoding="utf-8") as fh:
-            scene = json.load(fh)["scene"]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ParameterError(f"--from-compare: {run_json!r} holds no scene ({type(exc).__name__})") from None
-    with open(table, encoding="utf-8", newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if (r.get("elements") or "").strip()]
+    from arraysel.report.tables import compare_folder
+
+    scene, rows, table = compare_folder(folder, "--from-compare")
+    rows = [r for r in rows if (r.get("elements") or "").strip()]
     names = [r.get("config") for r in rows]
     if configs is not None:
         bad = [c for c in configs if c not in names]

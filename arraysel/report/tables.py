@@ -34,13 +34,15 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from arraysel.errors import ParameterError
 from arraysel.io.atomic import atomic_write_text  # noqa: F401  (one writer; re-exported for old callers)
 from arraysel.report.columns import METRICS as METRIC_NAMES, MERIT_COLUMNS, ROW_COLUMNS, TABLE1_COLUMNS, TRACE_COLUMNS
 from arraysel.report.stats import deterministic_configs, stats_table
 from arraysel.selection import Selection
 
 __all__ = ["atomic_write_text", "write_json", "write_csv", "write_runs", "write_ioh", "table1", "best_rows", "stats_table",
-           "read_runs", "read_trace", "check_table", "typed_runs", "rebuild_tables", "TABLE1_COLUMNS", "WrittenTables"]
+           "read_runs", "read_trace", "check_table", "typed_runs", "rebuild_tables", "compare_folder", "TABLE1_COLUMNS",
+           "WrittenTables"]
 
 #: text columns of ``runs.csv`` (read as text, an empty cell as "")
 _TEXT_COLUMNS = ("config", "selector", "elements", "options", "error", "budget_flag")
@@ -88,6 +90,24 @@ def _run_meta(folder) -> dict:
     except (OSError, ValueError):
         return {}
     return meta if isinstance(meta, dict) else {}
+
+
+def compare_folder(folder, option: str) -> tuple[dict, list[dict], str]:
+    """``(scene dict, table1.csv rows, table1.csv path)`` of a folder written by ``arraysel compare``,
+    for a command that takes it as ``option`` (named in every error): both files must exist and
+    ``run.json`` must hold the scene."""
+    import csv
+
+    run_json, table = str(Path(folder) / "run.json"), str(Path(folder) / "table1.csv")
+    for path in (run_json, table):
+        if not Path(path).is_file():
+            raise ParameterError(f"{option}: {path!r} does not exist (a folder written by arraysel compare holds it)")
+    try:
+        scene = json.loads(Path(run_json).read_text(encoding="utf-8"))["scene"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ParameterError(f"{option}: {run_json!r} holds no scene ({type(exc).__name__})") from None
+    with open(table, encoding="utf-8", newline="") as fh:
+        return scene, list(csv.DictReader(fh)), table
 
 
 def read_runs(path):
