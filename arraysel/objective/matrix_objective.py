@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, SelectionError
+from arraysel.objective.tensors import objective_device
 from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.objective.metrics3d import MERIT_NAMES, psf3d_metrics
 from arraysel.objective.psf_objective import Objective, SceneObjectiveFactory, build_objective
@@ -117,9 +118,7 @@ class MatrixObjective(Objective):
         self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
         if not self.scene.is_volume:
             raise ParameterError(f"scene {self.scene.name!r} has no [volume] section: use Objective for it")
-        self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+        self.device = objective_device(device)
         self.dtype = dtype
         self.chunk = int(chunk)
         #: the scene's settings, read once: the objective does not go back to the scene

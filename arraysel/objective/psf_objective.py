@@ -43,6 +43,7 @@ from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.pair_model import pair_model
 from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.objective.tensors import objective_device
 from arraysel.selection import masks_from_indices
 from arraysel.physics.psf import PSFModel
 from arraysel.scenes.schema import Scene, load_scene
@@ -104,9 +105,7 @@ class Objective:
     def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int = DEFAULT_CHUNK,
                  fast: bool = True):
         self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
-        self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+        self.device = objective_device(device)
         self.dtype = dtype
         self.chunk = int(chunk)
         self.fast_requested = bool(fast)

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.objective.tensors import objective_device
 from arraysel.objective.lobes import lobe_metrics, main_lobe_regions
 from arraysel.objective.metrics import METRIC_NAMES
 from arraysel.objective.beam_objective import BeamPatternScorer
@@ -65,9 +66,7 @@ class SectorObjective(Objective):
         self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
         if not self.scene.is_sector:
             raise ParameterError(f"scene {self.scene.name!r} has no [sector] section: it is not a sector scene")
-        self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+        self.device = objective_device(device)
         self.dtype, self.chunk = dtype, int(chunk)
         self.settings = st = self.scene.objective_settings()
         self.setup = self.scene.sector_setup()

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from arraysel.errors import ParameterError
 
-__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2"]
+__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2", "objective_device"]
 
 
 def _check_tensor(name: str, x: object) -> Tensor:
@@ -32,3 +32,9 @@ def _abs2(z: Tensor) -> Tensor:
     return z.square()
 
 
+def objective_device(device) -> torch.device:
+    """``device`` as a torch.device for an objective; ParameterError for 'cuda' without a CUDA device."""
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
+    return device
