@@ -169,11 +169,16 @@ def test_sector_surface_matches_pymust(tiny):
         m = np.zeros(64)
         m[rng.choice(64, 16, replace=False)] = 1
         masks.append(m)
-    got = tiny.exact.surfaces(torch.tensor(np.stack(masks)), 1)[SURFACE].numpy()
+    got = tiny.exact.surfaces(torch.tensor(np.stack(masks)), 1, exact=True)[SURFACE].numpy()
     oracle = PyMUSTScene3(st.probe, st.acq, st.delays, st.points[1], {SURFACE: tiny.exact.coords[1][SURFACE].numpy()})
+    fast = None
+    if tiny.fast_point(1):   # the fast path, when it passed its check, against the same oracle
+        fast = tiny.point_images(torch.tensor(np.stack(masks)), 1).numpy()
     for i, m in enumerate(masks):
         ref = oracle.planes(m)[SURFACE]
         assert si_mse(got[i], ref) <= 1e-4, i
+        if fast is not None:
+            assert si_mse(fast[i], ref) <= 1e-4, i
 
 
 # --------------------------------------------------------------------------- through compare

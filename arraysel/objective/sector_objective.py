@@ -25,12 +25,13 @@ lattice predicts around the point, the -6 dB widths in x and y in metres).
 """
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
 import torch
 
-from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.errors import NumericalError, ParameterError, SelectionError, check_number
 from arraysel.objective.tensors import objective_device
 from arraysel.objective.lobes import lobe_metrics, main_lobe_regions
 from arraysel.objective.metrics import METRIC_NAMES
@@ -85,6 +86,8 @@ class SectorObjective(Objective):
         self.breakdown_names = SEARCH_COLUMNS
         self.weights = dict(st.weights)
         self.fast_requested, self.exact_reason = False, None
+        #: whether the per-beam scoring may use the points' fast models; the points refused, with why
+        self.fast_exact, self.fast_refused = bool(fast), {}
         self._ref_amp = None
         self._exact = None
         self._segments: dict = {}
@@ -162,11 +165,53 @@ class SectorObjective(Objective):
     # ------------------------------------------------------------------ exact per-beam scoring
     @property
     def exact(self):
-        """The points' exact PSFs (:class:`~arraysel.physics.volume.sector.SectorPSF`, built on first use)."""
+        """The points' PSFs (:class:`~arraysel.physics.volume.sector.SectorPSF`, built on first use;
+        with ``fast``, each point's fast model installed on first use, :meth:`fast_point`)."""
         if self._exact is None:
             from arraysel.physics.volume.sector import SectorPSF
             self._exact = SectorPSF(self.setup, dtype=self.dtype, device=self.device)
         return self._exact
+
+    def fast_point(self, i: int) -> bool:
+        """Install point ``i``'s fast model (from the on-disk cache, or built, checked against the
+        exact path on the full array and two random selections of ``k`` elements, and cached);
+        True when it is in use, False when the fast path is off or refused (the reason in
+        :attr:`fast_refused`)."""
+        psf = self.exact
+        if psf.has_fast(i):
+            return True
+        if not self.fast_exact or i in self.fast_refused:
+            return False
+        from arraysel.physics.volume.fast import FastPathUnavailable
+
+        state = sector_fast_state(self, i)
+        if "refused" in state:
+            self.fast_refused[i] = str(state.get("why", "refused when it was built"))
+            return False
+        try:
+            psf.install_fast(i, psf.fast_from_state(i, state))
+        except (ValueError, FastPathUnavailable) as exc:
+            self.fast_refused[i] = str(exc)
+            return False
+        return True
+
+    def point_images(self, masks, i: int, exact: bool = False) -> torch.Tensor:
+        """Point ``i``'s complex images (B, Hv, Hu) of hard masks or weights (B, Ne): the fast path
+        in batches of :attr:`chunk` when available and ``exact`` is False, else the exact path one
+        selection at a time."""
+        from arraysel.physics.volume.sector import SURFACE
+
+        m = self.as_masks(masks) if not isinstance(masks, torch.Tensor) else masks
+        m = m.to(self.device, self.dtype)
+        if not exact and self.fast_point(i):
+            step = max(1, self.chunk)
+            parts = [self.exact.surfaces(m[b:b + step], i)[SURFACE] for b in range(0, m.shape[0], step)]
+        else:
+            parts = [self.exact.surfaces(m[b:b + 1], i, exact=True)[SURFACE] for b in range(m.shape[0])]
+        img = torch.cat(parts)
+        if not bool(torch.isfinite(img).all()):
+            raise NumericalError(f"the PSF of point {i} is not finite")
+        return img
 
     def _grating(self, masks: torch.Tensor, i: int) -> list[torch.Tensor]:
         """Per mask, the grating-lobe segments (G, 2, 2) in u-v around point ``i`` over the pulse's
@@ -193,8 +238,9 @@ class SectorObjective(Objective):
             out.append(self._segments[key])
         return out
 
-    def beam_metrics(self, masks, points=None) -> dict[str, np.ndarray]:
-        """The exact per-beam metrics (module docstring) of hard masks (B, Ne): ``{name: float64
+    def beam_metrics(self, masks, points=None, exact: bool = False) -> dict[str, np.ndarray]:
+        """The per-beam metrics (module docstring) of hard masks (B, Ne) on the points' PSFs (the
+        fast path when available, :meth:`point_images`; ``exact``: the exact path): ``{name: float64
         (B, P)}`` for the names of :data:`BEAM_COLUMNS` (dB; widths in metres), one column per point
         of ``points`` (default all). Not counted as evaluations of the search."""
         from arraysel.physics.volume.sector import SURFACE
@@ -202,18 +248,33 @@ class SectorObjective(Objective):
         m = self.as_masks(masks)
         pts = list(range(self.n_points)) if points is None else [int(p) for p in points]
         out = {k: np.zeros((m.shape[0], len(pts))) for k in BEAM_COLUMNS}
+        step = max(1, self.chunk)
         with torch.no_grad():
             for j, i in enumerate(pts):
                 coords = self.exact.coords[i]
-                for b in range(m.shape[0]):
-                    surf = self.exact.surfaces(m[b:b + 1], i)
-                    if not bool(torch.isfinite(surf[SURFACE]).all()):
-                        raise NumericalError(f"the PSF of point {i} is not finite")
-                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(m[b:b + 1], i),
+                for b0 in range(0, m.shape[0], step):
+                    mb = m[b0:b0 + step]
+                    surf = {SURFACE: self.point_images(mb, i, exact=exact)}
+                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(mb, i),
                                        terms=BEAM_COLUMNS)
                     for k in BEAM_COLUMNS:
-                        out[k][b, j] = float(res[k][0])
+                        out[k][b0:b0 + mb.shape[0], j] = res[k].double().cpu().numpy()
         return out
+
+    def beam_loss(self, masks, width_cap: float, width_weight: float = 100.0,
+                  exact: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The per-beam loss of hard masks (B, Ne) on the points' PSFs: the worst ``PSL_dB`` over
+        the points plus ``width_weight`` dB per unit of the mean -6 dB width's relative excess over
+        ``width_cap`` (metres; the mean over points of the x and y widths). Returns
+        ``(loss float64 (B,), summary)``, the summary ``{"worst_PSL_dB", "mean_width_m"}`` (B,) and
+        ``"PSL_dB"`` (B, P) per point."""
+        cap = check_number("width_cap", width_cap, lo=0, lo_open=True, hi=1.0)
+        wt = check_number("width_weight", width_weight, lo=0)
+        bm = self.beam_metrics(masks, exact=exact)
+        worst = bm["PSL_dB"].max(1)
+        width = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
+        loss = worst + wt * np.maximum(width / cap - 1.0, 0.0)
+        return loss, {"worst_PSL_dB": worst, "mean_width_m": width, "PSL_dB": bm["PSL_dB"]}
 
     def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
         """``n`` (default the scene's ``sector.fresh_random``) random selections of ``k`` elements,
@@ -230,6 +291,60 @@ class SectorObjective(Objective):
             return None
         return SectorObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
                                       chunk=int(self.chunk))
+
+
+#: the version of the cached sector fast-path tensors (bumped when their meaning changes)
+SECTOR_FAST_VERSION = 1
+
+
+def _point_key(setup, i: int) -> tuple:
+    """A cache key of point ``i`` of a :class:`~arraysel.physics.volume.sector.SectorSetup`: its
+    point setup, the delays by digest and the grid of directions."""
+    ps = setup.point_setup(i)
+    d = np.ascontiguousarray(ps.delays, dtype=np.float64)
+    uv = np.concatenate([setup.u, setup.v]).astype(np.float64)
+    fields = (ps.probe, ps.acq, ps.scatterer, ps.reflectivity, ps.iq_bandwidth, ps.options)
+    return (repr(fields), d.shape, hashlib.sha256(d.tobytes()).hexdigest(), hashlib.sha256(uv.tobytes()).hexdigest())
+
+
+def sector_fast_state(objective: SectorObjective, i: int) -> dict:
+    """The cached fast-path tensors of point ``i`` of a sector objective's scene
+    (:meth:`~arraysel.physics.volume.sector.SectorPSF.build_fast`, checked on the full array and
+    two random selections of ``k`` elements, seed 0), built when absent; ``{"refused": 1, "why":
+    ...}``-like (``refused`` present) when the fast path was refused."""
+    from arraysel import __version__
+    from arraysel.io import cache
+    from arraysel.physics.volume.fast import FastPathUnavailable
+    from arraysel.physics.volume.sector import SECTOR_FAST, SECTOR_FAST_LADDER
+
+    n, k = objective.n_elements, objective.k
+    g = torch.Generator().manual_seed(0)
+    rows = [torch.ones(n, dtype=torch.float64)]
+    for _ in range(2):
+        m = torch.zeros(n, dtype=torch.float64)
+        m[torch.randperm(n, generator=g)[:k]] = 1
+        rows.append(m)
+    checks = torch.stack(rows)
+    why: list[str] = []
+
+    def build() -> dict:
+        for settings in SECTOR_FAST_LADDER:
+            try:
+                return objective.exact.build_fast(i, settings, check_masks=checks).state()
+            except FastPathUnavailable as exc:
+                why.append(str(exc))
+        return {"refused": torch.tensor(1)}
+
+    def check(state: dict) -> None:
+        if "refused" not in state:
+            objective.exact.fast_from_state(i, state, SECTOR_FAST)
+
+    key = (__version__, SECTOR_FAST_VERSION, _point_key(objective.setup, i), k, repr(SECTOR_FAST_LADDER))
+    state = dict(cache.load_or_build("sector-fast", key, build, what=f"the sector fast path of point {i}",
+                                     check=check, seconds_hint=300.0))
+    if "refused" in state and why:
+        state["why"] = why[0]
+    return state
 
 
 def point_label(objective, i: int) -> str:

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, check_number
-from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes, split_planes
+from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, check_surfaces, plane_axes, split_planes
 
 __all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
@@ -331,6 +331,10 @@ class MatrixFastPSF:
             kf = 2 * math.pi * f / fs
             h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
             W = (Phi[n] * L[n][None])[:, None, None, :] * h[None, :, None, :] * rx_basis[n][None, None]  # (r, Q, K, F)
+            # frequencies where the echo has no weight add nothing (a thousandth of ``tol``): leave them out
+            mag = W.abs().amax((0, 1, 2))
+            keep = mag > 1e-3 * tol * mag.max()
+            W, kf = W[..., keep], kf[keep]
             xi = tx_pos[n]
             for n_nodes, idx, off in groups:
                 nodes = _chebyshev_nodes(n_nodes)
@@ -398,14 +402,15 @@ class MatrixFastPSF:
 
     @classmethod
     def from_state(cls, setup, state: dict, settings: FastSettings | None = None, dtype=torch.float32,
-                   device="cpu") -> "MatrixFastPSF":
+                   device="cpu", coords: dict | None = None) -> "MatrixFastPSF":
         """A model restored from :meth:`state` for ``setup`` (no exact model is built: :attr:`exact`
-        is None). Raises ValueError when the tensors do not fit the setup."""
+        is None); ``coords``: the surfaces it was built on, when not the setup's planes (as
+        :class:`MatrixPSF`'s ``coords``). Raises ValueError when the tensors do not fit the setup."""
         self = cls.__new__(cls)
         self.settings = settings or FastSettings()
         self.exact = None
         self.setup = setup
-        self.coords = plane_axes(setup)
+        self.coords = plane_axes(setup) if coords is None else check_surfaces(coords)
         self._shapes = {k: tuple(v.shape[:2]) for k, v in self.coords.items()}
         self.n_elements = setup.probe.n_elements
         self.dtype = dtype
