@@ -57,13 +57,15 @@ def main(argv=None):
         m[list(idx)] = True
         return m
 
-    table = pd.read_csv(os.path.join(args.compare, "table1.csv"))
+    path = os.path.join(args.compare, "table1.csv") if args.compare else ""
+    table = pd.read_csv(path) if path and os.path.exists(path) else pd.DataFrame(columns=["config", "elements"])
     comp = {r["config"]: mask_of(int(v) for v in r["elements"].split()) for _, r in table.iterrows()
-            if isinstance(r.get("elements"), str)}
+            if isinstance(r.get("elements"), str) and r["config"] != "full"}
     ny, nx = obj.element_grid
     masks = {"uniform": mask_of(uniform_layout(n, k, (ny, nx))),
-             "spiral": mask_of(fermat_spiral_layout((ny, nx), k, taper="none")),
-             "random": comp["random"]}
+             "spiral": mask_of(fermat_spiral_layout((ny, nx), k, taper="none"))}
+    if "random" in comp:
+        masks["random"] = comp["random"]
     fresh = obj.fresh_random_masks(args.fresh, seed=0)
     bm = obj.beam_metrics(fresh)
     fw = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
@@ -77,7 +79,7 @@ def main(argv=None):
     base = pd.DataFrame(rows)
     print(base[["config", "worst_PSL_dB", "mean_width_mm"]].to_string(index=False), flush=True)
     cap = 1.05 * float(base["mean_width_mm"].min()) * 1e-3
-    starts = {s: (comp[s] if s in comp else masks[s]) for s in args.starts}
+    starts = {s: (comp[s] if s in comp else masks[s]) for s in args.starts if s in comp or s in masks}
     for s, m in starts.items():
         res = polish_on_beams(obj, m, width_cap=cap, seconds=args.seconds, batch=args.batch, keep=args.keep, seed=0)
         print(f"  {s}: loss {res['start_loss']:.2f} -> {res['loss']:.2f} dB, worst PSL {res['worst_PSL_dB']:.2f} dB, "
