@@ -65,6 +65,7 @@ def test_fast_images_equal_the_exact_ones(small):
 @pytest.mark.slow
 def test_fast_beam_metrics_equal_the_exact_ones(small):
     masks = _masks()
+    assert all(small.fast_point(i) for i in range(small.n_points))
     fast = small.beam_metrics(masks)
     exact = small.beam_metrics(masks, exact=True)
     assert set(fast) == set(BEAM_COLUMNS)
@@ -100,6 +101,14 @@ def test_cached_state_restores_and_fast_can_be_off(small):
         small.exact.fast_from_state(0, bad)
     off = SectorObjective(load_scene(copy.deepcopy(SMALL)), dtype=torch.float32, fast=False)
     assert not off.fast_point(0) and not off.exact.has_fast(0)
+    # a small batch takes a cached model but builds none: another k has no entry
+    other = SectorObjective(load_scene({**copy.deepcopy(SMALL), "selection": {"k": 15}}), dtype=torch.float32)
+    assert not other.fast_point(0, build=False) and 0 not in other.fast_refused
+    other.point_images(_masks()[:2], 0)
+    assert not other.exact.has_fast(0)
+    again = SectorObjective(load_scene(copy.deepcopy(SMALL)), dtype=torch.float32)
+    again.point_images(_masks()[:2], 0)
+    assert again.exact.has_fast(0)
 
 
 @pytest.mark.slow

@@ -88,6 +88,8 @@ class SectorObjective(Objective):
         self.fast_requested, self.exact_reason = False, None
         #: whether the per-beam scoring may use the points' fast models; the points refused, with why
         self.fast_exact, self.fast_refused = bool(fast), {}
+        #: the fewest selections a call must score to build a point's fast model that is not cached
+        self.fast_min_masks = 64
         self._ref_amp = None
         self._exact = None
         self._segments: dict = {}
@@ -172,11 +174,11 @@ class SectorObjective(Objective):
             self._exact = SectorPSF(self.setup, dtype=self.dtype, device=self.device)
         return self._exact
 
-    def fast_point(self, i: int) -> bool:
-        """Install point ``i``'s fast model (from the on-disk cache, or built, checked against the
-        exact path on the full array and two random selections of ``k`` elements, and cached);
-        True when it is in use, False when the fast path is off or refused (the reason in
-        :attr:`fast_refused`)."""
+    def fast_point(self, i: int, build: bool = True) -> bool:
+        """Install point ``i``'s fast model (from the on-disk cache, or, with ``build``, built,
+        checked against the exact path on the full array and two random selections of ``k``
+        elements, and cached); True when it is in use, False when the fast path is off, refused
+        (the reason in :attr:`fast_refused`) or, without ``build``, not cached."""
         psf = self.exact
         if psf.has_fast(i):
             return True
@@ -184,7 +186,9 @@ class SectorObjective(Objective):
             return False
         from arraysel.physics.volume.fast import FastPathUnavailable
 
-        state = sector_fast_state(self, i)
+        state = sector_fast_state(self, i, build=build)
+        if state is None:
+            return False
         if "refused" in state:
             self.fast_refused[i] = str(state.get("why", "refused when it was built"))
             return False
@@ -198,12 +202,14 @@ class SectorObjective(Objective):
     def point_images(self, masks, i: int, exact: bool = False) -> torch.Tensor:
         """Point ``i``'s complex images (B, Hv, Hu) of hard masks or weights (B, Ne): the fast path
         in batches of :attr:`chunk` when available and ``exact`` is False, else the exact path one
-        selection at a time."""
+        selection at a time. The fast model is built when it is not cached only for a batch of at
+        least :attr:`fast_min_masks` selections (below that, its build costs more than the exact
+        path; :meth:`fast_point` builds it on demand)."""
         from arraysel.physics.volume.sector import SURFACE
 
         m = self.as_masks(masks) if not isinstance(masks, torch.Tensor) else masks
         m = m.to(self.device, self.dtype)
-        if not exact and self.fast_point(i):
+        if not exact and self.fast_point(i, build=m.shape[0] >= self.fast_min_masks):
             step = max(1, self.chunk)
             parts = [self.exact.surfaces(m[b:b + step], i)[SURFACE] for b in range(0, m.shape[0], step)]
         else:
@@ -308,11 +314,12 @@ def _point_key(setup, i: int) -> tuple:
     return (repr(fields), d.shape, hashlib.sha256(d.tobytes()).hexdigest(), hashlib.sha256(uv.tobytes()).hexdigest())
 
 
-def sector_fast_state(objective: SectorObjective, i: int) -> dict:
+def sector_fast_state(objective: SectorObjective, i: int, build: bool = True) -> dict | None:
     """The cached fast-path tensors of point ``i`` of a sector objective's scene
     (:meth:`~arraysel.physics.volume.sector.SectorPSF.build_fast`, checked on the full array and
-    two random selections of ``k`` elements, seed 0), built when absent; ``{"refused": 1, "why":
-    ...}``-like (``refused`` present) when the fast path was refused."""
+    two random selections of ``k`` elements, seed 0), built when absent (without ``build``: None
+    when absent); ``{"refused": 1, "why": ...}``-like (``refused`` present) when the fast path was
+    refused."""
     from arraysel import __version__
     from arraysel.io import cache
     from arraysel.physics.volume.fast import FastPathUnavailable
@@ -328,7 +335,7 @@ def sector_fast_state(objective: SectorObjective, i: int) -> dict:
     checks = torch.stack(rows)
     why: list[str] = []
 
-    def build() -> dict:
+    def make() -> dict:
         for settings in SECTOR_FAST_LADDER:
             try:
                 return objective.exact.build_fast(i, settings, check_masks=checks).state()
@@ -341,7 +348,10 @@ def sector_fast_state(objective: SectorObjective, i: int) -> dict:
             objective.exact.fast_from_state(i, state, SECTOR_FAST)
 
     key = (__version__, SECTOR_FAST_VERSION, _point_key(objective.setup, i), k, repr(SECTOR_FAST_LADDER))
-    state = dict(cache.load_or_build("sector-fast", key, build, what=f"the sector fast path of point {i}",
+    if not build and cache.peek("sector-fast", key, ["unsort"]) is None \
+            and cache.peek("sector-fast", key, ["refused"]) is None:
+        return None
+    state = dict(cache.load_or_build("sector-fast", key, make, what=f"the sector fast path of point {i}",
                                      check=check, seconds_hint=300.0))
     if "refused" in state and why:
         state["why"] = why[0]
