@@ -10,13 +10,14 @@ import torch
 
 from arraysel.objective.sector_objective import BEAM_COLUMNS, SectorObjective, sector_fast_state
 from arraysel.physics.volume.fast import MatrixFastPSF
+from arraysel.physics.volume.sector import MirroredModel, xy_mirrors
 from arraysel.scenes.schema import load_scene
 
 SMALL = {"name": "small-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
          "acquisition": {"fs_over_fc": 4.0},
          "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
                       "source_distance": "5 mm"},
-         "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 5.0, "20 mm"]], "samples_per_lobe": 3.0, "margin": 1.0,
+         "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 5.0, "20 mm"], [5.0, 10.0, "20 mm"]], "samples_per_lobe": 3.0, "margin": 1.0,
                     "n_freq": 4, "fresh_random": 3},
          "selection": {"k": 16}}
 
@@ -51,15 +52,30 @@ def test_fast_images_equal_the_exact_ones(small):
     w = torch.as_tensor(masks, dtype=torch.float32)
     for i in range(small.n_points):
         assert small.fast_point(i), small.fast_refused
-        assert isinstance(small.exact._fast[i], MatrixFastPSF)
+        # point 2 is point 1 seen in the x-y mirror: its images are point 1's, nothing built for it
+        assert isinstance(small.exact._fast[i], MirroredModel if i == 2 else MatrixFastPSF)
         fast = small.point_images(w, i)
         exact = small.point_images(w, i, exact=True)
         assert fast.shape == exact.shape == (len(masks), len(small.setup.v), len(small.setup.u))
         for b in range(len(masks)):
             assert _si_mse(fast[b], exact[b]) <= 1e-6, (i, b)
         # a wrong model is caught: the other point's image is far from this one
-        other = small.point_images(w[:1], 1 - i, exact=True)
+        other = small.point_images(w[:1], (i + 1) % small.n_points, exact=True)
         assert _si_mse(fast[0], other[0]) > 1e-2
+
+
+def test_xy_mirrors_finds_the_swapped_points(small):
+    perm, pairs = xy_mirrors(small.setup)
+    assert pairs == {1: 2, 2: 1}
+    grid = np.arange(64).reshape(8, 8)
+    np.testing.assert_array_equal(perm, grid.T.reshape(-1))
+    builtin = SectorObjective("matrix-1024-sector")
+    perm, pairs = xy_mirrors(builtin.setup)
+    assert pairs == {3: 4, 4: 3}   # 13 degrees in x and in y; the diagonal point is its own mirror
+    # transmits steered less far in y break the symmetry
+    tree = copy.deepcopy(SMALL)
+    tree["transmit"]["max_tilt_deg_y"] = 10.0
+    assert xy_mirrors(SectorObjective(load_scene(tree)).setup)[0] is None
 
 
 @pytest.mark.slow

@@ -90,6 +90,7 @@ class SectorObjective(Objective):
         self.fast_exact, self.fast_refused = bool(fast), {}
         #: the fewest selections a call must score to build a point's fast model that is not cached
         self.fast_min_masks = 64
+        self._mirrors = None
         self._ref_amp = None
         self._exact = None
         self._segments: dict = {}
@@ -185,6 +186,16 @@ class SectorObjective(Objective):
         if not self.fast_exact or i in self.fast_refused:
             return False
         from arraysel.physics.volume.fast import FastPathUnavailable
+        from arraysel.physics.volume.sector import MirroredModel, xy_mirrors
+
+        if self._mirrors is None:
+            self._mirrors = xy_mirrors(self.setup)
+        perm, pairs = self._mirrors
+        j = pairs.get(int(i))
+        if j is not None and j < int(i) and self.fast_point(j, build=build):
+            # the x-y mirror of an earlier point: its model, the weights permuted, the image transposed
+            psf.install_fast(i, MirroredModel(psf._fast[j], perm))
+            return True
 
         state = sector_fast_state(self, i, build=build)
         if state is None:

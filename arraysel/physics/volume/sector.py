@@ -32,7 +32,7 @@ from arraysel.physics.simus import SimOptions
 from arraysel.physics.volume.fast import FastSettings, MatrixFastPSF
 from arraysel.physics.volume.psf import MatrixPSF, MatrixPSFSetup
 
-__all__ = ["SURFACE", "SECTOR_FAST", "SECTOR_FAST_LADDER", "sector_grid", "beam_point", "SectorSetup", "SectorPSF"]
+__all__ = ["SURFACE", "SECTOR_FAST", "SECTOR_FAST_LADDER", "xy_mirrors", "MirroredModel", "sector_grid", "beam_point", "SectorSetup", "SectorPSF"]
 
 #: the name of each point's surface in the dicts :meth:`SectorPSF.surfaces` returns
 SURFACE = "sector"
@@ -70,6 +70,52 @@ def beam_point(theta_x_deg: float, theta_y_deg: float, range_m: float) -> tuple[
         raise ParameterError(f"angles ({theta_x_deg}, {theta_y_deg}) degrees point outside the visible region")
     r = check_number("range", range_m, lo=0, lo_open=True, hi=2)
     return (r * u, r * v, r * math.sqrt(1 - u * u - v * v))
+
+
+def xy_mirrors(setup: "SectorSetup") -> tuple[np.ndarray | None, dict[int, int]]:
+    """The scene's symmetry under the swap of x and y, when it has it: ``(perm, pairs)``.
+
+    ``perm`` (Ne,) maps each element to the element at its swapped position (None, and no pairs,
+    unless the elements' positions, their size in x and y, the set of transmits' delays and the
+    grid of directions are all unchanged by the swap); ``pairs`` maps a point ``j`` to another point
+    ``i`` at its swapped position. Point ``j``'s image of weights ``w`` is then point ``i``'s image
+    of ``w[:, perm]``, transposed (rows v, columns u): the same delay-and-sum seen in a mirror."""
+    probe = setup.probe
+    pos = np.asarray(probe.element_positions(), dtype=np.float64)
+    tol = 1e-9 * max(1.0, float(np.abs(pos).max()) * 1e3)
+    d = np.abs(pos[:, None, [1, 0, 2]] - pos[None, :, :]).sum(-1)
+    perm = d.argmin(1)
+    if (d[np.arange(len(pos)), perm].max() > tol or getattr(probe, "width", None) != getattr(probe, "height", None)
+            or setup.u.shape != setup.v.shape or not np.allclose(setup.u, setup.v, rtol=0, atol=1e-12)):
+        return None, {}
+    dl = setup.delays
+    scale = max(float(np.abs(dl).max()), 1e-30)
+    for row in dl[:, perm]:
+        if not (np.abs(dl - row[None]).max(1) <= 1e-9 * scale).any():
+            return None, {}
+    pairs = {}
+    for j, (x, y, z) in enumerate(setup.points):
+        for i, q in enumerate(setup.points):
+            if i != j and np.allclose(q, (y, x, z), rtol=0, atol=1e-12):
+                pairs[j] = i
+                break
+    return perm, pairs
+
+
+class MirroredModel:
+    """Point ``j``'s images from the model of its mirror point ``i`` (:func:`xy_mirrors`): the
+    weights permuted, the image transposed. ``planes(weights)`` as the model's."""
+
+    def __init__(self, model, perm: np.ndarray):
+        self.model = model
+        self.perm = torch.as_tensor(np.asarray(perm), dtype=torch.long)
+
+    def planes(self, weights) -> dict[str, torch.Tensor]:
+        w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
+        if w.dim() == 1:
+            w = w[None]
+        out = self.model.planes(w[:, self.perm.to(w.device)])
+        return {k: v.transpose(-1, -2) for k, v in out.items()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +229,7 @@ class SectorPSF:
         return MatrixFastPSF.from_state(self.setup.point_setup(i), state, settings or SECTOR_FAST, dtype=self.dtype,
                                         device=self.device, coords=self.coords[i])
 
-    def install_fast(self, i: int, model: MatrixFastPSF | None) -> None:
+    def install_fast(self, i: int, model: "MatrixFastPSF | MirroredModel | None") -> None:
         """Use ``model`` for point ``i``'s images (None: the exact path again)."""
         i = int(check_number("point", i, lo=0, hi=self.n_points - 1, integer=True))
         if model is None:
