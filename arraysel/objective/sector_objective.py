@@ -279,16 +279,17 @@ class SectorObjective(Objective):
         return out
 
     def beam_loss(self, masks, width_cap: float, width_weight: float = 100.0, exact: bool = False,
-                  metrics: dict | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                  metrics: dict | None = None, points=None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The per-beam loss of hard masks (B, Ne) on the points' PSFs: the worst ``PSL_dB`` over
         the points plus ``width_weight`` dB per unit of the mean -6 dB width's relative excess over
         ``width_cap`` (metres; the mean over points of the x and y widths). Returns
         ``(loss float64 (B,), summary)``, the summary ``{"worst_PSL_dB", "mean_width_m"}`` (B,) and
         ``"PSL_dB"`` (B, P) per point. ``metrics``: the masks' :meth:`beam_metrics`, if already
-        computed (``masks`` is then not scored again)."""
+        computed (``masks`` is then not scored again); ``points``: over these points only (default
+        all)."""
         cap = check_number("width_cap", width_cap, lo=0, lo_open=True, hi=1.0)
         wt = check_number("width_weight", width_weight, lo=0)
-        bm = self.beam_metrics(masks, exact=exact) if metrics is None else metrics
+        bm = self.beam_metrics(masks, points=points, exact=exact) if metrics is None else metrics
         worst = bm["PSL_dB"].max(1)
         width = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
         loss = worst + wt * np.maximum(width / cap - 1.0, 0.0)

@@ -35,12 +35,13 @@ def _swaps(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0, batch: int = 48, keep: int = 4,
-                    patience: int = 20, width_weight: float = 100.0, seed: int = 0) -> dict:
+                    patience: int = 20, width_weight: float = 100.0, seed: int = 0, points=None) -> dict:
     """Swap-move local search of ``mask`` (Ne,) bool on ``objective.beam_loss`` (module docstring).
 
     Parameters: ``width_cap`` (metres) and ``width_weight`` as :meth:`beam_loss`; ``seconds`` the
     time limit; ``batch`` moves drawn a round, ``keep`` of them scored on every point; ``patience``
-    rounds without a gain before it stops; ``seed`` of the moves.
+    rounds without a gain before it stops; ``seed`` of the moves; ``points``: the loss over these
+    points only (default all).
 
     Returns ``{"mask", "loss", "worst_PSL_dB", "mean_width_m", "start_loss", "rounds", "accepted",
     "evaluations" (selections scored on every point), "screened" (on one point), "seconds",
@@ -56,7 +57,8 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
     patience = int(check_number("patience", patience, lo=1, integer=True))
     rng = np.random.default_rng(int(check_number("seed", seed, lo=0, integer=True)))
     t0 = time.perf_counter()
-    loss, summ = objective.beam_loss(m[None], width_cap=width_cap, width_weight=width_weight)
+    pts = list(range(objective.n_points)) if points is None else [int(p) for p in points]
+    loss, summ = objective.beam_loss(m[None], width_cap=width_cap, width_weight=width_weight, points=pts)
     best = float(loss[0])
     psl = summ["PSL_dB"][0]
     start, trace = best, [(0.0, best)]
@@ -66,14 +68,14 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
         rounds += 1
         cand = _swaps(m, batch, rng)
         worst = int(np.argmax(psl))
-        scr = objective.beam_metrics(cand, points=[worst])["PSL_dB"][:, 0]
+        scr = objective.beam_metrics(cand, points=[pts[worst]])["PSL_dB"][:, 0]
         screened += batch
         top = np.argsort(scr)[:keep]
         top = top[scr[top] < psl[worst] + 1e-9]
         if not len(top):
             stale += 1
             continue
-        c_loss, c_sum = objective.beam_loss(cand[top], width_cap=width_cap, width_weight=width_weight)
+        c_loss, c_sum = objective.beam_loss(cand[top], width_cap=width_cap, width_weight=width_weight, points=pts)
         evaluations += len(top)
         j = int(np.argmin(c_loss))
         if c_loss[j] < best - 1e-9:
