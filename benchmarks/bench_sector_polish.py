@@ -26,6 +26,15 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import set_threads  # noqa: E402
 
 
+def _argv_without_out(argv: list) -> list:
+    """The arguments as given, less ``--out`` and its folder (the results' own place)."""
+    out = list(argv)
+    if "--out" in out:
+        i = out.index("--out")
+        del out[i:i + 2]
+    return [a for a in out if not a.startswith("--out=")]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="matrix-1024-sector")
@@ -110,7 +119,7 @@ def main(argv=None):
     summary = {"scene": args.scene, "points": pts, "width_cap_mm": cap * 1e3, "best": str(best["config"]),
                "best_fast": {"worst_PSL_dB": float(best["worst_PSL_dB"]), "mean_width_mm": float(best["mean_width_mm"])},
                "best_exact": exact, "against_baselines": checks, "dominates_every_baseline": dominates,
-               "seconds_per_start": args.seconds, "argv": sys.argv[1:] if argv is None else list(argv)}
+               "seconds_per_start": args.seconds, "argv": _argv_without_out(sys.argv[1:] if argv is None else list(argv))}
     print(json.dumps(summary))
     if args.out:
         os.makedirs(args.out, exist_ok=True)

@@ -98,6 +98,15 @@ def selections(obj, args):
     return out
 
 
+def _argv_without_out(argv: list) -> list:
+    """The arguments as given, less ``--out`` and its folder (the results' own place)."""
+    out = list(argv)
+    if "--out" in out:
+        i = out.index("--out")
+        del out[i:i + 2]
+    return [a for a in out if not a.startswith("--out=")]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="matrix-1024-sector")
@@ -176,7 +185,7 @@ def main(argv=None):
     print(sp[sp.search.isin(["Mean", "bp_PSL_dB"])].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     summary = {"scene": args.scene, "points": pts, "selections": len(df), "groups": df.group.value_counts().to_dict(),
                "width_cap_mm": cap * 1e3, "fast_ready_s": t_fast, "per_beam_ms_a_mask": t_beam / len(masks) * 1e3,
-               "exact_check": check, "threads": args.threads, "argv": sys.argv[1:] if argv is None else list(argv)}
+               "exact_check": check, "threads": args.threads, "argv": _argv_without_out(sys.argv[1:] if argv is None else list(argv))}
     print(json.dumps(summary))
     if args.out:
         os.makedirs(args.out, exist_ok=True)
