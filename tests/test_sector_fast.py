@@ -139,7 +139,7 @@ def test_polish_on_beams_lowers_the_per_beam_loss(small):
     assert res["mask"].sum() == 16 and res["loss"] <= res["start_loss"]
     assert res["accepted"] >= 1 and res["loss"] < res["start_loss"]   # a random start is easy to improve
     loss, _ = small.beam_loss(res["mask"][None], width_cap=cap)
-    assert loss[0] == pytest.approx(res["loss"], abs=1e-6)
+    assert loss[0] == pytest.approx(res["loss"], abs=1e-3)   # float32 sums: the batch changes the rounding
     assert all(b[1] <= a[1] for a, b in zip(res["trace"], res["trace"][1:]))
     again = polish_on_beams(small, start, width_cap=cap, seconds=60, batch=16, keep=2, patience=3, seed=1)
     assert (again["mask"] == res["mask"]).all()
