@@ -107,7 +107,7 @@ class SectorObjective(Objective):
                 self._ref_amp = self.pattern.pattern(full)[0].clamp(min=0).sqrt()
         return self._ref_amp
 
-    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
+    def psf_terms(self, weights: torch.Tensor, terms=None, receive=None) -> dict[str, torch.Tensor]:
         """The search's terms (B,) of soft element weights (B, Ne) on the beam pattern (module
         docstring), differentiable in the weights; the ``bp_`` metrics without gradient."""
         w = weights if weights.dim() == 2 else weights[None]
@@ -115,7 +115,7 @@ class SectorObjective(Objective):
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         w = w.to(self.device, self.dtype)
         p = self.pattern
-        img = p.pattern(w)                                          # (B, Hv, Hu) power
+        img = p.pattern(w, None if receive is None else receive.to(self.device, self.dtype))  # (B, Hv, Hu)
         planes, coords = {_NAME: img}, {_NAME: p.coords}
         reg = main_lobe_regions({_NAME: img.detach()}, coords, target=(0.0, 0.0, 0.0), rule=self.scorer.rule,
                                 power=True, frame="uv")
@@ -141,12 +141,14 @@ class SectorObjective(Objective):
             out = {k: out[k] for k in terms}
         return out
 
-    def evaluate(self, masks) -> dict[str, np.ndarray]:
+    def evaluate(self, masks, receive=None) -> dict[str, np.ndarray]:
         """Every Table-1 term and ``bp_`` metric of a batch of masks on the beam pattern:
-        ``{name: float64 (B,)}``. No gradient."""
+        ``{name: float64 (B,)}``. No gradient. ``receive``: separate receive masks (B, Ne)."""
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            parts = [self.psf_terms(m[i:i + self.chunk]) for i in range(0, m.shape[0], self.chunk)]
+            r = None if receive is None else self.as_masks(receive)
+            parts = [self.psf_terms(m[i:i + self.chunk], receive=None if r is None else r[i:i + self.chunk])
+                     for i in range(0, m.shape[0], self.chunk)]
             self.evaluations += int(m.shape[0])
         return {k: torch.cat([p[k] for p in parts]).double().cpu().numpy() for k in (*METRIC_NAMES, *SEARCH_COLUMNS)}
 

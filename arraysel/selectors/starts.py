@@ -78,13 +78,13 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     if gc is None:
         return mask
     g = gc.unit_groups
+    cap = np.ones(int(g.max()) + 1, dtype=np.int64) if gc.unit_group_counts is None else gc.unit_group_counts
     out = np.zeros(n, dtype=bool)
-    for e in np.flatnonzero(mask):
-        if not out[g == g[e]].any() and out.sum() < gc.k_units:
+    for e in np.flatnonzero(mask):  # a group keeps its count of the layout's elements (quotas: more than one)
+        if out[g == g[e]].sum() < cap[g[e]] and out.sum() < gc.k_units:
             out[e] = True
     _, pos = element_layout(objective)
-    filled = np.zeros(int(g.max()) + 1, dtype=bool)
-    filled[g[out]] = True
+    filled = np.bincount(g[out], minlength=cap.size) >= cap
     if pos is None:
         dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
     elif out.any():
@@ -93,8 +93,10 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
         dmin = np.zeros(n)
     while int(out.sum()) < gc.k_units:
         cand = np.where(filled[g], -np.inf, dmin)
+        cand[out] = -np.inf
         e = int(np.argmax(cand))
-        out[e], filled[g[e]] = True, True
+        out[e] = True
+        filled[g[e]] = out[g == g[e]].sum() >= cap[g[e]]
         if pos is not None:
             dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
     return out
