@@ -88,6 +88,8 @@ class ApertureObjective:
             self.k_rx = int(inner.k if k_rx is None else k_rx)
             self.constraints = aperture_constraints(n, self.k_tx, self.k_rx)
             self.n_elements, self.k = 2 * n, self.k_tx + self.k_rx
+        if hasattr(inner, "beam_metrics"):  # a sector scene: its exact per-beam scoring, both apertures
+            self.beam_metrics = self._beam_metrics
         psfs = getattr(inner, "psfs", None)
         if psfs is not None:  # a 1-D scene: the pair basis is symmetric in transmit and receive
             per = sum(p.exact_seconds_per_mask() for p in psfs)
@@ -191,6 +193,19 @@ class ApertureObjective:
         if P.requires_grad:
             inner.gradient_steps += 1
         return total, terms
+
+    def _beam_metrics(self, masks, points=None) -> dict:
+        """A sector scene's exact per-beam metrics of the masks' transmit and receive apertures."""
+        tx, rx = self.apertures(masks)
+        return self._inner.beam_metrics(tx, points, receive=rx)
+
+    def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
+        """A sector scene's fresh random selections of the selector's problem (``separate``:
+        uniformly random feasible ones; ``full-tx``: the scene's)."""
+        if self.aperture_mode == "full-tx":
+            return self._inner.fresh_random_masks(n, seed)
+        n = self._inner.fresh_random if n is None else int(n)
+        return self.constraints.random_masks(np.random.default_rng(seed), n)
 
     def split(self, elements) -> tuple[list[int], list[int]]:
         """The transmit and receive elements of a selection (:func:`split_apertures`)."""

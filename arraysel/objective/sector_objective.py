@@ -195,23 +195,26 @@ class SectorObjective(Objective):
             out.append(self._segments[key])
         return out
 
-    def beam_metrics(self, masks, points=None) -> dict[str, np.ndarray]:
+    def beam_metrics(self, masks, points=None, receive=None) -> dict[str, np.ndarray]:
         """The exact per-beam metrics (module docstring) of hard masks (B, Ne): ``{name: float64
         (B, P)}`` for the names of :data:`BEAM_COLUMNS` (dB; widths in metres), one column per point
-        of ``points`` (default all). Not counted as evaluations of the search."""
+        of ``points`` (default all). Not counted as evaluations of the search. ``receive``:
+        separate receive masks (B, Ne) (grating lobes then from the lattice of both apertures' elements)."""
         from arraysel.physics.volume.sector import SURFACE
 
         m = self.as_masks(masks)
+        r = None if receive is None else self.as_masks(receive)
+        both = m if r is None else torch.maximum(m, r)
         pts = list(range(self.n_points)) if points is None else [int(p) for p in points]
         out = {k: np.zeros((m.shape[0], len(pts))) for k in BEAM_COLUMNS}
         with torch.no_grad():
             for j, i in enumerate(pts):
                 coords = self.exact.coords[i]
                 for b in range(m.shape[0]):
-                    surf = self.exact.surfaces(m[b:b + 1], i)
+                    surf = self.exact.surfaces(m[b:b + 1], i, receive=None if r is None else r[b:b + 1])
                     if not bool(torch.isfinite(surf[SURFACE]).all()):
                         raise NumericalError(f"the PSF of point {i} is not finite")
-                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(m[b:b + 1], i),
+                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(both[b:b + 1], i),
                                        terms=BEAM_COLUMNS)
                     for k in BEAM_COLUMNS:
                         out[k][b, j] = float(res[k][0])
