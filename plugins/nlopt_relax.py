@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
-from arraysel.constraints import refuse_groups
+from arraysel.constraints import group_constraints, refuse_groups
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k
+from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k as _top_k
 
 _GRADIENT = ("MMA", "SLSQP")
 _ALGORITHMS = {"MMA": "LD_MMA", "SLSQP": "LD_SLSQP", "CRS2": "GN_CRS2_LM", "ISRES": "GN_ISRES",
@@ -50,11 +50,23 @@ class NLoptSelector(Selector):
     deterministic = False
 
     def select(self, objective, k, seed):
-        refuse_groups(objective, self.name)
+        gc = group_constraints(objective)
+        if gc is not None and gc.group_mode != "exactly-one":
+            refuse_groups(objective, self.name)
         import nlopt
         import torch  # here, not at the top: `arraysel list` loads the plugin without torch
 
-        from arraysel.selectors.relax import project_capped_simplex
+        from arraysel.selectors.relax import project_groups
+
+        groups = None if gc is None else (gc.unit_groups, gc.unit_group_counts)
+
+        def project_capped_simplex(w, k):  # with channel groups: onto each group's count
+            return project_groups(w, k, *(groups or (None, None)))
+
+        def top_k(w, k):  # rounding: the k largest weights, or the feasible selection they prefer
+            if gc is None:
+                return _top_k(w, k)
+            return [int(i) for i in np.flatnonzero(gc.select_units(np.asarray(w, dtype=np.float64)[None])[0])]
 
         budget = objective.budget
         n = int(objective.n_elements)
@@ -102,8 +114,12 @@ class NLoptSelector(Selector):
                 opt.set_xtol_rel(self.options["xtol_rel"])
             if budget.seconds is not None:
                 opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
-            if gradient:
+            if gradient and groups is None:
                 _constrain_sum(opt, alg, k)
+            elif gradient:
+                for grp in np.unique(groups[0]):
+                    c = 1 if groups[1] is None else int(groups[1][grp])
+                    _constrain_sum(opt, alg, c, np.flatnonzero(groups[0] == grp))
             try:
                 opt.optimize(x0)
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
@@ -126,16 +142,19 @@ class NLoptSelector(Selector):
         return state["last"] if state["last"] is not None else top_k(first, k)
 
 
-def _constrain_sum(opt, alg: str, k: int) -> None:
-    """Constrain ``sum(w)`` to ``k``: an equality for SLSQP; for MMA, which takes inequalities only and
-    whose dual solver stalls on the pair ``sum(w) <= k``, ``sum(w) >= k``, the inequality
-    ``sum(w) <= k`` (the losses prefer more active weight, so it is active at the optimum)."""
+def _constrain_sum(opt, alg: str, k: int, idx=None) -> None:
+    """Constrain ``sum(w)`` (over the elements ``idx``, default all) to ``k``: an equality for SLSQP;
+    for MMA, which takes inequalities only and whose dual solver stalls on the pair ``sum(w) <= k``,
+    ``sum(w) >= k``, the inequality ``sum(w) <= k`` (the losses prefer more active weight, so it is
+    active at the optimum)."""
     tol = 1e-6 * max(1, k)
+    sel = slice(None) if idx is None else idx
 
     def over(x, grad):
         if grad.size > 0:
-            grad[:] = 1.0
-        return float(np.sum(x) - k)
+            grad[:] = 0.0
+            grad[sel] = 1.0
+        return float(np.sum(np.asarray(x)[sel]) - k)
 
     if alg == "SLSQP":
         opt.add_equality_constraint(over, tol)

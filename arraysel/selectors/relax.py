@@ -157,6 +157,23 @@ column_entropy = l_ent
 row_penalty = l_row
 
 
+def project_groups(w: torch.Tensor, k: float, groups: np.ndarray | None = None,
+                   counts: np.ndarray | None = None) -> torch.Tensor:
+    """:func:`project_capped_simplex` of ``w`` (…, Ne) onto ``sum = k``, or with ``groups`` (one
+    group number per element, :mod:`arraysel.constraints`) onto ``sum = counts[g]`` (default one)
+    over the elements of every group ``g`` (the relaxation of exactly-one channel groups and of
+    the transmit/receive quota)."""
+    if groups is None:
+        return project_capped_simplex(w, k)
+    g = np.asarray(groups, dtype=np.int64)
+    out = torch.zeros_like(w)
+    for grp in np.unique(g):
+        idx = torch.as_tensor(np.flatnonzero(g == grp), device=w.device)
+        c = 1.0 if counts is None else float(counts[grp])
+        out = out.index_copy(-1, idx, project_capped_simplex(w.index_select(-1, idx), c))
+    return out
+
+
 def project_capped_simplex(w: torch.Tensor, k: float, iters: int = 60) -> torch.Tensor:
     """Euclidean projection of ``w`` (…, Ne) onto ``{0 <= x <= 1, sum(x) = k}``.
 

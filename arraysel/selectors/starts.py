@@ -137,7 +137,7 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     choice when none was scored), so a selection is returned either way.
     """
     gc = group_constraints(objective)
-    if gc is not None:
+    if gc is not None and gc.group_mode != "exactly-one":
         raise ParameterError(f"greedy elimination cannot honour the channel groups ({gc.describe()}); "
                              f"constraints.groups needs another selector (swap, anneal, ste, ...)")
     check_number("share", share, lo=0.0, hi=1.0, lo_open=True)
@@ -145,9 +145,10 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     current = list(range(n)) if backward else []
     ranking: list[int] | None = None  # candidates of the last batch, best first
     pace = _GreedyPace(getattr(objective, "budget", None), share)
+    room = _GroupRoom(gc, backward)  # exactly-one groups (counts): a step leaves or enters open groups only
     try:
         while len(current) != k:
-            cands = current if backward else [i for i in range(n) if i not in current]
+            cands = room.open(current if backward else [i for i in range(n) if i not in current], current)
             if objective.remaining() < len(cands):
                 break
             masks = np.zeros((len(cands), n), dtype=bool)
@@ -158,7 +159,7 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
             order = np.lexsort((np.arange(len(cands)), means))
             ranking = [cands[i] for i in order]
             left = abs(len(current) - k)
-            take = ranking[:pace.per_step(left, len(cands))]
+            take = room.take(ranking, pace.per_step(left, len(cands)), current)
             if backward:
                 drop = set(take)
                 current = [c for c in current if c not in drop]
@@ -168,17 +169,53 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
         pass
     if len(current) != k:
         need = abs(len(current) - k)
-        rest = current if backward else [i for i in range(n) if i not in current]
+        rest = room.open(current if backward else [i for i in range(n) if i not in current], current)
         pool = [c for c in (ranking or []) if c in rest]
         for c in _evenly(rest, need) + rest:
             if c not in pool:
                 pool.append(c)
+        take = room.take(pool, need, current)
         if backward:
-            drop = set(pool[:need])
+            drop = set(take)
             current = [c for c in current if c not in drop]
         else:
-            current = current + pool[:need]
+            current = current + take
     return sorted(current)
+
+
+class _GroupRoom:
+    """Which units a greedy step may drop (backward) or add (forward) under ``exactly-one``
+    channel groups with counts (the transmit/receive quota): only units of groups that hold more
+    (backward) or fewer (forward) than their count, and no more of a group than that difference."""
+
+    def __init__(self, gc, backward: bool):
+        self.g = None if gc is None else gc.unit_groups
+        if self.g is not None:
+            c = gc.unit_group_counts
+            self.cap = np.ones(int(self.g.max()) + 1, dtype=np.int64) if c is None else np.asarray(c)
+        self.backward = backward
+
+    def _room(self, current) -> np.ndarray:
+        held = np.bincount(self.g[np.asarray(current, dtype=np.int64)], minlength=self.cap.size)
+        return held - self.cap if self.backward else self.cap - held
+
+    def open(self, cands: list[int], current) -> list[int]:
+        if self.g is None:
+            return cands
+        r = self._room(current)
+        return [c for c in cands if r[self.g[c]] > 0]
+
+    def take(self, ranking: list[int], m: int, current) -> list[int]:
+        if self.g is None:
+            return list(ranking[:m])
+        r, out = self._room(current), []
+        for c in ranking:
+            if len(out) == m:
+                break
+            if r[self.g[c]] > 0:
+                out.append(c)
+                r[self.g[c]] -= 1
+        return out
 
 
 class _GreedyPace:
