@@ -56,17 +56,7 @@ class NLoptSelector(Selector):
         import nlopt
         import torch  # here, not at the top: `arraysel list` loads the plugin without torch
 
-        from arraysel.selectors.relax import project_groups
-
-        groups = None if gc is None else (gc.unit_groups, gc.unit_group_counts)
-
-        def project_capped_simplex(w, k):  # with channel groups: onto each group's count
-            return project_groups(w, k, *(groups or (None, None)))
-
-        def top_k(w, k):  # rounding: the k largest weights, or the feasible selection they prefer
-            if gc is None:
-                return _top_k(w, k)
-            return [int(i) for i in np.flatnonzero(gc.select_units(np.asarray(w, dtype=np.float64)[None])[0])]
+        project_capped_simplex, top_k = _grouped(gc)
 
         budget = objective.budget
         n = int(objective.n_elements)
@@ -114,12 +104,8 @@ class NLoptSelector(Selector):
                 opt.set_xtol_rel(self.options["xtol_rel"])
             if budget.seconds is not None:
                 opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
-            if gradient and groups is None:
-                _constrain_sum(opt, alg, k)
-            elif gradient:
-                for grp in np.unique(groups[0]):
-                    c = 1 if groups[1] is None else int(groups[1][grp])
-                    _constrain_sum(opt, alg, c, np.flatnonzero(groups[0] == grp))
+            if gradient:
+                _constrain_sums(opt, alg, k, gc)
             try:
                 opt.optimize(x0)
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
@@ -140,6 +126,32 @@ class NLoptSelector(Selector):
         if objective.best is not None:
             return objective.best
         return state["last"] if state["last"] is not None else top_k(first, k)
+
+
+def _grouped(gc):
+    """``(project, round)`` of soft weights: onto ``{0 <= w <= 1, sum(w) = k}`` and to the ``k``
+    largest, or with exactly-one channel groups ``gc`` (counts included) onto each group's count
+    and to the feasible selection the weights prefer."""
+    from arraysel.selectors.relax import project_groups
+
+    def project(w, k):
+        return project_groups(w, k) if gc is None else project_groups(w, k, gc.unit_groups, gc.unit_group_counts)
+
+    def round_(w, k):
+        if gc is None:
+            return _top_k(w, k)
+        return [int(i) for i in np.flatnonzero(gc.select_units(np.asarray(w, dtype=np.float64)[None])[0])]
+
+    return project, round_
+
+
+def _constrain_sums(opt, alg: str, k: int, gc) -> None:
+    """:func:`_constrain_sum` of all the weights to ``k``, or of each channel group's to its count."""
+    if gc is None:
+        return _constrain_sum(opt, alg, k)
+    g, counts = gc.unit_groups, gc.unit_group_counts
+    for grp in np.unique(g):
+        _constrain_sum(opt, alg, 1 if counts is None else int(counts[grp]), np.flatnonzero(g == grp))
 
 
 def _constrain_sum(opt, alg: str, k: int, idx=None) -> None:

@@ -232,3 +232,25 @@ def test_apertures_figure_draws_both_masks():
     fig = apertures_figure(["a"], tx, rx, pos)
     faces = fig.axes[0].collections[0].get_facecolors()
     assert len(faces) == 16 and "tx 3, rx 2, both 1" in fig.axes[0].get_title()
+
+
+@pytest.mark.slow
+def test_compare_and_export_of_separate_apertures(tmp_path):
+    """A separate comparison on a 4 x 4 matrix probe: table1.csv's tx_elements / rx_elements,
+    apertures.png, and `arraysel export --compare` writing the two apertures."""
+    import pandas as pd
+
+    from arraysel.cli.main import main
+    scene = tmp_path / "t3.toml"
+    scene.write_text(TINY_MATRIX_SCENE + '\n[aperture]\nmode = "separate"\nk_tx = 6\nk_rx = 4\n')
+    out, exp = tmp_path / "cmp", tmp_path / "exp"
+    assert main(["compare", "--scene", str(scene), "--selectors", "uniform", "--seeds", "0", "--budget-evals", "5",
+                 "--out", str(out), "--no-progress", "--in-process"]) == 0
+    row = pd.read_csv(out / "table1.csv", dtype=str).set_index("config").loc["uniform"]
+    tx, rx = [int(v) for v in row["tx_elements"].split()], [int(v) for v in row["rx_elements"].split()]
+    assert len(tx) == 6 and len(rx) == 4
+    assert (out / "apertures.png").is_file()
+    assert main(["export", "--compare", str(out), "--config", "uniform", "--out", str(exp), "--formats", "csv"]) == 0
+    ch = pd.read_csv(exp / "channels.csv", comment="#")
+    assert ch.loc[ch["transmit"] == 1, "element"].tolist() == tx
+    assert ch.loc[ch["receive"] == 1, "element"].tolist() == rx

@@ -79,18 +79,21 @@ def aperture_columns(table, meta: dict):
     (``elements`` holds the selector's units: under ``separate`` the receive element ``e`` is
     unit ``Ne + e``). A shared-aperture scene's table is returned as it is."""
     from arraysel.objective.aperture import split_apertures
+    from arraysel.selection import Selection
 
     scene = meta.get("scene") if isinstance(meta.get("scene"), dict) else {}
     mode = (scene.get("aperture") or {}).get("mode", "shared")
     if mode == "shared" or "elements" not in table.columns or not meta.get("n_elements"):
         return table
-    n_probe = int(meta["n_elements"]) // (2 if mode == "separate" else 1)
+    n_units = int(meta["n_elements"])
+    n_probe = n_units // (2 if mode == "separate" else 1)
     tx, rx = [], []
-    for text in table["elements"].fillna("").astype(str):
-        sel = [int(v) for v in text.split()]
+    for row in table.to_dict("records"):
+        text = row["elements"]
+        sel = Selection.from_text(text, n_units).indices if isinstance(text, str) and text.strip() else ()
         t, r = split_apertures(sel, n_probe, mode) if sel else ([], [])
-        tx.append(" ".join(map(str, t)))
-        rx.append(" ".join(map(str, r)))
+        tx.append(Selection.of(t, n_probe).text if t else "")
+        rx.append(Selection.of(r, n_probe).text if r else "")
     table = table.copy()
     at = list(table.columns).index("elements") + 1
     table.insert(at, "tx_elements", tx)
