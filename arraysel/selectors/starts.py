@@ -67,7 +67,8 @@ def chirp_masks(objective, k: int, rng: np.random.Generator, m: int) -> np.ndarr
 
 def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     """A layout's selection ``chosen`` made feasible under the objective's channel groups, as a
-    mask: every group that holds elements of the layout keeps one (the lowest index); the other
+    mask: every group that holds elements of the layout keeps one (the lowest index; a group with
+    a count, such as a half of separate transmit and receive apertures, up to its count); the other
     groups the selection needs (all of them under ``exactly-one``, as many as ``k`` still
     allows under ``at-most-one``) each take, one after the other, the element farthest from those
     already kept (the lowest index first without element positions)."""
@@ -80,23 +81,28 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     g = gc.unit_groups
     cap = np.ones(int(g.max()) + 1, dtype=np.int64) if gc.unit_group_counts is None else gc.unit_group_counts
     out = np.zeros(n, dtype=bool)
+    held = np.zeros(cap.size, dtype=np.int64)  # elements each group holds so far
+    total = 0
     for e in np.flatnonzero(mask):  # a group keeps its count of the layout's elements (quotas: more than one)
-        if out[g == g[e]].sum() < cap[g[e]] and out.sum() < gc.k_units:
+        if held[g[e]] < cap[g[e]] and total < gc.k_units:
             out[e] = True
+            held[g[e]] += 1
+            total += 1
     _, pos = element_layout(objective)
-    filled = np.bincount(g[out], minlength=cap.size) >= cap
+    filled = held >= cap
     if pos is None:
         dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
     elif out.any():
         dmin = np.sqrt(((pos[:, None, :] - pos[None, out, :]) ** 2).sum(-1)).min(axis=1)
     else:
         dmin = np.zeros(n)
-    while int(out.sum()) < gc.k_units:
-        cand = np.where(filled[g], -np.inf, dmin)
-        cand[out] = -np.inf
+    while total < gc.k_units:
+        cand = np.where(filled[g] | out, -np.inf, dmin)
         e = int(np.argmax(cand))
         out[e] = True
-        filled[g[e]] = out[g == g[e]].sum() >= cap[g[e]]
+        held[g[e]] += 1
+        total += 1
+        filled[g[e]] = held[g[e]] >= cap[g[e]]
         if pos is not None:
             dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
     return out
