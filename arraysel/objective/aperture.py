@@ -170,6 +170,11 @@ class ApertureObjective:
     def evaluate_swaps(self, mask, out, into) -> dict:
         return self.evaluate_moves(mask, np.asarray(out)[:, None], np.asarray(into)[:, None])
 
+    def prepare_neighbourhoods(self) -> bool:
+        """Nothing to form: a neighbour is scored as its masks (the inner objective's shared
+        neighbourhood structures do not apply to two apertures)."""
+        return True
+
     def mask_loss(self, weights):
         w = weights if weights.dim() == 2 else weights[None]
         tx, rx = self.apertures(w)

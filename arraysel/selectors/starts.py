@@ -90,10 +90,12 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
             total += 1
     _, pos = element_layout(objective)
     filled = held >= cap
+    if total >= gc.k_units:
+        return out
     if pos is None:
         dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
     elif out.any():
-        dmin = np.sqrt(((pos[:, None, :] - pos[None, out, :]) ** 2).sum(-1)).min(axis=1)
+        dmin = _nearest_distance(pos, pos[out])
     else:
         dmin = np.zeros(n)
     while total < gc.k_units:
@@ -106,6 +108,15 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
         if pos is not None:
             dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
     return out
+
+
+def _nearest_distance(points: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """The distance from each of ``points`` (n, d) to the nearest of ``kept`` (m, d): the squared
+    distances summed coordinate by coordinate (no (n, m, d) array), the root of their minimum."""
+    d2 = np.zeros((points.shape[0], kept.shape[0]))
+    for c in range(points.shape[1]):
+        d2 += (points[:, c, None] - kept[None, :, c]) ** 2
+    return np.sqrt(d2.min(axis=1))
 
 
 def chirp_selection(objective, k: int, rng: np.random.Generator, m: int = CHIRP_CANDIDATES) -> list[int]:
