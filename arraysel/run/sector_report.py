@@ -18,7 +18,7 @@ import numpy as np
 from arraysel.report import beams as B
 from arraysel.report import tables as reporting
 
-__all__ = ["sector_tables", "effective_options"]
+__all__ = ["sector_tables", "effective_options", "beam_pattern_view"]
 
 _log = logging.getLogger(__name__)
 
@@ -92,15 +92,14 @@ def sector_tables(objective, rows: list[dict]):
     return beams, pd.DataFrame(B.pareto_rows(pareto, int(objective.k)), columns=list(B.PARETO_COLUMNS))
 
 
-def beam_pattern_png(objective, labels: list[str], masks: np.ndarray, out) -> None:
-    """``beampattern.png`` (:func:`arraysel.report.uv_plots.beam_pattern_figure`): each selection's
+def beam_pattern_view(objective, labels: list[str], masks: np.ndarray):
+    """The figure of ``beampattern.png`` (:func:`arraysel.report.uv_plots.beam_pattern_figure`): each selection's
     two-way pattern over the visible region of the sector's beams (``region="visible"``), with the
     probe lattice's grating lobes at the centre frequency and the selection's own."""
     import torch
 
     from arraysel.physics.beampattern import BeamPattern
     from arraysel.report import uv_plots
-    from arraysel.report.plots import save_figure
 
     probe = objective.setup.probe
     acq = objective.scene.acquisition()
@@ -113,5 +112,4 @@ def beam_pattern_png(objective, labels: list[str], masks: np.ndarray, out) -> No
         pat = view.pattern(w).cpu().numpy()
         segs = [s.numpy() for s in view.grating_directions(w)]
     lobes = uv_plots.lattice_grating_lobes(acq.c / probe.fc, probe.pitch_x, probe.pitch_y, view.extent)
-    fig = uv_plots.beam_pattern_figure(labels, pat, view.du.numpy(), view.dv.numpy(), sines, lobes, segs)
-    save_figure(fig, out / "beampattern.png")
+    return uv_plots.beam_pattern_figure(labels, pat, view.du.numpy(), view.dv.numpy(), sines, lobes, segs)

@@ -194,9 +194,9 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
             problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
     elif len(labels) and hasattr(objective, "beam_metrics"):  # a sector scene: pareto.png and its beam patterns
         try:
-            from arraysel.run.sector_report import beam_pattern_png
+            from arraysel.run.sector_report import beam_pattern_view
 
-            beam_pattern_png(objective, labels, masks, out)
+            plots.save_figure(beam_pattern_view(objective, labels, masks), out / "beampattern.png")
         except Exception as exc:
             problems.append(f"beampattern.png: {type(exc).__name__}: {exc}")
     elif len(labels):
