@@ -223,12 +223,9 @@ class SectorObjective(Objective):
     def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
         """``n`` (default the scene's ``sector.fresh_random``) random selections of ``k`` elements,
         boolean (n, Ne), from ``seed``."""
-        n = self.fresh_random if n is None else int(n)
-        rng = np.random.default_rng(seed)
-        out = np.zeros((n, self.n_elements), dtype=bool)
-        for r in range(n):
-            out[r, rng.choice(self.n_elements, self.k, replace=False)] = True
-        return out
+        from arraysel.selection import random_masks
+
+        return random_masks(self.n_elements, self.k, self.fresh_random if n is None else int(n), seed)
 
     def worker_factory(self) -> "SectorObjectiveFactory | None":
         if type(self) is not SectorObjective:

@@ -162,6 +162,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "quantile": Key("float", (0, 1, False), 0.99, "q of L_SLR_q"),
         "aggregate": Key("str", ("mean", "worst"), "mean", "headline metrics of a several-point scene: "
                          "the mean over points or the worst point"),
+        "per_beam": Key("bool", None, False, "1-D scenes: compare also scores every selection on each point's "
+                        "own main lobe (beams.csv, pareto.csv, pareto.png)"),
+        "fresh_random": Key("int", (0, 10000), 16, "with per_beam: fresh random selections scored on the points "
+                            "for the random (fresh median) rows"),
     },
     "weights": {name: Key("float", _W, 0.0, f"weight of {name} in the training loss")
                 for name in ("L_PSF", "L_conv", "L_rec", "L_contrast", "L_SLR", "L_ent", "L_row")},
