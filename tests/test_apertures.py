@@ -254,3 +254,13 @@ def test_compare_and_export_of_separate_apertures(tmp_path):
     ch = pd.read_csv(exp / "channels.csv", comment="#")
     assert ch.loc[ch["transmit"] == 1, "element"].tolist() == tx
     assert ch.loc[ch["receive"] == 1, "element"].tolist() == rx
+
+
+def test_full_tx_keeps_the_scene_constraints_on_the_receive_aperture(tmp_path):
+    obj = build_objective(_scene(tmp_path, TINY_SCENE + "\n[constraints]\nforced_on = [0]\nforced_off = [7]\n",
+                                 "ftc", mode="full-tx"), dtype=torch.float64)
+    assert obj.aperture_mode == "full-tx" and obj.constraints.forced_on == (0,)
+    row = Experiment(obj, "swap", budget=Budget(evaluations=30), seed=0, progress=False).run()
+    assert row["error"] == "", row["error"]
+    sel = [int(v) for v in row["elements"].split()]
+    assert 0 in sel and 7 not in sel and len(sel) == 4
