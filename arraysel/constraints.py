@@ -7,9 +7,10 @@ of ``k`` of them:
   a selection holds exactly one element of every group (``group_mode = "exactly-one"``) or at
   most one (``"at-most-one"``); with ``group_counts`` (``exactly-one`` only) group ``g`` holds
   exactly ``group_counts[g]`` elements: the quota of separate transmit and receive apertures
-  (:func:`aperture_constraints`, ``docs/apertures.md``). :func:`mux_groups` gives the group map of a multiplexer rule
-  (``mux-1024-4``: four banks of 256 elements, scanner channel ``c`` reaches element ``c`` of
-  each bank), :func:`read_group_csv` reads one from a CSV file (``element,group``);
+  (:func:`aperture_constraints`, ``docs/apertures.md``). :func:`mux_groups` gives the group map
+  of a multiplexer rule (``mux-1024-4``: four banks of 256 elements, scanner channel ``c``
+  reaches element ``c`` of each bank), :func:`read_group_csv` reads one from a CSV file
+  (``element,group``);
 * **forced elements**: ``forced_on`` elements are always selected, ``forced_off`` ones never
   (dead elements, unconnected rows);
 * **symmetry** (``"x"``: mirror in x, the image of (x, y) is (-x, y); ``"y"``; ``"xy"``: both,
@@ -160,8 +161,8 @@ class Constraints:
 
     ``groups``: one group number per element or None; ``group_mode``: ``exactly-one`` or
     ``at-most-one``; ``group_counts``: with ``exactly-one``, the number of elements each group
-    holds (indexed by group number; None: one each); ``forced_on`` / ``forced_off``: element indices; ``symmetry``: ``none``,
-    ``x``, ``y`` or ``xy`` (needs ``positions``, (Ne, 2 or 3) element centres); ``source``: the
+    holds (indexed by group number; None: one each); ``forced_on`` / ``forced_off``: element
+    indices; ``symmetry``: ``none``, ``x``, ``y`` or ``xy`` (needs ``positions``, (Ne, 2 or 3) element centres); ``source``: the
     group rule's name for messages. Forced sets are closed under the symmetry (the mirror image
     of a dead element is off too). Every inconsistency is a :class:`ParameterError` naming it.
     """
