@@ -2,19 +2,27 @@
 (``docs/sector.md``, "1-D scenes").
 
 Each point's PSF is the scene's own kernel (the window of ``grid.window`` pixels around its peak,
-from the objective's fast or exact path). :func:`~arraysel.objective.lobes.lobe_metrics` finds the
-point's main lobe from that PSF (the basin of its peak down to the first null along 64 rays, never
-a fixed radius) and reports, per selection and point:
+from the objective's fast or exact path), power ``p(z, x) = |value|^2``. A designer reads a linear
+array's side lobes **across** the beam, so the main lobe is a band of columns found from the PSF's
+lateral beam profile ``P(x) = max_z p(z, x)`` (the peak over depth of each column), never a fixed
+radius: from the peak's column outward on each side, the **first null** is the lowest value met
+before the profile rises more than 1 dB above the lowest value met so far (a ripple of less is
+not a null); the band reaches the nulls. The pulse's own lobes along the beam (above and below
+the peak, in the band's columns) belong to the main lobe: they do not depend on which elements
+are on. Per selection and point:
 
-* ``PSL_dB``: the strongest pixel outside the main lobe, relative to the peak (power);
-* ``ISLR_dB``: the energy outside the main lobe over the energy inside;
-* ``width_x_6dB``: the lateral -6 dB width through the peak (metres); ``width_z_6dB``: the axial one;
+* ``PSL_dB = 10 log10(max P outside the band / peak)``, the peak side-lobe level across the beam;
+* ``ISLR_dB``: the energy of the columns outside the band over the energy of the band's columns;
+* ``width_x_6dB``: the lateral -6 dB width through the peak (metres), ``width_z_6dB`` the axial
+  one (the distance between the first samples at or below half the peak amplitude on either
+  side, interpolated linearly in amplitude; ``+inf`` when the profile does not fall that far);
 * ``GLL_dB`` and ``width_y_6dB``: NaN (a linear array's grating lobes lie at ``asin(lambda / p)``,
   outside any PSF window of a 1-D scene; a 1-D PSF has no y axis).
 
-A side lobe can hide only outside the window: choose a window that covers the angles that matter
-(the ``-wide`` scenes use 60 wavelengths). An all-zero or non-finite PSF raises
-:class:`~arraysel.errors.NumericalError`.
+A band that reaches the window's edge leaves no side pixel on that side; with none on either side
+the dB values are floored at :data:`~arraysel.objective.metrics3d.PSL_FLOOR_DB`. A side lobe can
+hide only outside the window: choose a window that covers the angles that matter. An all-zero or
+non-finite PSF raises :class:`~arraysel.errors.NumericalError`.
 """
 from __future__ import annotations
 
@@ -24,37 +32,74 @@ import numpy as np
 import torch
 
 from arraysel.errors import NumericalError, ParameterError
-from arraysel.objective.lobes import lobe_metrics
+from arraysel.objective.metrics3d import PSL_FLOOR_DB
 from arraysel.selection import random_masks
 
-__all__ = ["BEAM_NAMES", "PSFBeams", "kernel_lobe_metrics"]
+__all__ = ["BEAM_NAMES", "PSFBeams", "kernel_lobe_metrics", "main_lobe_band"]
 
 #: what :meth:`PSFBeams.beam_metrics` returns (the sector scene's names, and the axial width)
 BEAM_NAMES = ("PSL_dB", "ISLR_dB", "GLL_dB", "width_x_6dB", "width_y_6dB", "width_z_6dB")
-_TERMS = ("PSL_dB", "ISLR_dB", "width_x_6dB", "width_y_6dB")
+#: a rise of the lateral profile above its running minimum that ends the main lobe (1 dB in power)
+_RIPPLE = 10.0 ** 0.1
+
+
+def main_lobe_band(profile: np.ndarray, centre: int) -> tuple[int, int]:
+    """``(lo, hi)``: the columns of the main lobe of a lateral power profile (n,) around its peak
+    column ``centre``, both inclusive, each the first null on its side (module docstring)."""
+    def walk(step: int) -> int:
+        i, low, at = centre, profile[centre], centre
+        while 0 <= i + step < len(profile):
+            i += step
+            if profile[i] < low:
+                low, at = profile[i], i
+            elif profile[i] > low * _RIPPLE:
+                return at
+        return i                                  # the edge: no null on this side
+    return walk(-1), walk(1)
+
+
+def _half_width(amp: np.ndarray, c: int, pitch: float) -> float:
+    """The -6 dB width (metres) of an amplitude profile through its peak sample ``c``."""
+    half = 0.5 * amp[c]
+    ends = []
+    for step in (-1, 1):
+        i = c
+        while 0 <= i + step < len(amp) and amp[i + step] > half:
+            i += step
+        if not 0 <= i + step < len(amp):
+            return math.inf
+        a0, a1 = amp[i], amp[i + step]
+        ends.append(i + step * (a0 - half) / (a0 - a1))
+    return abs(ends[1] - ends[0]) * pitch
 
 
 def kernel_lobe_metrics(kernels: torch.Tensor, pitch) -> dict[str, torch.Tensor]:
-    """``{PSL_dB, ISLR_dB, width_x_6dB, width_z_6dB}`` (B,) of PSF kernels ``(B, nz, nx)`` (complex
-    or real amplitudes) on pixels of ``pitch`` metres (one number, or ``(dz, dx)``)."""
+    """``{PSL_dB, ISLR_dB, width_x_6dB, width_z_6dB}`` (B,) float64 of PSF kernels ``(B, nz, nx)``
+    (complex or real amplitudes) on pixels of ``pitch`` metres (one number, or ``(dz, dx)``)."""
     if not isinstance(kernels, torch.Tensor) or kernels.dim() != 3:
         raise ParameterError(f"kernels must be a tensor (B, nz, nx), got {getattr(kernels, 'shape', kernels)!r}")
     dz, dx = (pitch, pitch) if np.ndim(pitch) == 0 else tuple(pitch)
     if not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in (dz, dx)):
         raise ParameterError(f"pitch must be positive pixel sizes in metres, got {pitch!r}")
-    nz, nx = kernels.shape[1:]
-    z = (np.arange(nz) - (nz - 1) / 2) * dz
-    x = (np.arange(nx) - (nx - 1) / 2) * dx
-    Z, X = np.meshgrid(z, x, indexing="ij")
-    # x along the columns, z in the place of y: lobe_metrics' second width is then the axial one
-    coords = np.stack([X, Z, np.zeros_like(X)], axis=-1)
-    with torch.no_grad():
-        if not bool(torch.isfinite(torch.view_as_real(kernels) if kernels.is_complex() else kernels).all()):
-            raise NumericalError("a PSF kernel is not finite")
-        res = lobe_metrics({"psf": kernels.detach().to(torch.complex128 if kernels.is_complex() else torch.float64)},
-                           {"psf": coords}, target=None, terms=_TERMS)
-    return {"PSL_dB": res["PSL_dB"], "ISLR_dB": res["ISLR_dB"], "width_x_6dB": res["width_x_6dB"],
-            "width_z_6dB": res["width_y_6dB"]}
+    power = (kernels.detach().abs().double() ** 2).cpu().numpy()
+    if not np.isfinite(power).all():
+        raise NumericalError("a PSF kernel is not finite")
+    floor = 10.0 ** (PSL_FLOOR_DB / 10.0)
+    out = {k: np.zeros(power.shape[0]) for k in ("PSL_dB", "ISLR_dB", "width_x_6dB", "width_z_6dB")}
+    for b, p in enumerate(power):
+        top = p.max()
+        if not top > 0:
+            raise NumericalError("a PSF kernel is all zero")
+        zi, xi = np.unravel_index(int(p.argmax()), p.shape)
+        lo, hi = main_lobe_band(p.max(axis=0), int(xi))
+        side = np.concatenate([p[:, :lo], p[:, hi + 1:]], axis=1)
+        main = p[:, lo:hi + 1].sum()
+        out["PSL_dB"][b] = 10 * math.log10(max(side.max() / top if side.size else 0.0, floor))
+        out["ISLR_dB"][b] = 10 * math.log10(max(side.sum() / main if side.size else 0.0, floor))
+        amp = np.sqrt(p)
+        out["width_x_6dB"][b] = _half_width(amp[zi], int(xi), dx)
+        out["width_z_6dB"][b] = _half_width(amp[:, xi], int(zi), dz)
+    return {k: torch.from_numpy(v) for k, v in out.items()}
 
 
 class PSFBeams:
