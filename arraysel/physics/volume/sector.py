@@ -104,17 +104,20 @@ def xy_mirrors(setup: "SectorSetup") -> tuple[np.ndarray | None, dict[int, int]]
 
 class MirroredModel:
     """Point ``j``'s images from the model of its mirror point ``i`` (:func:`xy_mirrors`): the
-    weights permuted, the image transposed. ``planes(weights)`` as the model's."""
+    weights permuted, the image transposed. ``planes(weights, receive=None)`` as the model's."""
 
     def __init__(self, model, perm: np.ndarray):
         self.model = model
         self.perm = torch.as_tensor(np.asarray(perm), dtype=torch.long)
 
-    def planes(self, weights) -> dict[str, torch.Tensor]:
-        w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights))
-        if w.dim() == 1:
-            w = w[None]
-        out = self.model.planes(w[:, self.perm.to(w.device)])
+    def planes(self, weights, receive=None) -> dict[str, torch.Tensor]:
+        def mirrored(x):
+            x = x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
+            x = x[None] if x.dim() == 1 else x
+            return x[:, self.perm.to(x.device)]
+
+        w = mirrored(weights)
+        out = self.model.planes(w) if receive is None else self.model.planes(w, receive=mirrored(receive))
         return {k: v.transpose(-1, -2) for k, v in out.items()}
 
 
@@ -203,14 +206,14 @@ class SectorPSF:
                                         coords=self.coords[i])
         return self._models[i]
 
-    def surfaces(self, weights, i: int, exact: bool = False) -> dict[str, torch.Tensor]:
-        """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne): from
-        its fast model when one is installed (:meth:`install_fast`) and ``exact`` is False, else
-        from the exact :class:`MatrixPSF`."""
+    def surfaces(self, weights, i: int, exact: bool = False, receive=None) -> dict[str, torch.Tensor]:
+        """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne)
+        (``receive``: separate receive weights (B, Ne), ``weights`` then the transmit apodization):
+        from its fast model when one is installed (:meth:`install_fast`) and ``exact`` is False,
+        else from the exact :class:`MatrixPSF`."""
         fast = None if exact else self._fast.get(int(i))
-        if fast is not None:
-            return fast.planes(weights)
-        return self.model(i).planes(weights)
+        model = fast if fast is not None else self.model(i)
+        return model.planes(weights) if receive is None else model.planes(weights, receive=receive)
 
     def build_fast(self, i: int, settings: FastSettings | None = None, check_masks=None) -> MatrixFastPSF:
         """Point ``i``'s fast model (:class:`~arraysel.physics.volume.fast.MatrixFastPSF` on its
