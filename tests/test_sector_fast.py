@@ -145,3 +145,18 @@ def test_polish_on_beams_lowers_the_per_beam_loss(small):
     assert (again["mask"] == res["mask"]).all()
     with pytest.raises(ParameterError, match="mask"):
         polish_on_beams(small, np.ones(64, dtype=bool), width_cap=cap)
+
+
+@pytest.mark.slow
+def test_fast_images_with_separate_receive_masks(small):
+    masks = _masks()
+    tx = torch.as_tensor(masks[1:3], dtype=torch.float32)
+    rx = torch.as_tensor(masks[[3, 4]], dtype=torch.float32)
+    for i in (1, 2):   # point 2 through its mirror: both masks mirrored
+        assert small.fast_point(i)
+        fast = small.point_images(tx, i, receive=rx)
+        exact = small.point_images(tx, i, exact=True, receive=rx)
+        same = small.point_images(tx, i)
+        for b in range(2):
+            assert _si_mse(fast[b], exact[b]) <= 1e-6, (i, b)
+            assert _si_mse(fast[b], same[b]) > 1e-3   # the receive masks change the image
