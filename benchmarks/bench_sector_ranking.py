@@ -110,7 +110,7 @@ def _argv_without_out(argv: list) -> list:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="matrix-1024-sector")
-    ap.add_argument("--random", type=int, default=180)
+    ap.add_argument("--random", type=int, default=200)
     ap.add_argument("--rotations", type=int, default=12)
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--run-s", type=float, default=15.0)
