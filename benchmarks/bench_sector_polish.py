@@ -42,6 +42,8 @@ def main(argv=None):
     ap.add_argument("--fresh", type=int, default=16)
     ap.add_argument("--seconds", type=float, default=150.0)
     ap.add_argument("--starts", nargs="+", default=["ste", "swap", "random", "spiral"])
+    ap.add_argument("--from-csv", default=None,
+                    help="a polish.csv of an earlier run: its polished selections (and only those) are the starts")
     ap.add_argument("--batch", type=int, default=48)
     ap.add_argument("--keep", type=int, default=4)
     ap.add_argument("--points", type=int, nargs="+", default=None,
@@ -92,6 +94,10 @@ def main(argv=None):
     print(base[["config", "worst_PSL_dB", "mean_width_mm"]].to_string(index=False), flush=True)
     cap = 1.05 * float(base["mean_width_mm"].min()) * 1e-3
     starts = {s: (comp[s] if s in comp else masks[s]) for s in args.starts if s in comp or s in masks}
+    if args.from_csv:
+        prev = pd.read_csv(args.from_csv)
+        starts = {r["config"]: mask_of(int(v) for v in r["elements"].split())
+                  for _, r in prev[prev["kind"] == "polished"].iterrows()}
     for s, m in starts.items():
         res = polish_on_beams(obj, m, width_cap=cap, seconds=args.seconds, batch=args.batch, keep=args.keep, seed=0,
                               points=pts)
