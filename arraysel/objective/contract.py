@@ -19,6 +19,20 @@ values as scoring those masks independently, exploiting what they share.
 (``out``, ``into`` of shape ``(B, m)``, padded with ``-1``;
 :func:`arraysel.objective.neighbours.evaluate_moves`).
 
+Capability: an objective may give the *neighbourhood* of its selections (:class:`Neighbourhood`):
+``objective.neighbourhood()`` returns an object that scores a selection's neighbours (the
+selection with a few elements switched off and as many on) in one call, exploiting what they
+share, or ``None`` when it has no such scoring (its neighbours are then scored as masks). A
+search asks for it once, through :func:`neighbourhood_of`, which also reads an objective written
+before this method existed (its ``evaluate_moves`` / ``evaluate_swaps`` /
+``prepare_neighbourhoods`` methods, :class:`ScoresSwaps`, :class:`ScoresMoves`).
+
+Capability: an objective may give a *model of its loss* (:class:`LossModel`):
+``objective.loss_model()`` returns an object with the gradient and the Hessian of ``mask_loss`` at
+a selection, or ``None`` when its loss has none. A search asks for it once, through
+:func:`loss_model_of`; an objective without the method gets one formed by autograd from its
+``mask_loss`` (its own ``mask_hessian`` where it has one, :class:`HasHessian`).
+
 Capability: an objective may say how its elements are laid out (:class:`HasLayout`):
 ``element_grid`` is ``(ny, nx)`` for a matrix array (element index ``iy * nx + ix``) or ``None`` for a
 1-D array, and ``element_positions`` the element centres, a numpy ``(Ne, 3)`` array of (x, y, z) in
@@ -37,7 +51,8 @@ import numpy as np
 from arraysel.errors import ParameterError, check_number
 
 __all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "HasHessian", "WorkerFactory",
-           "dtype_name", "hessian_by_rows",
+           "Neighbourhood", "LossModel", "MovesNeighbourhood", "AutogradLossModel", "neighbourhood_of",
+           "loss_model_of", "dtype_name", "hessian_by_rows",
            "check_element_grid", "element_layout"]
 
 
@@ -127,6 +142,117 @@ def hessian_by_rows(mask_loss, mask, dtype=None, device="cpu") -> tuple[np.ndarr
     (grads,) = torch.autograd.grad(total.sum(), w, create_graph=True)
     (H,) = torch.autograd.grad(torch.diagonal(grads).sum(), w)
     return grads.detach()[0].double().cpu().numpy(), H.detach().double().cpu().numpy()
+
+
+@runtime_checkable
+class Neighbourhood(Protocol):
+    """Scores the neighbours of a selection in one call (the capability ``objective.neighbourhood()``
+    gives; :func:`neighbourhood_of`).
+
+    ``evaluate(mask, out, into)``: ``mask`` a boolean ``(Ne,)`` selection, ``out`` and ``into`` int
+    arrays ``(B, m)`` (or ``(B,)`` for one-swaps) with ``mask[out]`` all True, ``mask[into]`` all
+    False, rows padded with ``-1`` (as for :class:`ScoresMoves`); returns ``{name: float64 (B,)}``
+    equal, to rounding, to the objective's ``evaluate`` of the ``B`` neighbour masks, and counts
+    ``B`` evaluations on the objective. ``prepare()`` does the one-off work the scoring shares
+    between selections (the runners call it before a run's budget starts)."""
+
+    def evaluate(self, mask, out, into) -> dict:
+        ...
+
+    def prepare(self) -> None:
+        ...
+
+
+@runtime_checkable
+class LossModel(Protocol):
+    """The local model of an objective's ``mask_loss`` at a selection (the capability
+    ``objective.loss_model()`` gives; :func:`loss_model_of`): by it a descent orders its moves.
+
+    ``gradient(mask)``: the gradient ``(Ne,)`` float64 of ``mask_loss`` at the weights ``mask``
+    (``(Ne,)``, 0/1 or soft), one evaluation and one gradient step; ``model(mask)``: ``(g, H)``,
+    the gradient and the Hessian ``(Ne, Ne)`` float64 at a 0/1 selection, ``Ne`` evaluations.
+    Either raises :class:`~arraysel.errors.NumericalError` where the loss is not finite."""
+
+    def gradient(self, mask) -> np.ndarray:
+        ...
+
+    def model(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        ...
+
+
+class MovesNeighbourhood:
+    """A :class:`Neighbourhood` made of an objective's methods: ``evaluate_moves(mask, out, into)``
+    (``(B, m)`` moves) and, optionally, ``prepare()``."""
+
+    def __init__(self, evaluate_moves: Callable, prepare: Callable | None = None):
+        self._evaluate_moves = evaluate_moves
+        self._prepare = prepare
+
+    def evaluate(self, mask, out, into) -> dict:
+        return self._evaluate_moves(mask, out, into)
+
+    def prepare(self) -> None:
+        if self._prepare is not None:
+            self._prepare()
+
+
+class AutogradLossModel:
+    """A :class:`LossModel` by autograd of a ``mask_loss`` (weights ``(B, Ne)`` to ``(total (B,),
+    terms)``): the gradient by one backward pass; the Hessian by ``hessian`` (an objective's own
+    ``mask_hessian(mask) -> (g, H)``) when given, else :func:`hessian_by_rows`."""
+
+    def __init__(self, mask_loss: Callable, dtype=None, device="cpu", hessian: Callable | None = None):
+        self.mask_loss, self.dtype, self.device, self.hessian = mask_loss, dtype, device, hessian
+
+    def gradient(self, mask) -> np.ndarray:
+        import torch
+
+        w = torch.tensor(np.asarray(mask, dtype=np.float64).reshape(1, -1), dtype=self.dtype or torch.float32,
+                         device=self.device).requires_grad_(True)
+        total, _terms = self.mask_loss(w)
+        (g,) = torch.autograd.grad(total.sum(), w)
+        return g.detach()[0].double().cpu().numpy()
+
+    def model(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        if self.hessian is not None:
+            return self.hessian(mask)
+        return hessian_by_rows(self.mask_loss, mask, self.dtype, self.device)
+
+
+def neighbourhood_of(objective) -> Neighbourhood | None:
+    """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
+    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``)
+    and ``prepare_neighbourhoods`` methods (:class:`MovesNeighbourhood`); else ``None``. The one
+    place the optional methods are looked up: a search asks once, and keeps what it gets."""
+    own = getattr(objective, "neighbourhood", None)
+    if callable(own):
+        return own()
+    moves = getattr(objective, "evaluate_moves", None)
+    swaps = getattr(objective, "evaluate_swaps", None)
+    prepare = getattr(objective, "prepare_neighbourhoods", None)
+    prepare = prepare if callable(prepare) else None
+    if callable(moves):
+        return MovesNeighbourhood(moves, prepare)
+    if callable(swaps):
+        from arraysel.objective.neighbours import swaps_as_moves
+
+        return MovesNeighbourhood(swaps_as_moves(objective, swaps), prepare)
+    return None
+
+
+def loss_model_of(objective) -> LossModel | None:
+    """The :class:`LossModel` of ``objective``: its ``loss_model()``; for an objective without that
+    method, :class:`AutogradLossModel` of its ``mask_loss`` (with its ``mask_hessian`` where it has
+    one), or ``None`` without a ``mask_loss``. The one place the optional methods are looked up."""
+    own = getattr(objective, "loss_model", None)
+    if callable(own):
+        return own()
+    loss = getattr(objective, "mask_loss", None)
+    if not callable(loss):
+        return None
+    hessian = getattr(objective, "mask_hessian", None)
+    return AutogradLossModel(loss, getattr(objective, "dtype", None), getattr(objective, "device", "cpu"),
+                             hessian if callable(hessian) else None)
 
 
 @runtime_checkable

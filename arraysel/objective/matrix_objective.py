@@ -150,6 +150,9 @@ class MatrixObjective(Objective):
         self.gradient_steps = 0
         self.seconds = 0.0
         self.fallbacks = 0
+        #: :meth:`mask_hessian` by autograd of :meth:`mask_loss`: the pair model of the 1-D basis
+        #: does not apply to the planes
+        self.hessian_from_pairs = False
 
     @property
     def fast(self) -> bool:
@@ -233,6 +236,16 @@ class MatrixObjective(Objective):
 
             self._neigh = MatrixNeighbourhood(self)
         return self._neigh
+
+    def neighbourhood(self):
+        """The :class:`~arraysel.objective.contract.Neighbourhood` of the fast path on the CPU
+        (:meth:`evaluate_moves`, prepared by :meth:`prepare_neighbourhoods`); None on the exact path
+        or off the CPU, where neighbours are scored as masks."""
+        from arraysel.objective.contract import MovesNeighbourhood
+
+        if self._neighbourhood() is None:
+            return None
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
 
     def evaluate_swaps(self, mask, out, into) -> dict[str, np.ndarray]:
         """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element

@@ -321,6 +321,24 @@ class Objective:
                 done = basis.fill_pair_rows() and done
         return done
 
+    def neighbourhood(self):
+        """The :class:`~arraysel.objective.contract.Neighbourhood` a search scores neighbours with:
+        :meth:`evaluate_moves`, prepared by :meth:`prepare_neighbourhoods`; None for a subclass
+        that scores masks its own way and has no neighbourhood of its own (its neighbours are
+        scored as masks)."""
+        from arraysel.objective.contract import MovesNeighbourhood
+
+        if type(self).evaluate is not Objective.evaluate:
+            return None
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
+
+    def loss_model(self):
+        """The :class:`~arraysel.objective.contract.LossModel` of :meth:`mask_loss`: the gradient
+        by autograd, the Hessian by :meth:`mask_hessian`."""
+        from arraysel.objective.contract import AutogradLossModel
+
+        return AutogradLossModel(self.mask_loss, self.dtype, self.device, hessian=self.mask_hessian)
+
     def _score(self, n_masks: int, kernels_of, return_kernels: bool) -> dict[str, np.ndarray]:
         """Every metric of ``n_masks`` selections whose kernels ``kernels_of(model, start, size)``
         gives (``(kernels, fell_back)``) batch by batch (:meth:`_chunks`) on each field point."""
