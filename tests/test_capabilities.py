@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from arraysel.objective.contract import LossModel, Neighbourhood, hessian_by_rows, loss_model_of, neighbourhood_of
+from arraysel.objective.contract import LossModel, Neighbourhood, hessian_by_rows, loss_model_of
+from arraysel.objective.neighbours import neighbourhood_of
 from arraysel.selectors.contract import Budget, BudgetedObjective, Recorder
 from arraysel.selectors.localsearch import SwapSearch
 from arraysel.testing import ToyObjective

@@ -23,7 +23,8 @@ Capability: an objective may give the *neighbourhood* of its selections (:class:
 ``objective.neighbourhood()`` returns an object that scores a selection's neighbours (the
 selection with a few elements switched off and as many on) in one call, exploiting what they
 share, or ``None`` when it has no such scoring (its neighbours are then scored as masks). A
-search asks for it once, through :func:`neighbourhood_of`, which also reads an objective written
+search asks for it once, through :func:`arraysel.objective.neighbours.neighbourhood_of`, which also
+reads an objective written
 before this method existed (its ``evaluate_moves`` / ``evaluate_swaps`` /
 ``prepare_neighbourhoods`` methods, :class:`ScoresSwaps`, :class:`ScoresMoves`).
 
@@ -51,8 +52,8 @@ import numpy as np
 from arraysel.errors import ParameterError, check_number
 
 __all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "HasHessian", "WorkerFactory",
-           "Neighbourhood", "LossModel", "MovesNeighbourhood", "AutogradLossModel", "neighbourhood_of",
-           "loss_model_of", "dtype_name", "hessian_by_rows",
+           "Neighbourhood", "LossModel", "MovesNeighbourhood", "AutogradLossModel", "loss_model_of", "ObjectiveInfo", "objective_info", "worker_factory_of", "missing_members",
+           "dtype_name", "hessian_by_rows",
            "check_element_grid", "element_layout"]
 
 
@@ -147,7 +148,7 @@ def hessian_by_rows(mask_loss, mask, dtype=None, device="cpu") -> tuple[np.ndarr
 @runtime_checkable
 class Neighbourhood(Protocol):
     """Scores the neighbours of a selection in one call (the capability ``objective.neighbourhood()``
-    gives; :func:`neighbourhood_of`).
+    gives; :func:`~arraysel.objective.neighbours.neighbourhood_of`).
 
     ``evaluate(mask, out, into)``: ``mask`` a boolean ``(Ne,)`` selection, ``out`` and ``into`` int
     arrays ``(B, m)`` (or ``(B,)`` for one-swaps) with ``mask[out]`` all True, ``mask[into]`` all
@@ -219,27 +220,6 @@ class AutogradLossModel:
         return hessian_by_rows(self.mask_loss, mask, self.dtype, self.device)
 
 
-def neighbourhood_of(objective) -> Neighbourhood | None:
-    """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
-    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``)
-    and ``prepare_neighbourhoods`` methods (:class:`MovesNeighbourhood`); else ``None``. The one
-    place the optional methods are looked up: a search asks once, and keeps what it gets."""
-    own = getattr(objective, "neighbourhood", None)
-    if callable(own):
-        return own()
-    moves = getattr(objective, "evaluate_moves", None)
-    swaps = getattr(objective, "evaluate_swaps", None)
-    prepare = getattr(objective, "prepare_neighbourhoods", None)
-    prepare = prepare if callable(prepare) else None
-    if callable(moves):
-        return MovesNeighbourhood(moves, prepare)
-    if callable(swaps):
-        from arraysel.objective.neighbours import swaps_as_moves
-
-        return MovesNeighbourhood(swaps_as_moves(objective, swaps), prepare)
-    return None
-
-
 def loss_model_of(objective) -> LossModel | None:
     """The :class:`LossModel` of ``objective``: its ``loss_model()``; for an objective without that
     method, :class:`AutogradLossModel` of its ``mask_loss`` (with its ``mask_hessian`` where it has
@@ -263,6 +243,64 @@ class HasLayout(Protocol):
     element_grid: tuple[int, int] | None
     #: element centres, numpy ``(Ne, 3)``: (x, y, z) in metres, in element-index order
     element_positions: Any
+
+
+#: what an objective scores a selection's image as: a 2-D kernel per field point (``kernel``: the
+#: 1-D objective, the toy), a 3-D PSF's planes (``planes``: a matrix scene) or a sector's beam
+#: pattern (``beams``)
+KINDS = ("kernel", "planes", "beams")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectiveInfo:
+    """What an objective says about itself beyond the contract's required members, read once by
+    :func:`objective_info`; an objective that does not say a thing gets the default here."""
+
+    #: one of :data:`KINDS`: ``beams`` for an objective with ``beam_metrics``, ``planes`` for one
+    #: with ``reference_planes``, else ``kernel``
+    kind: str = "kernel"
+    #: its :class:`~arraysel.scenes.scene.Scene` (``scene``), None without one (the toy objective)
+    scene: Any = None
+    #: ``device`` and ``dtype`` (None: not said)
+    device: Any = None
+    dtype: Any = None
+    #: masks per batch of ``evaluate`` (``chunk``; None: not said)
+    chunk: int | None = None
+    #: extra result keys of ``evaluate`` a run's row keeps (``breakdown_names``)
+    breakdown_names: tuple[str, ...] = ()
+    #: the metrics' radii and scales of a ``kernel`` objective (``metric_kw``; None: not said)
+    metric_kw: dict | None = None
+    #: the element pitch in metres (``setup.pitch``; None: not said)
+    pitch: float | None = None
+
+    @property
+    def scene_name(self) -> str | None:
+        return None if self.scene is None else getattr(self.scene, "name", None)
+
+
+def objective_info(objective) -> ObjectiveInfo:
+    """The :class:`ObjectiveInfo` of ``objective`` (the one place its optional attributes are
+    read; selectors and runners ask here)."""
+    kind = "beams" if hasattr(objective, "beam_metrics") else \
+        "planes" if hasattr(objective, "reference_planes") else "kernel"
+    chunk = getattr(objective, "chunk", None)
+    kw = getattr(objective, "metric_kw", None)
+    return ObjectiveInfo(kind=kind, scene=getattr(objective, "scene", None), device=getattr(objective, "device", None),
+                         dtype=getattr(objective, "dtype", None), chunk=None if chunk is None else int(chunk),
+                         breakdown_names=tuple(getattr(objective, "breakdown_names", ()) or ()),
+                         metric_kw=None if kw is None else dict(kw),
+                         pitch=getattr(getattr(objective, "setup", None), "pitch", None))
+
+
+def worker_factory_of(objective) -> Callable[[], Any] | None:
+    """``objective.worker_factory()`` (:class:`Rebuildable`), or None for an objective without it."""
+    make = getattr(objective, "worker_factory", None)
+    return make() if callable(make) else None
+
+
+def missing_members(objective, names=("n_elements", "k", "evaluate")) -> list[str]:
+    """The members of the contract among ``names`` that ``objective`` lacks."""
+    return [name for name in names if not hasattr(objective, name)]
 
 
 def check_element_grid(grid, n_elements: int | None = None) -> tuple[int, int]:

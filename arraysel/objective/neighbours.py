@@ -23,10 +23,11 @@ from __future__ import annotations
 import numpy as np
 
 from arraysel.errors import SelectionError
+from arraysel.objective.contract import MovesNeighbourhood, Neighbourhood
 from arraysel.selection import flagged_elements
 
 __all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "check_moves", "move_masks", "moves_between",
-           "evaluate_moves", "swaps_as_moves", "prepare_neighbourhoods"]
+           "evaluate_moves", "swaps_as_moves", "prepare_neighbourhoods", "neighbourhood_of"]
 
 
 def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +121,7 @@ def swap_masks(mask, out, into) -> np.ndarray:
 def evaluate_swaps(objective, mask, out, into) -> dict[str, np.ndarray]:
     """What ``objective.evaluate`` returns for the neighbours ``(out[i], into[i])`` of ``mask``
     (``{name: float64 (B,)}``), through the objective's neighbourhood
-    (:func:`~arraysel.objective.contract.neighbourhood_of`) when it has one."""
+    (:func:`neighbourhood_of`) when it has one."""
     m, a, b = check_swaps(mask, out, into)
     return evaluate_moves(objective, m, a[:, None], b[:, None])
 
@@ -150,11 +151,9 @@ def moves_between(mask, cands) -> tuple[np.ndarray, np.ndarray]:
 def evaluate_moves(objective, mask, out, into) -> dict[str, np.ndarray]:
     """What ``objective.evaluate`` returns for the neighbours of ``mask`` that switch the elements
     ``out[i]`` off and ``into[i]`` on (``(B, m)`` each; ``{name: float64 (B,)}``): through the
-    objective's neighbourhood (:func:`~arraysel.objective.contract.neighbourhood_of`) when it has
+    objective's neighbourhood (:func:`neighbourhood_of`) when it has
     one, else ``evaluate`` of the masks. A search asks for the neighbourhood once and keeps it;
     this function asks at every call."""
-    from arraysel.objective.contract import neighbourhood_of
-
     m, a, b = check_moves(mask, out, into)
     nb = neighbourhood_of(objective)
     if nb is not None:
@@ -177,16 +176,33 @@ def swaps_as_moves(objective, evaluate_swaps):
 
 def prepare_neighbourhoods(objective) -> float:
     """Do an objective's one-off work for scoring neighbourhoods now (its neighbourhood's
-    ``prepare()``, :func:`~arraysel.objective.contract.neighbourhood_of`, where it has one: the
+    ``prepare()``, :func:`neighbourhood_of`, where it has one: the
     physics objective forms the pair-image rows its neighbourhood gathers); returns the seconds it
     took. The runners call it before the budget of a run whose selector scores neighbourhoods
     starts."""
     import time
-
-    from arraysel.objective.contract import neighbourhood_of
 
     t0 = time.perf_counter()
     nb = neighbourhood_of(objective)
     if nb is not None:
         nb.prepare()
     return time.perf_counter() - t0
+
+
+def neighbourhood_of(objective) -> Neighbourhood | None:
+    """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
+    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``)
+    and ``prepare_neighbourhoods`` methods (:class:`MovesNeighbourhood`); else ``None``. The one
+    place the optional methods are looked up: a search asks once, and keeps what it gets."""
+    own = getattr(objective, "neighbourhood", None)
+    if callable(own):
+        return own()
+    moves = getattr(objective, "evaluate_moves", None)
+    swaps = getattr(objective, "evaluate_swaps", None)
+    prepare = getattr(objective, "prepare_neighbourhoods", None)
+    prepare = prepare if callable(prepare) else None
+    if callable(moves):
+        return MovesNeighbourhood(moves, prepare)
+    if callable(swaps):
+        return MovesNeighbourhood(swaps_as_moves(objective, swaps), prepare)
+    return None

@@ -29,7 +29,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from arraysel.errors import ArrayselError, error_text as _error_text
-from arraysel.objective.contract import WorkerFactory
+from arraysel.objective.contract import WorkerFactory, objective_info
 from arraysel.objective.neighbours import prepare_neighbourhoods
 from arraysel.report.columns import METRICS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
@@ -107,7 +107,7 @@ def _report_rtol(objective) -> float:
     apart), so 1e-4 for a float32 objective, 1e-5 otherwise."""
     import torch
 
-    return 1e-4 if getattr(objective, "dtype", None) in (torch.float32, torch.float16, torch.bfloat16) else 1e-5
+    return 1e-4 if objective_info(objective).dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-5
 
 
 def _checked(objective, row: dict, trace: list) -> tuple[dict, list]:
@@ -369,7 +369,11 @@ class _Fingerprint:
         from arraysel.selectors.contract import BudgetedObjective
 
         out = {}
-        for where, mapping in (("objective", getattr(self.objective, "__dict__", {})),
+        try:
+            own = vars(self.objective)
+        except TypeError:  # an objective without a __dict__ (slots)
+            own = {}
+        for where, mapping in (("objective", own),
                                ("its class", vars(type(self.objective))),
                                ("BudgetedObjective", vars(BudgetedObjective))):
             for key, value in mapping.items():

@@ -21,7 +21,7 @@ import numpy as np
 
 from arraysel.objective.neighbours import check_moves, move_masks
 
-__all__ = ["BudgetedNeighbourhood", "BudgetedLossModel", "say_without", "WITHOUT", "budget_of"]
+__all__ = ["BudgetedNeighbourhood", "BudgetedLossModel", "say_without", "WITHOUT"]
 
 _log = logging.getLogger("arraysel.selectors.capabilities")
 
@@ -99,13 +99,3 @@ class BudgetedLossModel:
         self._allow(self._view.n_elements, "the loss's Hessian")
         return self._inner.model(mask)
 
-
-def budget_of(objective):
-    """The run's :class:`~arraysel.selectors.budget.Budget` of a budgeted objective (a
-    :class:`~arraysel.selectors.contract.BudgetedObjective`, or the
-    :class:`~arraysel.selectors.constrained.ConstrainedObjective` over one); None for an objective
-    a search was given without a budget."""
-    from arraysel.selectors.constrained import ConstrainedObjective
-    from arraysel.selectors.contract import BudgetedObjective
-
-    return objective.budget if isinstance(objective, (BudgetedObjective, ConstrainedObjective)) else None

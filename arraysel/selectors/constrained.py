@@ -16,9 +16,10 @@ import numpy as np
 
 from arraysel.constraints import Constraints
 from arraysel.errors import ParameterError
+from arraysel.objective.contract import element_layout
 from arraysel.objective.neighbours import check_moves
 
-__all__ = ["ConstrainedObjective"]
+__all__ = ["ConstrainedObjective", "budget_of"]
 
 
 class ConstrainedObjective:
@@ -46,12 +47,12 @@ class ConstrainedObjective:
     @property
     def element_grid(self):
         """The probe's grid when every element is a unit of its own, in order (groups only)."""
-        return getattr(self._inner, "element_grid", None) if self.element_constraints.simple else None
+        return element_layout(self._inner)[0] if self.element_constraints.simple else None
 
     @property
     def element_positions(self):
         """Each unit's position: that of its first element (one mirror image of a symmetric set)."""
-        pos = getattr(self._inner, "element_positions", None)
+        pos = element_layout(self._inner)[1]
         return None if pos is None else np.asarray(pos, dtype=np.float64)[self._units[:, 0]]
 
     # -- the run's bookkeeping in units -------------------------------------------------------
@@ -198,3 +199,12 @@ class _UnitLossModel:
         g, H = self._inner.model(self._view.expand(np.asarray(mask) != 0))
         g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
         return self._J.T @ g, self._J.T @ H @ self._J
+
+
+def budget_of(objective):
+    """The run's :class:`~arraysel.selectors.budget.Budget` of a budgeted objective (a
+    :class:`~arraysel.selectors.contract.BudgetedObjective`, or the :class:`ConstrainedObjective`
+    over one); None for an objective a search was given without a budget."""
+    from arraysel.selectors.contract import BudgetedObjective
+
+    return objective.budget if isinstance(objective, (BudgetedObjective, ConstrainedObjective)) else None

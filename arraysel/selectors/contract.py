@@ -38,8 +38,8 @@ if TYPE_CHECKING:  # torch is imported where it is used: `arraysel list` and `re
     import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
-from arraysel.objective.contract import loss_model_of, neighbourhood_of
-from arraysel.objective.neighbours import check_moves, check_swaps, move_masks
+from arraysel.objective.contract import loss_model_of, objective_info
+from arraysel.objective.neighbours import check_moves, check_swaps, move_masks, neighbourhood_of
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 from arraysel.selectors.budget import Budget, Recorder, _is_tensor  # noqa: F401  (their home: arraysel.selectors.budget)
 from arraysel.selectors.capabilities import BudgetedLossModel, BudgetedNeighbourhood, say_without
@@ -195,7 +195,7 @@ class BudgetedObjective:
         self.recorder = recorder
         self.k = int(k)
         self.n_elements = int(objective.n_elements)
-        default = int(getattr(objective, "chunk", 256) or 256)
+        default = int(objective_info(objective).chunk or 256)
         self.piece = max(1, int(piece if piece is not None else min(default, 256)))
         self._per_mask = 0.0  # running estimate of the seconds one mask costs
         self._closed = False

@@ -14,11 +14,10 @@ import numpy as np
 
 from arraysel.errors import ParameterError
 from arraysel.constraints import group_constraints
-from arraysel.objective.contract import neighbourhood_of
-from arraysel.objective.neighbours import moves_between, swap_masks, swap_pairs
-from arraysel.selection import mask_key
+from arraysel.objective.neighbours import moves_between, neighbourhood_of, swap_masks, swap_pairs
 from arraysel.objective.contract import loss_model_of
-from arraysel.selectors.capabilities import budget_of
+from arraysel.selection import mask_key
+from arraysel.selectors.constrained import budget_of
 from arraysel.selectors.contract import finite_or_inf
 from arraysel.selectors.lossmodel import (GRADIENT_UPDATE_MAX, QUADRATIC_MAX_ELEMENTS, model_gradient, model_quadratic,
                                           swap_changes)

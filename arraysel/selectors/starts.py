@@ -23,7 +23,7 @@ from arraysel.constraints import group_constraints
 from arraysel.errors import ParameterError, check_number
 from arraysel.io.masks import parse_elements
 from arraysel.objective.contract import element_layout
-from arraysel.selectors.capabilities import budget_of
+from arraysel.selectors.constrained import budget_of
 from arraysel.selectors.contract import BudgetExhausted, Option
 from arraysel.selectors.layouts import chirped_layouts, is_planar, planar_uniform_layout, uniform_layout
 
