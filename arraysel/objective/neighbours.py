@@ -191,8 +191,9 @@ def prepare_neighbourhoods(objective) -> float:
 
 def neighbourhood_of(objective) -> Neighbourhood | None:
     """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
-    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``)
-    and ``prepare_neighbourhoods`` methods (:class:`MovesNeighbourhood`); else ``None``. The one
+    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``,
+    or ``evaluate`` of the masks) and ``prepare_neighbourhoods`` methods
+    (:class:`MovesNeighbourhood`), when it has one of them besides ``evaluate``; else ``None``. The one
     place the optional methods are looked up: a search asks once, and keeps what it gets."""
     own = getattr(objective, "neighbourhood", None)
     if callable(own):
@@ -205,4 +206,6 @@ def neighbourhood_of(objective) -> Neighbourhood | None:
         return MovesNeighbourhood(moves, prepare)
     if callable(swaps):
         return MovesNeighbourhood(swaps_as_moves(objective, swaps), prepare)
+    if prepare is not None:  # prepared for neighbourhoods that it scores as their masks
+        return MovesNeighbourhood(lambda m, a, b: objective.evaluate(move_masks(m, a, b)), prepare)
     return None

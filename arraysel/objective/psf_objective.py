@@ -305,8 +305,20 @@ class Objective:
         with torch.no_grad(), self._timed():
             base = self.as_masks(m[None])[0]
             return self._score(int(a.shape[0]), lambda model, i, n: model.swap_kernels(base, a[i:i + n], b[i:i + n],
-                                                                                         return_info=True),
+                                                                                         return_info=True,
+                                                                                         bases=self.swap_bases(model)),
                                return_kernels)
+
+    def swap_bases(self, model: PSFModel):
+        """The neighbourhood bases kept for the field point of ``model`` (one of :attr:`psfs`;
+        :class:`~arraysel.objective.swapbases.SwapBases`): the state a search's neighbourhoods
+        share, kept here, not in the physics."""
+        from arraysel.objective.swapbases import SwapBases
+
+        kept = self.__dict__.setdefault("_swap_bases", {})
+        if id(model) not in kept:
+            kept[id(model)] = SwapBases()
+        return kept[id(model)]
 
     def prepare_neighbourhoods(self) -> bool:
         """Form now the pair-image rows :meth:`evaluate_swaps` gathers (each field point's basis,
