@@ -176,6 +176,11 @@ class BudgetedObjective:
       :class:`~arraysel.errors.ArrayselError`: a thread the selector left running cannot score,
       count or record anything for the runs that follow.
 
+    Capabilities, asked from the wrapped objective once and charged to the budget by wrapping
+    them (:mod:`arraysel.selectors.capabilities`): :meth:`neighbourhood` (its neighbours of a
+    selection scored in one call) and :meth:`loss_model` (the loss's gradient and Hessian); None
+    where it has none, said once in the log.
+
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
     :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
     ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
