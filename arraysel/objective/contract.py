@@ -272,6 +272,12 @@ class ObjectiveInfo:
     metric_kw: dict | None = None
     #: the element pitch in metres (``setup.pitch``; None: not said)
     pitch: float | None = None
+    #: separate transmit and receive apertures (``aperture_mode``: ``full-tx``, ``separate``;
+    #: None: one shared aperture, :mod:`arraysel.objective.aperture`)
+    aperture_mode: str | None = None
+    #: the scene's objective under a wrapper of one (an aperture objective's ``inner``), else the
+    #: objective itself
+    scene_objective: Any = None
 
     @property
     def scene_name(self) -> str | None:
@@ -289,7 +295,9 @@ def objective_info(objective) -> ObjectiveInfo:
                          dtype=getattr(objective, "dtype", None), chunk=None if chunk is None else int(chunk),
                          breakdown_names=tuple(getattr(objective, "breakdown_names", ()) or ()),
                          metric_kw=None if kw is None else dict(kw),
-                         pitch=getattr(getattr(objective, "setup", None), "pitch", None))
+                         pitch=getattr(getattr(objective, "setup", None), "pitch", None),
+                         aperture_mode=getattr(objective, "aperture_mode", None),
+                         scene_objective=getattr(objective, "inner", objective))
 
 
 def worker_factory_of(objective) -> Callable[[], Any] | None:

@@ -191,15 +191,18 @@ class MatrixObjective(Objective):
         return psf3d_metrics(planes, self.coords, planes_ref=ref, terms=terms, **self.metric_kw)
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, masks, return_planes: bool = False) -> dict[str, np.ndarray]:
+    def evaluate(self, masks, return_planes: bool = False, receive=None) -> dict[str, np.ndarray]:
         """Every Table-1 metric and figure of merit of a batch of masks: {name: float64 (B,)};
-        with ``return_planes`` also ``"planes"``: {name: complex (B, H, W)}. No gradient."""
+        with ``return_planes`` also ``"planes"``: {name: complex (B, H, W)}. No gradient.
+        ``receive``: separate receive masks (B, Ne), ``masks`` then the transmit aperture."""
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
+            r = None if receive is None else self.as_masks(receive)
             out: dict[str, list] = {k: [] for k in (*METRIC_NAMES, *MERIT_NAMES)}
             kept: dict[str, list] = {}
             for i in range(0, m.shape[0], self.chunk):
-                planes = self.model.planes(m[i:i + self.chunk])
+                planes = (self.model.planes(m[i:i + self.chunk]) if r is None else
+                          self.model.planes(m[i:i + self.chunk], receive=r[i:i + self.chunk]))
                 met = self._metrics(planes)
                 for k in out:
                     out[k].append(met[k].double().cpu())
@@ -212,12 +215,16 @@ class MatrixObjective(Objective):
             res["planes"] = {k: torch.cat(v).numpy() for k, v in kept.items()}
         return res
 
-    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
-        """Differentiable Table-1 terms (B,) of soft element weights (B, Ne)."""
+    def psf_terms(self, weights: torch.Tensor, terms=None, receive=None) -> dict[str, torch.Tensor]:
+        """Differentiable Table-1 terms (B,) of soft element weights (B, Ne); ``receive``:
+        separate receive weights (B, Ne)."""
         w = weights if weights.dim() == 2 else weights[None]
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
-        return self._metrics(self.model.planes(w.to(self.device, self.dtype)), terms=terms)
+        w = w.to(self.device, self.dtype)
+        if receive is None:
+            return self._metrics(self.model.planes(w), terms=terms)
+        return self._metrics(self.model.planes(w, receive=receive.to(self.device, self.dtype)), terms=terms)
 
     def worker_factory(self) -> "MatrixObjectiveFactory | None":
         if type(self) is not MatrixObjective:

@@ -255,12 +255,16 @@ class Objective:
         return st.mean(-1), st.amax(-1)
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, masks, return_kernels: bool = False) -> dict[str, np.ndarray]:
+    def evaluate(self, masks, return_kernels: bool = False, receive=None) -> dict[str, np.ndarray]:
         """Every Table-1 metric of a batch of masks: {name: float64 array (B,)}.
 
         masks: (B, Ne) 0/1 (or weights >= 0), numpy or torch. No gradient.
         With ``return_kernels`` the dict also holds ``"kernels"`` (B, w, w) complex.
+        ``receive``: separate receive masks (B, Ne), ``masks`` then the transmit aperture
+        (exact path; :mod:`arraysel.objective.aperture`).
         """
+        if receive is not None:
+            return self._evaluate_apertures(masks, receive, return_kernels)
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
             if not self._announced and m.shape[0] > 1 and any(p.basis is None for p in self.psfs):
@@ -270,6 +274,12 @@ class Objective:
             res = self._score(int(m.shape[0]), lambda model, i, n: model.kernels(m[i:i + n], return_info=True),
                               return_kernels)
         return res
+
+    def _evaluate_apertures(self, masks, receive, return_kernels: bool) -> dict[str, np.ndarray]:
+        with torch.no_grad(), self._timed():
+            m, r = self.as_masks(masks), self.as_masks(receive)
+            return self._score(int(m.shape[0]), lambda model, i, n: model.kernels(
+                m[i:i + n], return_info=True, receive=r[i:i + n]), return_kernels)
 
     def evaluate_swaps(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
         """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element
@@ -391,8 +401,9 @@ class Objective:
         return self.evaluate(masks_from_indices(selections, self.n_elements, self.k))
 
     # ------------------------------------------------------------------ losses
-    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
-        """Differentiable PSF metrics (B,) of soft element weights (B, Ne).
+    def psf_terms(self, weights: torch.Tensor, terms=None, receive=None) -> dict[str, torch.Tensor]:
+        """Differentiable PSF metrics (B,) of soft element weights (B, Ne) (with ``receive``,
+        separate receive weights (B, Ne): ``weights`` the transmit apodization).
 
         A several-point scene gives the aggregate over its points that
         ``metrics.aggregate`` chooses (the mean, or the worst point: the largest value).
@@ -401,7 +412,8 @@ class Objective:
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         w = w.to(self.device, self.dtype)
-        return self.terms_of_kernels([model.kernels(w) for model in self.psfs], terms)
+        r = None if receive is None else receive.to(self.device, self.dtype)
+        return self.terms_of_kernels([model.kernels(w, receive=r) for model in self.psfs], terms)
 
     def terms_of_kernels(self, kappas: list[torch.Tensor], terms=None) -> dict[str, torch.Tensor]:
         """:meth:`psf_terms` of the kernels ``kappas`` (one (B, win, win) tensor per point)."""
@@ -417,7 +429,7 @@ class Objective:
             out[name] = mean if self.aggregate == "mean" else worst
         return out
 
-    def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None):
+    def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None, receive=None):
         """The scene-weighted PSF loss ``(total (B,), terms)`` of ``weights`` (B, Ne), from their
         kernels ``kappas`` (one tensor per point) when the caller has them."""
         wts = {k: self.weights.get(k, 0.0) for k in PSF_WEIGHT_KEYS}
@@ -425,14 +437,17 @@ class Objective:
         if not need:
             z = weights.sum(-1) * 0
             return z, {}
+        if receive is not None:
+            return training_loss(self.psf_terms(weights, terms=need, receive=receive), wts)
         terms = self.psf_terms(weights, terms=need) if kappas is None else self.terms_of_kernels(kappas, need)
         return training_loss(terms, wts)
 
-    def mask_loss(self, weights: torch.Tensor):
-        """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
+    def mask_loss(self, weights: torch.Tensor, receive=None):
+        """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
+        ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
             w = weights if weights.dim() == 2 else weights[None]
-            total, terms = self._psf_loss(w)
+            total, terms = self._psf_loss(w) if receive is None else self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
             self.evaluations += int(w.shape[0])
