@@ -137,6 +137,11 @@ class Imager:
         """The most masks one call images at once (a memory or efficiency bound)."""
         raise NotImplementedError
 
+    def layout(self) -> tuple:
+        """``(grid, positions)``: the element grid ``(ny, nx)`` of a 2-D array on a full grid (else
+        None) and the element centres ``(Ne, 3)`` as (x, y, z) in metres."""
+        raise NotImplementedError
+
     def prepare_moves(self) -> bool:
         """Form now what :meth:`image_moves` shares between selections; True when it is all formed."""
         return True
@@ -157,11 +162,13 @@ def moved_masks(mask: Tensor, out, into) -> Tensor:
 class KernelImager(Imager):
     """The imager of one field point of a 1-D probe: its PSF kernel as one plane (module docstring).
 
-    Parameters: ``model``, the point's :class:`~arraysel.physics.psf.PSFModel`.
+    Parameters: ``model``, the point's :class:`~arraysel.physics.psf.PSFModel`; ``exact_reason``, why
+    it has no fast path (None when it has one).
     """
 
-    def __init__(self, model):
+    def __init__(self, model, exact_reason: str | None = None):
         self.model = model
+        self.exact_reason = exact_reason
         self.setup = model.setup
         self.n_elements = model.n_elements
         self.dtype, self.device = model.dtype, model.device
@@ -173,6 +180,10 @@ class KernelImager(Imager):
 
     def image(self, weights: Tensor) -> PlaneSet:
         return self.wrap(self.model.kernels(weights))
+
+    def layout(self):
+        xe, ze, _, _ = self.setup.probe.element_positions()
+        return None, np.stack([xe, np.zeros_like(xe), ze], axis=1)
 
     def image_masks(self, masks: Tensor) -> tuple[PlaneSet, Tensor]:
         k, fell_back = self.model.kernels(masks, return_info=True)
@@ -199,11 +210,11 @@ class VolumeImager(Imager):
 
     Parameters: ``model``, a :class:`~arraysel.physics.volume.MatrixPSF` or its fast path
     :class:`~arraysel.physics.volume.fast.MatrixFastPSF`; ``exact_reason``, None on the fast path,
-    else why the exact path is used; ``batch``, the masks per call (the fast path's matrix product
-    is most efficient from about 128 masks).
+    else why the exact path is used; ``batch``, the most masks per call (the objective's ``chunk``
+    sets the batch).
     """
 
-    def __init__(self, model, exact_reason: str | None = None, batch: int = 128):
+    def __init__(self, model, exact_reason: str | None = None, batch: int = 1 << 30):
         self.model = model
         self.setup = model.setup
         self.n_elements = model.n_elements
@@ -216,6 +227,10 @@ class VolumeImager(Imager):
 
     def image(self, weights: Tensor) -> PlaneSet:
         return self.wrap(self.model.planes(weights))
+
+    def layout(self):
+        probe = self.setup.probe
+        return probe.layout_grid, probe.element_positions()
 
     def masks_per_batch(self) -> int:
         return self.batch

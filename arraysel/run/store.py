@@ -187,7 +187,7 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
     labels = [config for config, sel in selections.items() if len(sel) and config != "full"]
     masks = np.array([selections[config].mask for config in labels], dtype=bool)
-    if len(labels) and hasattr(objective, "reference_planes"):
+    if len(labels) and getattr(objective, "image_kind", None) == "planes":
         try:  # a 3-D scene: its planes and the C-plane's lateral profiles
             _planes_figures(objective, labels, masks, out)
         except Exception as exc:

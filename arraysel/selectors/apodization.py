@@ -126,7 +126,7 @@ def weighted_metrics(objective, weights) -> list[dict]:
     """Every metric of weights ``(B, Ne)`` (0/1 masks or apodized): the objective's ``evaluate``
     (its Table-1 metrics and extra columns), plus ``PSL_dB`` for a 1-D scene; one dict a row."""
     w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
-    one_d = not hasattr(objective, "reference_planes") and hasattr(objective, "metric_kw")
+    one_d = getattr(objective, "image_kind", None) == "kernels"
     res = objective.evaluate(w, return_kernels=True) if one_d else objective.evaluate(w)
     if one_d:
         res[PSL_NAME] = _psl_db(objective, res.pop("kernels"))
