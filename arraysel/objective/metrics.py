@@ -369,6 +369,55 @@ def _compiled_terms(flat: Tensor, ref: Tensor | None, pitch, wavelength, r_main,
     return {n: vals[:, i] for i, n in enumerate(names) if ref is not None or n != "L_PSF"}
 
 
+def _checked_reference(kappa: Tensor, kappa_ref) -> Tensor:
+    """``kappa_ref`` checked: a real or complex tensor ``(..., H, W)`` that broadcasts to ``kappa``."""
+    ref = _check_tensor("kappa_ref", kappa_ref)
+    _check_kernel_shape("kappa_ref", ref)
+    try:
+        shape = _broadcast_shapes(kappa.shape, ref.shape)
+    except RuntimeError:
+        shape = None
+    if shape != kappa.shape:
+        raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
+                             f"shape {tuple(kappa.shape)}")
+    return ref
+
+
+def _lobe_terms(flat: Tensor, lobe_terms: set, pitch, wavelength, r_main, r_guard, q: float) -> dict[str, Tensor]:
+    """The lobe terms ``lobe_terms`` (among ``L_contrast``, ``L_SLR_q``, ``L_SLR_i``) of kernels
+    ``flat`` (B, H, W), each ``(B,)``, by torch operations (differentiable)."""
+    res: dict[str, Tensor] = {}
+    b, h, w = flat.shape
+    # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
+    # max(k2) cancels in every ratio below and is never divided out.
+    k2 = _scaled_abs2(flat)                                          # (B, N)
+    flat_peak = _peak_index(k2)
+    # kernels cut around their peak share one peak pixel (and so one pair of regions):
+    # then the masks are (1, N) and broadcast, instead of gathered per kernel
+    shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
+    rows = 1 if shared else b
+    reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
+                        flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
+    main = reg.main.reshape(rows, h * w)                             # 0/1 floats
+    side = reg.side.reshape(rows, h * w)
+    if {"L_contrast", "L_SLR_i"} & lobe_terms:
+        s_main = _rowdot(k2, main)
+        s_side = _rowdot(k2, side)
+        if "L_SLR_i" in lobe_terms:
+            res["L_SLR_i"] = _safe_div(s_side, s_main)
+        if "L_contrast" in lobe_terms:
+            res["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1)),
+                                          _safe_div(s_main, main.sum(-1)))
+    if "L_SLR_q" in lobe_terms:
+        # quantile of m = sqrt(k2 / max k2): sqrt is increasing, so rank k2.
+        # The peak is the global maximum and lies in the main lobe (r = 0), so
+        # max(m over main) is m at the peak.
+        main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
+        q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
+        res["L_SLR_q"] = _safe_div(q_side, main_max)
+    return res
+
+
 def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: float,
                 kappa_ref: Tensor | None = None, r_main: float = 1.5, r_guard: float = 2.5,
                 quantile: float = 0.99, terms: Iterable[str] | None = None,
@@ -429,15 +478,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
     out: dict[str, Tensor] = {}
     ref = None
     if "L_PSF" in need:
-        ref = _check_tensor("kappa_ref", kappa_ref)
-        _check_kernel_shape("kappa_ref", ref)
-        try:
-            shape = _broadcast_shapes(kappa.shape, ref.shape)
-        except RuntimeError:
-            shape = None
-        if shape != kappa.shape:
-            raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
-                                 f"shape {tuple(kappa.shape)}")
+        ref = _checked_reference(kappa, kappa_ref)
     if _compiled_applies(flat, ref, compiled):
         vals = _compiled_terms(flat, ref, pitch, wavelength, r_main, r_guard, q)
         out.update({name: v.reshape(lead) for name, v in vals.items() if name in need})
@@ -446,34 +487,8 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
 
     lobe_terms = (need - set(out)) & {"L_contrast", "L_SLR_q", "L_SLR_i"}
     if lobe_terms:
-        b, h, w = flat.shape
-        # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
-        # max(k2) cancels in every ratio below and is never divided out.
-        k2 = _scaled_abs2(flat)                                          # (B, N)
-        flat_peak = _peak_index(k2)
-        # kernels cut around their peak share one peak pixel (and so one pair of regions):
-        # then the masks are (1, N) and broadcast, instead of gathered per kernel
-        shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
-        rows = 1 if shared else b
-        reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
-                            flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
-        main = reg.main.reshape(rows, h * w)                             # 0/1 floats
-        side = reg.side.reshape(rows, h * w)
-        if {"L_contrast", "L_SLR_i"} & lobe_terms:
-            s_main = _rowdot(k2, main)
-            s_side = _rowdot(k2, side)
-            if "L_SLR_i" in lobe_terms:
-                out["L_SLR_i"] = _safe_div(s_side, s_main).reshape(lead)
-            if "L_contrast" in lobe_terms:
-                out["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1)),
-                                              _safe_div(s_main, main.sum(-1))).reshape(lead)
-        if "L_SLR_q" in lobe_terms:
-            # quantile of m = sqrt(k2 / max k2): sqrt is increasing, so rank k2.
-            # The peak is the global maximum and lies in the main lobe (r = 0), so
-            # max(m over main) is m at the peak.
-            main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
-            q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
-            out["L_SLR_q"] = _safe_div(q_side, main_max).reshape(lead)
+        out.update({k: v.reshape(lead) for k, v in _lobe_terms(flat, lobe_terms, pitch, wavelength, r_main,
+                                                                  r_guard, q).items()})
 
     if "L_SLR" in need:
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])

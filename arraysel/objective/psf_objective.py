@@ -78,6 +78,56 @@ def point_metric_names(n_points: int) -> tuple[str, ...]:
     return tuple(names)
 
 
+def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
+    """``masks`` (B, Ne) or (Ne,) (numpy or torch) as a (B, Ne) tensor on ``device`` in ``dtype``;
+    SelectionError for a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
+    m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
+    if m.dim() == 1:
+        m = m[None]
+    if m.dim() != 2 or m.shape[1] != n_elements:
+        raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
+    m = m.to(device, dtype)
+    if not bool(torch.isfinite(m).all()):
+        raise SelectionError("masks contain NaN or Inf")
+    if bool((m < 0).any()):
+        raise SelectionError("mask weights must be >= 0")
+    if bool((m.sum(1) == 0).any()):
+        bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
+        raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
+    return m
+
+
+def aggregated(per_point: list[dict], aggregate: str) -> dict[str, np.ndarray]:
+    """The columns of a several-point scene from each point's metrics ``{name: (B,)}``: the headline
+    metrics (the points' mean, or their worst for ``aggregate = "worst"``), then every metric per
+    point, their mean and their worst (:func:`point_metric_names`)."""
+    res = {}
+    for name in METRIC_NAMES:
+        st = torch.stack([d[name] for d in per_point], -1)
+        mean, worst = st.mean(-1), st.amax(-1)
+        res[name] = (mean if aggregate == "mean" else worst).numpy()
+        for p, d in enumerate(per_point):
+            res[f"{name}@p{p}"] = d[name].numpy()
+        res[f"{name}@mean"] = mean.numpy()
+        res[f"{name}@worst"] = worst.numpy()
+    return res
+
+
+def images_out(res: dict, kernels: bool, planes: bool, imagers) -> dict:
+    """``res`` with the plane sets :meth:`Objective._score` kept as ``"kernels"`` ((B, w, w), or
+    (B, P, w, w) for P points) and/or ``"planes"`` (``{name: (B, H, W)}``, or ``{"p<i>": ...}``), numpy."""
+    sets = res.pop("_planes", None)
+    one = len(imagers) == 1
+    if kernels:
+        w = imagers[0].setup.window
+        ks = [s.kernel.numpy() if s is not None else np.zeros((0, w, w), np.complex64) for s in sets]
+        res["kernels"] = ks[0] if one else np.stack(ks, 1)
+    if planes:
+        per = [{k: v.numpy() for k, v in s.images.items()} if s is not None else {} for s in sets]
+        res["planes"] = per[0] if one else {f"p{i}": d for i, d in enumerate(per)}
+    return res
+
+
 class _Timer:
     """Adds the wall time of a ``with`` block to ``objective.seconds``."""
 
@@ -182,20 +232,8 @@ class Objective:
         return _Timer(self)
 
     def as_masks(self, masks) -> torch.Tensor:
-        m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
-        if m.dim() == 1:
-            m = m[None]
-        if m.dim() != 2 or m.shape[1] != self.n_elements:
-            raise SelectionError(f"masks must have shape (B, {self.n_elements}), got {tuple(m.shape)}")
-        m = m.to(self.device, self.dtype)
-        if not bool(torch.isfinite(m).all()):
-            raise SelectionError("masks contain NaN or Inf")
-        if bool((m < 0).any()):
-            raise SelectionError("mask weights must be >= 0")
-        if bool((m.sum(1) == 0).any()):
-            bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
-            raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
-        return m
+        """``masks`` (B, Ne) or (Ne,) as checked weights on the objective's device and dtype."""
+        return checked_masks(masks, self.n_elements, self.device, self.dtype)
 
     def _weights(self, weights: torch.Tensor) -> torch.Tensor:
         w = weights if weights.dim() == 2 else weights[None]
@@ -377,32 +415,14 @@ class Objective:
         self.evaluations += int(n_masks)
         empty = torch.zeros(0, dtype=torch.float64)
         per_np = [{name: torch.cat(v) if v else empty for name, v in d.items()} for d in per]
-        if self.n_points == 1:
-            res = {name: v.numpy() for name, v in per_np[0].items()}
-        else:
-            res = {}
-            for name in METRIC_NAMES:
-                mean, worst = self._aggregate([d[name] for d in per_np])
-                res[name] = (mean if self.aggregate == "mean" else worst).numpy()
-                for p, d in enumerate(per_np):
-                    res[f"{name}@p{p}"] = d[name].numpy()
-                res[f"{name}@mean"] = mean.numpy()
-                res[f"{name}@worst"] = worst.numpy()
+        res = ({name: v.numpy() for name, v in per_np[0].items()} if self.n_points == 1
+               else aggregated(per_np, self.aggregate))
         if keep:
             res["_planes"] = [PlaneSet.cat(k) if k else None for k in kept]
         return res
 
     def _images_out(self, res: dict, kernels: bool, planes: bool) -> dict:
-        """``res`` with its kept plane sets as ``"kernels"`` and/or ``"planes"`` (numpy)."""
-        sets = res.pop("_planes", None)
-        if kernels:
-            w = self.imagers[0].setup.window
-            ks = [s.kernel.numpy() if s is not None else np.zeros((0, w, w), np.complex64) for s in sets]
-            res["kernels"] = ks[0] if self.n_points == 1 else np.stack(ks, 1)
-        if planes:
-            per = [{k: v.numpy() for k, v in s.images.items()} if s is not None else {} for s in sets]
-            res["planes"] = per[0] if self.n_points == 1 else {f"p{i}": d for i, d in enumerate(per)}
-        return res
+        return images_out(res, kernels, planes, self.imagers)
 
     def evaluate_indices(self, selections) -> dict[str, np.ndarray]:
         """:meth:`evaluate` for lists of active element indices (validated, k enforced)."""
