@@ -45,7 +45,7 @@ from arraysel.objective.reductions import (BOUNDARY_RTOL, broadcast_shapes, mask
                                            safe_div, safe_sqrt, scaled_abs2)
 from arraysel.objective.tensors import _abs2, _check_kernel_shape, _check_tensor
 
-__all__ = ["MERIT_NAMES", "PSF3D_TERMS", "SIX_DB", "PSL_FLOOR_DB", "C_PLANE", "PlaneSet", "PSF3DRegions",
+__all__ = ["MERIT_NAMES", "PSF3D_TERMS", "SIX_DB", "PSL_FLOOR_DB", "C_PLANE", "FlatPlanes", "PSF3DRegions",
            "plane_set", "normalise_planes", "psf3d_regions", "psf3d_metrics", "c_plane_profiles",
            "main_lobe_widths", "check_planes", "c_plane_axes", "level_crossing", "region_radii"]
 
@@ -66,8 +66,9 @@ C_PLANE = "xy"
 # --------------------------------------------------------------------------
 
 @dataclass
-class PlaneSet:
-    """A validated plane set, its pixels concatenated.
+class FlatPlanes:
+    """A validated plane set, its pixels concatenated (the metrics' working form of the planes of a
+    :class:`~arraysel.physics.imaging.PlaneSet`).
 
     Attributes
     ----------
@@ -113,8 +114,8 @@ def _coords_tensor(name: str, c, hw: tuple[int, int], device) -> Tensor:
     return c.to(device=device, dtype=dt)
 
 
-def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, what: str = "planes") -> PlaneSet:
-    """Check a plane set and concatenate its pixels (:class:`PlaneSet`).
+def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, what: str = "planes") -> FlatPlanes:
+    """Check a plane set and concatenate its pixels (:class:`FlatPlanes`).
 
     Every plane is a real or complex tensor ``(..., H, W)`` with the same leading shape; ``coords``
     has an ``(H, W, 3)`` array (numpy or torch, metres) for every plane. Raises
@@ -150,11 +151,11 @@ def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, wha
         n += int(h) * int(w)
         parts.append(x.to(device=device, dtype=dtype).reshape(b, -1))
         cparts.append(_coords_tensor(f"coords[{name!r}]", coords[name], (int(h), int(w)), device).reshape(-1, 3))
-    return PlaneSet(names=names, flat=torch.cat(parts, dim=-1), lead=lead, coords=torch.cat(cparts, dim=0),
+    return FlatPlanes(names=names, flat=torch.cat(parts, dim=-1), lead=lead, coords=torch.cat(cparts, dim=0),
                     shapes=shapes, offsets=offsets)
 
 
-def _reference(ps: PlaneSet, planes_ref: Mapping[str, Tensor], coords) -> Tensor:
+def _reference(ps: FlatPlanes, planes_ref: Mapping[str, Tensor], coords) -> Tensor:
     """The reference plane set as ``(Bref, N)`` in the planes' order, its leading shape broadcasting."""
     if not isinstance(planes_ref, Mapping) or set(planes_ref) != set(ps.names):
         have = sorted(planes_ref) if isinstance(planes_ref, Mapping) else type(planes_ref).__name__
