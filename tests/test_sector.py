@@ -4,6 +4,7 @@ the beam-pattern search objective and a tiny sector scene through compare."""
 from __future__ import annotations
 
 import copy
+import json
 import math
 
 import numpy as np
@@ -198,6 +199,8 @@ def test_tiny_sector_scene_through_compare(tmp_path):
         assert not ((front["worst_PSL_dB"] > r["worst_PSL_dB"]) & (front["mean_width_mm"] > r["mean_width_mm"])).any() \
             or not r["on_front"]
     assert (tmp_path / "pareto.png").stat().st_size > 1000
+    assert (tmp_path / "beampattern.png").stat().st_size > 1000
+    assert not json.loads((tmp_path / "run.json").read_text()).get("figure_errors")
 
 
 # --------------------------------------------------------------------------- every selector on it

@@ -18,7 +18,7 @@ import numpy as np
 from arraysel.report import beams as B
 from arraysel.report import tables as reporting
 
-__all__ = ["sector_tables", "effective_options"]
+__all__ = ["sector_tables", "effective_options", "beam_pattern_view"]
 
 _log = logging.getLogger(__name__)
 
@@ -90,3 +90,26 @@ def sector_tables(objective, rows: list[dict]):
                        **{k: float(np.median([s[k] for s in sums])) for k in sums[0]}})
     beams = pd.DataFrame(beams, columns=list(B.BEAMS_COLUMNS))
     return beams, pd.DataFrame(B.pareto_rows(pareto, int(objective.k)), columns=list(B.PARETO_COLUMNS))
+
+
+def beam_pattern_view(objective, labels: list[str], masks: np.ndarray):
+    """The figure of ``beampattern.png`` (:func:`arraysel.report.uv_plots.beam_pattern_figure`): each selection's
+    two-way pattern over the visible region of the sector's beams (``region="visible"``), with the
+    probe lattice's grating lobes at the centre frequency and the selection's own."""
+    import torch
+
+    from arraysel.physics.beampattern import BeamPattern
+    from arraysel.report import uv_plots
+
+    probe = objective.setup.probe
+    acq = objective.scene.acquisition()
+    sines = objective.pattern.sines
+    sector = tuple(math.degrees(math.asin(s)) for s in sines)
+    view = BeamPattern.from_probe(probe, acq, sector_deg=sector, region="visible", oversample=2.0,
+                                  n_freq=objective.pattern.frequencies.numel(), dtype=torch.float32)
+    w = torch.as_tensor(np.asarray(masks, dtype=np.float32))
+    with torch.no_grad():
+        pat = view.pattern(w).cpu().numpy()
+        segs = [s.numpy() for s in view.grating_directions(w)]
+    lobes = uv_plots.lattice_grating_lobes(acq.c / probe.fc, probe.pitch_x, probe.pitch_y, view.extent)
+    return uv_plots.beam_pattern_figure(labels, pat, view.du.numpy(), view.dv.numpy(), sines, lobes, segs)

@@ -192,7 +192,14 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
             _planes_figures(objective, labels, masks, out)
         except Exception as exc:
             problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
-    elif len(labels) and not hasattr(objective, "beam_metrics"):  # a sector scene has pareto.png instead
+    elif len(labels) and hasattr(objective, "beam_metrics"):  # a sector scene: pareto.png and its beam patterns
+        try:
+            from arraysel.run.sector_report import beam_pattern_view
+
+            plots.save_figure(beam_pattern_view(objective, labels, masks), out / "beampattern.png")
+        except Exception as exc:
+            problems.append(f"beampattern.png: {type(exc).__name__}: {exc}")
+    elif len(labels):
         try:
             _psf_figures(objective, labels, masks, out)
         except Exception as exc:
