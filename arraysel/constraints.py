@@ -5,9 +5,12 @@ of ``k`` of them:
 
 * **channel groups** (``groups``: one group number per element, a partition of the elements):
   a selection holds exactly one element of every group (``group_mode = "exactly-one"``) or at
-  most one (``"at-most-one"``). :func:`mux_groups` gives the group map of a multiplexer rule
-  (``mux-1024-4``: four banks of 256 elements, scanner channel ``c`` reaches element ``c`` of
-  each bank), :func:`read_group_csv` reads one from a CSV file (``element,group``);
+  most one (``"at-most-one"``); with ``group_counts`` (``exactly-one`` only) group ``g`` holds
+  exactly ``group_counts[g]`` elements: the quota of separate transmit and receive apertures
+  (:func:`aperture_constraints`, ``docs/apertures.md``). :func:`mux_groups` gives the group map
+  of a multiplexer rule (``mux-1024-4``: four banks of 256 elements, scanner channel ``c``
+  reaches element ``c`` of each bank), :func:`read_group_csv` reads one from a CSV file
+  (``element,group``);
 * **forced elements**: ``forced_on`` elements are always selected, ``forced_off`` ones never
   (dead elements, unconnected rows);
 * **symmetry** (``"x"``: mirror in x, the image of (x, y) is (-x, y); ``"y"``; ``"xy"``: both,
@@ -37,7 +40,8 @@ import numpy as np
 from arraysel.errors import ParameterError, SelectionError
 
 __all__ = ["Constraints", "ConstraintError", "GROUP_MODES", "SYMMETRIES", "mux_groups", "read_group_csv",
-           "group_map", "mirror_orbits", "constraints_of", "group_constraints", "refuse_groups"]
+           "group_map", "mirror_orbits", "constraints_of", "group_constraints", "refuse_groups",
+           "aperture_constraints"]
 
 GROUP_MODES = ("exactly-one", "at-most-one")
 SYMMETRIES = ("none", "x", "y", "xy")
@@ -156,8 +160,9 @@ class Constraints:
     """The constraints on a selection of ``k`` of ``n_elements`` elements (module docstring).
 
     ``groups``: one group number per element or None; ``group_mode``: ``exactly-one`` or
-    ``at-most-one``; ``forced_on`` / ``forced_off``: element indices; ``symmetry``: ``none``,
-    ``x``, ``y`` or ``xy`` (needs ``positions``, (Ne, 2 or 3) element centres); ``source``: the
+    ``at-most-one``; ``group_counts``: with ``exactly-one``, the number of elements each group
+    holds (indexed by group number; None: one each); ``forced_on`` / ``forced_off``: element
+    indices; ``symmetry``: ``none``, ``x``, ``y`` or ``xy`` (needs ``positions``, (Ne, 2 or 3) element centres); ``source``: the
     group rule's name for messages. Forced sets are closed under the symmetry (the mirror image
     of a dead element is off too). Every inconsistency is a :class:`ParameterError` naming it.
     """
@@ -171,6 +176,7 @@ class Constraints:
     symmetry: str = "none"
     positions: Any = field(default=None, repr=False)
     source: str = ""
+    group_counts: Any = None
 
     def __post_init__(self) -> None:
         n, k = int(self.n_elements), int(self.k)
@@ -187,6 +193,7 @@ class Constraints:
             set_("source", str(self.groups))
         groups = None if self.groups is None else group_map(self.groups, n)
         set_("groups", groups)
+        set_("counts", None if groups is None else _group_counts(self.group_counts, groups, self.group_mode))
         on, off = _indices("forced_on", self.forced_on, n), _indices("forced_off", self.forced_off, n)
         if self.symmetry != "none":
             if groups is not None:
@@ -218,31 +225,37 @@ class Constraints:
         if need < 0:
             raise ParameterError(f"constraints: {len(self.forced_on)} elements forced on, more than k = {self.k}")
         unit_groups = None
+        set_("unit_group_counts", None)
         if self.groups is not None:
             gids, inv = np.unique(self.groups, return_inverse=True)
+            cap = self.counts[gids]
             on_count = np.bincount(inv[list(self.forced_on)], minlength=gids.size)
-            if (on_count > 1).any():
-                g = int(gids[np.flatnonzero(on_count > 1)[0]])
-                raise ParameterError(f"constraints: group {g} has {int(on_count.max())} elements forced on; "
-                                     f"a group holds at most one")
-            closed = on_count[inv] > 0
-            state[closed & (state == 0)] = -1  # the rest of a group with a forced element cannot be chosen
-            open_g = np.flatnonzero(on_count == 0)
+            if (on_count > cap).any():
+                g = np.flatnonzero(on_count > cap)[0]
+                raise ParameterError(f"constraints: group {int(gids[g])} has {int(on_count[g])} elements forced on; "
+                                     f"a group holds at most {_number(cap[g])}")
+            closed = on_count[inv] >= cap[inv]
+            state[closed & (state == 0)] = -1  # the rest of a full group (forced elements) cannot be chosen
+            open_g = np.flatnonzero(on_count < cap)
+            left = cap - on_count
             free_count = np.bincount(inv[state == 0], minlength=gids.size)
             if self.group_mode == "exactly-one":
-                empty = open_g[free_count[open_g] == 0]
+                empty = open_g[free_count[open_g] < left[open_g]]
                 if empty.size:
-                    raise ParameterError(f"constraints: group {int(gids[empty[0]])} has every element forced off; "
-                                         f"'exactly-one' needs one of them (use mode = 'at-most-one')")
-                if need != open_g.size:
+                    g = empty[0]
+                    what = "every element" if free_count[g] == 0 else "too many elements"
+                    raise ParameterError(f"constraints: group {int(gids[g])} has {what} forced off; "
+                                         f"'exactly-one' needs {_number(left[g])} of them (use mode = 'at-most-one')")
+                if need != int(left[open_g].sum()):
                     raise ParameterError(f"constraints: 'exactly-one' of {gids.size} groups selects "
-                                         f"{gids.size} elements; selection.k = {self.k}")
+                                         f"{int(cap.sum())} elements; selection.k = {self.k}")
             elif need > int((free_count[open_g] > 0).sum()):
                 raise ParameterError(f"constraints: k = {self.k} is more than the {gids.size} groups allow "
                                      f"(at most one element each)")
             renum = np.full(gids.size, -1, dtype=np.int64)
             renum[open_g] = np.arange(open_g.size)
             unit_groups = renum[inv[state == 0]]
+            set_("unit_group_counts", left[open_g].astype(np.int64))
         units = self.orbits[state == 0]
         if units.size:
             units = np.unique(np.sort(units, axis=1), axis=0)
@@ -287,13 +300,15 @@ class Constraints:
             return None
         if self.simple:
             return self
-        return Constraints(len(self.units), self.k_units, self.unit_groups, self.group_mode, source=self.source)
+        return Constraints(len(self.units), self.k_units, self.unit_groups, self.group_mode, source=self.source,
+                           group_counts=self.unit_group_counts)
 
     def describe(self) -> str:
         """One line: what is constrained."""
         parts = []
         if self.groups is not None:
-            parts.append(f"groups {self.source or 'map'} ({np.unique(self.groups).size}, {self.group_mode})")
+            counts = "" if (self.counts == 1).all() else f", counts {self.counts.tolist()[:8]}"
+            parts.append(f"groups {self.source or 'map'} ({np.unique(self.groups).size}, {self.group_mode}{counts})")
         if self.forced_on:
             parts.append(f"{len(self.forced_on)} forced on")
         if self.forced_off:
@@ -347,18 +362,23 @@ class Constraints:
             raise ConstraintError("forced_on", f"elements {on[:10]} are forced on but not selected")
         if self.groups is not None:
             count = np.bincount(self.groups[m], minlength=int(self.groups.max()) + 1)
-            many = np.flatnonzero(count > 1)
+            cap = self.counts
+            many = np.flatnonzero(count > cap)
             if many.size:
                 g = int(many[0])
+                held = np.flatnonzero(m & (self.groups == g)).tolist()
                 raise ConstraintError("groups", f"group {g} of {self.source or 'the group map'} holds "
-                                      f"{int(count[g])} selected elements {np.flatnonzero(m & (self.groups == g)).tolist()}; "
-                                      f"at most one is allowed")
+                                      f"{int(count[g])} selected elements {held[:10]}; "
+                                      f"at most {_number(cap[g])} {'is' if cap[g] == 1 else 'are'} allowed")
             if self.group_mode == "exactly-one":
                 present = np.unique(self.groups)
-                none = present[count[present] == 0]
+                none = present[count[present] < cap[present]]
                 if none.size:
-                    raise ConstraintError("groups", f"group {int(none[0])} of {self.source or 'the group map'} "
-                                          f"holds no selected element; exactly one is required")
+                    g = int(none[0])
+                    held = "no selected element" if count[g] == 0 else f"{int(count[g])} selected elements"
+                    raise ConstraintError("groups", f"group {g} of {self.source or 'the group map'} "
+                                          f"holds {held}; exactly {_number(cap[g])} {'is' if cap[g] == 1 else 'are'} "
+                                          f"required")
         if self.symmetry != "none":
             bad = np.flatnonzero((m[self.orbits] != m[:, None]).any(axis=1))
             if bad.size:
@@ -386,9 +406,10 @@ class Constraints:
         if self.groups is not None:
             onehot = self._onehot
             count = m.astype(np.int32) @ onehot
-            ok &= (count <= 1).all(axis=1)
+            ok &= (count <= self.counts).all(axis=1)
             if self.group_mode == "exactly-one":
-                ok &= (count[:, onehot.sum(axis=0) > 0] == 1).all(axis=1)
+                present = onehot.sum(axis=0) > 0
+                ok &= (count[:, present] == self.counts[present]).all(axis=1)
         if self.symmetry != "none":
             ok &= (m[:, self.orbits] == m[:, :, None]).all(axis=(1, 2))
         return ok
@@ -425,7 +446,12 @@ class Constraints:
         g, first, _ = self._segments
         rank = np.empty_like(s)
         rank[rows, np.argsort(-s, axis=1, kind="stable")] = np.arange(n) / max(n, 1)
-        best = np.argsort(g[None, :] + rank, axis=1, kind="stable")[:, first]  # (B, G): each group's best
+        order = np.argsort(g[None, :] + rank, axis=1, kind="stable")  # by group, then preference
+        c = self.unit_group_counts
+        if c is not None and (c != 1).any():  # quotas (exactly-one only): each group's c best
+            out[rows, order[:, np.repeat(first, c) + _within(c)]] = True
+            return out
+        best = order[:, first]  # (B, G): each group's best
         if self.group_mode == "at-most-one":
             pick = np.argsort(np.take_along_axis(rank, best, axis=1), axis=1, kind="stable")[:, :self.k_units]
             best = np.take_along_axis(best, pick, axis=1)
@@ -494,6 +520,49 @@ class Constraints:
         ``exactly-one`` groups each group takes one parent's choice."""
         a, b = np.asarray(p1, dtype=bool), np.asarray(p2, dtype=bool)
         return self.select_units(2.0 * (a & b) + (a | b) + 0.5 * rng.random(a.size))[0]
+
+
+def _group_counts(spec, groups: np.ndarray, mode: str) -> np.ndarray:
+    """The number of elements each group number holds (array indexed by group number)."""
+    size = int(groups.max()) + 1
+    if spec is None:
+        return np.ones(size, dtype=np.int64)
+    c = np.asarray(spec).reshape(-1)
+    if c.size != size or c.dtype.kind not in "iu" or (c < 1).any():
+        raise ParameterError(f"constraints.group_counts must give a count >= 1 for each of the {size} group "
+                             f"numbers, got {spec!r}")
+    if mode != "exactly-one" and (c != 1).any():
+        raise ParameterError("constraints.group_counts other than one need mode = 'exactly-one'")
+    size_of = np.bincount(groups, minlength=size)
+    bad = np.flatnonzero((size_of > 0) & (c > size_of))
+    if bad.size:
+        g = int(bad[0])
+        raise ParameterError(f"constraints.group_counts: group {g} holds {int(size_of[g])} elements, fewer than "
+                             f"its count {int(c[g])}")
+    return c.astype(np.int64)
+
+
+def _within(counts: np.ndarray) -> np.ndarray:
+    """``0 .. c - 1`` for every count ``c``, concatenated."""
+    return np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def _number(c) -> str:
+    return "one" if int(c) == 1 else str(int(c))
+
+
+def aperture_constraints(n_elements: int, k_tx: int, k_rx: int) -> Constraints:
+    """The quota of separate transmit and receive apertures on the virtual problem of
+    ``2 n_elements`` units (transmit elements ``0 .. Ne - 1``, then the receive elements): exactly
+    ``k_tx`` of the first ``Ne`` and ``k_rx`` of the rest (two groups with counts).
+    ``docs/apertures.md``."""
+    n = int(n_elements)
+    for key, v in (("aperture.k_tx", k_tx), ("aperture.k_rx", k_rx)):
+        if not 1 <= int(v) <= n:
+            raise ParameterError(f"{key} = {v} is out of range; allowed: [1, {n}] (the probe has {n} elements)")
+    groups = np.repeat(np.arange(2, dtype=np.int64), n)
+    return Constraints(2 * n, int(k_tx) + int(k_rx), groups=groups, group_counts=[int(k_tx), int(k_rx)],
+                       source="apertures (transmit, receive)")
 
 
 def constraints_of(objective) -> Constraints | None:

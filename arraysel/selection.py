@@ -29,7 +29,7 @@ import numpy as np
 from arraysel.errors import SelectionError
 
 __all__ = ["Selection", "check_selection", "indices_to_mask", "mask_to_indices", "masks_from_indices", "format_elements",
-           "parse_element_text", "mask_key", "survivors", "flagged_elements"]
+           "parse_element_text", "mask_key", "survivors", "flagged_elements", "random_masks"]
 
 
 def _plain(x: Any):
@@ -92,6 +92,16 @@ def masks_from_indices(selections, n_elements: int, k: int | None = None) -> np.
         if not idx:
             raise SelectionError(f"selection {i}: empty selection")
         out[i, idx] = 1.0
+    return out
+
+
+def random_masks(n_elements: int, k: int, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` uniformly random selections of ``k`` of ``n_elements`` elements, boolean (n, Ne), from
+    ``seed`` (numpy's default generator: the same seed gives the same masks)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((int(n), int(n_elements)), dtype=bool)
+    for r in range(int(n)):
+        out[r, rng.choice(int(n_elements), int(k), replace=False)] = True
     return out
 
 

@@ -121,14 +121,16 @@ class SelectorConformance:
 
     def test_meets_constraints(self):
         """On a 4 x 4 toy matrix under each kind of constraint (forced elements, four-fold symmetry,
-        channel groups with exactly one and at most one element each): a selection that meets them,
+        channel groups with exactly one and at most one element each, the quota of separate transmit
+        and receive apertures): a selection that meets them,
         or, for channel groups only, a refusal that names them (\"cannot honour ... groups\")."""
-        from arraysel.constraints import Constraints
+        from arraysel.constraints import Constraints, aperture_constraints
         pos = ToyObjective(16, 4, grid=(4, 4)).element_positions
         cases = {"forced": Constraints(16, 6, forced_on=[5], forced_off=[0, 15]),
                  "symmetry": Constraints(16, 8, symmetry="xy", positions=pos),
                  "groups": Constraints(16, 4, groups="mux-16-4"),
-                 "groups at-most-one": Constraints(16, 3, groups="mux-16-4", group_mode="at-most-one")}
+                 "groups at-most-one": Constraints(16, 3, groups="mux-16-4", group_mode="at-most-one"),
+                 "apertures": aperture_constraints(8, 3, 2)}  # separate transmit and receive (2 x 8 units)
         for label, cons in cases.items():
             obj = ToyObjective(16, cons.k, grid=(4, 4), constraints=cons)
             _, row = self.run_experiment(obj, k=cons.k, seed=1)

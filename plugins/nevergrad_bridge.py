@@ -38,7 +38,7 @@ import warnings
 
 import numpy as np
 
-from arraysel.constraints import refuse_groups
+from arraysel.constraints import group_constraints
 from arraysel.errors import ParameterError
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, numpy_rng, top_k
@@ -111,7 +111,10 @@ class NevergradSelector(Selector):
                                                                      num_workers=1)
         return opt
 
-    def _decode(self, value, n: int, k: int, rng: np.random.Generator) -> np.ndarray:
+    def _decode(self, value, n: int, k: int, rng: np.random.Generator, gc=None) -> np.ndarray:
+        if gc is not None:  # channel groups: the feasible selection the keys (or bits) prefer
+            v = np.asarray(value, dtype=np.float64)
+            return gc.select_units((v if self.options["encoding"] == "keys" else v + 0.5 * rng.random(n))[None])[0]
         mask = np.zeros(n, dtype=bool)
         if self.options["encoding"] == "keys":
             mask[top_k(np.asarray(value, dtype=np.float64), k)] = True
@@ -125,7 +128,7 @@ class NevergradSelector(Selector):
         return mask
 
     def select(self, objective, k, seed):
-        refuse_groups(objective, self.name)
+        gc = group_constraints(objective)
         ng = _nevergrad()
         n = int(objective.n_elements)
         rng = numpy_rng(seed)
@@ -141,12 +144,12 @@ class NevergradSelector(Selector):
                 while opt.num_ask < ng_budget:
                     todo = min(opt.num_workers, ng_budget - opt.num_ask)
                     cands = [opt.ask() for _ in range(todo)]
-                    masks = np.stack([self._decode(c.value, n, k, repair) for c in cands])
+                    masks = np.stack([self._decode(c.value, n, k, repair, gc) for c in cands])
                     values = objective.score(masks)
                     worst = np.max(values[np.isfinite(values)], initial=1.0)
                     for c, m, v in zip(cands, masks, values):
                         loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
-                        if lamarck and int(np.sum(np.asarray(c.value) > 0)) != k:
+                        if lamarck and not np.array_equal(np.asarray(c.value) > 0, m):
                             lamarck = _tell_repaired(ng, opt, c, m, loss)
                         else:
                             opt.tell(c, loss)

@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
-from arraysel.constraints import refuse_groups
+from arraysel.constraints import group_constraints, refuse_groups
 from arraysel.errors import NumericalError
 from arraysel.selectors.hookspecs import hookimpl
-from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k
+from arraysel.selectors.contract import Option, Selector, indices_to_mask, numpy_rng, top_k as _top_k
 
 _GRADIENT = ("MMA", "SLSQP")
 _ALGORITHMS = {"MMA": "LD_MMA", "SLSQP": "LD_SLSQP", "CRS2": "GN_CRS2_LM", "ISRES": "GN_ISRES",
@@ -50,11 +50,13 @@ class NLoptSelector(Selector):
     deterministic = False
 
     def select(self, objective, k, seed):
-        refuse_groups(objective, self.name)
+        gc = group_constraints(objective)
+        if gc is not None and gc.group_mode != "exactly-one":
+            refuse_groups(objective, self.name)
         import nlopt
         import torch  # here, not at the top: `arraysel list` loads the plugin without torch
 
-        from arraysel.selectors.relax import project_capped_simplex
+        project_capped_simplex, top_k = _grouped(gc)
 
         budget = objective.budget
         n = int(objective.n_elements)
@@ -103,7 +105,7 @@ class NLoptSelector(Selector):
             if budget.seconds is not None:
                 opt.set_maxtime(max(1e-3, budget.remaining_seconds()))
             if gradient:
-                _constrain_sum(opt, alg, k)
+                _constrain_sums(opt, alg, k, gc)
             try:
                 opt.optimize(x0)
             except (nlopt.ForcedStop, nlopt.RoundoffLimited):
@@ -126,16 +128,45 @@ class NLoptSelector(Selector):
         return state["last"] if state["last"] is not None else top_k(first, k)
 
 
-def _constrain_sum(opt, alg: str, k: int) -> None:
-    """Constrain ``sum(w)`` to ``k``: an equality for SLSQP; for MMA, which takes inequalities only and
-    whose dual solver stalls on the pair ``sum(w) <= k``, ``sum(w) >= k``, the inequality
-    ``sum(w) <= k`` (the losses prefer more active weight, so it is active at the optimum)."""
+def _grouped(gc):
+    """``(project, round)`` of soft weights: onto ``{0 <= w <= 1, sum(w) = k}`` and to the ``k``
+    largest, or with exactly-one channel groups ``gc`` (counts included) onto each group's count
+    and to the feasible selection the weights prefer."""
+    from arraysel.selectors.relax import project_groups
+
+    def project(w, k):
+        return project_groups(w, k) if gc is None else project_groups(w, k, gc.unit_groups, gc.unit_group_counts)
+
+    def round_(w, k):
+        if gc is None:
+            return _top_k(w, k)
+        return [int(i) for i in np.flatnonzero(gc.select_units(np.asarray(w, dtype=np.float64)[None])[0])]
+
+    return project, round_
+
+
+def _constrain_sums(opt, alg: str, k: int, gc) -> None:
+    """:func:`_constrain_sum` of all the weights to ``k``, or of each channel group's to its count."""
+    if gc is None:
+        return _constrain_sum(opt, alg, k)
+    g, counts = gc.unit_groups, gc.unit_group_counts
+    for grp in np.unique(g):
+        _constrain_sum(opt, alg, 1 if counts is None else int(counts[grp]), np.flatnonzero(g == grp))
+
+
+def _constrain_sum(opt, alg: str, k: int, idx=None) -> None:
+    """Constrain ``sum(w)`` (over the elements ``idx``, default all) to ``k``: an equality for SLSQP;
+    for MMA, which takes inequalities only and whose dual solver stalls on the pair ``sum(w) <= k``,
+    ``sum(w) >= k``, the inequality ``sum(w) <= k`` (the losses prefer more active weight, so it is
+    active at the optimum)."""
     tol = 1e-6 * max(1, k)
+    sel = slice(None) if idx is None else idx
 
     def over(x, grad):
         if grad.size > 0:
-            grad[:] = 1.0
-        return float(np.sum(x) - k)
+            grad[:] = 0.0
+            grad[sel] = 1.0
+        return float(np.sum(np.asarray(x)[sel]) - k)
 
     if alg == "SLSQP":
         opt.add_equality_constraint(over, tol)

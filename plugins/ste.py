@@ -66,7 +66,8 @@ class MatrixSelector(Selector):
         # a channel group is a categorical choice among its elements (one column a group), or
         # with at most one a group, a draw that takes the group out of the later columns
         self._groups = None if gc is None else {"groups": gc.unit_groups,
-                                                "by_column": gc.group_mode == "exactly-one"}
+                                                "by_column": gc.group_mode == "exactly-one",
+                                                "counts": gc.unit_group_counts}
         o = self.options
         gen = torch_rng(seed, device)
         init = torch.randn((n, k), generator=gen, device=device, dtype=dtype) * o["init_std"]

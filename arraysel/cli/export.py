@@ -147,10 +147,17 @@ def run(args) -> int:
     else:
         probe, acq, delays = load_probe(args.probe), None, None
     n = probe.n_elements
-    elements = parse_elements(text, n, None, where=f"{args.compare}/table1.csv, config {args.config}") \
+    mode = "shared" if scene is None or text is None else scene.section("aperture").get("mode", "shared")
+    where = f"{args.compare}/table1.csv, config {args.config}"
+    elements = parse_elements(text, n * (2 if mode == "separate" else 1), None, where=where) \
         if text is not None else _elements(args, n)
     tx = None if args.transmit is None else parse_elements(args.transmit, n, None, where="--transmit")
     rx = None if args.receive is None else parse_elements(args.receive, n, None, where="--receive")
+    if mode != "shared":  # a comparison of separate or full-tx apertures (docs/apertures.md)
+        from arraysel.objective.aperture import split_apertures
+
+        tx, rx = split_apertures(elements, n, mode)
+        elements = None
     aperture = Aperture.of(probe, elements, transmit=tx, receive=rx, weights=_weights(args.weights))
     paths = export_selection(aperture, args.out, formats, acquisition=acq, delays=delays)
     print(f"{probe.name}: {int(aperture.active.sum())} of {n} elements (transmit {int(aperture.transmit.sum())}, "

@@ -46,5 +46,11 @@ def build_objective(scene="paper", device="cpu", dtype=None, **kw):
     if sc.is_sector:
         from arraysel.objective.sector_objective import SectorObjective
         cls = SectorObjective
-    return psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype,
-                                         objective_class=cls, **kw)
+    obj = psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype,
+                                        objective_class=cls, **kw)
+    mode = sc.section("aperture").get("mode", "shared")
+    if mode == "shared":
+        return obj
+    from arraysel.objective.aperture import ApertureObjective  # docs/apertures.md
+
+    return ApertureObjective(obj, mode, sc.get("aperture", "k_tx"), sc.get("aperture", "k_rx"))

@@ -300,33 +300,32 @@ class Objective:
         step = max(1, min(self.chunk, imager.masks_per_batch()))
         return [(i, min(step, n - i)) for i in range(0, n, step)]
 
-    def _aggregate(self, per_point: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, worst) over points of per-point values [(B,), ...]; worst = largest (lower is better)."""
-        st = torch.stack(per_point, -1)
-        return st.mean(-1), st.amax(-1)
-
     def _metrics(self, imager, planes: PlaneSet, terms=None) -> dict[str, torch.Tensor]:
         kw = {k: v for k, v in self.metric_kw.items() if k != "pitch"}
         return plane_metrics(planes, imager.reference(), terms=terms, **kw)
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, masks, return_kernels: bool = False, return_planes: bool = False) -> dict[str, np.ndarray]:
+    def evaluate(self, masks, return_kernels: bool = False, return_planes: bool = False,
+                 receive=None) -> dict[str, np.ndarray]:
         """Every metric of a batch of masks: {name: float64 array (B,)}.
 
         masks: (B, Ne) 0/1 (or weights >= 0), numpy or torch. No gradient.
         With ``return_kernels`` the dict also holds ``"kernels"`` (B, w, w) complex (a 1-D scene;
         (B, P, w, w) for P points); with ``return_planes`` ``"planes"``, ``{name: complex (B, H, W)}``.
+        ``receive``: separate receive masks (B, Ne), ``masks`` then the transmit aperture (a 1-D
+        scene's exact path; :mod:`arraysel.objective.aperture`).
         """
         if return_kernels:
             self._kernels_only("evaluate(masks, return_planes=True)")
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            if not self._announced and m.shape[0] > 1 and any(im.exact for im in self.imagers):
+            r = None if receive is None else self.as_masks(receive)
+            if r is None and not self._announced and m.shape[0] > 1 and any(im.exact for im in self.imagers):
                 self._announced = True
                 _log.warning("evaluating %d masks on the exact PSF path: about %s", m.shape[0],
                              _fmt_seconds(self.estimate_seconds(int(m.shape[0]))))
-            res = self._score(int(m.shape[0]), lambda im, i, n: im.image_masks(m[i:i + n]),
-                              return_kernels or return_planes)
+            res = self._score(int(m.shape[0]), lambda im, i, n: im.image_masks(
+                m[i:i + n], None if r is None else r[i:i + n]), return_kernels or return_planes)
         return self._images_out(res, return_kernels, return_planes)
 
     def evaluate_swaps(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
@@ -429,14 +428,15 @@ class Objective:
         return self.evaluate(masks_from_indices(selections, self.n_elements, self.k))
 
     # ------------------------------------------------------------------ losses
-    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
-        """Differentiable PSF metrics (B,) of soft element weights (B, Ne).
+    def psf_terms(self, weights: torch.Tensor, terms=None, receive=None) -> dict[str, torch.Tensor]:
+        """Differentiable PSF metrics (B,) of soft element weights (B, Ne) (with ``receive``,
+        separate receive weights (B, Ne): ``weights`` the transmit apodization).
 
         A several-point scene gives the aggregate over its points that
         ``metrics.aggregate`` chooses (the mean, or the worst point: the largest value).
         """
-        w = self._weights(weights)
-        return self._terms([im.image(w) for im in self.imagers], terms)
+        w, r = self._weights(weights), None if receive is None else receive.to(self.device, self.dtype)
+        return self._terms([im.image(w, r) for im in self.imagers], terms)
 
     def terms_of_kernels(self, kappas: list[torch.Tensor], terms=None) -> dict[str, torch.Tensor]:
         """:meth:`psf_terms` of the kernels ``kappas`` (one (B, win, win) tensor per point)."""
@@ -446,13 +446,11 @@ class Objective:
         per = [self._metrics(im, ps, terms) for im, ps in zip(self.imagers, sets)]
         if len(per) == 1:
             return per[0]
-        out = {}
-        for name in per[0]:
-            mean, worst = self._aggregate([d[name] for d in per])
-            out[name] = mean if self.aggregate == "mean" else worst
-        return out
+        # (differentiable) mean over the points, or the worst point: the largest value (lower is better)
+        st = {name: torch.stack([d[name] for d in per], -1) for name in per[0]}
+        return {name: v.mean(-1) if self.aggregate == "mean" else v.amax(-1) for name, v in st.items()}
 
-    def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None):
+    def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None, receive=None):
         """The scene-weighted PSF loss ``(total (B,), terms)`` of ``weights`` (B, Ne), from their
         kernels ``kappas`` (one tensor per point) when the caller has them."""
         wts = {k: self.weights.get(k, 0.0) for k in PSF_WEIGHT_KEYS}
@@ -460,14 +458,16 @@ class Objective:
         if not need:
             z = weights.sum(-1) * 0
             return z, {}
-        terms = self.psf_terms(weights, terms=need) if kappas is None else self.terms_of_kernels(kappas, need)
+        terms = (self.psf_terms(weights, terms=need, receive=receive) if kappas is None
+                 else self.terms_of_kernels(kappas, need))
         return training_loss(terms, wts)
 
-    def mask_loss(self, weights: torch.Tensor):
-        """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms)."""
+    def mask_loss(self, weights: torch.Tensor, receive=None):
+        """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
+        ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
             w = weights if weights.dim() == 2 else weights[None]
-            total, terms = self._psf_loss(w)
+            total, terms = self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
             self.evaluations += int(w.shape[0])

@@ -107,7 +107,7 @@ class SectorObjective(Objective):
                 self._ref_amp = self.pattern.pattern(full)[0].clamp(min=0).sqrt()
         return self._ref_amp
 
-    def psf_terms(self, weights: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
+    def psf_terms(self, weights: torch.Tensor, terms=None, receive=None) -> dict[str, torch.Tensor]:
         """The search's terms (B,) of soft element weights (B, Ne) on the beam pattern (module
         docstring), differentiable in the weights; the ``bp_`` metrics without gradient."""
         w = weights if weights.dim() == 2 else weights[None]
@@ -115,7 +115,7 @@ class SectorObjective(Objective):
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         w = w.to(self.device, self.dtype)
         p = self.pattern
-        img = p.pattern(w)                                          # (B, Hv, Hu) power
+        img = p.pattern(w, None if receive is None else receive.to(self.device, self.dtype))  # (B, Hv, Hu)
         planes, coords = {_NAME: img}, {_NAME: p.coords}
         reg = main_lobe_regions({_NAME: img.detach()}, coords, target=(0.0, 0.0, 0.0), rule=self.scorer.rule,
                                 power=True, frame="uv")
@@ -141,12 +141,14 @@ class SectorObjective(Objective):
             out = {k: out[k] for k in terms}
         return out
 
-    def evaluate(self, masks) -> dict[str, np.ndarray]:
+    def evaluate(self, masks, receive=None) -> dict[str, np.ndarray]:
         """Every Table-1 term and ``bp_`` metric of a batch of masks on the beam pattern:
-        ``{name: float64 (B,)}``. No gradient."""
+        ``{name: float64 (B,)}``. No gradient. ``receive``: separate receive masks (B, Ne)."""
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            parts = [self.psf_terms(m[i:i + self.chunk]) for i in range(0, m.shape[0], self.chunk)]
+            r = None if receive is None else self.as_masks(receive)
+            parts = [self.psf_terms(m[i:i + self.chunk], receive=None if r is None else r[i:i + self.chunk])
+                     for i in range(0, m.shape[0], self.chunk)]
             self.evaluations += int(m.shape[0])
         return {k: torch.cat([p[k] for p in parts]).double().cpu().numpy() for k in (*METRIC_NAMES, *SEARCH_COLUMNS)}
 
@@ -199,23 +201,26 @@ class SectorObjective(Objective):
             out.append(self._segments[key])
         return out
 
-    def beam_metrics(self, masks, points=None) -> dict[str, np.ndarray]:
+    def beam_metrics(self, masks, points=None, receive=None) -> dict[str, np.ndarray]:
         """The exact per-beam metrics (module docstring) of hard masks (B, Ne): ``{name: float64
         (B, P)}`` for the names of :data:`BEAM_COLUMNS` (dB; widths in metres), one column per point
-        of ``points`` (default all). Not counted as evaluations of the search."""
+        of ``points`` (default all). Not counted as evaluations of the search. ``receive``:
+        separate receive masks (B, Ne) (grating lobes then from the lattice of both apertures' elements)."""
         from arraysel.physics.volume.sector import SURFACE
 
         m = self.as_masks(masks)
+        r = None if receive is None else self.as_masks(receive)
+        both = m if r is None else torch.maximum(m, r)
         pts = list(range(self.n_points)) if points is None else [int(p) for p in points]
         out = {k: np.zeros((m.shape[0], len(pts))) for k in BEAM_COLUMNS}
         with torch.no_grad():
             for j, i in enumerate(pts):
                 coords = self.exact.coords[i]
                 for b in range(m.shape[0]):
-                    surf = self.exact.surfaces(m[b:b + 1], i)
+                    surf = self.exact.surfaces(m[b:b + 1], i, receive=None if r is None else r[b:b + 1])
                     if not bool(torch.isfinite(surf[SURFACE]).all()):
                         raise NumericalError(f"the PSF of point {i} is not finite")
-                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(m[b:b + 1], i),
+                    res = lobe_metrics(surf, coords, target=self.points[i], grating_uv=self._grating(both[b:b + 1], i),
                                        terms=BEAM_COLUMNS)
                     for k in BEAM_COLUMNS:
                         out[k][b, j] = float(res[k][0])
@@ -224,12 +229,9 @@ class SectorObjective(Objective):
     def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
         """``n`` (default the scene's ``sector.fresh_random``) random selections of ``k`` elements,
         boolean (n, Ne), from ``seed``."""
-        n = self.fresh_random if n is None else int(n)
-        rng = np.random.default_rng(seed)
-        out = np.zeros((n, self.n_elements), dtype=bool)
-        for r in range(n):
-            out[r, rng.choice(self.n_elements, self.k, replace=False)] = True
-        return out
+        from arraysel.selection import random_masks
+
+        return random_masks(self.n_elements, self.k, self.fresh_random if n is None else int(n), seed)
 
     def worker_factory(self) -> "SectorObjectiveFactory | None":
         if type(self) is not SectorObjective:

@@ -108,15 +108,16 @@ class Imager:
             images = {self.plane_names[0]: images}
         return PlaneSet(dict(images), self.coords, self.pitch)
 
-    def image(self, weights: Tensor) -> PlaneSet:
-        """The plane set of weights ``(B, Ne)``, differentiable in them."""
+    def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
+        """The plane set of weights ``(B, Ne)``, differentiable in them; with ``receive`` (separate
+        receive channel weights ``(B, Ne)``), ``weights`` is the transmit apodization."""
         raise NotImplementedError
 
-    def image_masks(self, masks: Tensor) -> tuple[PlaneSet, Tensor]:
-        """The plane set of masks ``(B, Ne)`` without gradient and whether each fell back from the
-        imager's fast path to its exact path (bool ``(B,)``)."""
+    def image_masks(self, masks: Tensor, receive: Tensor | None = None) -> tuple[PlaneSet, Tensor]:
+        """The plane set of masks ``(B, Ne)`` (``receive``: as :meth:`image`) without gradient and
+        whether each fell back from the imager's fast path to its exact path (bool ``(B,)``)."""
         with torch.no_grad():
-            ps = self.image(masks)
+            ps = self.image(masks, receive)
         return ps, torch.zeros(masks.shape[0], dtype=torch.bool)
 
     def image_moves(self, mask: Tensor, out, into) -> tuple[PlaneSet, Tensor]:
@@ -178,15 +179,15 @@ class KernelImager(Imager):
         self.coords = {KERNEL_PLANE: kernel_coords(model.setup.window, p)}
         self.exact = model.basis is None
 
-    def image(self, weights: Tensor) -> PlaneSet:
-        return self.wrap(self.model.kernels(weights))
+    def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
+        return self.wrap(self.model.kernels(weights, receive=receive))
 
     def layout(self):
         xe, ze, _, _ = self.setup.probe.element_positions()
         return None, np.stack([xe, np.zeros_like(xe), ze], axis=1)
 
-    def image_masks(self, masks: Tensor) -> tuple[PlaneSet, Tensor]:
-        k, fell_back = self.model.kernels(masks, return_info=True)
+    def image_masks(self, masks: Tensor, receive: Tensor | None = None) -> tuple[PlaneSet, Tensor]:
+        k, fell_back = self.model.kernels(masks, return_info=True, receive=receive)
         return self.wrap(k), fell_back
 
     def image_moves(self, mask: Tensor, out, into) -> tuple[PlaneSet, Tensor]:
@@ -225,8 +226,8 @@ class VolumeImager(Imager):
         self.exact = exact_reason is not None
         self.batch = int(batch)
 
-    def image(self, weights: Tensor) -> PlaneSet:
-        return self.wrap(self.model.planes(weights))
+    def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
+        return self.wrap(self.model.planes(weights) if receive is None else self.model.planes(weights, receive=receive))
 
     def layout(self):
         probe = self.setup.probe

@@ -7,7 +7,8 @@ the rows of the fresh random selections' median (``random (fresh median)``).
 ``pareto.csv``: one row per distinct selection that the comparison made (every run of every
 configuration, the full array and the fresh random median), summarised on two axes a designer
 trades: the worst side lobe over the points (``worst_PSL_dB``, the largest ``PSL_dB``) and the
-mean -6 dB main-lobe width (``mean_width_mm``, the mean over points of the widths in x and y).
+mean -6 dB main-lobe width (``mean_width_mm``, the mean over points of the widths in x and y; a
+1-D scene's: the lateral widths, ``width_z_mm`` holding its axial widths).
 ``on_front`` marks the selections of ``k`` elements that no other selection of ``k`` elements
 dominates (no worse on both axes and better on one); the full array is a reference, never on it.
 :func:`pareto_figure` draws them, every baseline named.
@@ -23,7 +24,7 @@ __all__ = ["BEAMS_COLUMNS", "PARETO_COLUMNS", "FRESH_RANDOM", "BASELINES", "beam
 
 #: columns of ``beams.csv``
 BEAMS_COLUMNS = ("config", "seed", "options", "point", "theta_x_deg", "theta_y_deg", "range_mm", "PSL_dB", "ISLR_dB",
-                 "GLL_dB", "width_x_mm", "width_y_mm")
+                 "GLL_dB", "width_x_mm", "width_y_mm", "width_z_mm")
 #: columns of ``pareto.csv``
 PARETO_COLUMNS = ("config", "seed", "k", "worst_PSL_dB", "mean_width_mm", "worst_GLL_dB", "mean_ISLR_dB", "Mean",
                   "on_front", "baseline")
@@ -42,15 +43,18 @@ def beam_rows(config: str, seed, options: str, points: list[tuple], metrics: dic
                     "theta_y_deg": ay, "range_mm": r * 1e3, "PSL_dB": metrics["PSL_dB"][index, j],
                     "ISLR_dB": metrics["ISLR_dB"][index, j], "GLL_dB": metrics["GLL_dB"][index, j],
                     "width_x_mm": metrics["width_x_6dB"][index, j] * 1e3,
-                    "width_y_mm": metrics["width_y_6dB"][index, j] * 1e3})
+                    "width_y_mm": metrics["width_y_6dB"][index, j] * 1e3,
+                    "width_z_mm": metrics["width_z_6dB"][index, j] * 1e3 if "width_z_6dB" in metrics else np.nan})
     return out
 
 
 def summary(metrics: dict, index: int) -> dict:
     """The two Pareto axes (and two more statistics) of selection ``index`` of ``metrics``."""
-    w = (metrics["width_x_6dB"][index] + metrics["width_y_6dB"][index]) / 2 * 1e3
+    wx, wy = metrics["width_x_6dB"][index], metrics["width_y_6dB"][index]
+    w = np.where(np.isnan(wy), wx, (wx + wy) / 2) * 1e3       # a 1-D scene: the lateral width alone
+    gll = metrics["GLL_dB"][index]
     return {"worst_PSL_dB": float(np.max(metrics["PSL_dB"][index])), "mean_width_mm": float(np.mean(w)),
-            "worst_GLL_dB": float(np.max(metrics["GLL_dB"][index])),
+            "worst_GLL_dB": float(np.max(gll)) if not np.isnan(gll).all() else float("nan"),
             "mean_ISLR_dB": float(np.mean(metrics["ISLR_dB"][index]))}
 
 

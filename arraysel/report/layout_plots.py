@@ -14,7 +14,8 @@ import numpy as np
 
 from arraysel.report.plots import MASK_CMAP, _as_numpy, _panels, figure, styled
 
-__all__ = ["layout_masks_figure", "group_masks_figure", "aperture_figure", "TX_COLOUR", "RX_COLOUR"]
+__all__ = ["layout_masks_figure", "group_masks_figure", "aperture_figure", "apertures_figure", "TX_COLOUR",
+           "RX_COLOUR"]
 
 #: face colour of an element that only transmits, and of one that only receives
 TX_COLOUR = "tab:red"
@@ -94,6 +95,28 @@ def group_masks_figure(labels: Sequence[str], masks, positions, groups, element_
         edges = ["red" if m[e] and count[g[e]] > 1 else "0.6" for e in range(len(pos))]
         _draw(ax, pos * 1e3, (size[0] * 1e3, size[1] * 1e3), faces, edges)
         ax.set_title(f"{lab}: {int((count > 0).sum())}/{count.size} groups, max {int(count.max())}", fontsize=7)
+    return fig
+
+
+def _role_faces(tx: np.ndarray, rx: np.ndarray) -> list:
+    """Black: transmits and receives; red: transmits only; blue: receives only; white: off."""
+    return ["black" if t and r else TX_COLOUR if t else RX_COLOUR if r else "white" for t, r in zip(tx, rx)]
+
+
+@styled
+def apertures_figure(labels: Sequence[str], transmit, receive, positions, element_size=None):
+    """The transmit and receive apertures of each selection (``docs/apertures.md``) on the probe's
+    element centres ``positions`` ``(Ne, 2|3)`` in metres, one panel per label: black transmits
+    and receives, red transmits only, blue receives only, white is off. ``transmit``,
+    ``receive``: boolean ``(len(labels), Ne)``."""
+    pos = np.asarray(positions, dtype=np.float64)[:, :2]
+    tx = _as_numpy(transmit).astype(bool).reshape(len(labels), len(pos))
+    rx = _as_numpy(receive).astype(bool).reshape(len(labels), len(pos))
+    size = _element_size(pos) if element_size is None else tuple(float(v) for v in element_size)
+    fig, axes = _panels(len(labels), size=2.6)
+    for ax, lab, t, r in zip(axes, labels, tx, rx):
+        _draw(ax, pos * 1e3, (size[0] * 1e3, size[1] * 1e3), _role_faces(t, r), "0.6")
+        ax.set_title(f"{lab}\ntx {int(t.sum())}, rx {int(r.sum())}, both {int((t & r).sum())}", fontsize=7)
     return fig
 
 

@@ -66,10 +66,39 @@ def write_tables(out: Path, runs, trace=None) -> tuple[Any, Any]:
     selectors = _run_meta(out).get("selectors")
     stats = stats_table(runs, trace, best_known_mean(out),
                         deterministic=deterministic_configs(runs, selectors if isinstance(selectors, list) else None))
-    table = table1(runs, dict(zip(stats["config"], stats["AOCC"])))
+    table = aperture_columns(table1(runs, dict(zip(stats["config"], stats["AOCC"]))), _run_meta(out))
     write_csv(out / "table1.csv", table)
     write_csv(out / "stats.csv", stats)
     return table, stats
+
+
+def aperture_columns(table, meta: dict):
+    """``table`` with the columns ``tx_elements`` and ``rx_elements`` after ``elements`` when the
+    comparison's scene (``meta``, its ``run.json``) has ``aperture.mode`` ``full-tx`` or
+    ``separate`` (``docs/apertures.md``): each row's transmit and receive elements of the probe
+    (``elements`` holds the selector's units: under ``separate`` the receive element ``e`` is
+    unit ``Ne + e``). A shared-aperture scene's table is returned as it is."""
+    from arraysel.objective.aperture import split_apertures
+    from arraysel.selection import Selection
+
+    scene = meta.get("scene") if isinstance(meta.get("scene"), dict) else {}
+    mode = (scene.get("aperture") or {}).get("mode", "shared")
+    if mode == "shared" or "elements" not in table.columns or not meta.get("n_elements"):
+        return table
+    n_units = int(meta["n_elements"])
+    n_probe = n_units // (2 if mode == "separate" else 1)
+    tx, rx = [], []
+    for row in table.to_dict("records"):
+        text = row["elements"]
+        sel = Selection.from_text(text, n_units).indices if isinstance(text, str) and text.strip() else ()
+        t, r = split_apertures(sel, n_probe, mode) if sel else ([], [])
+        tx.append(Selection.of(t, n_probe).text if t else "")
+        rx.append(Selection.of(r, n_probe).text if r else "")
+    table = table.copy()
+    at = list(table.columns).index("elements") + 1
+    table.insert(at, "tx_elements", tx)
+    table.insert(at + 1, "rx_elements", rx)
+    return table
 
 
 def best_known_mean(folder) -> float | None:

@@ -31,6 +31,7 @@ from arraysel.run.experiment import budget_flag, config_label, full_row, with_en
 from arraysel.run.isolation import DEFAULT_GRACE_S, UNTIMED_LIMIT_S
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir
 from arraysel.run.runners import Runner, RunSpec, check_isolated, make_runner, scores_neighbourhoods
+from arraysel.run.sector_report import beam_source
 from arraysel.run.store import CompareStore, write_figures
 from arraysel.selection import Selection
 from arraysel.selectors.contract import Budget
@@ -323,9 +324,10 @@ def _finish(objective, store: CompareStore, meta: dict, full: dict, rows: list, 
     tables = store.tables
     if figures:
         meta["figure_errors"] = store.write_figures(objective, selections, tables.table, pd.DataFrame(traces))
-    if hasattr(objective, "beam_metrics"):  # a sector scene: beams.csv, pareto.csv, pareto.png
+    beams = beam_source(objective)
+    if beams is not None:  # a sector scene, or a 1-D scene scored per beam: beams.csv, pareto.csv, pareto.png
         try:
-            found = store.write_sector(objective, [full] + rows, figures)
+            found = store.write_sector(beams, [full] + rows, figures)
         except Exception as exc:  # scoring on the points must never lose the tables
             found = [f"beams.csv/pareto.csv: {type(exc).__name__}: {exc}"]
         if found:

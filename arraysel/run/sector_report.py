@@ -18,7 +18,7 @@ import numpy as np
 from arraysel.report import beams as B
 from arraysel.report import tables as reporting
 
-__all__ = ["sector_tables", "effective_options", "beam_pattern_view"]
+__all__ = ["sector_tables", "effective_options", "beam_pattern_view", "beam_source"]
 
 _log = logging.getLogger(__name__)
 
@@ -37,8 +37,30 @@ def effective_options(row: dict) -> str:
     return "; ".join(f"{k}={v}" for k, v in opts.items())
 
 
+def beam_source(objective):
+    """What scores a comparison's selections per beam: a sector scene's objective, a 1-D scene's
+    :class:`~arraysel.objective.beams1d.PSFBeams` when its ``metrics.per_beam`` is true; else None."""
+    from arraysel.objective.psf_objective import Objective
+
+    inner = getattr(objective, "inner", objective)  # separate or full-tx apertures: the scene's objective
+    if not isinstance(inner, Objective):
+        return None
+    scene = inner.scene
+    if scene.is_sector:
+        return objective  # (with apertures, its beam_metrics images both)
+    if scene.is_volume or not scene.value("metrics", "per_beam") or inner is not objective:
+        return None
+    from arraysel.objective.beams1d import PSFBeams
+
+    return PSFBeams(objective, int(scene.value("metrics", "fresh_random")))
+
+
 def _point_info(objective) -> list[tuple]:
+    from arraysel.objective.beams1d import PSFBeams
     from arraysel.objective.sector_objective import point_label
+
+    if isinstance(objective, PSFBeams):
+        return objective.point_info()
 
     out = []
     for i in range(objective.n_points):
@@ -49,8 +71,9 @@ def _point_info(objective) -> list[tuple]:
 
 
 def sector_tables(objective, rows: list[dict]):
-    """Score the selections of ``rows`` (the ``full`` row and every run's row) on the points:
-    ``(beams, pareto)`` DataFrames (``beams.csv``, ``pareto.csv``; the store writes them)."""
+    """Score the selections of ``rows`` (the ``full`` row and every run's row) on the points of
+    ``objective`` (a :func:`beam_source`): ``(beams, pareto)`` DataFrames (``beams.csv``,
+    ``pareto.csv``; the store writes them)."""
     import pandas as pd
 
     n = int(objective.n_elements)

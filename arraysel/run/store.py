@@ -185,7 +185,13 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
         _masks_figure(objective, selections, out)
     except Exception as exc:  # a figure must never lose the tables
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
-    labels = [config for config, sel in selections.items() if len(sel) and config != "full"]
+    apertures = getattr(objective, "aperture_mode", None)  # full-tx, separate (docs/apertures.md)
+    if apertures:
+        try:
+            _apertures_figure(objective, selections, out)
+        except Exception as exc:
+            problems.append(f"apertures.png: {type(exc).__name__}: {exc}")
+    labels = [config for config, sel in selections.items() if len(sel) and config != "full" and not apertures]
     masks = np.array([selections[config].mask for config in labels], dtype=bool)
     if len(labels) and getattr(objective, "image_kind", None) == "planes":
         try:  # a 3-D scene: its planes and the C-plane's lateral profiles
@@ -216,6 +222,19 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
     except Exception as exc:
         problems.append(f"anytime.png: {type(exc).__name__}: {exc}")
     return problems
+
+
+def _apertures_figure(objective, selections: dict[str, Selection], out: Path) -> None:
+    """``apertures.png``: each selection's transmit and receive elements on the probe."""
+    from arraysel.report.layout_plots import apertures_figure
+
+    kept = [config for config, sel in selections.items() if len(sel)]
+    n = objective.n_probe
+    tx, rx = np.zeros((len(kept), n), dtype=bool), np.zeros((len(kept), n), dtype=bool)
+    for i, c in enumerate(kept):
+        t, r = objective.split(selections[c].indices)
+        tx[i, t], rx[i, r] = True, True
+    plots.save_figure(apertures_figure(kept, tx, rx, objective.inner.element_positions), out / "apertures.png")
 
 
 def _masks_figure(objective, selections: dict[str, Selection], out: Path) -> None:

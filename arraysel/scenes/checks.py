@@ -164,6 +164,28 @@ def sector_checks(scene) -> None:
                              "sector.half_angle_deg")
 
 
+def aperture_checks(scene, n_elements: int, k: int) -> None:
+    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate``;
+    ``separate`` without a ``[constraints]`` section (ParameterError naming the key)."""
+    sec = scene.section("aperture")
+    mode = sec.get("mode", "shared")
+    for key in ("k_tx", "k_rx"):
+        if key not in sec:
+            continue
+        if mode != "separate":
+            raise ParameterError(f"aperture.{key} applies to aperture.mode = 'separate' only "
+                                 f"(aperture.mode = {mode!r})")
+        if not 1 <= int(sec[key]) <= n_elements:
+            raise ParameterError(f"aperture.{key} = {sec[key]} is out of range; allowed: [1, {n_elements}] "
+                                 f"(the probe has {n_elements} elements)")
+    if mode == "separate" and scene.section("constraints"):
+        raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not supported; "
+                             "give one of them")
+    if mode != "shared" and scene.needs_data:
+        raise ParameterError(f"aperture.mode = {mode!r} applies to PSF scenes; end-to-end scenes (weights.L_conv "
+                             "or weights.L_rec > 0) use one shared aperture")
+
+
 def check_scene(scene):
     """``scene`` if it is complete and consistent, else a :class:`ParameterError` naming the key."""
     probe = scene.probe()
@@ -174,6 +196,7 @@ def check_scene(scene):
         raise ParameterError(f"selection.k = {k} is out of range; allowed: [1, {probe.n_elements}] "
                              f"(the probe has {probe.n_elements} elements)")
     scene.constraints()  # the [constraints] section against the probe and k (ParameterError naming the key)
+    aperture_checks(scene, probe.n_elements, int(k))
     if scene.is_sector:
         sector_checks(scene)
         return scene

@@ -148,6 +148,13 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "symmetry": Key("str", ("none", "x", "y", "xy"), "none", "mirror symmetry of the selection: in x, in "
                         "y or both (four-fold)"),
     },
+    "aperture": {  # docs/apertures.md; arraysel.objective.aperture
+        "mode": Key("str", ("shared", "full-tx", "separate"), "shared", "what a selection is: one mask that "
+                    "transmits and receives (shared), every element transmitting and the selection receiving "
+                    "(full-tx), or two selections, k_tx transmit and k_rx receive elements (separate)"),
+        "k_tx": Key("int", (1, 4096), None, "transmit elements of a separate selection (default: selection.k)"),
+        "k_rx": Key("int", (1, 4096), None, "receive elements of a separate selection (default: selection.k)"),
+    },
     "metrics": {
         "r_main": Key("length", (0, 1000, True), 1.5, "main-lobe radius", "wl", _GRID_UNITS),
         "r_guard": Key("length", (0, 1000, True), 2.5, "side-lobe region starts at this radius", "wl",
@@ -155,6 +162,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "quantile": Key("float", (0, 1, False), 0.99, "q of L_SLR_q"),
         "aggregate": Key("str", ("mean", "worst"), "mean", "headline metrics of a several-point scene: "
                          "the mean over points or the worst point"),
+        "per_beam": Key("bool", None, False, "1-D scenes: compare also scores every selection on each point's "
+                        "own main lobe (beams.csv, pareto.csv, pareto.png)"),
+        "fresh_random": Key("int", (0, 10000), 16, "with per_beam: fresh random selections scored on the points "
+                            "for the random (fresh median) rows"),
     },
     "weights": {name: Key("float", _W, 0.0, f"weight of {name} in the training loss")
                 for name in ("L_PSF", "L_conv", "L_rec", "L_contrast", "L_SLR", "L_ent", "L_row")},

@@ -70,7 +70,7 @@ class Relaxation:
 def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tensor | None = None,
                          hard: bool = True, sample: bool = False,
                          generator: torch.Generator | None = None, groups: np.ndarray | None = None,
-                         by_column: bool = False) -> Relaxation:
+                         by_column: bool = False, counts: np.ndarray | None = None) -> Relaxation:
     """Draw ``k`` distinct elements, one column of ``logits`` (shape ``(Ne, k)``) at a time.
 
     Parameters
@@ -87,6 +87,9 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
         element drawn takes its whole group out of the later columns (at most one element per
         group); with ``by_column`` column ``j`` is the categorical choice among the elements of
         group ``j`` (exactly one per group, ``k`` = the number of groups)
+    counts : with ``by_column``, the number of elements each group holds (None: one each; the
+        quota of separate transmit and receive apertures): the first ``counts[0]`` columns choose
+        among the elements of group 0, the next ``counts[1]`` among those of group 1, ...
 
     The drawn element of each column is always one not chosen before, even
     when scores are NaN or infinite.
@@ -111,11 +114,16 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
     available = np.ones((k, n), dtype=bool)
     left = np.ones(n, dtype=bool)
     chosen = []
+    column_group = None
     if by_column and groups is not None:
-        if int(np.max(groups)) + 1 != k:
-            raise ValueError(f"by_column needs one column per group: {int(np.max(groups)) + 1} groups, k = {k}")
+        n_groups = int(np.max(groups)) + 1
+        per = np.ones(n_groups, dtype=np.int64) if counts is None else np.asarray(counts, dtype=np.int64)
+        if int(per.sum()) != k or per.size != n_groups:
+            raise ValueError(f"by_column needs one column per group and count: {n_groups} groups holding "
+                             f"{int(per.sum())} elements, k = {k}")
+        column_group = np.repeat(np.arange(n_groups), per)
     for j in range(k):
-        available[j] = left if not (by_column and groups is not None) else left & (groups == j)
+        available[j] = left if column_group is None else left & (groups == column_group[j])
         i = int(np.argmax(np.where(available[j], picks[j], -np.inf)))
         if sample:
             with torch.no_grad():
@@ -125,7 +133,7 @@ def sequential_selection(logits: torch.Tensor, tau: float, *, noise: torch.Tenso
                     i = int(torch.multinomial(probs, 1, generator=generator))
         chosen.append(i)
         left[i] = False
-        if groups is not None:
+        if groups is not None and column_group is None:
             left[groups == groups[i]] = False
     available = torch.from_numpy(available).to(logits.device)
     # All k masked softmax columns at once, as rows of the transposed scores (each row is
@@ -147,6 +155,23 @@ def selection_weights(P: torch.Tensor) -> torch.Tensor:
 column_entropy = l_ent
 #: ``L_row = sum_i relu(sum_j P_ij - 1)^2`` (:func:`arraysel.objective.losses.l_row`)
 row_penalty = l_row
+
+
+def project_groups(w: torch.Tensor, k: float, groups: np.ndarray | None = None,
+                   counts: np.ndarray | None = None) -> torch.Tensor:
+    """:func:`project_capped_simplex` of ``w`` (…, Ne) onto ``sum = k``, or with ``groups`` (one
+    group number per element, :mod:`arraysel.constraints`) onto ``sum = counts[g]`` (default one)
+    over the elements of every group ``g`` (the relaxation of exactly-one channel groups and of
+    the transmit/receive quota)."""
+    if groups is None:
+        return project_capped_simplex(w, k)
+    g = np.asarray(groups, dtype=np.int64)
+    out = torch.zeros_like(w)
+    for grp in np.unique(g):
+        idx = torch.as_tensor(np.flatnonzero(g == grp), device=w.device)
+        c = 1.0 if counts is None else float(counts[grp])
+        out = out.index_copy(-1, idx, project_capped_simplex(w.index_select(-1, idx), c))
+    return out
 
 
 def project_capped_simplex(w: torch.Tensor, k: float, iters: int = 60) -> torch.Tensor:

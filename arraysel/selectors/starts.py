@@ -67,7 +67,8 @@ def chirp_masks(objective, k: int, rng: np.random.Generator, m: int) -> np.ndarr
 
 def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     """A layout's selection ``chosen`` made feasible under the objective's channel groups, as a
-    mask: every group that holds elements of the layout keeps one (the lowest index); the other
+    mask: every group that holds elements of the layout keeps one (the lowest index; a group with
+    a count, such as a half of separate transmit and receive apertures, up to its count); the other
     groups the selection needs (all of them under ``exactly-one``, as many as ``k`` still
     allows under ``at-most-one``) each take, one after the other, the element farthest from those
     already kept (the lowest index first without element positions)."""
@@ -78,26 +79,44 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
     if gc is None:
         return mask
     g = gc.unit_groups
+    cap = np.ones(int(g.max()) + 1, dtype=np.int64) if gc.unit_group_counts is None else gc.unit_group_counts
     out = np.zeros(n, dtype=bool)
-    for e in np.flatnonzero(mask):
-        if not out[g == g[e]].any() and out.sum() < gc.k_units:
+    held = np.zeros(cap.size, dtype=np.int64)  # elements each group holds so far
+    total = 0
+    for e in np.flatnonzero(mask):  # a group keeps its count of the layout's elements (quotas: more than one)
+        if held[g[e]] < cap[g[e]] and total < gc.k_units:
             out[e] = True
+            held[g[e]] += 1
+            total += 1
     _, pos = element_layout(objective)
-    filled = np.zeros(int(g.max()) + 1, dtype=bool)
-    filled[g[out]] = True
+    filled = held >= cap
+    if total >= gc.k_units:
+        return out
     if pos is None:
         dmin = -np.arange(n, dtype=np.float64)  # no positions: the lowest index first
     elif out.any():
-        dmin = np.sqrt(((pos[:, None, :] - pos[None, out, :]) ** 2).sum(-1)).min(axis=1)
+        dmin = _nearest_distance(pos, pos[out])
     else:
         dmin = np.zeros(n)
-    while int(out.sum()) < gc.k_units:
-        cand = np.where(filled[g], -np.inf, dmin)
+    while total < gc.k_units:
+        cand = np.where(filled[g] | out, -np.inf, dmin)
         e = int(np.argmax(cand))
-        out[e], filled[g[e]] = True, True
+        out[e] = True
+        held[g[e]] += 1
+        total += 1
+        filled[g[e]] = held[g[e]] >= cap[g[e]]
         if pos is not None:
             dmin = np.minimum(dmin, np.sqrt(((pos - pos[e]) ** 2).sum(-1)))
     return out
+
+
+def _nearest_distance(points: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """The distance from each of ``points`` (n, d) to the nearest of ``kept`` (m, d): the squared
+    distances summed coordinate by coordinate (no (n, m, d) array), the root of their minimum."""
+    d2 = np.zeros((points.shape[0], kept.shape[0]))
+    for c in range(points.shape[1]):
+        d2 += (points[:, c, None] - kept[None, :, c]) ** 2
+    return np.sqrt(d2.min(axis=1))
 
 
 def chirp_selection(objective, k: int, rng: np.random.Generator, m: int = CHIRP_CANDIDATES) -> list[int]:
@@ -135,7 +154,7 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     choice when none was scored), so a selection is returned either way.
     """
     gc = group_constraints(objective)
-    if gc is not None:
+    if gc is not None and gc.group_mode != "exactly-one":
         raise ParameterError(f"greedy elimination cannot honour the channel groups ({gc.describe()}); "
                              f"constraints.groups needs another selector (swap, anneal, ste, ...)")
     check_number("share", share, lo=0.0, hi=1.0, lo_open=True)
@@ -143,9 +162,10 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     current = list(range(n)) if backward else []
     ranking: list[int] | None = None  # candidates of the last batch, best first
     pace = _GreedyPace(getattr(objective, "budget", None), share)
+    room = _GroupRoom(gc, backward)  # exactly-one groups (counts): a step leaves or enters open groups only
     try:
         while len(current) != k:
-            cands = current if backward else [i for i in range(n) if i not in current]
+            cands = room.open(current if backward else [i for i in range(n) if i not in current], current)
             if objective.remaining() < len(cands):
                 break
             masks = np.zeros((len(cands), n), dtype=bool)
@@ -156,7 +176,7 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
             order = np.lexsort((np.arange(len(cands)), means))
             ranking = [cands[i] for i in order]
             left = abs(len(current) - k)
-            take = ranking[:pace.per_step(left, len(cands))]
+            take = room.take(ranking, pace.per_step(left, len(cands)), current)
             if backward:
                 drop = set(take)
                 current = [c for c in current if c not in drop]
@@ -166,17 +186,53 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
         pass
     if len(current) != k:
         need = abs(len(current) - k)
-        rest = current if backward else [i for i in range(n) if i not in current]
+        rest = room.open(current if backward else [i for i in range(n) if i not in current], current)
         pool = [c for c in (ranking or []) if c in rest]
         for c in _evenly(rest, need) + rest:
             if c not in pool:
                 pool.append(c)
+        take = room.take(pool, need, current)
         if backward:
-            drop = set(pool[:need])
+            drop = set(take)
             current = [c for c in current if c not in drop]
         else:
-            current = current + pool[:need]
+            current = current + take
     return sorted(current)
+
+
+class _GroupRoom:
+    """Which units a greedy step may drop (backward) or add (forward) under ``exactly-one``
+    channel groups with counts (the transmit/receive quota): only units of groups that hold more
+    (backward) or fewer (forward) than their count, and no more of a group than that difference."""
+
+    def __init__(self, gc, backward: bool):
+        self.g = None if gc is None else gc.unit_groups
+        if self.g is not None:
+            c = gc.unit_group_counts
+            self.cap = np.ones(int(self.g.max()) + 1, dtype=np.int64) if c is None else np.asarray(c)
+        self.backward = backward
+
+    def _room(self, current) -> np.ndarray:
+        held = np.bincount(self.g[np.asarray(current, dtype=np.int64)], minlength=self.cap.size)
+        return held - self.cap if self.backward else self.cap - held
+
+    def open(self, cands: list[int], current) -> list[int]:
+        if self.g is None:
+            return cands
+        r = self._room(current)
+        return [c for c in cands if r[self.g[c]] > 0]
+
+    def take(self, ranking: list[int], m: int, current) -> list[int]:
+        if self.g is None:
+            return list(ranking[:m])
+        r, out = self._room(current), []
+        for c in ranking:
+            if len(out) == m:
+                break
+            if r[self.g[c]] > 0:
+                out.append(c)
+                r[self.g[c]] -= 1
+        return out
 
 
 class _GreedyPace:

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from arraysel.errors import ParameterError, check_number
+from arraysel.errors import ParameterError, SelectionError, check_number
 from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, plane_axes, split_planes
 
 __all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
@@ -365,11 +365,17 @@ class MatrixFastPSF:
             self._unsort = self._unsort.to(self.device)
 
     # ---------------------------------------------------------------- evaluate
-    def image(self, weights) -> torch.Tensor:
-        """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`)."""
+    def image(self, weights, receive=None) -> torch.Tensor:
+        """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`); with
+        ``receive`` (B, Ne) separate receive weights (``weights`` the transmit apodization): the
+        receive sum ``gamma`` of ``receive``, the transmit sum ``c`` of ``weights`` (bilinear)."""
         w = check_element_weights(weights, self.n_elements, self.dtype, self.device)
+        r = w if receive is None else check_element_weights(receive, self.n_elements, self.dtype, self.device)
+        if r.shape != w.shape:
+            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
+                                 f"got {tuple(r.shape)}")
         Bn = w.shape[0]
-        gamma = torch.view_as_complex((w @ self._B).reshape(Bn, -1, 2))       # (B, columns)
+        gamma = torch.view_as_complex((r @ self._B).reshape(Bn, -1, 2))       # (B, columns)
         c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
         z = c @ self._Psi                                                    # (B, columns)
         prod = gamma * z
@@ -379,9 +385,10 @@ class MatrixFastPSF:
                         dim=1)                                               # (B, P) in the groups' order
         return img[:, self._unsort]
 
-    def planes(self, weights) -> dict[str, torch.Tensor]:
-        """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``."""
-        return split_planes(self.image(weights), self._shapes)
+    def planes(self, weights, receive=None) -> dict[str, torch.Tensor]:
+        """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``
+        (and ``receive``, separate receive weights)."""
+        return split_planes(self.image(weights, receive=receive), self._shapes)
 
     # ---------------------------------------------------------------- check
     def state(self) -> dict[str, torch.Tensor]:

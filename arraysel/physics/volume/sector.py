@@ -144,6 +144,7 @@ class SectorPSF:
                                         coords=self.coords[i])
         return self._models[i]
 
-    def surfaces(self, weights, i: int) -> dict[str, torch.Tensor]:
-        """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne)."""
-        return self.model(i).planes(weights)
+    def surfaces(self, weights, i: int, receive=None) -> dict[str, torch.Tensor]:
+        """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne)
+        (``receive``: separate receive weights (B, Ne), ``weights`` then the transmit apodization)."""
+        return self.model(i).planes(weights) if receive is None else self.model(i).planes(weights, receive=receive)

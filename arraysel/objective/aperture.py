@@ -1,0 +1,240 @@
+"""Separate transmit and receive apertures (``docs/apertures.md``): the scene's ``[aperture]``
+section chooses what a selection is.
+
+* ``mode = "shared"`` (default): one mask transmits and receives (the scene's objective itself;
+  this module is not involved);
+* ``mode = "full-tx"``: every element transmits, the selection of ``k`` elements receives. The
+  selector sees the probe's ``Ne`` elements and ``k``, so every selector works unchanged; the
+  mask is the receive aperture;
+* ``mode = "separate"``: two selections, ``k_tx`` transmit and ``k_rx`` receive elements. The
+  selector sees a **virtual problem of 2 Ne units**: units ``0 .. Ne - 1`` are the transmit
+  elements, units ``Ne .. 2 Ne - 1`` the receive elements (unit ``Ne + e`` is element ``e``
+  receiving), ``k = k_tx + k_rx``, and the quota (exactly ``k_tx`` of the first half and ``k_rx``
+  of the second) as channel groups with a count each
+  (:func:`~arraysel.constraints.aperture_constraints`), which every built-in selector honours
+  by construction. Its layout (:attr:`ApertureObjective.element_grid`,
+  :attr:`~ApertureObjective.element_positions`) places the receive aperture beside the transmit
+  aperture: a matrix probe's receive rows below its transmit rows (grid ``(2 ny, nx)``), a 1-D
+  probe's receive elements after its transmit elements along x.
+
+:class:`ApertureObjective` wraps the scene's objective (1-D, 3-D or sector) and scores a mask as
+its transmit and receive weights through the objective's ``receive=`` keyword (the 1-D exact
+path, the 3-D fast and exact paths, the sector's beam pattern).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import torch
+
+from arraysel.constraints import aperture_constraints
+from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.objective.contract import WorkerFactory, hessian_by_rows
+from arraysel.objective.losses import training_loss
+
+__all__ = ["APERTURE_MODES", "ApertureObjective", "ApertureObjectiveFactory", "split_apertures"]
+
+_log = logging.getLogger(__name__)
+
+#: the values of the scene key ``aperture.mode``
+APERTURE_MODES = ("shared", "full-tx", "separate")
+
+
+def split_apertures(elements, n_probe: int, mode: str) -> tuple[list[int], list[int]]:
+    """The transmit and receive elements of a selection ``elements`` (indices of the selector's
+    problem) under ``mode``: ``shared`` both the selection, ``full-tx`` every element and the
+    selection, ``separate`` the units below ``n_probe`` and those above less ``n_probe``."""
+    sel = sorted(int(e) for e in elements)
+    if mode == "shared":
+        return sel, sel
+    if mode == "full-tx":
+        return list(range(int(n_probe))), sel
+    if mode == "separate":
+        return [e for e in sel if e < n_probe], [e - n_probe for e in sel if e >= n_probe]
+    raise ParameterError(f"aperture.mode = {mode!r}; allowed: {', '.join(APERTURE_MODES)}")
+
+
+class ApertureObjective:
+    """The scene objective ``inner`` seen through the aperture ``mode`` (module docstring).
+
+    Parameters
+    ----------
+    inner : the scene's objective (its ``evaluate``, ``mask_loss`` and ``psf_terms`` take
+        ``receive=`` weights)
+    mode : ``"full-tx"`` or ``"separate"``
+    k_tx, k_rx : the transmit and receive counts of ``separate`` (each in ``[1, Ne]``)
+
+    Attributes it does not define are ``inner``'s (the scene, the settings, the counters).
+    """
+
+    def __init__(self, inner, mode: str, k_tx: int | None = None, k_rx: int | None = None):
+        if mode not in ("full-tx", "separate"):
+            raise ParameterError(f"aperture.mode = {mode!r}; ApertureObjective takes 'full-tx' or 'separate' "
+                                 f"(allowed in a scene: {', '.join(APERTURE_MODES)})")
+        self._inner = inner
+        self.aperture_mode = mode
+        self.n_probe = n = int(inner.n_elements)
+        if mode == "full-tx":
+            self.n_elements, self.k = n, int(inner.k)
+            self.constraints = getattr(inner, "constraints", None)
+            self.k_tx, self.k_rx = n, int(inner.k)
+        else:
+            if getattr(inner, "constraints", None) is not None:
+                raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not "
+                                     "supported; give one of them")
+            self.k_tx = int(inner.k if k_tx is None else k_tx)
+            self.k_rx = int(inner.k if k_rx is None else k_rx)
+            self.constraints = aperture_constraints(n, self.k_tx, self.k_rx)
+            self.n_elements, self.k = 2 * n, self.k_tx + self.k_rx
+        if hasattr(inner, "beam_metrics"):  # a sector scene: its exact per-beam scoring, both apertures
+            self.beam_metrics = self._beam_metrics
+        psfs = getattr(inner, "psfs", None)
+        if psfs:  # a 1-D scene: the pair basis is symmetric in transmit and receive
+            per = sum(p.exact_seconds_per_mask() for p in psfs)
+            _log.warning("aperture.mode = %r on a 1-D scene: the PSF pair basis holds only the shared aperture, "
+                         "so every mask is scored on the exact path: about %.3g s a mask (estimated)", mode, per)
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name == "_inner":
+            raise AttributeError(name)
+        return getattr(self._inner, name)
+
+    @property
+    def inner(self):
+        """The scene's objective (shared-aperture physics)."""
+        return self._inner
+
+    # -- layout of the selector's problem ------------------------------------------------------
+    @property
+    def element_grid(self):
+        grid = getattr(self._inner, "element_grid", None)
+        if grid is None or self.aperture_mode == "full-tx":
+            return grid
+        return (2 * int(grid[0]), int(grid[1]))
+
+    @property
+    def element_positions(self):
+        pos = getattr(self._inner, "element_positions", None)
+        if pos is None or self.aperture_mode == "full-tx":
+            return pos
+        pos = np.asarray(pos, dtype=np.float64)
+        axis = 1 if getattr(self._inner, "element_grid", None) is not None else 0
+        span = float(np.ptp(pos[:, axis]))
+        steps = np.diff(np.unique(np.round(pos[:, axis], 12)))
+        gap = float(steps.min()) if steps.size else 1e-3
+        rx = pos.copy()
+        rx[:, axis] += span + gap
+        return np.concatenate([pos, rx])
+
+    # -- masks -> transmit and receive weights ---------------------------------------------------
+    def _tensor(self, masks) -> torch.Tensor:
+        m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
+        if m.dim() == 1:
+            m = m[None]
+        if m.dim() != 2 or m.shape[1] != self.n_elements:
+            raise SelectionError(f"masks must have shape (B, {self.n_elements}), got {tuple(m.shape)}")
+        return m
+
+    def apertures(self, masks) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(transmit, receive)`` weights ``(B, Ne)`` each of masks ``(B, n_elements)``; a
+        separate selection without transmit or without receive elements is refused."""
+        m = self._tensor(masks)
+        n = self.n_probe
+        if self.aperture_mode == "full-tx":
+            return torch.ones_like(m), m
+        tx, rx = m[:, :n], m[:, n:]
+        for name, w in (("transmit", tx), ("receive", rx)):
+            empty = torch.nonzero(w.detach().sum(1) == 0).flatten().tolist()
+            if empty:
+                raise SelectionError(f"empty {name} aperture (no {name} element) at batch position(s) {empty}")
+        return tx, rx
+
+    # -- the objective contract ---------------------------------------------------------------
+    def evaluate(self, masks, **kwargs) -> dict:
+        tx, rx = self.apertures(masks)
+        return self._inner.evaluate(tx, receive=rx, **kwargs)
+
+    def evaluate_indices(self, selections) -> dict:
+        from arraysel.selection import masks_from_indices
+
+        return self.evaluate(masks_from_indices(selections, self.n_elements, self.k))
+
+    def evaluate_moves(self, mask, out, into) -> dict:
+        from arraysel.objective.neighbours import check_moves, move_masks
+
+        m, a, b = check_moves(mask, out, into)
+        return self.evaluate(move_masks(m, a, b))
+
+    def evaluate_swaps(self, mask, out, into) -> dict:
+        return self.evaluate_moves(mask, np.asarray(out)[:, None], np.asarray(into)[:, None])
+
+    def prepare_neighbourhoods(self) -> bool:
+        """Nothing to form: a neighbour is scored as its masks (the inner objective's shared
+        neighbourhood structures do not apply to two apertures)."""
+        return True
+
+    def mask_loss(self, weights):
+        w = weights if weights.dim() == 2 else weights[None]
+        tx, rx = self.apertures(w)
+        return self._inner.mask_loss(tx, receive=rx)
+
+    def mask_hessian(self, mask):
+        return hessian_by_rows(self.mask_loss, mask, dtype=self._inner.dtype, device=self._inner.device)
+
+    def selection_loss(self, P: torch.Tensor, P_soft: torch.Tensor, step: int = 0):
+        """Training loss of a ``(n_elements, k)`` selection matrix: the PSF terms of its row sums
+        (clamped to [0, 1]) as transmit and receive weights, ``L_ent`` and ``L_row`` on ``P_soft``."""
+        inner = self._inner
+        if P.dim() != 2 or P.shape[0] != self.n_elements:
+            raise SelectionError(f"P must have shape ({self.n_elements}, k), got {tuple(P.shape)}")
+        tx, rx = self.apertures(P.sum(1).clamp(0, 1)[None])
+        psf = inner._psf_loss(tx, receive=rx)[1]
+        total, terms = training_loss({k: v.sum() for k, v in psf.items()}, inner.weights, P_soft=P_soft)
+        if not bool(torch.isfinite(total.detach())):
+            raise NumericalError("selection_loss is not finite (NaN/Inf)")
+        inner.evaluations += 1
+        if P.requires_grad:
+            inner.gradient_steps += 1
+        return total, terms
+
+    def _beam_metrics(self, masks, points=None) -> dict:
+        """A sector scene's exact per-beam metrics of the masks' transmit and receive apertures."""
+        tx, rx = self.apertures(masks)
+        return self._inner.beam_metrics(tx, points, receive=rx)
+
+    def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
+        """A sector scene's fresh random selections of the selector's problem (``separate``:
+        uniformly random feasible ones; ``full-tx``: the scene's)."""
+        if self.aperture_mode == "full-tx":
+            return self._inner.fresh_random_masks(n, seed)
+        n = self._inner.fresh_random if n is None else int(n)
+        return self.constraints.random_masks(np.random.default_rng(seed), n)
+
+    def split(self, elements) -> tuple[list[int], list[int]]:
+        """The transmit and receive elements of a selection (:func:`split_apertures`)."""
+        return split_apertures(elements, self.n_probe, self.aperture_mode)
+
+    def worker_factory(self):
+        f = self._inner.worker_factory()
+        return None if f is None else ApertureObjectiveFactory(f, self.aperture_mode, self.k_tx, self.k_rx)
+
+    def reset_counters(self):
+        self._inner.reset_counters()
+
+
+@dataclasses.dataclass(frozen=True)
+class ApertureObjectiveFactory(WorkerFactory):
+    """Builds :class:`ApertureObjective` on a worker from the inner objective's factory."""
+
+    inner: object
+    mode: str
+    k_tx: int
+    k_rx: int
+
+    def __hash__(self):
+        return hash(self.key())
+
+    def __call__(self):
+        return ApertureObjective(self.inner(), self.mode, self.k_tx, self.k_rx)
