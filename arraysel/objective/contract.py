@@ -257,7 +257,7 @@ class ObjectiveInfo:
     :func:`objective_info`; an objective that does not say a thing gets the default here."""
 
     #: one of :data:`KINDS`: ``beams`` for an objective with ``beam_metrics``, ``planes`` for one
-    #: with ``reference_planes``, else ``kernel``
+    #: whose ``image_kind`` is ``planes`` (a 3-D scene), else ``kernel``
     kind: str = "kernel"
     #: its :class:`~arraysel.scenes.scene.Scene` (``scene``), None without one (the toy objective)
     scene: Any = None
@@ -288,7 +288,7 @@ def objective_info(objective) -> ObjectiveInfo:
     """The :class:`ObjectiveInfo` of ``objective`` (the one place its optional attributes are
     read; selectors and runners ask here)."""
     kind = "beams" if hasattr(objective, "beam_metrics") else \
-        "planes" if hasattr(objective, "reference_planes") else "kernel"
+        "planes" if getattr(objective, "image_kind", None) == "planes" else "kernel"
     chunk = getattr(objective, "chunk", None)
     kw = getattr(objective, "metric_kw", None)
     return ObjectiveInfo(kind=kind, scene=getattr(objective, "scene", None), device=getattr(objective, "device", None),
