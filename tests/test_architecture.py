@@ -7,6 +7,7 @@ import is counted, at module level and inside functions (``ast``), relative or a
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -175,10 +176,13 @@ def test_no_library_module_uses_the_test_helpers():
 
 
 def test_executors_do_not_know_objective_classes():
-    """Workers rebuild an objective through its ``worker_factory()`` capability, not by its class."""
+    """Workers rebuild an objective through its ``worker_factory()`` capability, not by its class:
+    of the objective layer they import the contract only (``arraysel.objective.contract``, which
+    defines no objective)."""
     for m in ("arraysel.run.executors", "arraysel.run.workers", "arraysel.run.isolation", "arraysel.run.template",
               "arraysel.run.random_search", "arraysel.run.compare_task", "arraysel.run.compare"):
-        assert not {t for t in GRAPH[m] if t.startswith("arraysel.objective.")}, m
+        assert not {t for t in GRAPH[m] if t.startswith("arraysel.objective.")
+                    and t != "arraysel.objective.contract"}, m
         assert "__name__ ==" not in MODULES[m].read_text(encoding="utf-8").replace("if __name__", "")
 
 
@@ -472,3 +476,51 @@ def test_the_size_check_can_fail():
     text = f"class C:\n    def long(self):\n{body}\n" + "\n" * (SIZE_LIMITS["module"] - 80)
     assert [line.split(":")[0] for line in oversized("m", text)] == ["module m", "function m.long (line 2)"]
     assert oversized("m", "def short():\n    return 1\n") == []
+
+
+# -- search asks the objective once, through the contract ------------------------------------
+
+#: how selectors/ and run/ name an objective or a wrapper of one (``objective``, ``self.objective``,
+#: ``obj``, a budgeted ``view``, a wrapper's ``self._inner`` / ``self._o``)
+OBJECTIVE_NAME = re.compile(r"objective|_inner\b|\bself\._o\b|\bobj\b|\bview\b")
+#: the packages whose code must not probe an objective
+UNPROBING = ("arraysel.selectors", "arraysel.run")
+
+
+def objective_probes(text: str) -> list[str]:
+    """The calls of ``text`` that probe an objective for what it can do: ``hasattr(X, ...)``, or
+    ``getattr(X, "name")`` / ``getattr(X, name, default)`` (a named attribute, or one with a
+    default), ``X`` an expression that names an objective (:data:`OBJECTIVE_NAME`). A wrapper's
+    forwarding, ``getattr(self._inner, name)`` with a computed name and no default, asks the
+    objective nothing and is not a probe. What a search may ask is read through
+    ``arraysel.objective.contract`` (``neighbourhood_of``, ``loss_model_of``, ``objective_info``,
+    ``element_layout``, ``worker_factory_of``) or the budgeted objective's own methods."""
+    out = []
+    for node in ast.walk(ast.parse(text)):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id in ("getattr", "hasattr") and node.args):
+            continue
+        if not OBJECTIVE_NAME.search(ast.unparse(node.args[0])):
+            continue
+        named = len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+        if node.func.id == "hasattr" or named or len(node.args) == 3:
+            out.append(f"line {node.lineno}: {ast.unparse(node)}")
+    return out
+
+
+def test_selectors_and_runners_do_not_probe_the_objective():
+    mods = sorted(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in UNPROBING))
+    assert {"arraysel.selectors.searchstate", "arraysel.selectors.lossmodel", "arraysel.run.template"} <= set(mods)
+    probes = [f"{m} {line}" for m in mods for line in objective_probes(MODULES[m].read_text(encoding="utf-8"))]
+    assert not probes, "ask through arraysel.objective.contract:\n" + "\n".join(probes)
+
+
+def test_the_probe_check_can_fail():
+    text = ("def f(objective, self, x):\n"
+            "    a = getattr(objective, 'mask_hessian', None)\n"
+            "    b = hasattr(self.objective, 'score_swaps')\n"
+            "    c = getattr(self._inner, 'dtype')\n"
+            "    d = callable(getattr(type(objective), 'fallback', None))\n"
+            "    e = getattr(x, 'name', None)\n"            # not an objective
+            "    return getattr(self._inner, x)\n")         # forwarding
+    assert [p.split(":")[0] for p in objective_probes(text)] == ["line 2", "line 3", "line 4", "line 5"]

@@ -80,14 +80,19 @@ def test_a_3d_scene_needs_its_depth(tmp_path):
         load_scene(str(p))
 
 
-def test_the_1d_objective_refuses_a_3d_scene(tiny_path):
+def test_one_objective_scores_1d_and_3d_scenes(tiny_path, tiny):
+    """A 3-D scene is the same Objective over its volume imager: kernels are refused, planes given."""
     from arraysel.objective.psf_objective import Objective, build_objective as build_1d
+    from arraysel.physics.imaging import VolumeImager
 
-    with pytest.raises(ParameterError, match="matrix probe"):
-        Objective(tiny_path)
-    with pytest.raises(ParameterError, match="3-D scene"):
-        build_1d(tiny_path)
-    assert isinstance(build_objective(tiny_path), MatrixObjective)
+    obj = build_objective(tiny_path, dtype=torch.float64)
+    assert type(obj) is Objective and type(build_1d(tiny_path)) is Objective and type(tiny) is Objective
+    assert obj.image_kind == "planes" and [type(im) for im in obj.imagers] == [VolumeImager]
+    assert obj.breakdown_names == MERIT_NAMES
+    with pytest.raises(ParameterError, match="planes, not a 2-D kernel"):
+        obj.kernels(np.ones((1, 16)))
+    with pytest.raises(ParameterError, match=r"no \[volume\] section"):
+        MatrixObjective("paper")
 
 
 def test_fast_objective_equals_the_exact_path(tiny_path, tiny):
@@ -169,7 +174,8 @@ def test_the_fast_path_is_cached_and_restored(tiny_path, tmp_path, monkeypatch):
 
 def test_worker_factory_rebuilds_the_matrix_objective(tiny):
     f = tiny.worker_factory()
-    assert isinstance(f(), MatrixObjective) and hash(f) == hash(tiny.worker_factory())
+    again = f()
+    assert again.image_kind == "planes" and again.chunk == tiny.chunk and hash(f) == hash(tiny.worker_factory())
 
 
 def _registry():

@@ -538,7 +538,7 @@ def test_terms_selection_returns_only_requested():
 
 def test_elementwise_reduction_path_matches_matmul_path(monkeypatch):
     # accelerators reduce with multiply-and-sum instead of matmul: check both agree (on CPU)
-    import arraysel.objective.metrics as M
+    import arraysel.objective.reductions as R
 
     ks = _small_kernel(11).repeat(3, 1, 1)
     ks[2] = ks[2].conj() * 0.5
@@ -546,7 +546,7 @@ def test_elementwise_reduction_path_matches_matmul_path(monkeypatch):
     kw = dict(pitch=0.5, wavelength=1.0, kappa_ref=ref, quantile=0.9)
     a = psf_metrics(ks, **kw)
     b_ref = si_mse(ks, ks.flip(0))
-    monkeypatch.setattr(M, "_use_matmul", lambda x: False)
+    monkeypatch.setattr(R, "use_matmul", lambda x: False)
     b = psf_metrics(ks, **kw)
     for name in PSF_TERMS:
         torch.testing.assert_close(a[name], b[name], rtol=1e-12, atol=1e-15)

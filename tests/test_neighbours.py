@@ -544,15 +544,17 @@ def _walk_images(obj, m, rng, moves, dtype, tol):
     """A search's walk: at each step the neighbours' images on E against the product of each
     neighbour, then a move to one of them (every third step a further jump of two elements, and
     every fifth of three: the base is carried by rows over moves of up to
-    ``swap_base_moved_max`` elements and formed afresh beyond); returns the selection reached."""
+    ``swap_base_moved_max`` elements and formed afresh beyond, from the bases the objective
+    keeps); returns the selection reached."""
     basis = obj.psf.basis
+    bases = obj.swap_bases(obj.psf)
     for step in range(moves):
         out, into = swap_pairs(m, rng)
         out, into = out[:16], into[:16]
         w = torch.as_tensor(swap_masks(m, out, into), dtype=dtype)
         with torch.no_grad():
             img, eps, werr = basis.swap_images(torch.as_tensor(m, dtype=dtype), torch.as_tensor(out),
-                                               torch.as_tensor(into), w)
+                                               torch.as_tensor(into), w, bases)
             img_r, eps_r, werr_r = basis.images(w, with_error=True)
         assert float((img - img_r).abs().amax()) <= tol * float(img_r.abs().amax()), step
         assert torch.equal(eps, eps_r) and torch.equal(werr, werr_r)
@@ -582,16 +584,16 @@ def test_neighbourhood_base_carried_by_rows_along_a_walk_equals_the_products(mon
     updated = []
     real = type(basis).swap_base
 
-    def spy(self, mask):
-        out = real(self, mask)
-        updated.append(self.swap_bases.latest()[3])
+    def spy(self, mask, bases=None):
+        out = real(self, mask, bases)
+        updated.append(bases.latest()[3])
         return out
 
     monkeypatch.setattr(type(basis), "swap_base", spy)
     rng = np.random.default_rng(4)
     m = _walk_images(obj, _mask(12, [0, 2, 3, 7, 9, 11]), rng, 14, dtype, tol)
     assert 2 in np.diff(updated) and 0 in updated[1:]       # a two-element move by rows; bases formed afresh
-    assert basis.swap_bases.latest()[3] >= 1   # the last bases were updated by rows
+    assert obj.swap_bases(obj.psf).latest()[3] >= 1   # the last bases were updated by rows
     out, into = swap_pairs(m, rng)
     _assert_same_scores(obj.evaluate_swaps(m, out, into, return_kernels=True),
                         obj.evaluate(swap_masks(m, out, into), return_kernels=True),
@@ -616,13 +618,12 @@ def test_interleaved_walks_each_keep_their_base(monkeypatch, kept):
     formed, reachable = [], []
     real = type(basis).swap_base
 
-    def spy(self, mask):
+    def spy(self, mask, bases=None):
         m = mask.cpu().numpy() != 0
-        bases = self.__dict__.get("swap_bases")
-        kept_masks = [e[0].numpy() for e in bases.kept.values()] if bases is not None else []
+        kept_masks = [e[0].numpy() for e in bases.kept.values()]
         reachable.append(any((k & ~m).sum() <= 1 for k in kept_masks))   # a kept base a swap away
-        out = real(self, mask)
-        formed.append(self.swap_bases.latest()[3] == 0)
+        out = real(self, mask, bases)
+        formed.append(bases.latest()[3] == 0)
         return out
 
     monkeypatch.setattr(type(basis), "swap_base", spy)
@@ -631,7 +632,7 @@ def test_interleaved_walks_each_keep_their_base(monkeypatch, kept):
     for turn in range(4):
         for i, m in enumerate(walks):
             walks[i] = _walk_images(obj, m, rng, 1, torch.float64, 1e-11)
-            assert len(basis.swap_bases) <= kept
+            assert len(obj.swap_bases(obj.psf)) <= kept
     assert formed == [not r for r in reachable]               # formed afresh exactly when none is at hand
     assert sum(formed) == 3 if kept == 3 else sum(formed) >= 9
 

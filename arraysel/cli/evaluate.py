@@ -73,7 +73,7 @@ def run(args) -> int:
     n = count_masks(args.masks, ne, k)
 
     obj = build_objective(args.scene if args.scene == "toy" else scene, args.device, args.dtype)
-    volume = hasattr(obj, "reference_planes")  # a 3-D scene: planes, and the figures of merit as columns
+    volume = getattr(obj, "image_kind", None) == "planes"  # a 3-D scene: planes, and the figures of merit as columns
     names = (*METRIC_NAMES, *obj.breakdown_names) if volume else METRIC_NAMES
     kernels = args.psf_out is not None
     chunk = CHUNK_WITH_KERNELS if kernels else CHUNK

@@ -91,7 +91,7 @@ class ApertureObjective:
         if hasattr(inner, "beam_metrics"):  # a sector scene: its exact per-beam scoring, both apertures
             self.beam_metrics = self._beam_metrics
         psfs = getattr(inner, "psfs", None)
-        if psfs is not None:  # a 1-D scene: the pair basis is symmetric in transmit and receive
+        if psfs:  # a 1-D scene: the pair basis is symmetric in transmit and receive
             per = sum(p.exact_seconds_per_mask() for p in psfs)
             _log.warning("aperture.mode = %r on a 1-D scene: the PSF pair basis holds only the shared aperture, "
                          "so every mask is scored on the exact path: about %.3g s a mask (estimated)", mode, per)

@@ -29,10 +29,9 @@ def objective_for(scene: str, device: str = "cpu", dtype_name: str = "float32", 
 
 
 def build_objective(scene="paper", device="cpu", dtype=None, **kw):
-    """Build (or reuse, within a process) the objective of a scene: a 1-D scene's
-    :class:`~arraysel.objective.psf_objective.Objective`, a 3-D scene's
-    :class:`~arraysel.objective.matrix_objective.MatrixObjective`, a sector scene's
-    :class:`~arraysel.objective.sector_objective.SectorObjective` (keywords: theirs)."""
+    """Build (or reuse, within a process) the objective of a scene: the
+    :class:`~arraysel.objective.psf_objective.Objective` over its imagers (1-D and 3-D scenes), a
+    sector scene's :class:`~arraysel.objective.sector_objective.SectorObjective` (keywords: theirs)."""
     import torch
 
     from arraysel.objective import psf_objective
@@ -47,9 +46,6 @@ def build_objective(scene="paper", device="cpu", dtype=None, **kw):
     if sc.is_sector:
         from arraysel.objective.sector_objective import SectorObjective
         cls = SectorObjective
-    elif sc.is_volume:
-        from arraysel.objective.matrix_objective import MatrixObjective
-        cls = MatrixObjective
     obj = psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype,
                                         objective_class=cls, **kw)
     mode = sc.section("aperture").get("mode", "shared")

@@ -17,16 +17,12 @@ import math
 import numpy as np
 import torch
 
-from arraysel.objective.metrics import METRIC_NAMES, _BOUNDARY_RTOL
-from arraysel.objective.metrics3d import (C_PLANE, MERIT_NAMES, PSL_FLOOR_DB, SIX_DB, _c_plane_axes, _crossing,
-                                          _radii, plane_set)
+from arraysel.objective.metrics import METRIC_NAMES
+from arraysel.objective.reductions import BOUNDARY_RTOL, safe_div as _safe_div
+from arraysel.objective.metrics3d import (C_PLANE, MERIT_NAMES, PSL_FLOOR_DB, SIX_DB, c_plane_axes, level_crossing,
+                                          region_radii, plane_set)
 
 __all__ = ["ColumnMetrics"]
-
-
-def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    nz = den != 0
-    return torch.where(nz, num / torch.where(nz, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
 def _sqrt0(x: torch.Tensor) -> torch.Tensor:
@@ -49,7 +45,7 @@ class ColumnMetrics:
         self.unsort = torch.empty_like(rows)
         self.unsort[rows] = torch.arange(n)                # pixel i sits in row unsort[i]
         self.coords = ps.coords                            # (N, 3) float64, planes' order
-        self.rm, self.rg = _radii(wavelength, r_main, r_guard)
+        self.rm, self.rg = region_radii(wavelength, r_main, r_guard)
         self.q = float(quantile)
         self.dtype = dtype
         ref = ps.flat[0].to(torch.complex128)[rows]        # the reference, in row order
@@ -61,7 +57,7 @@ class ColumnMetrics:
             self.c_shape = ps.shapes[C_PLANE]
             c = np.asarray(coords[C_PLANE], dtype=np.float64)
             self.c_coords = c
-            self.c_axes = _c_plane_axes(C_PLANE, c)
+            self.c_axes = c_plane_axes(C_PLANE, c)
 
     def __call__(self, re: torch.Tensor, im: torch.Tensor, cols: torch.Tensor | None = None) -> dict[str, np.ndarray]:
         """``{name: float64 (M,)}`` of the images ``re + i im`` (each ``(P, M)``, rows as ``rows``);
@@ -98,8 +94,8 @@ class ColumnMetrics:
     def _lobes(self, k2: torch.Tensor, peak: torch.Tensor, position: torch.Tensor) -> dict[str, torch.Tensor]:
         """The lobe terms of the items ``k2`` (M, N) whose peaks (values ``peak``) lie at ``position``."""
         d2 = (self.coords - position[None]).square().sum(-1)
-        main = d2 <= self.rm * self.rm * (1 + _BOUNDARY_RTOL)
-        side = d2 >= self.rg * self.rg * (1 - _BOUNDARY_RTOL)
+        main = d2 <= self.rm * self.rm * (1 + BOUNDARY_RTOL)
+        side = d2 >= self.rg * self.rg * (1 - BOUNDARY_RTOL)
         n_main, n_side = int(main.sum()), int(side.sum())
         s_main = (k2 @ main.to(k2.dtype)).double()
         side_vals = k2.index_select(1, torch.nonzero(side).flatten())            # (M, n_side)
@@ -145,6 +141,6 @@ class ColumnMetrics:
             jp = np.argmax(a, axis=1)
             pk = a[np.arange(m), jp]
             thr = SIX_DB * pk
-            width = np.abs(_crossing(s, a, jp, thr, +1) - _crossing(s, a, jp, thr, -1))
+            width = np.abs(level_crossing(s, a, jp, thr, +1) - level_crossing(s, a, jp, thr, -1))
             out[f"width_{letter}_6dB"] = np.where(np.isfinite(width) & (pk > 0), width, np.inf)
         return out

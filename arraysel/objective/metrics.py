@@ -28,7 +28,6 @@ Conventions (see ``docs/metrics.md``):
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Iterable, Sequence
 
@@ -36,6 +35,7 @@ import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
+from arraysel.objective import reductions as R
 from arraysel.objective.tensors import _check_kernel_shape, _check_tensor
 from arraysel.physics import compiled as physics_compiled
 
@@ -60,30 +60,16 @@ from arraysel.objective.names import METRIC_NAMES  # noqa: E402
 PSF_TERMS = METRIC_NAMES
 
 
-# relative tolerance on r**2 for the inclusive region boundaries
-_BOUNDARY_RTOL = 1e-9
+# the shared reductions (arraysel.objective.reductions), under this module's historical names
+_BOUNDARY_RTOL = R.BOUNDARY_RTOL
+_broadcast_shapes, _safe_div, _detached_scale = R.broadcast_shapes, R.safe_div, R.detached_scale
+_divide_by_scale, _inner, _rowdot, _sqnorm, _promote = R.divide_by_scale, R.inner, R.rowdot, R.sqnorm, R.promote
+_scaled_abs2, _peak_index, _safe_sqrt, _masked_quantile = R.scaled_abs2, R.peak_index, R.safe_sqrt, R.masked_quantile
 
 
 # --------------------------------------------------------------------------
 # small helpers
 # --------------------------------------------------------------------------
-
-
-def _broadcast_shapes(*shapes) -> torch.Size:
-    """``torch.broadcast_shapes`` without its first-call import of torch's symbolic-shape machinery
-    (sympy: about a second of a cold start); raises RuntimeError when the shapes do not broadcast."""
-    import numpy as np
-
-    try:
-        return torch.Size(np.broadcast_shapes(*(tuple(s) for s in shapes)))
-    except ValueError as exc:
-        raise RuntimeError(str(exc)) from None
-
-
-def _safe_div(num: Tensor, den: Tensor) -> Tensor:
-    """num / den where den != 0, 0 elsewhere; finite gradient in both cases."""
-    nz = den != 0
-    return torch.where(nz, num / torch.where(nz, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
 def safe_abs(z: Tensor) -> Tensor:
@@ -143,66 +129,6 @@ def check_kernels(kappa: Tensor, kappa_ref: Tensor | None = None) -> None:
 # --------------------------------------------------------------------------
 # SI-MSE
 # --------------------------------------------------------------------------
-
-def _detached_scale(x: Tensor) -> Tensor:
-    """max(|Re|, |Im|) over the last two axes, detached; 1 where the kernel is zero."""
-    x = x.detach()
-    s = (torch.view_as_real(x).abs().amax(dim=(-3, -2, -1)) if x.is_complex()
-         else x.abs().amax(dim=(-2, -1)))
-    return torch.where(s > 0, s, torch.ones_like(s))
-
-
-def _divide_by_scale(x: Tensor, s: Tensor) -> Tensor:
-    """``x / s[..., None, None]`` for a real ``s > 0`` of shape ``x.shape[:-2]``.
-
-    A complex ``x`` is divided through its real view: torch promotes a real
-    divisor to complex, and its complex division returns inf/NaN for a
-    subnormal divisor (e.g. a float32 kernel whose largest entry is 1e-44).
-    """
-    if x.is_complex():
-        return torch.view_as_complex(torch.view_as_real(x.resolve_conj()) / s[..., None, None, None])
-    return x / s[..., None, None]
-
-
-def _use_matmul(x: Tensor) -> bool:
-    """Whether to reduce dot products with matmul (BLAS) rather than multiply-and-sum.
-
-    Only on CPU, where it is several times faster. On accelerators the
-    elementwise form is as fast (memory bound) and is never subject to
-    reduced-precision matmul modes (TF32 under
-    ``torch.set_float32_matmul_precision('high')``).
-    """
-    return x.device.type == "cpu"
-
-
-def _inner(u: Tensor, v: Tensor) -> Tensor:
-    """<u, v> = sum(conj(u) v) over the last two axes, leading axes broadcast."""
-    uf, vf = u.flatten(-2), v.flatten(-2)
-    if not _use_matmul(uf):
-        return (uf.conj() * vf).sum(-1)
-    if not (u.is_complex() or v.is_complex()):
-        return torch.matmul(uf.unsqueeze(-2), vf.unsqueeze(-1))[..., 0, 0]
-    # conj(sum(u conj(v))) with conj(v) materialised: in torch 2.x a matmul
-    # with a lazily conjugated operand takes a much slower path.
-    return torch.matmul(uf.unsqueeze(-2), vf.conj().resolve_conj().unsqueeze(-1))[..., 0, 0].conj()
-
-
-def _rowdot(x: Tensor, y: Tensor) -> Tensor:
-    """sum(x * y, -1) for real tensors of the same shape."""
-    if not _use_matmul(x):
-        return (x * y).sum(-1)
-    return torch.matmul(x.unsqueeze(-2), y.unsqueeze(-1))[..., 0, 0]
-
-
-def _sqnorm(u: Tensor) -> Tensor:
-    """||u||^2 over the last two axes (real), smooth everywhere."""
-    x = torch.view_as_real(u).flatten(-3) if u.is_complex() else u.flatten(-2)
-    return _rowdot(x, x)
-
-
-def _promote(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    dt = torch.promote_types(a.dtype, b.dtype)
-    return a.to(dt), b.to(dt)
 
 
 def si_mse(kappa: Tensor, kappa_ref: Tensor) -> Tensor:
@@ -302,23 +228,6 @@ def _device_masks(h: int, w: int, pr: float, pc: float, r_main: float, r_guard: 
     return main.to(device=device, dtype=dtype), side.to(device=device, dtype=dtype)
 
 
-def _scaled_abs2(kappa: Tensor) -> Tensor:
-    """|kappa / s|^2 flattened to (B, H*W), s = detached max(|Re|, |Im|) of each kernel.
-
-    The scale keeps the squares in range in float32 whatever the kernels'
-    units; every lobe ratio is scale invariant, so no gradient is lost.
-    """
-    b = kappa.shape[0]
-    xr = torch.view_as_real(kappa) if kappa.is_complex() else kappa[..., None]
-    xr = xr.reshape(b, -1, xr.shape[-1])
-    return (xr / _detached_scale(kappa)[:, None, None]).square().sum(-1)
-
-
-def _peak_index(k2: Tensor) -> Tensor:
-    """Argmax of ``k2`` of shape (B, N) (first on ties): (B,) long, no gradient."""
-    return torch.argmax(k2.detach(), dim=-1)
-
-
 def _region_radii(pitch, wavelength, r_main, r_guard) -> tuple[float, float, float, float]:
     """Validated (pitch_rows, pitch_cols, r_main, r_guard), the radii in metres."""
     pr, pc = _parse_pitch(pitch)
@@ -399,41 +308,6 @@ def check_regions(regions: PSFRegions) -> None:
 # PSF metrics
 # --------------------------------------------------------------------------
 
-def _safe_sqrt(x: Tensor) -> Tensor:
-    """sqrt(x) for x > 0, 0 elsewhere; gradient 0 (not inf/NaN) at x <= 0."""
-    pos = x > 0
-    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
-
-
-def _masked_quantile(x: Tensor, mask: Tensor, q: float, transform=None) -> Tensor:
-    """Per-row quantile (linear interpolation, as torch.quantile) over ``mask``.
-
-    ``x`` (B, N) with ``x >= 0``; ``mask`` (B, N) of 0/1 in ``x``'s dtype.
-    Returns the q-quantile of ``transform(x)`` (an increasing function,
-    applied only to the two order statistics needed). Rows with an empty mask
-    give 0. One ``topk`` over the batch: only the ~(1 - q) N largest values
-    are needed, not a sort.
-    """
-    b, n_all = x.shape
-    n = mask.sum(-1).round().long()                     # (B,) count of masked pixels
-    n_eff = n.clamp_min(1)
-    k = min(n_all, int(math.ceil((1.0 - q) * (n_all - 1))) + 2)
-    vals = torch.addcmul(mask - 1, x, mask)             # x inside, sentinel -1 outside
-    top = torch.topk(vals, k, dim=-1, largest=True, sorted=True).values  # descending
-    rank_dt = torch.float32 if x.device.type == "mps" else torch.float64
-    pos = q * (n_eff - 1).to(rank_dt)                   # ascending rank, as torch.quantile
-    lo = torch.floor(pos)
-    hi = torch.ceil(pos)
-    frac = (pos - lo).to(x.dtype)
-    d_lo = (n_eff - 1 - lo.long()).clamp(0, k - 1)       # ascending rank -> descending index
-    d_hi = (n_eff - 1 - hi.long()).clamp(0, k - 1)
-    v_lo = top.gather(-1, d_lo[:, None]).squeeze(-1)
-    v_hi = top.gather(-1, d_hi[:, None]).squeeze(-1)
-    if transform is not None:
-        v_lo, v_hi = transform(v_lo), transform(v_hi)
-    res = v_lo + frac * (v_hi - v_lo)
-    return torch.where(n > 0, res, torch.zeros_like(res))
-
 
 def _parse_terms(terms: Iterable[str] | None, have_ref: bool) -> tuple[str, ...]:
     if terms is None:
@@ -493,6 +367,55 @@ def _compiled_terms(flat: Tensor, ref: Tensor | None, pitch, wavelength, r_main,
     vals = torch.from_numpy(vals).to(flat.dtype.to_real())
     names = ("L_PSF", "L_contrast", "L_SLR_q", "L_SLR_i")
     return {n: vals[:, i] for i, n in enumerate(names) if ref is not None or n != "L_PSF"}
+
+
+def _checked_reference(kappa: Tensor, kappa_ref) -> Tensor:
+    """``kappa_ref`` checked: a real or complex tensor ``(..., H, W)`` that broadcasts to ``kappa``."""
+    ref = _check_tensor("kappa_ref", kappa_ref)
+    _check_kernel_shape("kappa_ref", ref)
+    try:
+        shape = _broadcast_shapes(kappa.shape, ref.shape)
+    except RuntimeError:
+        shape = None
+    if shape != kappa.shape:
+        raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
+                             f"shape {tuple(kappa.shape)}")
+    return ref
+
+
+def _lobe_terms(flat: Tensor, lobe_terms: set, pitch, wavelength, r_main, r_guard, q: float) -> dict[str, Tensor]:
+    """The lobe terms ``lobe_terms`` (among ``L_contrast``, ``L_SLR_q``, ``L_SLR_i``) of kernels
+    ``flat`` (B, H, W), each ``(B,)``, by torch operations (differentiable)."""
+    res: dict[str, Tensor] = {}
+    b, h, w = flat.shape
+    # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
+    # max(k2) cancels in every ratio below and is never divided out.
+    k2 = _scaled_abs2(flat)                                          # (B, N)
+    flat_peak = _peak_index(k2)
+    # kernels cut around their peak share one peak pixel (and so one pair of regions):
+    # then the masks are (1, N) and broadcast, instead of gathered per kernel
+    shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
+    rows = 1 if shared else b
+    reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
+                        flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
+    main = reg.main.reshape(rows, h * w)                             # 0/1 floats
+    side = reg.side.reshape(rows, h * w)
+    if {"L_contrast", "L_SLR_i"} & lobe_terms:
+        s_main = _rowdot(k2, main)
+        s_side = _rowdot(k2, side)
+        if "L_SLR_i" in lobe_terms:
+            res["L_SLR_i"] = _safe_div(s_side, s_main)
+        if "L_contrast" in lobe_terms:
+            res["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1)),
+                                          _safe_div(s_main, main.sum(-1)))
+    if "L_SLR_q" in lobe_terms:
+        # quantile of m = sqrt(k2 / max k2): sqrt is increasing, so rank k2.
+        # The peak is the global maximum and lies in the main lobe (r = 0), so
+        # max(m over main) is m at the peak.
+        main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
+        q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
+        res["L_SLR_q"] = _safe_div(q_side, main_max)
+    return res
 
 
 def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: float,
@@ -555,15 +478,7 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
     out: dict[str, Tensor] = {}
     ref = None
     if "L_PSF" in need:
-        ref = _check_tensor("kappa_ref", kappa_ref)
-        _check_kernel_shape("kappa_ref", ref)
-        try:
-            shape = _broadcast_shapes(kappa.shape, ref.shape)
-        except RuntimeError:
-            shape = None
-        if shape != kappa.shape:
-            raise ParameterError(f"kappa_ref of shape {tuple(ref.shape)} must broadcast to kappa's "
-                                 f"shape {tuple(kappa.shape)}")
+        ref = _checked_reference(kappa, kappa_ref)
     if _compiled_applies(flat, ref, compiled):
         vals = _compiled_terms(flat, ref, pitch, wavelength, r_main, r_guard, q)
         out.update({name: v.reshape(lead) for name, v in vals.items() if name in need})
@@ -572,34 +487,8 @@ def psf_metrics(kappa: Tensor, *, pitch: float | Sequence[float], wavelength: fl
 
     lobe_terms = (need - set(out)) & {"L_contrast", "L_SLR_q", "L_SLR_i"}
     if lobe_terms:
-        b, h, w = flat.shape
-        # k2 = |kappa|^2 up to a per-kernel constant, so m^2 = k2 / max(k2);
-        # max(k2) cancels in every ratio below and is never divided out.
-        k2 = _scaled_abs2(flat)                                          # (B, N)
-        flat_peak = _peak_index(k2)
-        # kernels cut around their peak share one peak pixel (and so one pair of regions):
-        # then the masks are (1, N) and broadcast, instead of gathered per kernel
-        shared = b > 1 and bool((flat_peak == flat_peak[0]).all())
-        rows = 1 if shared else b
-        reg = _regions_flat(flat[:rows], pitch, wavelength, r_main, r_guard, distance=False,
-                            flat_peak=flat_peak[:rows], mask_dtype=k2.dtype)
-        main = reg.main.reshape(rows, h * w)                             # 0/1 floats
-        side = reg.side.reshape(rows, h * w)
-        if {"L_contrast", "L_SLR_i"} & lobe_terms:
-            s_main = _rowdot(k2, main)
-            s_side = _rowdot(k2, side)
-            if "L_SLR_i" in lobe_terms:
-                out["L_SLR_i"] = _safe_div(s_side, s_main).reshape(lead)
-            if "L_contrast" in lobe_terms:
-                out["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1)),
-                                              _safe_div(s_main, main.sum(-1))).reshape(lead)
-        if "L_SLR_q" in lobe_terms:
-            # quantile of m = sqrt(k2 / max k2): sqrt is increasing, so rank k2.
-            # The peak is the global maximum and lies in the main lobe (r = 0), so
-            # max(m over main) is m at the peak.
-            main_max = _safe_sqrt(k2.gather(-1, flat_peak[:, None]).squeeze(-1))
-            q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
-            out["L_SLR_q"] = _safe_div(q_side, main_max).reshape(lead)
+        out.update({k: v.reshape(lead) for k, v in _lobe_terms(flat, lobe_terms, pitch, wavelength, r_main,
+                                                                  r_guard, q).items()})
 
     if "L_SLR" in need:
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])

@@ -40,14 +40,14 @@ import torch
 from torch import Tensor
 
 from arraysel.errors import NumericalError, ParameterError, check_number
-from arraysel.objective.metrics import (METRIC_NAMES, _BOUNDARY_RTOL, _broadcast_shapes, _masked_quantile,
-                                        _peak_index, _rowdot, _safe_div, _safe_sqrt, _scaled_abs2, check_finite,
-                                        si_mse)
+from arraysel.objective.metrics import METRIC_NAMES, check_finite, si_mse
+from arraysel.objective.reductions import (BOUNDARY_RTOL, broadcast_shapes, masked_quantile, peak_index, rowdot,
+                                           safe_div, safe_sqrt, scaled_abs2)
 from arraysel.objective.tensors import _abs2, _check_kernel_shape, _check_tensor
 
-__all__ = ["MERIT_NAMES", "PSF3D_TERMS", "SIX_DB", "PSL_FLOOR_DB", "C_PLANE", "PlaneSet", "PSF3DRegions",
+__all__ = ["MERIT_NAMES", "PSF3D_TERMS", "SIX_DB", "PSL_FLOOR_DB", "C_PLANE", "FlatPlanes", "PSF3DRegions",
            "plane_set", "normalise_planes", "psf3d_regions", "psf3d_metrics", "c_plane_profiles",
-           "main_lobe_widths", "check_planes"]
+           "main_lobe_widths", "check_planes", "c_plane_axes", "level_crossing", "region_radii"]
 
 #: the figures of merit of 2-D sparse-array papers (defined in :mod:`arraysel.objective.names`)
 from arraysel.objective.names import MERIT_NAMES  # noqa: E402
@@ -66,8 +66,9 @@ C_PLANE = "xy"
 # --------------------------------------------------------------------------
 
 @dataclass
-class PlaneSet:
-    """A validated plane set, its pixels concatenated.
+class FlatPlanes:
+    """A validated plane set, its pixels concatenated (the metrics' working form of the planes of a
+    :class:`~arraysel.physics.imaging.PlaneSet`).
 
     Attributes
     ----------
@@ -113,8 +114,8 @@ def _coords_tensor(name: str, c, hw: tuple[int, int], device) -> Tensor:
     return c.to(device=device, dtype=dt)
 
 
-def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, what: str = "planes") -> PlaneSet:
-    """Check a plane set and concatenate its pixels (:class:`PlaneSet`).
+def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, what: str = "planes") -> FlatPlanes:
+    """Check a plane set and concatenate its pixels (:class:`FlatPlanes`).
 
     Every plane is a real or complex tensor ``(..., H, W)`` with the same leading shape; ``coords``
     has an ``(H, W, 3)`` array (numpy or torch, metres) for every plane. Raises
@@ -150,11 +151,11 @@ def plane_set(planes: Mapping[str, Tensor], coords: Mapping[str, object], *, wha
         n += int(h) * int(w)
         parts.append(x.to(device=device, dtype=dtype).reshape(b, -1))
         cparts.append(_coords_tensor(f"coords[{name!r}]", coords[name], (int(h), int(w)), device).reshape(-1, 3))
-    return PlaneSet(names=names, flat=torch.cat(parts, dim=-1), lead=lead, coords=torch.cat(cparts, dim=0),
+    return FlatPlanes(names=names, flat=torch.cat(parts, dim=-1), lead=lead, coords=torch.cat(cparts, dim=0),
                     shapes=shapes, offsets=offsets)
 
 
-def _reference(ps: PlaneSet, planes_ref: Mapping[str, Tensor], coords) -> Tensor:
+def _reference(ps: FlatPlanes, planes_ref: Mapping[str, Tensor], coords) -> Tensor:
     """The reference plane set as ``(Bref, N)`` in the planes' order, its leading shape broadcasting."""
     if not isinstance(planes_ref, Mapping) or set(planes_ref) != set(ps.names):
         have = sorted(planes_ref) if isinstance(planes_ref, Mapping) else type(planes_ref).__name__
@@ -168,7 +169,7 @@ def _reference(ps: PlaneSet, planes_ref: Mapping[str, Tensor], coords) -> Tensor
                                  f"has {ps.shapes[name]}")
     ref = plane_set(ordered, coords, what="planes_ref")
     try:
-        shape = _broadcast_shapes(tuple(ps.lead) + (1,), tuple(ref.lead) + (1,))
+        shape = broadcast_shapes(tuple(ps.lead) + (1,), tuple(ref.lead) + (1,))
     except RuntimeError:
         shape = None
     if shape is None or tuple(shape[:-1]) != tuple(ps.lead):
@@ -243,7 +244,7 @@ class PSF3DRegions:
     r: dict
 
 
-def _radii(wavelength, r_main, r_guard) -> tuple[float, float]:
+def region_radii(wavelength, r_main, r_guard) -> tuple[float, float]:
     lam = check_number("wavelength", wavelength, lo=0, lo_open=True)
     rm = check_number("r_main", r_main, lo=0)
     rg = check_number("r_guard", r_guard, lo=0)
@@ -260,8 +261,8 @@ def _distance2(coords: Tensor, position: Tensor) -> Tensor:
 def _region_masks(coords: Tensor, position: Tensor, rm: float, rg: float, dtype) -> tuple[Tensor, Tensor]:
     """0/1 masks ``(U, N)`` of ``r <= rm`` and ``r >= rg`` around each peak position (U, 3)."""
     d2 = _distance2(coords, position)
-    main = (d2 <= rm * rm * (1 + _BOUNDARY_RTOL)).to(dtype)
-    side = (d2 >= rg * rg * (1 - _BOUNDARY_RTOL)).to(dtype)
+    main = (d2 <= rm * rm * (1 + BOUNDARY_RTOL)).to(dtype)
+    side = (d2 >= rg * rg * (1 - BOUNDARY_RTOL)).to(dtype)
     return main, side
 
 
@@ -274,10 +275,10 @@ def psf3d_regions(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
     wavelength}``, boundaries inclusive (relative tolerance 1e-9 on ``r**2``, as in 1-D).
     """
     ps = plane_set(planes, coords)
-    rm, rg = _radii(wavelength, r_main, r_guard)
+    rm, rg = region_radii(wavelength, r_main, r_guard)
     with torch.no_grad():
-        k2 = _scaled_abs2(ps.flat[:, None, :])
-        peak = _peak_index(k2)
+        k2 = scaled_abs2(ps.flat[:, None, :])
+        peak = peak_index(k2)
         d2 = _distance2(ps.coords, ps.coords[peak])
     lead = tuple(ps.lead)
 
@@ -288,8 +289,8 @@ def psf3d_regions(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
     plane_of = [ps.names[int(np.searchsorted(ends, int(i), side="right"))] for i in peak.tolist()]
     rdt = ps.flat.real.dtype if ps.flat.is_complex() else ps.flat.dtype
     return PSF3DRegions(peak_plane=plane_of, peak_position=ps.coords[peak].reshape(lead + (3,)),
-                        main=per_plane(d2 <= rm * rm * (1 + _BOUNDARY_RTOL)),
-                        side=per_plane(d2 >= rg * rg * (1 - _BOUNDARY_RTOL)),
+                        main=per_plane(d2 <= rm * rm * (1 + BOUNDARY_RTOL)),
+                        side=per_plane(d2 >= rg * rg * (1 - BOUNDARY_RTOL)),
                         r=per_plane(d2.sqrt().to(rdt)))
 
 
@@ -297,7 +298,7 @@ def psf3d_regions(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
 # the C-plane's profiles and the -6 dB widths
 # --------------------------------------------------------------------------
 
-def _c_plane_axes(name: str, c: np.ndarray) -> dict[str, int]:
+def c_plane_axes(name: str, c: np.ndarray) -> dict[str, int]:
     """Which window axis (0 rows, 1 columns) runs along x and along y in the plane ``c`` (H, W, 3)."""
     h, w = c.shape[:2]
     if h < 2 or w < 2:
@@ -327,7 +328,7 @@ def c_plane_profiles(plane, coords, *, name: str = C_PLANE) -> dict[str, tuple[n
     if a.ndim < 2:
         raise ParameterError(f"planes[{name!r}] must have shape (..., H, W), got {a.shape}")
     c = _coords_tensor(f"coords[{name!r}]", coords, a.shape[-2:], "cpu").numpy()
-    axes = _c_plane_axes(name, c)
+    axes = c_plane_axes(name, c)
     a = a.reshape((-1,) + a.shape[-2:])
     b, h, w = a.shape
     flat_peak = np.argmax(a.reshape(b, -1), axis=1)
@@ -345,7 +346,7 @@ def c_plane_profiles(plane, coords, *, name: str = C_PLANE) -> dict[str, tuple[n
     return out
 
 
-def _crossing(s: np.ndarray, a: np.ndarray, j0: np.ndarray, level: np.ndarray, step: int) -> np.ndarray:
+def level_crossing(s: np.ndarray, a: np.ndarray, j0: np.ndarray, level: np.ndarray, step: int) -> np.ndarray:
     """Position of the first sample at or below ``level`` walking from ``j0`` by ``step``, with the
     crossing interpolated linearly in amplitude; NaN where the profile never falls to ``level``."""
     b, n = a.shape
@@ -382,8 +383,8 @@ def main_lobe_widths(plane, coords, *, name: str = C_PLANE, level: float = SIX_D
         j0 = np.argmax(a, axis=1)
         peak = a[np.arange(a.shape[0]), j0]
         thr = level * peak
-        right = _crossing(s, a, j0, thr, +1)
-        left = _crossing(s, a, j0, thr, -1)
+        right = level_crossing(s, a, j0, thr, +1)
+        left = level_crossing(s, a, j0, thr, -1)
         width = np.abs(right - left)
         out[letter] = np.where(np.isfinite(width) & (peak > 0), width, np.inf)
     return out
@@ -416,20 +417,20 @@ def _lobe_terms(k2: Tensor, peak: Tensor, main: Tensor, side: Tensor, lobe: set,
     b = k2.shape[0]
     res: dict[str, Tensor] = {}
     if {"L_contrast", "L_SLR_i"} & lobe:
-        s_main = _rowdot(k2, main.expand(b, -1))
-        s_side = _rowdot(k2, side.expand(b, -1))
+        s_main = rowdot(k2, main.expand(b, -1))
+        s_side = rowdot(k2, side.expand(b, -1))
         if "L_SLR_i" in lobe:
-            res["L_SLR_i"] = _safe_div(s_side, s_main)
+            res["L_SLR_i"] = safe_div(s_side, s_main)
         if "L_contrast" in lobe:
-            res["L_contrast"] = _safe_div(_safe_div(s_side, side.sum(-1).expand(b)),
-                                          _safe_div(s_main, main.sum(-1).expand(b)))
+            res["L_contrast"] = safe_div(safe_div(s_side, side.sum(-1).expand(b)),
+                                          safe_div(s_main, main.sum(-1).expand(b)))
     k2_peak = k2.gather(-1, peak[:, None]).squeeze(-1)
     if "L_SLR_q" in lobe:
-        q_side = _masked_quantile(k2, side.expand(b, -1), q, transform=_safe_sqrt)
-        res["L_SLR_q"] = _safe_div(q_side, _safe_sqrt(k2_peak))
+        q_side = masked_quantile(k2, side.expand(b, -1), q, transform=safe_sqrt)
+        res["L_SLR_q"] = safe_div(q_side, safe_sqrt(k2_peak))
     if "PSL_dB" in lobe:
         side_max = (k2 * side).amax(-1)                                  # k2 >= 0: 0 outside the side region
-        ratio = _safe_div(side_max, k2_peak)
+        ratio = safe_div(side_max, k2_peak)
         res["PSL_dB"] = 10.0 * torch.log10(torch.clamp(ratio, min=10.0 ** (PSL_FLOOR_DB / 10.0)))
     return res
 
@@ -461,7 +462,7 @@ def psf3d_metrics(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
     """
     ps = plane_set(planes, coords)
     q = check_number("quantile", quantile, lo=0, hi=1)
-    rm, rg = _radii(wavelength, r_main, r_guard)
+    rm, rg = region_radii(wavelength, r_main, r_guard)
     want = _parse_terms(terms, planes_ref is not None, c_plane in ps.names)
     need = set(want)
     if "L_SLR" in need:
@@ -482,8 +483,8 @@ def psf3d_metrics(planes: Mapping[str, Tensor], coords: Mapping[str, object], *,
     if lobe:
         # |kappa|^2 of the set up to a detached per-item scale (every ratio below is invariant to
         # the scale of the set, its joint L2 normalisation included, so no gradient is lost)
-        k2 = _scaled_abs2(flat[:, None, :])                              # (B, N)
-        peak = _peak_index(k2)
+        k2 = scaled_abs2(flat[:, None, :])                              # (B, N)
+        peak = peak_index(k2)
         # the regions of each distinct peak position once: the masks of a batch share a few peaks
         # (the scatterer's point lies on every plane, so its copies count as one)
         uniq, inv = torch.unique(ps.coords[peak], dim=0, return_inverse=True)

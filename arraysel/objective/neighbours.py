@@ -5,8 +5,8 @@ neighbour keeps exactly ``k`` active elements; a selection of ``k`` of ``Ne`` el
 ``k (Ne - k)`` of them.
 
 :func:`evaluate_swaps` scores the neighbours ``(out[i], into[i])`` of ``mask``: through the
-objective's own ``evaluate_swaps`` when it has the capability
-(:class:`~arraysel.objective.contract.ScoresSwaps`: it exploits what the neighbours share and
+objective's neighbourhood when it has the capability (``objective.neighbourhood()``,
+:class:`~arraysel.objective.contract.Neighbourhood`: it exploits what the neighbours share and
 returns the values scoring them independently gives), otherwise by building the neighbour masks
 (:func:`swap_masks`) and calling ``evaluate``. Either way the result is what ``evaluate`` of the
 neighbour masks returns, in the order of the pairs.
@@ -15,19 +15,19 @@ A *move* of ``m`` elements switches the active elements ``out[i, :]`` off and th
 elements ``into[i, :]`` on at once (a segment shift is one: it moves a group of active elements
 together; rows of fewer elements are padded with ``-1``, :func:`moves_between`);
 :func:`evaluate_moves` scores the neighbours ``(out[i], into[i])`` (``(B, m)`` each)
-through the objective's own ``evaluate_moves`` when it has one
-(:class:`~arraysel.objective.contract.ScoresMoves`), else, for ``m = 1``, its ``evaluate_swaps``,
-else ``evaluate`` of the masks (:func:`move_masks`).
+through the objective's neighbourhood when it has one, else ``evaluate`` of the masks
+(:func:`move_masks`).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from arraysel.errors import SelectionError
+from arraysel.objective.contract import MovesNeighbourhood, Neighbourhood
 from arraysel.selection import flagged_elements
 
 __all__ = ["swap_pairs", "swap_masks", "evaluate_swaps", "check_swaps", "check_moves", "move_masks", "moves_between",
-           "evaluate_moves", "prepare_neighbourhoods"]
+           "evaluate_moves", "swaps_as_moves", "prepare_neighbourhoods", "neighbourhood_of"]
 
 
 def swap_pairs(mask: np.ndarray, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -120,12 +120,10 @@ def swap_masks(mask, out, into) -> np.ndarray:
 
 def evaluate_swaps(objective, mask, out, into) -> dict[str, np.ndarray]:
     """What ``objective.evaluate`` returns for the neighbours ``(out[i], into[i])`` of ``mask``
-    (``{name: float64 (B,)}``), through the objective's ``evaluate_swaps`` when it has one."""
+    (``{name: float64 (B,)}``), through the objective's neighbourhood
+    (:func:`neighbourhood_of`) when it has one."""
     m, a, b = check_swaps(mask, out, into)
-    own = getattr(objective, "evaluate_swaps", None)
-    if callable(own):
-        return own(m, a, b)
-    return objective.evaluate(swap_masks(m, a, b))
+    return evaluate_moves(objective, m, a[:, None], b[:, None])
 
 
 def move_masks(mask, out, into) -> np.ndarray:
@@ -153,26 +151,61 @@ def moves_between(mask, cands) -> tuple[np.ndarray, np.ndarray]:
 def evaluate_moves(objective, mask, out, into) -> dict[str, np.ndarray]:
     """What ``objective.evaluate`` returns for the neighbours of ``mask`` that switch the elements
     ``out[i]`` off and ``into[i]`` on (``(B, m)`` each; ``{name: float64 (B,)}``): through the
-    objective's ``evaluate_moves`` when it has one, for ``m = 1`` its ``evaluate_swaps``, else
-    ``evaluate`` of the masks."""
+    objective's neighbourhood (:func:`neighbourhood_of`) when it has
+    one, else ``evaluate`` of the masks. A search asks for the neighbourhood once and keeps it;
+    this function asks at every call."""
     m, a, b = check_moves(mask, out, into)
-    own = getattr(objective, "evaluate_moves", None)
-    if callable(own):
-        return own(m, a, b)
-    if a.shape[1] == 1 and (a >= 0).all() and callable(getattr(objective, "evaluate_swaps", None)):
-        return objective.evaluate_swaps(m, a[:, 0], b[:, 0])
+    nb = neighbourhood_of(objective)
+    if nb is not None:
+        return nb.evaluate(m, a, b)
     return objective.evaluate(move_masks(m, a, b))
 
 
+def swaps_as_moves(objective, evaluate_swaps):
+    """``evaluate_moves(mask, out, into)`` of an objective that scores one-swaps only
+    (``evaluate_swaps``): moves of one element each go to it, other moves to ``evaluate`` of their
+    masks."""
+    def evaluate(mask, out, into):
+        m, a, b = check_moves(mask, out, into)
+        if a.shape[1] == 1 and (a >= 0).all():
+            return evaluate_swaps(m, a[:, 0], b[:, 0])
+        return objective.evaluate(move_masks(m, a, b))
+
+    return evaluate
+
+
 def prepare_neighbourhoods(objective) -> float:
-    """Do an objective's one-off work for scoring neighbourhoods now (its
-    ``prepare_neighbourhoods()``, where it has one: the physics objective forms the pair-image
-    rows its :meth:`evaluate_swaps` gathers); returns the seconds it took. The runners call it
-    before the budget of a run whose selector scores neighbourhoods starts."""
+    """Do an objective's one-off work for scoring neighbourhoods now (its neighbourhood's
+    ``prepare()``, :func:`neighbourhood_of`, where it has one: the
+    physics objective forms the pair-image rows its neighbourhood gathers); returns the seconds it
+    took. The runners call it before the budget of a run whose selector scores neighbourhoods
+    starts."""
     import time
 
-    prepare = getattr(objective, "prepare_neighbourhoods", None)
     t0 = time.perf_counter()
-    if callable(prepare):
-        prepare()
+    nb = neighbourhood_of(objective)
+    if nb is not None:
+        nb.prepare()
     return time.perf_counter() - t0
+
+
+def neighbourhood_of(objective) -> Neighbourhood | None:
+    """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
+    written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``,
+    or ``evaluate`` of the masks) and ``prepare_neighbourhoods`` methods
+    (:class:`MovesNeighbourhood`), when it has one of them besides ``evaluate``; else ``None``. The one
+    place the optional methods are looked up: a search asks once, and keeps what it gets."""
+    own = getattr(objective, "neighbourhood", None)
+    if callable(own):
+        return own()
+    moves = getattr(objective, "evaluate_moves", None)
+    swaps = getattr(objective, "evaluate_swaps", None)
+    prepare = getattr(objective, "prepare_neighbourhoods", None)
+    prepare = prepare if callable(prepare) else None
+    if callable(moves):
+        return MovesNeighbourhood(moves, prepare)
+    if callable(swaps):
+        return MovesNeighbourhood(swaps_as_moves(objective, swaps), prepare)
+    if prepare is not None:  # prepared for neighbourhoods that it scores as their masks
+        return MovesNeighbourhood(lambda m, a, b: objective.evaluate(move_masks(m, a, b)), prepare)
+    return None

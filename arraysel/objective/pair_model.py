@@ -8,7 +8,8 @@ The kernel of a selection whose peak tier 1 certifies is a window of that image
 the window's pixels only. At a 0/1 selection ``m``:
 
 * ``dy/dw_e = J_e = G_e + m_e H_ee``, with ``G_e = sum_{j in m} H_ej`` the element rows that the
-  neighbourhood base of ``m`` already holds (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_base`);
+  neighbourhood base of ``m`` already holds (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_base`,
+  from the bases the objective keeps, :class:`~arraysel.objective.swapbases.SwapBases`);
 * the gradient is ``g = J gy`` with ``gy = dl/dy`` (one backward pass through ``l``);
 * the Hessian is ``J (d2l/dy2) J^T`` (``Ne`` Hessian-vector products through ``l`` alone, in one
   batched pass) plus ``<gy, d2y/dw_e dw_j>``: ``<gy, H_ej>`` off the diagonal and
@@ -29,7 +30,7 @@ import torch
 __all__ = ["pair_model"]
 
 
-def _model_inputs(model, w: torch.Tensor):
+def _model_inputs(model, w: torch.Tensor, bases=None):
     """``(leaf, J, kappa)`` of one point's model at the 0/1 selection ``w`` (1, Ne): its image on
     E as a real leaf ``(1, nz, nx, 2)`` requiring grad, the rows ``J`` (Ne, 2 Npix) float64 and the
     kernel cut from the leaf; None when the kernel is not tier 1's window of the image."""
@@ -44,7 +45,7 @@ def _model_inputs(model, w: torch.Tensor):
         return None
     with torch.no_grad():
         m = w[0].detach()
-        _y, G = basis.swap_base(m)
+        _y, G = basis.swap_base(m, bases)
         ne = m.shape[0]
         ar = torch.arange(ne)
         diag = basis.pair_rows(basis.pair_lookup()[ar, ar]).to(G.device, torch.float64)
@@ -85,7 +86,7 @@ def pair_model(objective, mask, hessian: bool = True):
                         device=objective.device).reshape(1, ne)
     parts = []
     for model in objective.psfs:
-        got = _model_inputs(model, w)
+        got = _model_inputs(model, w, objective.swap_bases(model))
         if got is None:
             return None
         parts.append(got)

@@ -1,9 +1,13 @@
-"""The objective every selection strategy is judged by.
+"""The objective every selection strategy is judged by: one objective over a scene's imagers.
 
-:class:`Objective` wraps a scene's PSF model and metrics:
+:class:`Objective` scores the plane sets of a scene's imagers (:mod:`arraysel.physics.imaging`;
+:func:`~arraysel.objective.imagers.scene_imagers`: one kernel per field point of a 1-D probe, the
+three planes of a matrix probe's 3-D PSF) against the imagers' full-array plane sets
+(:func:`~arraysel.objective.plane_metrics.plane_metrics`):
 
 * :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks,
-  returning every Table-1 metric (chunked, so memory stays bounded);
+  returning every Table-1 metric (chunked, so memory stays bounded), and the figures of merit of
+  2-D arrays (``PSL_dB``, ``width_x_6dB``, ``width_y_6dB``) on a 3-D scene;
 * :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft
   element weights (the same weights are the TX apodization and the RX
   channel weights);
@@ -15,16 +19,16 @@ It counts evaluated masks, gradient steps and the wall time spent inside it,
 so a comparison can report every strategy's budget and overhead.
 Only the terms with a non-zero weight are computed.
 
-A scene with several field points (``medium.points``) has one
-:class:`~arraysel.physics.psf.PSFModel` per point (``Objective.psfs``); each point's
-kernel is the window centred on its own peak, scored against its own full-array
+A scene with several field points (``medium.points``) has one imager per point
+(``Objective.imagers``; ``Objective.psfs`` their :class:`~arraysel.physics.psf.PSFModel`);
+each point's kernel is the window centred on its own peak, scored against its own full-array
 reference. The headline metrics (:data:`METRIC_NAMES`) are then the aggregate
 ``metrics.aggregate`` chooses (the mean over the points, or the worst point),
 and :meth:`Objective.evaluate` adds every metric per point, their mean and
 their worst (:func:`point_metric_names`). A one-point scene returns exactly
-the headline metrics, as before. See ``docs/scenes.md``.
+the headline metrics (and a 3-D scene its figures of merit), as before. See ``docs/scenes.md``.
 
-When a point has no fast path, the objective logs once, when it is built, that
+When an imager has no fast path, the objective logs once, when it is built, that
 it uses the exact path, with its estimated time per mask and memory
 (:meth:`Objective.exact_notice`), and the first evaluation of several masks
 logs its estimated duration.
@@ -38,14 +42,16 @@ import time
 import numpy as np
 import torch
 
+from arraysel.objective import imagers as I
 from arraysel.objective import metrics as M
 from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.pair_model import pair_model
+from arraysel.objective.plane_metrics import plane_metric_names, plane_metrics
 from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.objective.tensors import objective_device
+from arraysel.physics.imaging import PlaneSet
 from arraysel.selection import masks_from_indices
-from arraysel.physics.psf import PSFModel
 from arraysel.scenes.schema import Scene, load_scene
 
 _log = logging.getLogger(__name__)
@@ -53,6 +59,9 @@ _log = logging.getLogger(__name__)
 METRIC_NAMES = M.METRIC_NAMES
 #: aggregates over the field points of a several-point scene
 AGGREGATES = ("mean", "worst")
+#: most masks per batch of :meth:`Objective.evaluate` on a 1-D scene (:data:`arraysel.objective.imagers.DEFAULT_CHUNK`)
+DEFAULT_CHUNK = I.DEFAULT_CHUNK
+_fmt_seconds = I._fmt_seconds
 
 
 def point_metric_names(n_points: int) -> tuple[str, ...]:
@@ -69,147 +78,168 @@ def point_metric_names(n_points: int) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _fmt_seconds(sec: float) -> str:
-    if sec < 1:
-        return f"{sec * 1e3:.0f} ms"
-    if sec < 120:
-        return f"{sec:.1f} s"
-    if sec < 7200:
-        return f"{sec / 60:.1f} min"
-    return f"{sec / 3600:.1f} h"
+def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
+    """``masks`` (B, Ne) or (Ne,) (numpy or torch) as a (B, Ne) tensor on ``device`` in ``dtype``;
+    SelectionError for a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
+    m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
+    if m.dim() == 1:
+        m = m[None]
+    if m.dim() != 2 or m.shape[1] != n_elements:
+        raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
+    m = m.to(device, dtype)
+    if not bool(torch.isfinite(m).all()):
+        raise SelectionError("masks contain NaN or Inf")
+    if bool((m < 0).any()):
+        raise SelectionError("mask weights must be >= 0")
+    if bool((m.sum(1) == 0).any()):
+        bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
+        raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
+    return m
 
 
-#: most masks per batch of :meth:`Objective.evaluate`; each model takes at most its
-#: :meth:`~arraysel.physics.psf.operator.PSFModel.masks_per_batch` at once (a memory budget:
-#: the paper scene 256, the 128-element built-in scenes about 200). Against 128 on the paper
-#: scene: 1.85 against 2.18 ms a mask (six rounds of 3000 masks alternated in one process; the
-#: image product on E runs 10 % faster on the larger batch) and 10.9-11.0 against 11.4-11.5 s
-#: for 5000 masks whole-process, for a resident peak 0.2 GiB higher (1.40 against 1.18 GB).
-#: The scores do not depend on it (the same CSV to the last digit).
-DEFAULT_CHUNK = 256
+def aggregated(per_point: list[dict], aggregate: str) -> dict[str, np.ndarray]:
+    """The columns of a several-point scene from each point's metrics ``{name: (B,)}``: the headline
+    metrics (the points' mean, or their worst for ``aggregate = "worst"``), then every metric per
+    point, their mean and their worst (:func:`point_metric_names`)."""
+    res = {}
+    for name in METRIC_NAMES:
+        st = torch.stack([d[name] for d in per_point], -1)
+        mean, worst = st.mean(-1), st.amax(-1)
+        res[name] = (mean if aggregate == "mean" else worst).numpy()
+        for p, d in enumerate(per_point):
+            res[f"{name}@p{p}"] = d[name].numpy()
+        res[f"{name}@mean"] = mean.numpy()
+        res[f"{name}@worst"] = worst.numpy()
+    return res
+
+
+def images_out(res: dict, kernels: bool, planes: bool, imagers) -> dict:
+    """``res`` with the plane sets :meth:`Objective._score` kept as ``"kernels"`` ((B, w, w), or
+    (B, P, w, w) for P points) and/or ``"planes"`` (``{name: (B, H, W)}``, or ``{"p<i>": ...}``), numpy."""
+    sets = res.pop("_planes", None)
+    one = len(imagers) == 1
+    if kernels:
+        w = imagers[0].setup.window
+        ks = [s.kernel.numpy() if s is not None else np.zeros((0, w, w), np.complex64) for s in sets]
+        res["kernels"] = ks[0] if one else np.stack(ks, 1)
+    if planes:
+        per = [{k: v.numpy() for k, v in s.images.items()} if s is not None else {} for s in sets]
+        res["planes"] = per[0] if one else {f"p{i}": d for i, d in enumerate(per)}
+    return res
+
+
+class _Timer:
+    """Adds the wall time of a ``with`` block to ``objective.seconds``."""
+
+    def __init__(self, objective):
+        self.objective = objective
+
+    def __enter__(self):
+        self.t = time.perf_counter()
+
+    def __exit__(self, *a):
+        self.objective.seconds += time.perf_counter() - self.t
 
 
 class Objective:
-    """Batched, differentiable PSF objective of a scene (see module docstring).
+    """Batched, differentiable PSF objective of a scene over its imagers (see module docstring).
 
     Parameters
     ----------
     scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one.
     device : "cpu" or "cuda" (or a torch.device).
     dtype : torch.float32 (default) or torch.float64.
-    chunk : masks per batch inside :meth:`evaluate` (:data:`DEFAULT_CHUNK`).
+    chunk : masks per batch inside :meth:`evaluate` (default :data:`DEFAULT_CHUNK`, 128 on a 3-D scene).
+    fast : False: the exact paths only.
+    imagers : the imagers to score (default :func:`~arraysel.objective.imagers.scene_imagers` of the
+        scene, read with its settings).
     """
 
     metric_names = METRIC_NAMES
+    #: "kernels" when each field point's image is one 2-D kernel (:meth:`kernels`), "planes" when the
+    #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`)
+    image_kind: str | None = None
 
-    def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int = DEFAULT_CHUNK,
-                 fast: bool = True):
+    def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int | None = None,
+                 fast: bool = True, imagers=None):
         self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
         self.device = objective_device(device)
         self.dtype = dtype
-        self.chunk = int(chunk)
         self.fast_requested = bool(fast)
         #: the scene's settings, read once: the objective does not go back to the scene
         self.settings = st = self.scene.objective_settings()
-        self.setups = self.scene.psf_setups()
-        setup = self.setups[0]
-        self.setup = setup
-        self.n_elements = setup.probe.n_elements
+        if imagers is None:
+            imagers = I.scene_imagers(self.scene, st, dtype=dtype, device=self.device, fast=fast)
+        #: the imagers (one per field point), :mod:`arraysel.physics.imaging`
+        self.imagers = list(imagers)
+        self.chunk = int(I.default_chunk(self.imagers) if chunk is None else chunk)
+        self.n_elements = self.imagers[0].n_elements
         self.k = st.k
-        #: the layout (ObjectiveContract's optional capability): a 1-D probe has no grid; its element
-        #: centres (Ne, 3) as (x, y, z) in metres
-        self.element_grid = None
-        xe, ze, _, _ = setup.probe.element_positions()
-        self.element_positions = np.stack([xe, np.zeros_like(xe), ze], axis=1)
+        #: the layout (ObjectiveContract's optional capability): the element grid (ny, nx) of a 2-D array
+        #: on a full grid (else None) and the element centres (Ne, 3) as (x, y, z) in metres
+        self.element_grid, self.element_positions = self.imagers[0].layout()
         #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
         self.constraints = self.scene.constraints()
-        #: field points (x, z) in metres, one PSF model each (``self.psfs``; ``self.psf`` is the first)
-        self.points = self.scene.points()
-        self.n_points = len(self.setups)
+        #: the field points, one per imager
+        self.points = I.scene_points(self.scene)
+        self.n_points = len(self.imagers)
         self.aggregate = st.aggregate
-        margin, block = st.fast_margin, st.fast_block
-        self.psfs = [PSFModel(s, dtype=dtype, device=self.device, fast=fast, margin=margin, block=block)
-                     for s in self.setups]
-        self.psf = self.psfs[0]
-        if self.n_points > 1:  # the points share the memory cap: each keeps its share of DAS plans
-            for p in self.psfs:
-                p.plan_cache_elements = max(1, p.plan_cache_limit() // self.n_points)
-            for p in self.psfs:
-                p.other_bytes = sum(q.plan_cache_bytes() + q.model_bytes() for q in self.psfs if q is not p)
-        self._announced = False
-        if any(p.basis is None for p in self.psfs):
-            _log.warning("%s", self.exact_notice())
-        self.metric_kw = dict(pitch=setup.pitch, wavelength=setup.wavelength, **st.metric_radii)
-        #: extra result keys of a several-point scene: every metric per point, their mean and worst
-        self.breakdown_names = point_metric_names(self.n_points)
+        first = self.imagers[0]
+        self.image_kind = "kernels" if all(im.pitch is not None for im in self.imagers) else "planes"
+        self.metric_kw = dict(wavelength=st.wavelength, **st.metric_radii)
+        if self.image_kind == "kernels":
+            self.metric_kw = dict(pitch=first.pitch[0], **self.metric_kw)
+        self._columns = plane_metric_names(first.plane_names, first.pitch)
+        #: extra result keys: every metric per point, their mean and worst (several points), or the
+        #: figures of merit of a set of planes
+        self.breakdown_names = (point_metric_names(self.n_points) if self.n_points > 1
+                                else tuple(n for n in self._columns if n not in METRIC_NAMES))
         self.weights = dict(st.weights)
-        self.evaluations = 0
-        self.gradient_steps = 0
-        self.seconds = 0.0
-        self.fallbacks = 0
+        self._announced = False
+        self._neigh = None
+        if any(im.exact for im in self.imagers):
+            _log.warning("%s", self.exact_notice())
+        self.reset_counters()
         #: :meth:`mask_hessian` from the pair basis (:mod:`arraysel.objective.pair_model`) where it
         #: applies (False: always the autograd of ``mask_loss``)
-        self.hessian_from_pairs = True
+        self.hessian_from_pairs = self.image_kind == "kernels"
+        # what the imagers hold, under the names of the former 1-D and 3-D objectives: the 1-D points'
+        # PSFModel (``psfs``, ``psf`` the first) and setups; the first imager's setup, physics model,
+        # pixel positions ``{plane: (H, W, 3)}`` in metres, and why it uses its exact path (None: fast)
+        self.psfs = [im.model for im in self.imagers if self.image_kind == "kernels"]
+        self.psf = self.psfs[0] if self.psfs else None
+        self.setups = [im.setup for im in self.imagers]
+        self.setup, self.model, self.coords = first.setup, first.model, first.coords
+        self.exact_reason = next((im.exact_reason for im in self.imagers if im.exact), None)
+
+    @property
+    def fast(self) -> bool:
+        """True when every imager has its fast path."""
+        return not any(im.exact for im in self.imagers)
 
     # ------------------------------------------------------------------ exact-path notice
     def estimate_seconds(self, n_masks: int = 1) -> float:
-        """Estimated wall time (s) of :meth:`evaluate` on ``n_masks`` masks (every field point).
-
-        Exact-path points are estimated by :meth:`PSFModel.exact_seconds_per_mask`; fast-path
-        points count as free (their cost is milliseconds a mask).
-        """
-        total = 0.0
-        for p in self.psfs:
-            if p.basis is None:
-                total += n_masks * p.exact_seconds_per_mask(min(self.chunk, p.masks_per_batch(), max(1, n_masks)))
-                if p._ref is None:  # the full array's reference kernel comes first, once
-                    total += p.exact_seconds_per_mask(1)
-        return total
+        """Estimated wall time (s) of :meth:`evaluate` on ``n_masks`` masks (every imager;
+        :func:`~arraysel.objective.imagers.estimate_seconds`)."""
+        return I.estimate_seconds(self.imagers, n_masks, self.chunk)
 
     def exact_notice(self, n_masks: int | None = None) -> str:
         """One line saying that (and why) the scene runs on the exact path, with time and memory."""
-        slow = [i for i, p in enumerate(self.psfs) if p.basis is None]
-        if not slow:
-            return f"scene {self.settings.name!r}: fast PSF path on every field point"
-        why = "disabled (fast=False)" if not self.fast_requested else "unavailable (its precomputation is over its cap)"
-        where = "" if self.n_points == 1 else f" for {len(slow)} of {self.n_points} field points"
-        per = sum(p.exact_seconds_per_mask() for p in self.psfs if p.basis is None)
-        mem = max(p.exact_bytes(p.masks_per_batch()) for p in (self.psfs[i] for i in slow))
-        text = (f"scene {self.settings.name!r}: PSF fast path {why}{where}; using the exact path: about "
-                f"{_fmt_seconds(per)} per mask (estimated), memory up to {mem / 2 ** 30:.1f} GiB "
-                f"(cap {self.psfs[slow[0]].memory_limit / 2 ** 30:.1f} GiB, ARRAYSEL_MEMORY_GIB)")
-        if n_masks is not None:
-            text += f"; {n_masks} mask(s): about {_fmt_seconds(self.estimate_seconds(n_masks))}"
-        return text
+        return I.exact_notice(self.settings.name, self.imagers, self.chunk, n_masks)
 
     # ------------------------------------------------------------------ helpers
     def _timed(self):
-        obj = self
-
-        class _T:
-            def __enter__(self):
-                self.t = time.perf_counter()
-
-            def __exit__(self, *a):
-                obj.seconds += time.perf_counter() - self.t
-
-        return _T()
+        return _Timer(self)
 
     def as_masks(self, masks) -> torch.Tensor:
-        m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
-        if m.dim() == 1:
-            m = m[None]
-        if m.dim() != 2 or m.shape[1] != self.n_elements:
-            raise SelectionError(f"masks must have shape (B, {self.n_elements}), got {tuple(m.shape)}")
-        m = m.to(self.device, self.dtype)
-        if not bool(torch.isfinite(m).all()):
-            raise SelectionError("masks contain NaN or Inf")
-        if bool((m < 0).any()):
-            raise SelectionError("mask weights must be >= 0")
-        if bool((m.sum(1) == 0).any()):
-            bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
-            raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
-        return m
+        """``masks`` (B, Ne) or (Ne,) as checked weights on the objective's device and dtype."""
+        return checked_masks(masks, self.n_elements, self.device, self.dtype)
+
+    def _weights(self, weights: torch.Tensor) -> torch.Tensor:
+        w = weights if weights.dim() == 2 else weights[None]
+        if w.shape[-1] != self.n_elements:
+            raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
+        return w.to(self.device, self.dtype)
 
     def _point_list(self, point):
         if point is None:
@@ -218,68 +248,85 @@ class Objective:
             raise ParameterError(f"point = {point!r} is out of range; the scene has {self.n_points} field point(s)")
         return [point]
 
+    def _kernels_only(self, what: str) -> None:
+        if self.image_kind != "kernels":
+            raise ParameterError(f"a 3-D scene has planes, not a 2-D kernel: use Objective.{what}")
+
+    def _one_imager(self):
+        if self.n_points != 1:
+            raise ParameterError(f"the scene has {self.n_points} field points, each with its own kernel: "
+                                 "use Objective.kernels(masks, point)")
+        return self.imagers[0]
+
+    # ------------------------------------------------------------------ images
     def reference_kernel(self, point: int | None = None) -> torch.Tensor:
         """The full-array PSF kernel: (window, window), or (P, window, window) for a several-point
         scene when ``point`` is None."""
+        self._kernels_only("reference_planes")
         if point is None and self.n_points == 1:
             point = 0
         if point is not None:
-            return self.psfs[self._point_list(point)[0]].reference_kernel()
-        return torch.stack([p.reference_kernel() for p in self.psfs])
+            return self.imagers[self._point_list(point)[0]].reference().kernel[0]
+        return torch.stack([im.reference().kernel[0] for im in self.imagers])
 
     def kernels(self, masks, point: int | None = None) -> torch.Tensor:
         """Complex PSF kernels, no grad: (B, window, window) for one point (``point`` or a
         one-point scene), (B, P, window, window) for every point of a several-point scene."""
+        self._kernels_only("planes")
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
             pts = self._point_list(0 if point is None and self.n_points == 1 else point)
             out = []
             for p in pts:
-                model = self.psfs[p]
-                out.append(torch.cat([model.kernels(m[i:i + n]) for i, n in self._chunks(model, m.shape[0])]))
+                im = self.imagers[p]
+                out.append(torch.cat([im.image(m[i:i + n]).kernel for i, n in self._chunks(im, m.shape[0])]))
             return out[0] if len(pts) == 1 and (point is not None or self.n_points == 1) else torch.stack(out, 1)
+
+    def planes(self, weights) -> dict[str, torch.Tensor]:
+        """The complex planes ``{name: (B, H, W)}`` of weights (B, Ne), differentiable (one imager)."""
+        return self._one_imager().image(self._weights(torch.as_tensor(weights))).images
+
+    def reference_planes(self) -> dict[str, torch.Tensor]:
+        """The full array's planes ``{name: (1, H, W)}`` (computed once, no gradient; one imager)."""
+        return self._one_imager().reference().images
 
     def metrics_of_kernels(self, kappa: torch.Tensor, terms=None) -> dict[str, torch.Tensor]:
         """Metrics of kernels shaped as :meth:`kernels` returns them ((B,) or (B, P) values)."""
         ref = self.reference_kernel().to(kappa.dtype)
         return M.psf_metrics(kappa, kappa_ref=ref, terms=terms, **self.metric_kw)
 
-    def _chunks(self, model: PSFModel, n: int):
-        """(start, size) of the mask batches: ``chunk`` masks, fewer when the exact path's memory says so."""
-        step = max(1, min(self.chunk, model.masks_per_batch()))
+    def _chunks(self, imager, n: int):
+        """(start, size) of the mask batches: ``chunk`` masks, fewer when the imager's memory says so."""
+        step = max(1, min(self.chunk, imager.masks_per_batch()))
         return [(i, min(step, n - i)) for i in range(0, n, step)]
 
-    def _aggregate(self, per_point: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, worst) over points of per-point values [(B,), ...]; worst = largest (lower is better)."""
-        st = torch.stack(per_point, -1)
-        return st.mean(-1), st.amax(-1)
+    def _metrics(self, imager, planes: PlaneSet, terms=None) -> dict[str, torch.Tensor]:
+        kw = {k: v for k, v in self.metric_kw.items() if k != "pitch"}
+        return plane_metrics(planes, imager.reference(), terms=terms, **kw)
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, masks, return_kernels: bool = False, receive=None) -> dict[str, np.ndarray]:
-        """Every Table-1 metric of a batch of masks: {name: float64 array (B,)}.
+    def evaluate(self, masks, return_kernels: bool = False, return_planes: bool = False,
+                 receive=None) -> dict[str, np.ndarray]:
+        """Every metric of a batch of masks: {name: float64 array (B,)}.
 
         masks: (B, Ne) 0/1 (or weights >= 0), numpy or torch. No gradient.
-        With ``return_kernels`` the dict also holds ``"kernels"`` (B, w, w) complex.
-        ``receive``: separate receive masks (B, Ne), ``masks`` then the transmit aperture
-        (exact path; :mod:`arraysel.objective.aperture`).
+        With ``return_kernels`` the dict also holds ``"kernels"`` (B, w, w) complex (a 1-D scene;
+        (B, P, w, w) for P points); with ``return_planes`` ``"planes"``, ``{name: complex (B, H, W)}``.
+        ``receive``: separate receive masks (B, Ne), ``masks`` then the transmit aperture (a 1-D
+        scene's exact path; :mod:`arraysel.objective.aperture`).
         """
-        if receive is not None:
-            return self._evaluate_apertures(masks, receive, return_kernels)
+        if return_kernels:
+            self._kernels_only("evaluate(masks, return_planes=True)")
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            if not self._announced and m.shape[0] > 1 and any(p.basis is None for p in self.psfs):
+            r = None if receive is None else self.as_masks(receive)
+            if r is None and not self._announced and m.shape[0] > 1 and any(im.exact for im in self.imagers):
                 self._announced = True
                 _log.warning("evaluating %d masks on the exact PSF path: about %s", m.shape[0],
                              _fmt_seconds(self.estimate_seconds(int(m.shape[0]))))
-            res = self._score(int(m.shape[0]), lambda model, i, n: model.kernels(m[i:i + n], return_info=True),
-                              return_kernels)
-        return res
-
-    def _evaluate_apertures(self, masks, receive, return_kernels: bool) -> dict[str, np.ndarray]:
-        with torch.no_grad(), self._timed():
-            m, r = self.as_masks(masks), self.as_masks(receive)
-            return self._score(int(m.shape[0]), lambda model, i, n: model.kernels(
-                m[i:i + n], return_info=True, receive=r[i:i + n]), return_kernels)
+            res = self._score(int(m.shape[0]), lambda im, i, n: im.image_masks(
+                m[i:i + n], None if r is None else r[i:i + n]), return_kernels or return_planes)
+        return self._images_out(res, return_kernels, return_planes)
 
     def evaluate_swaps(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
         """:meth:`evaluate` of the one-swap neighbours of a 0/1 selection ``mask`` (Ne,): element
@@ -295,76 +342,114 @@ class Objective:
         """:meth:`evaluate` of the neighbours of a 0/1 selection ``mask`` (Ne,) that switch the
         elements ``out[i]`` off and ``into[i]`` on (int ``(B, m)`` each;
         :class:`~arraysel.objective.contract.ScoresMoves`;
-        :func:`arraysel.objective.neighbours.evaluate_moves` calls it). The same values, to
-        rounding, as scoring the neighbour masks independently, and counted as as many
-        evaluations; the certificates' channel envelopes and the images of the neighbours are
-        corrected from the selection's own (:meth:`~arraysel.physics.psf.PSFModel.swap_kernels`),
-        a neighbour they do not settle goes on to the refinement and the exact path as in
-        :meth:`evaluate`. Rows of ``out`` and ``into`` may be padded with ``-1`` (moves of
-        different sizes in one call)."""
-        from arraysel.objective.neighbours import check_moves, move_masks
+        :func:`arraysel.objective.neighbours.evaluate_moves` calls it), counted as ``B``
+        evaluations: the same values, to rounding, as scoring the neighbour masks independently.
+        Each imager images the neighbours from the selection where it can
+        (:meth:`~arraysel.physics.imaging.Imager.image_moves`: on a 1-D point the certificates'
+        channel envelopes and the images of the neighbours are corrected from the selection's own,
+        :meth:`~arraysel.physics.psf.PSFModel.swap_kernels`); on a 3-D scene's fast path a dense set
+        of one-element swaps (a whole neighbourhood) is scored from the selection's planes plus the
+        low-rank change of each swap (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
+        and ``into`` may be padded with ``-1`` (moves of different sizes in one call)."""
+        from arraysel.objective.matrix_neighbours import check_selection
+        from arraysel.objective.neighbours import check_moves
 
         m, a, b = check_moves(mask, out, into)
-        if type(self).evaluate is not Objective.evaluate:
-            # a subclass that scores masks its own way (MatrixObjective): its evaluate of the masks
-            return self.evaluate(move_masks(m, a, b))
-        if m.size != self.n_elements:
-            raise SelectionError(f"mask must have shape ({self.n_elements},), got ({m.size},)")
-        if not m.any():
-            raise SelectionError("empty selection (no active element): mask")
+        check_selection(m, self.n_elements)
+        nb = self._neighbourhood()
+        if (nb is not None and not return_kernels and a.shape[0] and a.shape[1] == 1 and (a >= 0).all()
+                and nb.dense(a[:, 0])):
+            with torch.no_grad(), self._timed():
+                nb.select(m)
+                res = nb.score(nb.swap_columns(a[:, 0], b[:, 0]), int(a.shape[0]))
+                self.evaluations += int(a.shape[0])
+            return {k: res[k] for k in self._columns}
+        if return_kernels:
+            self._kernels_only("evaluate_moves")
         with torch.no_grad(), self._timed():
             base = self.as_masks(m[None])[0]
-            return self._score(int(a.shape[0]), lambda model, i, n: model.swap_kernels(base, a[i:i + n], b[i:i + n],
-                                                                                         return_info=True),
-                               return_kernels)
+            res = self._score(int(a.shape[0]), lambda im, i, n: im.image_moves(base, a[i:i + n], b[i:i + n],
+                                                                                  bases=self.swap_bases(im)),
+                              return_kernels)
+        return self._images_out(res, return_kernels, False)
+
+    def _neighbourhood(self):
+        """The neighbourhood that scores all swaps of a selection from its planes, or None
+        (:func:`~arraysel.objective.imagers.neighbourhood_for`), formed once."""
+        if self._neigh is None:
+            self._neigh = I.neighbourhood_for(self) or False
+        return self._neigh or None
+
+    def swap_bases(self, imager):
+        """The neighbourhood bases kept for ``imager`` (one of :attr:`imagers`;
+        :class:`~arraysel.objective.swapbases.SwapBases`): the state a search's neighbourhoods
+        share, kept here, not in the physics."""
+        from arraysel.objective.swapbases import SwapBases
+
+        return self.__dict__.setdefault("_swap_bases", {}).setdefault(id(imager), SwapBases())
 
     def prepare_neighbourhoods(self) -> bool:
-        """Form now the pair-image rows :meth:`evaluate_swaps` gathers (each field point's basis,
-        :meth:`~arraysel.physics.psf.basis.PairBasis.fill_pair_rows`; a few seconds and
-        ``k``-independent memory: 0.32 GiB on the paper scene, 1.3 GiB for 128 elements), so that
-        a search's first neighbourhoods do not pay for them. Returns whether every basis keeps
-        all its rows (False: beyond the memory cap, each neighbourhood forms the rows it needs)."""
+        """Form now what :meth:`evaluate_swaps` shares between selections, so that a search's first
+        neighbourhoods do not pay for it: each 1-D point's pair-image rows
+        (:meth:`~arraysel.physics.psf.basis.PairBasis.fill_pair_rows`; a few seconds and
+        ``k``-independent memory: 0.32 GiB on the paper scene, 1.3 GiB for 128 elements), a 3-D
+        scene's elements' transmit rows, their diagonal terms and the right factors of the cross terms
+        (:mod:`arraysel.objective.matrix_neighbours`; about 1.3 GiB on matrix-1024). Returns whether
+        everything is kept (False: beyond the memory cap, each neighbourhood forms the rows it needs)."""
         done = True
-        for model in self.psfs:
-            basis = getattr(model, "basis", None)
-            if basis is not None:
-                done = basis.fill_pair_rows() and done
+        for im in self.imagers:
+            done = im.prepare_moves() and done
+        nb = self._neighbourhood()
+        if nb is not None:
+            nb.diagonal()
+            nb.rights()
         return done
 
-    def _score(self, n_masks: int, kernels_of, return_kernels: bool) -> dict[str, np.ndarray]:
-        """Every metric of ``n_masks`` selections whose kernels ``kernels_of(model, start, size)``
-        gives (``(kernels, fell_back)``) batch by batch (:meth:`_chunks`) on each field point."""
-        per = [{k: [] for k in METRIC_NAMES} for _ in self.psfs]
-        kern: list = [[] for _ in self.psfs]
-        for p, model in enumerate(self.psfs):
-            ref = model.reference_kernel()
-            for i, n in self._chunks(model, n_masks):
-                k, fb = kernels_of(model, i, n)
+    def neighbourhood(self):
+        """The :class:`~arraysel.objective.contract.Neighbourhood` a search scores neighbours with:
+        :meth:`evaluate_moves`, prepared by :meth:`prepare_neighbourhoods`; None for a subclass
+        that scores masks its own way and has no neighbourhood of its own (its neighbours are
+        scored as masks), and a 3-D scene off its fast path on the CPU."""
+        from arraysel.objective.contract import MovesNeighbourhood
+
+        if type(self).evaluate is not Objective.evaluate or (self.image_kind == "planes"
+                                                             and self._neighbourhood() is None):
+            return None
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
+
+    def loss_model(self):
+        """The :class:`~arraysel.objective.contract.LossModel` of :meth:`mask_loss`: the gradient
+        by autograd, the Hessian by :meth:`mask_hessian`."""
+        from arraysel.objective.contract import AutogradLossModel
+
+        return AutogradLossModel(self.mask_loss, self.dtype, self.device, hessian=self.mask_hessian)
+
+    def _score(self, n_masks: int, images_of, keep: bool) -> dict:
+        """Every metric of ``n_masks`` selections whose plane sets ``images_of(imager, start, size)``
+        gives (``(PlaneSet, fell_back)``) batch by batch (:meth:`_chunks`) on each imager; with
+        ``keep``, their plane sets (on the CPU) under ``"_planes"``, one per imager."""
+        per = [{k: [] for k in self._columns} for _ in self.imagers]
+        kept: list = [[] for _ in self.imagers]
+        for p, im in enumerate(self.imagers):
+            for i, n in self._chunks(im, n_masks):
+                ps, fb = images_of(im, i, n)
                 self.fallbacks += int(fb.sum())
-                met = M.psf_metrics(k, kappa_ref=ref.to(k.dtype), **self.metric_kw)
-                for name in METRIC_NAMES:
+                met = self._metrics(im, ps)
+                for name in self._columns:
                     per[p][name].append(met[name].double().cpu())
-                if return_kernels:
-                    kern[p].append(k.cpu())
+                if keep:
+                    kept[p].append(ps.map(lambda x: x.cpu()))
         self.evaluations += int(n_masks)
         empty = torch.zeros(0, dtype=torch.float64)
         per_np = [{name: torch.cat(v) if v else empty for name, v in d.items()} for d in per]
-        if self.n_points == 1:
-            res = {name: v.numpy() for name, v in per_np[0].items()}
-        else:
-            res = {}
-            for name in METRIC_NAMES:
-                mean, worst = self._aggregate([d[name] for d in per_np])
-                res[name] = (mean if self.aggregate == "mean" else worst).numpy()
-                for p, d in enumerate(per_np):
-                    res[f"{name}@p{p}"] = d[name].numpy()
-                res[f"{name}@mean"] = mean.numpy()
-                res[f"{name}@worst"] = worst.numpy()
-        if return_kernels:
-            w = self.setup.window
-            ks = [torch.cat(v).numpy() if v else np.zeros((0, w, w), np.complex64) for v in kern]
-            res["kernels"] = ks[0] if self.n_points == 1 else np.stack(ks, 1)
+        res = ({name: v.numpy() for name, v in per_np[0].items()} if self.n_points == 1
+               else aggregated(per_np, self.aggregate))
+        if keep:
+            res["_planes"] = [PlaneSet.cat(k) if k else None for k in kept]
         return res
+
+    def _images_out(self, res: dict, kernels: bool, planes: bool) -> dict:
+        return images_out(res, kernels, planes, self.imagers)
 
     def evaluate_indices(self, selections) -> dict[str, np.ndarray]:
         """:meth:`evaluate` for lists of active element indices (validated, k enforced)."""
@@ -378,26 +463,20 @@ class Objective:
         A several-point scene gives the aggregate over its points that
         ``metrics.aggregate`` chooses (the mean, or the worst point: the largest value).
         """
-        w = weights if weights.dim() == 2 else weights[None]
-        if w.shape[-1] != self.n_elements:
-            raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
-        w = w.to(self.device, self.dtype)
-        r = None if receive is None else receive.to(self.device, self.dtype)
-        return self.terms_of_kernels([model.kernels(w, receive=r) for model in self.psfs], terms)
+        w, r = self._weights(weights), None if receive is None else receive.to(self.device, self.dtype)
+        return self._terms([im.image(w, r) for im in self.imagers], terms)
 
     def terms_of_kernels(self, kappas: list[torch.Tensor], terms=None) -> dict[str, torch.Tensor]:
         """:meth:`psf_terms` of the kernels ``kappas`` (one (B, win, win) tensor per point)."""
-        per = []
-        for model, kappa in zip(self.psfs, kappas):
-            ref = model.reference_kernel().to(kappa.dtype)
-            per.append(M.psf_metrics(kappa, kappa_ref=ref, terms=terms, **self.metric_kw))
+        return self._terms([im.wrap(k) for im, k in zip(self.imagers, kappas)], terms)
+
+    def _terms(self, sets: list[PlaneSet], terms=None) -> dict[str, torch.Tensor]:
+        per = [self._metrics(im, ps, terms) for im, ps in zip(self.imagers, sets)]
         if len(per) == 1:
             return per[0]
-        out = {}
-        for name in per[0]:
-            mean, worst = self._aggregate([d[name] for d in per])
-            out[name] = mean if self.aggregate == "mean" else worst
-        return out
+        # (differentiable) mean over the points, or the worst point: the largest value (lower is better)
+        st = {name: torch.stack([d[name] for d in per], -1) for name in per[0]}
+        return {name: v.mean(-1) if self.aggregate == "mean" else v.amax(-1) for name, v in st.items()}
 
     def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None, receive=None):
         """The scene-weighted PSF loss ``(total (B,), terms)`` of ``weights`` (B, Ne), from their
@@ -407,9 +486,8 @@ class Objective:
         if not need:
             z = weights.sum(-1) * 0
             return z, {}
-        if receive is not None:
-            return training_loss(self.psf_terms(weights, terms=need, receive=receive), wts)
-        terms = self.psf_terms(weights, terms=need) if kappas is None else self.terms_of_kernels(kappas, need)
+        terms = (self.psf_terms(weights, terms=need, receive=receive) if kappas is None
+                 else self.terms_of_kernels(kappas, need))
         return training_loss(terms, wts)
 
     def mask_loss(self, weights: torch.Tensor, receive=None):
@@ -417,7 +495,7 @@ class Objective:
         ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
             w = weights if weights.dim() == 2 else weights[None]
-            total, terms = self._psf_loss(w) if receive is None else self._psf_loss(w, receive=receive)
+            total, terms = self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
             self.evaluations += int(w.shape[0])
@@ -495,13 +573,13 @@ _CACHE: dict = {}
 
 def build_objective(scene="paper", device="cpu", dtype=torch.float32, objective_class=None, **kw) -> Objective:
     """Build (or reuse, within a process) the objective of a scene: an ``objective_class``
-    (default :class:`Objective`; :func:`arraysel.objective.build.build_objective` picks the
-    3-D scenes' :class:`~arraysel.objective.matrix_objective.MatrixObjective`)."""
+    (default :class:`Objective`, 1-D and 3-D scenes alike; :func:`arraysel.objective.build.build_objective`
+    picks a sector scene's :class:`~arraysel.objective.sector_objective.SectorObjective`)."""
     sc = load_scene(scene) if not isinstance(scene, Scene) else scene
     cls = Objective if objective_class is None else objective_class
-    if (sc.is_volume or sc.is_sector) and cls is Objective:
-        raise ParameterError(f"scene {sc.name!r} is a 3-D scene: build it with arraysel.build_objective "
-                             "(arraysel.objective.build), which gives its MatrixObjective or SectorObjective")
+    if sc.is_sector and cls is Objective:
+        raise ParameterError(f"scene {sc.name!r} is a sector scene: build it with arraysel.build_objective "
+                             "(arraysel.objective.build), which gives its SectorObjective")
     key = (cls.__name__, repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
     obj = _CACHE.get(key)
     if obj is None:

@@ -167,6 +167,12 @@ class SectorObjective(Objective):
     def prepare_neighbourhoods(self) -> bool:
         return True
 
+    def evaluate_moves(self, mask, out, into, return_kernels: bool = False) -> dict[str, np.ndarray]:
+        """:meth:`evaluate` of the neighbour masks (the beam pattern has no cheaper neighbourhood)."""
+        from arraysel.objective.neighbours import move_masks
+
+        return self.evaluate(move_masks(mask, out, into))
+
     # ------------------------------------------------------------------ exact per-beam scoring
     @property
     def exact(self):

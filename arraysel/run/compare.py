@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from arraysel.errors import ArrayselError, ParameterError, check_number, error_text as _error_text
+from arraysel.objective.contract import missing_members, objective_info
 from arraysel.report import tables as reporting
 from arraysel.run.experiment import budget_flag, config_label, full_row, with_end_row
 from arraysel.run.isolation import DEFAULT_GRACE_S, UNTIMED_LIMIT_S
@@ -232,7 +233,7 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
     scene_name, scene_dict = _scene_info(objective)
     if old_meta is not None:
         check_resume(old_meta, {"scene": scene_dict, "n_elements": int(objective.n_elements),
-                                "k": int(objective.k), "dtype": str(getattr(objective, "dtype", "")),
+                                "k": int(objective.k), "dtype": _text(objective_info(objective).dtype),
                                 "budget": plan.budget.to_dict()}, out)
     if isolate or (executor is not None and not getattr(executor, "in_process", False)):
         check_isolated(plan.todo(set()))  # refused before anything is written
@@ -362,7 +363,7 @@ def _meta(objective, plan: _Plan, old_meta, scene_name, scene_dict, command_line
         "command_line": list(command_line) if command_line is not None else list(sys.argv),
         "scene_name": scene_name, "scene": scene_dict,
         "n_elements": int(objective.n_elements), "k": int(objective.k),
-        "device": str(getattr(objective, "device", "")), "dtype": str(getattr(objective, "dtype", "")),
+        "device": _text(objective_info(objective).device), "dtype": _text(objective_info(objective).dtype),
         "seeds": all_seeds, "budget": plan.budget.to_dict(), "selectors": sel_meta,
         "versions": _versions(), "cpu_count": os.cpu_count(),
         "executor": executor.describe() if executor is not None else {"executor": "local", "workers": 1},
@@ -386,9 +387,14 @@ def _versions() -> dict:
     return out
 
 
+def _text(value) -> str:
+    """An objective's ``device`` or ``dtype`` as run.json writes it ("" when it says none)."""
+    return "" if value is None else str(value)
+
+
 def _scene_info(objective) -> tuple[str, Any]:
-    scene = getattr(objective, "scene", None)
-    name = getattr(scene, "name", None)
+    info = objective_info(objective)
+    scene, name = info.scene, info.scene_name
     try:
         data = scene.to_dict() if scene is not None else None
     except Exception as exc:  # a scene that cannot describe itself must not stop the run
@@ -429,7 +435,7 @@ def _checked_seeds(seeds) -> list[int]:
 
 
 def _check_objective(objective) -> None:
-    missing = [a for a in ("n_elements", "k", "evaluate") if not hasattr(objective, a)]
+    missing = missing_members(objective)
     if missing:
         raise ParameterError(f"objective must follow the Objective contract (arraysel.objective.contract; "
                              f"it lacks {', '.join(missing)}), got {type(objective).__name__}")

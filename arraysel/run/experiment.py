@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from arraysel.errors import ParameterError, SelectionError, check_number, error_text as _error_text
+from arraysel.objective.contract import objective_info
 from arraysel.report.columns import METRICS, ROW_COLUMNS, TRACE_COLUMNS  # noqa: F401  (re-exported)
 from arraysel.selection import Selection
 from arraysel.constraints import constraints_of
@@ -69,7 +70,7 @@ def _final_metrics(objective, selection: list[int]) -> dict[str, float]:
     """Headline metrics, then a several-point scene's per-point breakdown (``objective.breakdown_names``)."""
     mask = indices_to_mask(selection, int(objective.n_elements))[None, :]
     out = objective.evaluate(mask)
-    names = METRICS + tuple(getattr(objective, "breakdown_names", ()))
+    names = METRICS + objective_info(objective).breakdown_names
     return {m: float(np.asarray(out[m], dtype=np.float64).reshape(-1)[0]) for m in names if m in out}
 
 

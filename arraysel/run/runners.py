@@ -24,13 +24,14 @@ import dataclasses
 import json
 import logging
 import math
+import time
 from typing import Callable, Iterator
 
 import numpy as np
 
 from arraysel.errors import ArrayselError, error_text as _error_text
-from arraysel.objective.contract import WorkerFactory
-from arraysel.objective.neighbours import prepare_neighbourhoods
+from arraysel.objective.contract import WorkerFactory, objective_info
+from arraysel.objective.neighbours import neighbourhood_of
 from arraysel.report.columns import METRICS
 from arraysel.run.compare_task import _Raise, compare_item, compare_task
 from arraysel.run.deadline import RunStopped, call_with_deadline
@@ -107,7 +108,7 @@ def _report_rtol(objective) -> float:
     apart), so 1e-4 for a float32 objective, 1e-5 otherwise."""
     import torch
 
-    return 1e-4 if getattr(objective, "dtype", None) in (torch.float32, torch.float16, torch.bfloat16) else 1e-5
+    return 1e-4 if objective_info(objective).dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-5
 
 
 def _checked(objective, row: dict, trace: list) -> tuple[dict, list]:
@@ -298,10 +299,26 @@ class ExecutorRunner(Runner):
         return self.executor.worker_warm_ups() if hasattr(self.executor, "worker_warm_ups") else []
 
 
+def prepare_neighbourhoods(objective) -> float:
+    """Prepare ``objective``'s neighbourhood (``prepare()``,
+    :func:`~arraysel.objective.neighbours.neighbourhood_of`) before a run's budget starts, or say
+    once in the log that its searches run without one (in the process that builds the objective:
+    the runs forked from it, or run in it, then say nothing again); returns the seconds it took."""
+    from arraysel.selectors.capabilities import say_without
+
+    t0 = time.perf_counter()
+    nb = neighbourhood_of(objective)
+    if nb is None:
+        say_without(objective, "neighbourhood")
+    else:
+        nb.prepare()
+    return time.perf_counter() - t0
+
+
 @dataclasses.dataclass(frozen=True)
 class PreparedForNeighbourhoods(WorkerFactory):
     """The objective of ``inner`` (a worker factory), prepared for one-swap neighbourhoods
-    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) as it is built on a worker, so
+    (:func:`prepare_neighbourhoods`) as it is built on a worker, so
     that no run's budget pays for it."""
 
     inner: object
@@ -325,7 +342,7 @@ def make_runner(objective, budget: Budget, grace: float, full_mean: float, *, ex
     """The runner of a comparison: on ``executor`` (unless it runs in this process), else isolated
     child processes (``isolate``), else this process. A run that scores one-swap neighbourhoods
     (:func:`scores_neighbourhoods`) gets an objective prepared for them
-    (:func:`~arraysel.objective.neighbours.prepare_neighbourhoods`) before its clock starts: here
+    (:func:`prepare_neighbourhoods`) before its clock starts: here
     by :meth:`InProcessRunner.prepare`, on workers by the recipe :class:`PreparedForNeighbourhoods`
     when ``neighbourhoods`` (some run of the comparison scores them)."""
     remote = executor is not None and not getattr(executor, "in_process", False)
@@ -369,7 +386,11 @@ class _Fingerprint:
         from arraysel.selectors.contract import BudgetedObjective
 
         out = {}
-        for where, mapping in (("objective", getattr(self.objective, "__dict__", {})),
+        try:
+            own = vars(self.objective)
+        except TypeError:  # an objective without a __dict__ (slots)
+            own = {}
+        for where, mapping in (("objective", own),
                                ("its class", vars(type(self.objective))),
                                ("BudgetedObjective", vars(BudgetedObjective))):
             for key, value in mapping.items():

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from arraysel.objective.contract import objective_info
 from arraysel.report import beams as B
 from arraysel.report import tables as reporting
 
@@ -42,7 +43,7 @@ def beam_source(objective):
     :class:`~arraysel.objective.beams1d.PSFBeams` when its ``metrics.per_beam`` is true; else None."""
     from arraysel.objective.psf_objective import Objective
 
-    inner = getattr(objective, "inner", objective)  # separate or full-tx apertures: the scene's objective
+    inner = objective_info(objective).scene_objective  # separate or full-tx apertures: the scene's objective
     if not isinstance(inner, Objective):
         return None
     scene = inner.scene

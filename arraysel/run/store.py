@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, error_text as _error_text
+from arraysel.objective.contract import element_layout, objective_info
 from arraysel.report import plots
 from arraysel.report import tables as reporting
 from arraysel.report.columns import ROW_COLUMNS
@@ -185,7 +186,7 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
         _masks_figure(objective, selections, out)
     except Exception as exc:  # a figure must never lose the tables
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
-    apertures = getattr(objective, "aperture_mode", None)  # full-tx, separate (docs/apertures.md)
+    apertures = objective_info(objective).aperture_mode  # full-tx, separate (docs/apertures.md)
     if apertures:
         try:
             _apertures_figure(objective, selections, out)
@@ -193,12 +194,13 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
             problems.append(f"apertures.png: {type(exc).__name__}: {exc}")
     labels = [config for config, sel in selections.items() if len(sel) and config != "full" and not apertures]
     masks = np.array([selections[config].mask for config in labels], dtype=bool)
-    if len(labels) and hasattr(objective, "reference_planes"):
+    kind = objective_info(objective).kind
+    if len(labels) and kind == "planes":
         try:  # a 3-D scene: its planes and the C-plane's lateral profiles
             _planes_figures(objective, labels, masks, out)
         except Exception as exc:
             problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
-    elif len(labels) and hasattr(objective, "beam_metrics"):  # a sector scene: pareto.png and its beam patterns
+    elif len(labels) and kind == "beams":  # a sector scene: pareto.png and its beam patterns
         try:
             from arraysel.run.sector_report import beam_pattern_view
 
@@ -238,8 +240,7 @@ def _apertures_figure(objective, selections: dict[str, Selection], out: Path) ->
 
 
 def _masks_figure(objective, selections: dict[str, Selection], out: Path) -> None:
-    grid = getattr(objective, "element_grid", None)
-    positions = getattr(objective, "element_positions", None)
+    grid, positions = element_layout(objective)
     kept = [config for config, sel in selections.items() if len(sel)]
     if grid is not None:  # a matrix probe: each selection as its ny x nx image
         plots.save_figure(plots.matrix_masks_figure(kept, np.array([selections[c].mask for c in kept]), grid),
@@ -269,7 +270,7 @@ def _planes_figures(objective, labels: list[str], masks: np.ndarray, out: Path) 
 def _psf_figures(objective, labels: list[str], masks: np.ndarray, out: Path) -> None:
     import torch
 
-    pitch = getattr(getattr(objective, "setup", None), "pitch", None)
+    pitch = objective_info(objective).pitch
     with torch.no_grad():
         kern = objective.kernels(masks).detach().cpu().numpy()
         ref = objective.reference_kernel().detach().cpu().numpy()

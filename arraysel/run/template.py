@@ -139,11 +139,13 @@ def _numba_for_fork(threads: int) -> None:
 def warm_objective(objective, seed: int = 0) -> dict:
     """Do an objective's one-off work now (what its first calls would otherwise pay for):
     ``evaluate`` batches of 1, :data:`~arraysel.physics.compiled.MIN_BATCH` and 64 random
-    selections of ``k`` elements, and one gradient step of ``mask_loss`` where the objective has
-    one. Returns ``{"warm_s": seconds, "warm_steps": [...], "warm_error": text or ""}``; a step
-    that fails is reported, not raised (the runs then meet the same error in their rows)."""
+    selections of ``k`` elements, and one gradient step of its loss model where the objective
+    has one (:func:`~arraysel.objective.contract.loss_model_of`). Returns ``{"warm_s": seconds,
+    "warm_steps": [...], "warm_error": text or ""}``; a step that fails is reported, not raised
+    (the runs then meet the same error in their rows)."""
     import numpy as np
 
+    from arraysel.objective.contract import loss_model_of
     from arraysel.physics.compiled import MIN_BATCH
 
     t0 = time.perf_counter()
@@ -159,13 +161,10 @@ def warm_objective(objective, seed: int = 0) -> dict:
             steps.append(f"evaluate({batch})")
         except Exception as exc:
             errors.append(f"evaluate({batch}): {_error_text(exc)}")
-    if callable(getattr(objective, "mask_loss", None)):
+    model = loss_model_of(objective)
+    if model is not None:
         try:
-            import torch
-            weights = torch.full((1, n), k / n, dtype=getattr(objective, "dtype", torch.float32),
-                                 device=getattr(objective, "device", "cpu"), requires_grad=True)
-            total, _terms = objective.mask_loss(weights)
-            total.sum().backward()
+            model.gradient(np.full(n, k / n))
             steps.append("mask_loss+backward")
         except Exception as exc:
             errors.append(f"mask_loss: {_error_text(exc)}")

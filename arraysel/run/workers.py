@@ -19,6 +19,7 @@ import time
 from typing import Any, Callable
 
 from arraysel.errors import ArrayselError, ParameterError
+from arraysel.objective.contract import worker_factory_of
 
 __all__ = ["TaskFailed", "objective_factory_for", "mp_context"]
 
@@ -29,8 +30,7 @@ def objective_factory_for(objective):
     Raises :class:`ParameterError` for an objective without that capability (or whose
     ``worker_factory()`` returns ``None``): pass ``objective_factory=`` then.
     """
-    make = getattr(objective, "worker_factory", None)
-    factory = make() if callable(make) else None
+    factory = worker_factory_of(objective)
     if factory is None:
         raise ParameterError(
             f"cannot send a {type(objective).__name__} to other processes; give an objective_factory "

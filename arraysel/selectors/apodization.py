@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from arraysel.errors import NumericalError, SelectionError, check_choice, check_number
+from arraysel.objective.contract import objective_info
 
 __all__ = ["ApodizationSettings", "ApodizationResult", "apodize", "apodize_many", "weighted_metrics", "METHODS",
            "PSL_NAME"]
@@ -126,7 +127,8 @@ def weighted_metrics(objective, weights) -> list[dict]:
     """Every metric of weights ``(B, Ne)`` (0/1 masks or apodized): the objective's ``evaluate``
     (its Table-1 metrics and extra columns), plus ``PSL_dB`` for a 1-D scene; one dict a row."""
     w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
-    one_d = not hasattr(objective, "reference_planes") and hasattr(objective, "metric_kw")
+    info = objective_info(objective)
+    one_d = info.kind == "kernel" and info.metric_kw is not None
     res = objective.evaluate(w, return_kernels=True) if one_d else objective.evaluate(w)
     if one_d:
         res[PSL_NAME] = _psl_db(objective, res.pop("kernels"))

@@ -15,9 +15,11 @@ from __future__ import annotations
 import numpy as np
 
 from arraysel.constraints import Constraints
+from arraysel.errors import ParameterError
+from arraysel.objective.contract import element_layout
 from arraysel.objective.neighbours import check_moves
 
-__all__ = ["ConstrainedObjective"]
+__all__ = ["ConstrainedObjective", "budget_of"]
 
 
 class ConstrainedObjective:
@@ -45,12 +47,12 @@ class ConstrainedObjective:
     @property
     def element_grid(self):
         """The probe's grid when every element is a unit of its own, in order (groups only)."""
-        return getattr(self._inner, "element_grid", None) if self.element_constraints.simple else None
+        return element_layout(self._inner)[0] if self.element_constraints.simple else None
 
     @property
     def element_positions(self):
         """Each unit's position: that of its first element (one mirror image of a symmetric set)."""
-        pos = getattr(self._inner, "element_positions", None)
+        pos = element_layout(self._inner)[1]
         return None if pos is None else np.asarray(pos, dtype=np.float64)[self._units[:, 0]]
 
     # -- the run's bookkeeping in units -------------------------------------------------------
@@ -123,14 +125,24 @@ class ConstrainedObjective:
         return self._inner.mask_loss(self._weights(w), *args, **kwargs)
 
     def mask_hessian(self, mask):
-        """``(g, H)`` of :meth:`mask_loss` in units: ``J^T g`` and ``J^T H J`` of the elements'
-        (``J`` the 0/1 map of units to elements)."""
-        g, H = self._inner.mask_hessian(self.expand(mask))
-        g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
-        J = np.zeros((g.size, self.n_elements))
-        for j, u in enumerate(self._units):
-            J[u, j] = 1.0
-        return J.T @ g, J.T @ H @ J
+        """``(g, H)`` of :meth:`mask_loss` in units (:meth:`loss_model`)."""
+        model = self.loss_model()
+        if model is None:
+            raise ParameterError("mask_hessian: this objective has no model of its loss (no mask_loss)")
+        return model.model(mask)
+
+    # -- the capabilities in units -------------------------------------------------------------
+    def neighbourhood(self) -> "_UnitNeighbourhood | None":
+        """The wrapped objective's neighbourhood (budgeted) scoring moves of units as the moves of
+        their elements; None when it has none."""
+        inner = self._inner.neighbourhood()
+        return None if inner is None else _UnitNeighbourhood(self, inner)
+
+    def loss_model(self) -> "_UnitLossModel | None":
+        """The wrapped objective's loss model (budgeted) in units: ``J^T g`` and ``J^T H J`` of the
+        elements' at the expanded selection (``J`` the 0/1 map of units to elements)."""
+        inner = self._inner.loss_model()
+        return None if inner is None else _UnitLossModel(self, inner)
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
         """The selection matrix ``(n_units, k_units)`` over the elements: a unit's row for each of
@@ -149,3 +161,50 @@ class ConstrainedObjective:
             return out
 
         return self._inner.selection_loss(expand(P), expand(P_soft), *args, **kwargs)
+
+
+class _UnitNeighbourhood:
+    """A neighbourhood of elements (``inner``) seen in the units of ``view`` (a
+    :class:`ConstrainedObjective`)."""
+
+    def __init__(self, view: ConstrainedObjective, inner):
+        self._view, self._inner = view, inner
+
+    def evaluate(self, mask, out, into):
+        m, a, b = check_moves(mask, out, into)
+        ea, eb = self._view._moves(a, b)
+        return self._inner.evaluate(self._view.expand(m), ea, eb)
+
+    def prepare(self) -> None:
+        self._inner.prepare()
+
+
+class _UnitLossModel:
+    """A loss model of elements (``inner``) seen in the units of ``view`` (a
+    :class:`ConstrainedObjective`)."""
+
+    def __init__(self, view: ConstrainedObjective, inner):
+        self._view, self._inner = view, inner
+        units = view._units
+        n_el = len(view.element_constraints.unit_of)
+        self._J = np.zeros((n_el, view.n_elements))
+        for j, u in enumerate(units):
+            self._J[u, j] = 1.0
+
+    def gradient(self, mask) -> np.ndarray:
+        g = np.asarray(self._inner.gradient(self._view.expand(np.asarray(mask) != 0)), dtype=np.float64)
+        return self._J.T @ g
+
+    def model(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        g, H = self._inner.model(self._view.expand(np.asarray(mask) != 0))
+        g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
+        return self._J.T @ g, self._J.T @ H @ self._J
+
+
+def budget_of(objective):
+    """The run's :class:`~arraysel.selectors.budget.Budget` of a budgeted objective (a
+    :class:`~arraysel.selectors.contract.BudgetedObjective`, or the :class:`ConstrainedObjective`
+    over one); None for an objective a search was given without a budget."""
+    from arraysel.selectors.contract import BudgetedObjective
+
+    return objective.budget if isinstance(objective, (BudgetedObjective, ConstrainedObjective)) else None

@@ -38,10 +38,11 @@ if TYPE_CHECKING:  # torch is imported where it is used: `arraysel list` and `re
     import torch
 
 from arraysel.errors import ArrayselError, ParameterError, SelectionError, check_choice, check_number  # noqa: F401
-from arraysel.objective.contract import hessian_by_rows
-from arraysel.objective.neighbours import check_moves, check_swaps, evaluate_moves, move_masks
+from arraysel.objective.contract import loss_model_of, objective_info
+from arraysel.objective.neighbours import check_moves, check_swaps, move_masks, neighbourhood_of
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
 from arraysel.selectors.budget import Budget, Recorder, _is_tensor  # noqa: F401  (their home: arraysel.selectors.budget)
+from arraysel.selectors.capabilities import BudgetedLossModel, BudgetedNeighbourhood, say_without
 
 __all__ = [
     "Option", "Selector", "Budget", "Recorder", "BudgetExceededError", "BudgetExhausted",
@@ -175,6 +176,11 @@ class BudgetedObjective:
       :class:`~arraysel.errors.ArrayselError`: a thread the selector left running cannot score,
       count or record anything for the runs that follow.
 
+    Capabilities, asked from the wrapped objective once and charged to the budget by wrapping
+    them (:mod:`arraysel.selectors.capabilities`): :meth:`neighbourhood` (its neighbours of a
+    selection scored in one call) and :meth:`loss_model` (the loss's gradient and Hessian); None
+    where it has none, said once in the log.
+
     Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
     :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
     ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
@@ -194,16 +200,17 @@ class BudgetedObjective:
         self.recorder = recorder
         self.k = int(k)
         self.n_elements = int(objective.n_elements)
-        default = int(getattr(objective, "chunk", 256) or 256)
+        default = int(objective_info(objective).chunk or 256)
         self.piece = max(1, int(piece if piece is not None else min(default, 256)))
         self._per_mask = 0.0  # running estimate of the seconds one mask costs
         self._closed = False
+        self._capabilities: dict = {}  # the wrapped objective's neighbourhood and loss model, asked once
         #: seconds into the budget at which the run first called the objective (``evaluate``,
         #: ``evaluate_swaps``, ``evaluate_moves``, ``mask_loss`` or ``selection_loss``); ``None`` before that
         self.first_call_s: float | None = None
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
-        if name.startswith("__") or name in ("_inner", "_closed", "constraints"):
+        if name.startswith("__") or name in ("_inner", "_closed", "constraints", "_capabilities"):
             raise AttributeError(name)
         self._check_open()
         return getattr(self._inner, name)
@@ -319,14 +326,45 @@ class BudgetedObjective:
     def evaluate_moves(self, mask, out, into) -> dict[str, np.ndarray]:
         """:func:`arraysel.objective.neighbours.evaluate_moves` of the wrapped objective: the
         neighbours of ``mask`` that switch the elements ``out[i]`` off and ``into[i]`` on
-        (``(B, m)`` each), counted, clipped and recorded like :meth:`evaluate` of their masks."""
+        (``(B, m)`` each), counted, clipped and recorded like :meth:`evaluate` of their masks;
+        scored by :meth:`neighbourhood` where the objective has one."""
         self._check_open()
         self._started()
         m, a, b = check_moves(mask, out, into)
         if a.shape[0] == 0:
             return self._inner.evaluate(np.zeros((0, m.size), dtype=bool))
-        return self._in_pieces(a.shape[0], lambda sl: evaluate_moves(self._inner, m, a[sl], b[sl]),
+        nb = self.neighbourhood()
+        if nb is not None:
+            return nb.evaluate(m, a, b)
+        return self._in_pieces(a.shape[0], lambda sl: self._inner.evaluate(move_masks(m, a[sl], b[sl])),
                                lambda sl: move_masks(m, a[sl], b[sl]))
+
+    # -- the objective's capabilities, charged to the budget -------------------
+    def _capability(self, name: str, ask):
+        """The wrapped objective's capability ``name``, asked once (``ask(objective)``); said once
+        in the log when it has none (:func:`~arraysel.selectors.capabilities.say_without`)."""
+        if name not in self._capabilities:
+            got = ask(self._inner)
+            if got is None:
+                say_without(self._inner, name)
+            self._capabilities[name] = got
+        return self._capabilities[name]
+
+    def neighbourhood(self) -> BudgetedNeighbourhood | None:
+        """The wrapped objective's :class:`~arraysel.objective.contract.Neighbourhood` (asked once,
+        :func:`~arraysel.objective.contract.neighbourhood_of`), its scoring counted, clipped and
+        recorded by this budget; None when it has none (said once in the log)."""
+        self._check_open()
+        nb = self._capability("neighbourhood", neighbourhood_of)
+        return None if nb is None else BudgetedNeighbourhood(self, nb)
+
+    def loss_model(self) -> BudgetedLossModel | None:
+        """The wrapped objective's :class:`~arraysel.objective.contract.LossModel` (asked once,
+        :func:`~arraysel.objective.contract.loss_model_of`), each gradient and Hessian checked
+        against this budget; None when it has none (said once in the log)."""
+        self._check_open()
+        model = self._capability("loss model", loss_model_of)
+        return None if model is None else BudgetedLossModel(self, model)
 
     def score_swaps(self, mask, out, into) -> np.ndarray:
         """``Mean`` of the one-swap neighbours ``(out[i], into[i])`` of ``mask`` (:meth:`evaluate_swaps`),
@@ -360,19 +398,12 @@ class BudgetedObjective:
 
     def mask_hessian(self, mask):
         """``(g, H)`` of ``mask_loss`` at ``mask`` (:class:`~arraysel.objective.contract.HasHessian`):
-        the wrapped objective's own ``mask_hessian``, else
-        :func:`~arraysel.objective.contract.hessian_by_rows` through this budget; ``Ne``
-        evaluations either way."""
+        the model of :meth:`loss_model`; ``Ne`` evaluations."""
         self._check_open()
-        self._started()
-        n = self.n_elements
-        if self.budget.allowed(n) < n:
-            raise self._exhausted(f"mask_hessian ({n} evaluations)")
-        own = getattr(self._inner, "mask_hessian", None)
-        if callable(own):
-            return own(mask)
-        return hessian_by_rows(self.mask_loss, mask, getattr(self._inner, "dtype", None),
-                               getattr(self._inner, "device", "cpu"))
+        model = self.loss_model()
+        if model is None:
+            raise ParameterError("mask_hessian: this objective has no model of its loss (no mask_loss)")
+        return model.model(mask)
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
         self._check_open()

@@ -33,7 +33,7 @@ class SwapDescent(SearchState):
         self._shifts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (at, source, keys); formed once
         self.guide = GuidedOrder(self.settings.guide)
         self.shift_guide = GuidedOrder(self.guide.share)  # the shifts' guided share adapts on its own
-        self._guided = self.guide.share > 0 and callable(getattr(objective, "mask_loss", None))
+        self._guided = self.guide.share > 0 and self.loss_model is not None
 
     def descend(self, mask: np.ndarray, value: float) -> tuple[np.ndarray, float]:
         """Improve ``mask`` by swaps until it is a local optimum; return it and its value."""

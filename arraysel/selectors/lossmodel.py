@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from arraysel.objective.contract import hessian_by_rows
+from arraysel.errors import NumericalError
+from arraysel.objective.contract import loss_model_of
 from arraysel.selectors.contract import Option
 
 #: how a first-improvement descent predicts the change of a swap: by the loss's gradient
@@ -33,8 +34,8 @@ GRADIENT_CHOICES = ("exact", "update")
 GRADIENT_UPDATE_MAX = 2
 
 __all__ = ["MODEL_CHOICES", "QUADRATIC_MAX_ELEMENTS", "PAIR_WIDTH", "GRADIENT_CHOICES", "GRADIENT_UPDATE_MAX",
-           "model_options", "loss_gradient",
-           "loss_quadratic", "swap_changes", "move_changes", "best_pair_swaps", "GuidedOrder"]
+           "model_options", "loss_gradient", "loss_quadratic", "model_gradient", "model_quadratic", "swap_changes",
+           "move_changes", "best_pair_swaps", "GuidedOrder"]
 
 
 def model_options() -> dict[str, Option]:
@@ -52,66 +53,56 @@ def model_options() -> dict[str, Option]:
     }
 
 
-def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
-    """The gradient (Ne,) float64 of the objective's ``mask_loss`` at the 0/1 selection ``mask``
-    (one evaluation and one gradient step of the budget), or ``None`` where the objective has no
-    ``mask_loss``, it fails with anything but the budget's end, or the gradient is zero or not
-    finite. :class:`~arraysel.selectors.contract.BudgetExhausted` propagates."""
-    import torch
-
-    from arraysel.selectors.contract import BudgetExhausted
-
-    loss = getattr(objective, "mask_loss", None)
-    if not callable(loss):
+def model_gradient(model, mask: np.ndarray) -> np.ndarray | None:
+    """The gradient (Ne,) float64 of a :class:`~arraysel.objective.contract.LossModel` at the 0/1
+    selection ``mask`` (one evaluation and one gradient step of the budget), or ``None`` where
+    ``model`` is None, the loss is not finite there
+    (:class:`~arraysel.errors.NumericalError`) or the gradient is zero or not finite. Every
+    other error propagates (:class:`~arraysel.selectors.contract.BudgetExhausted` included)."""
+    if model is None:
         return None
-    dtype = getattr(objective, "dtype", torch.float32)
-    w = torch.tensor(np.asarray(mask, dtype=np.float64)[None], dtype=dtype,
-                     device=getattr(objective, "device", "cpu")).requires_grad_(True)
     try:
-        total, _terms = loss(w)
-        total.sum().backward()
-    except BudgetExhausted:
-        raise
-    except Exception:  # an objective without a differentiable loss: the search goes unguided
+        g = np.asarray(model.gradient(np.asarray(mask, dtype=np.float64)), dtype=np.float64)
+    except NumericalError:
         return None
-    g = w.grad
-    if g is None:
-        return None
-    g = g.detach()[0].double().cpu().numpy()
     if not np.isfinite(g).all() or not np.any(g):
         return None
     return g
 
 
-def loss_quadratic(objective, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64, symmetrised) of the objective's
-    ``mask_loss`` at the 0/1 selection ``mask`` (``Ne`` evaluations of the budget): its own
-    ``mask_hessian`` (:class:`~arraysel.objective.contract.HasHessian`) when it has one, else
-    :func:`~arraysel.objective.contract.hessian_by_rows`. ``None`` where the objective has no
-    ``mask_loss``, it fails with anything but the budget's end, or a result is not finite.
-    :class:`~arraysel.selectors.contract.BudgetExhausted` propagates."""
-    from arraysel.selectors.contract import BudgetExhausted
-
-    own = getattr(objective, "mask_hessian", None)
-    loss = getattr(objective, "mask_loss", None)
+def model_quadratic(model, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64, symmetrised) of a
+    :class:`~arraysel.objective.contract.LossModel` at the 0/1 selection ``mask`` (``Ne``
+    evaluations of the budget), or ``None`` where ``model`` is None, the loss is not finite there
+    (:class:`~arraysel.errors.NumericalError`) or a result is not finite. Every other error
+    propagates (:class:`~arraysel.selectors.contract.BudgetExhausted` included)."""
+    if model is None:
+        return None
     mask = np.asarray(mask, dtype=bool)
     n = mask.shape[0]
     try:
-        if callable(own):
-            g, H = own(mask)
-        elif callable(loss):
-            g, H = hessian_by_rows(loss, mask, getattr(objective, "dtype", None),
-                                   getattr(objective, "device", "cpu"))
-        else:
-            return None
-        g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
-    except BudgetExhausted:
-        raise
-    except Exception:  # an objective without a twice differentiable loss: no quadratic model
+        g, H = model.model(mask)
+    except NumericalError:
         return None
+    g, H = np.asarray(g, dtype=np.float64), np.asarray(H, dtype=np.float64)
     if g.shape != (n,) or H.shape != (n, n) or not (np.isfinite(g).all() and np.isfinite(H).all()):
         return None
     return g, 0.5 * (H + H.T)
+
+
+def loss_gradient(objective, mask: np.ndarray) -> np.ndarray | None:
+    """:func:`model_gradient` of the objective's loss model
+    (:func:`~arraysel.objective.contract.loss_model_of`, asked at this call: a search asks once
+    and keeps it)."""
+    return model_gradient(loss_model_of(objective), mask)
+
+
+def loss_quadratic(objective, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`model_quadratic` of the objective's loss model
+    (:func:`~arraysel.objective.contract.loss_model_of`, asked at this call: a search asks once
+    and keeps it): its own Hessian where it has one, else
+    :func:`~arraysel.objective.contract.hessian_by_rows` of its ``mask_loss``."""
+    return model_quadratic(loss_model_of(objective), mask)
 
 
 def swap_changes(g: np.ndarray, H: np.ndarray | None, out: np.ndarray, into: np.ndarray) -> np.ndarray:

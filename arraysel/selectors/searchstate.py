@@ -14,9 +14,12 @@ import numpy as np
 
 from arraysel.errors import ParameterError
 from arraysel.constraints import group_constraints
-from arraysel.objective.neighbours import moves_between, swap_masks, swap_pairs
+from arraysel.objective.neighbours import moves_between, neighbourhood_of, swap_masks, swap_pairs
+from arraysel.objective.contract import loss_model_of
 from arraysel.selection import mask_key
-from arraysel.selectors.lossmodel import (GRADIENT_UPDATE_MAX, QUADRATIC_MAX_ELEMENTS, loss_gradient, loss_quadratic,
+from arraysel.selectors.constrained import budget_of
+from arraysel.selectors.contract import finite_or_inf
+from arraysel.selectors.lossmodel import (GRADIENT_UPDATE_MAX, QUADRATIC_MAX_ELEMENTS, model_gradient, model_quadratic,
                                           swap_changes)
 from arraysel.selectors.starts import chirp_masks, random_mask
 from arraysel.selectors.swapsettings import FIELDS, FRESH_CHIRPS, SWAP, SwapSettings
@@ -54,6 +57,10 @@ class SearchState:
         for name in FIELDS:  # read as attributes as the search goes (a benchmark may change pairs)
             setattr(self, name, getattr(settings, name))
         self.objective = objective
+        #: the objective's :class:`~arraysel.objective.contract.Neighbourhood` (asked once; None:
+        #: neighbours are scored as masks)
+        self.neighbourhood = neighbourhood_of(objective)
+        self._loss_model: list = []  # the objective's LossModel, asked once when a model is first wanted
         #: the channel groups a selection must meet (:func:`~arraysel.constraints.group_constraints`):
         #: swaps stay inside a group, moves that leave the feasible set are never scored
         self.constraints = group_constraints(objective)
@@ -90,19 +97,19 @@ class SearchState:
 
     def score_swaps(self, mask: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(neighbour masks, their Means)`` of the swaps ``(a[i], b[i])`` of ``mask``: the
-        neighbours not seen before are scored in one call of the objective's ``score_swaps``
-        (:mod:`arraysel.objective.neighbours`) when it has one."""
+        neighbours not seen before are scored in one call of the objective's neighbourhood
+        (:attr:`neighbourhood`) when it has one, else as masks."""
         cands = swap_masks(mask, a, b)
-        own = getattr(self.objective, "score_swaps", None)
-        if own is None:
+        nb = self.neighbourhood
+        if nb is None:
             return cands, self.score(cands)
-        return cands, self._cached(cands, lambda todo: own(mask, a[todo], b[todo]))
+        return cands, self._cached(cands, lambda todo: finite_or_inf(nb.evaluate(mask, a[todo], b[todo])["Mean"]))
 
     def score_moved(self, mask: np.ndarray, cands: np.ndarray) -> np.ndarray:
         """Means of the selections ``cands`` (B, Ne), each with as many elements as ``mask``: the
         ones not seen before are scored as moves from ``mask`` in one call of the objective's
-        ``score_moves`` (:mod:`arraysel.objective.neighbours`) when it has one."""
-        own = getattr(self.objective, "score_moves", None)
+        neighbourhood (:attr:`neighbourhood`) when it has one, else as masks."""
+        nb = self.neighbourhood
         if self.constraints is not None:  # a move that leaves the feasible set is not scored
             ok = self.constraints.feasible_rows(cands)
             if not ok.all():
@@ -110,9 +117,17 @@ class SearchState:
                 if ok.any():
                     out[ok] = self.score_moved(mask, cands[ok])
                 return out
-        if own is None:
+        if nb is None:
             return self.score(cands)
-        return self._cached(cands, lambda todo: own(mask, *moves_between(mask, cands[todo])))
+        return self._cached(cands, lambda todo: finite_or_inf(nb.evaluate(mask, *moves_between(mask, cands[todo]))["Mean"]))
+
+    @property
+    def loss_model(self):
+        """The objective's :class:`~arraysel.objective.contract.LossModel`, asked once (None: the
+        search has no model of the loss, and descents try their moves in a random order)."""
+        if not self._loss_model:
+            self._loss_model.append(loss_model_of(self.objective))
+        return self._loss_model[0]
 
     def _cached(self, masks: np.ndarray, scorer) -> np.ndarray:
         keys = [mask_key(m) for m in masks]
@@ -138,7 +153,7 @@ class SearchState:
     def _model(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None] | None:
         """The model of the loss at ``mask``: ``(g, None)`` (``model = linear``) or ``(g, H)``
         (``quadratic``: the gradient, and a Hessian formed afresh every ``refresh`` calls;
-        :func:`loss_quadratic`). None without a usable loss. Asked again at the same selection
+        :func:`~arraysel.selectors.lossmodel.model_quadratic`). None without a usable loss. Asked again at the same selection
         (the shifts after the swaps of a local optimum), it is not formed again."""
         key = mask_key(mask)
         if self._model_at is not None and self._model_at[0] == key:
@@ -156,7 +171,7 @@ class SearchState:
         """:meth:`_model` formed afresh (a gradient, and a Hessian when one is due)."""
         if self.model == "quadratic":
             if self._hessian is None or self._hessian_age >= self.refresh:
-                q = loss_quadratic(self.objective, mask)
+                q = model_quadratic(self.loss_model, mask)
                 if q is None:
                     return None
                 g, self._hessian, self._hessian_age = q[0], q[1], 0
@@ -164,12 +179,12 @@ class SearchState:
             else:
                 g = self._carried_gradient(mask)
                 if g is None:
-                    g = loss_gradient(self.objective, mask)
+                    g = model_gradient(self.loss_model, mask)
             self._hessian_age += 1
             if g is not None and self.gradient == "update":
                 self._gradient_at = (mask.astype(np.float64), g)
             return None if g is None else (g, self._hessian)
-        g = loss_gradient(self.objective, mask)
+        g = model_gradient(self.loss_model, mask)
         return None if g is None else (g, None)
 
     def _carried_gradient(self, mask: np.ndarray) -> np.ndarray | None:
@@ -230,8 +245,8 @@ class SearchState:
     def _budget_used(self) -> float | None:
         """The used share of the objective's budget (``budget.fraction()``), or None where the
         objective has no budget or its budget sets no limit."""
-        budget = getattr(self.objective, "budget", None)
-        if budget is None or getattr(budget, "unlimited", True) or not callable(getattr(budget, "fraction", None)):
+        budget = budget_of(self.objective)
+        if budget is None or budget.unlimited:
             return None
         return float(budget.fraction())
 

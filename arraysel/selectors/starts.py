@@ -23,6 +23,7 @@ from arraysel.constraints import group_constraints
 from arraysel.errors import ParameterError, check_number
 from arraysel.io.masks import parse_elements
 from arraysel.objective.contract import element_layout
+from arraysel.selectors.constrained import budget_of
 from arraysel.selectors.contract import BudgetExhausted, Option
 from arraysel.selectors.layouts import chirped_layouts, is_planar, planar_uniform_layout, uniform_layout
 
@@ -161,7 +162,7 @@ def greedy_selection(objective, k: int, backward: bool = True, share: float = 1.
     n = int(objective.n_elements)
     current = list(range(n)) if backward else []
     ranking: list[int] | None = None  # candidates of the last batch, best first
-    pace = _GreedyPace(getattr(objective, "budget", None), share)
+    pace = _GreedyPace(budget_of(objective), share)
     room = _GroupRoom(gc, backward)  # exactly-one groups (counts): a step leaves or enters open groups only
     try:
         while len(current) != k:
@@ -316,8 +317,7 @@ def start_selection(how: str, objective, k: int, rng: np.random.Generator, eleme
     the run's fallback (``objective.fallback``): what the run returns when its budget ends before
     a ``k``-selection is scored (a greedy start that used the whole budget, say)."""
     start = _start(how, objective, k, rng, elements, option)
-    note = getattr(type(objective), "fallback", None)
-    if note is not None:
+    if budget_of(objective) is not None:
         objective.fallback(start)
     return start
 

@@ -32,7 +32,7 @@ from arraysel.physics.psf.certificate import Certificates
 from arraysel.physics.psf.layout import LAYOUT_FIELDS, BasisLayout, pair_index
 from arraysel.physics.psf.refinement import Refinement
 from arraysel.physics.psf.state import ErrorConstants, basis_state, restore_state
-from arraysel.physics.psf.swapbase import SwapBases
+from arraysel.physics.psf.swapbase import form_base
 
 __all__ = ["PairBasis", "BUILD_RANK_TOL", "ErrorConstants", "pair_index", "pair_products"]
 
@@ -206,8 +206,6 @@ class PairBasis:
         import copy
 
         out = copy.copy(self)
-        # a neighbourhood base is updated in place along a walk: each basis holds its own
-        out.__dict__.pop("swap_bases", None)
         r = int(check_number("rank", rank, lo=1, integer=True))
         if self.U is None or r >= self.rank:
             out._attach_refinement(shared=self.refinement)
@@ -434,16 +432,16 @@ class PairBasis:
     #: most a quarter of the memory cap ``ARRAYSEL_MEMORY_GIB``
     swap_base_max_bytes = 3 << 28
 
-    def swap_base(self, mask: torch.Tensor):
+    def swap_base(self, mask: torch.Tensor, bases=None):
         """``(y, G)`` of the 0/1 selection ``mask``, float64: its image on E (1, 2 Npix) and the
-        rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix), from the bases kept for the latest
-        selections (:attr:`swap_bases`, :class:`~arraysel.physics.psf.swapbase.SwapBases`): kept,
-        carried by rows from a kept one that a move of at most :attr:`swap_base_moved_max`
-        elements reaches (for at most :attr:`swap_base_refresh` elements moved in a row), or
-        formed afresh."""
-        bases = self.__dict__.get("swap_bases")
+        rows ``G_e = sum_{j in mask} H_ej`` (Ne, 2 Npix): from ``bases``, the bases of the latest
+        selections that the caller (a search's objective) keeps
+        (:class:`arraysel.objective.swapbases.SwapBases`: kept, carried by rows from a kept one
+        that a move of at most :attr:`swap_base_moved_max` elements reaches, for at most
+        :attr:`swap_base_refresh` elements moved in a row, or formed afresh), else formed afresh
+        (:func:`~arraysel.physics.psf.swapbase.form_base`)."""
         if bases is None:
-            bases = self.swap_bases = SwapBases()
+            return form_base(self, mask.cpu() != 0)
         return bases.base(self, mask)
 
     #: the cost of summing one pair-image row into a neighbour's image, in columns of the product
@@ -451,7 +449,7 @@ class PairBasis:
     #: neighbour's ``2 m (m + 1)`` of them cost less than the product, and forms the product beyond
     move_row_cost = 20
 
-    def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor):
+    def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor, bases=None):
         """:meth:`images` ``(w, with_error=True)`` of the neighbours ``w`` (B, Ne) of the 0/1
         selection ``mask`` (Ne,) that switch the elements ``out[b]`` off and ``into[b]`` on (int
         (B,): one-swap neighbours, or (B, m): m elements each, ``-1`` for none). The image is bilinear in the
@@ -463,7 +461,8 @@ class PairBasis:
         (for one swap: ``y - G_a + G_c + H_cc - H_ac``): 2 m (m + 1) sums of rows where
         :meth:`images` forms the product ``(c U) V`` of every neighbour (which it still forms
         while those rows cost more: :attr:`move_row_cost`). The error bounds are :meth:`images`'
-        own (from ``c U``). No gradient."""
+        own (from ``c U``). ``bases``: the kept bases :meth:`swap_base` takes the selection's from
+        (None: formed afresh). No gradient."""
         with torch.no_grad():
             c = self._pairs(w)
             cu = c @ self.U if self.U is not None else None
@@ -478,12 +477,12 @@ class PairBasis:
             if bool(wide.all()):
                 yb = cu @ self.V
             elif not bool(wide.any()):
-                yb = self._moved_rows(mask, a, b)
+                yb = self._moved_rows(mask, a, b, bases)
             else:
                 narrow = ~wide.numpy()
                 width = max(1, int(count[narrow].max()))
                 yb = torch.empty(a.shape[0], self.V.shape[1], dtype=self.V.dtype)
-                yb[~wide] = self._moved_rows(mask, a[narrow, :width], b[narrow, :width])
+                yb[~wide] = self._moved_rows(mask, a[narrow, :width], b[narrow, :width], bases)
                 yb[wide] = (cu[wide.to(cu.device)] @ self.V).to(yb.device)
             img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
         return img, eps, win_err
@@ -504,11 +503,11 @@ class PairBasis:
         return (np.stack([ln[np.maximum(p, 0), np.maximum(q, 0)] for _, p, q in pairs], axis=1),
                 np.stack([s * ((p >= 0) & (q >= 0)) for s, p, q in pairs], axis=1))
 
-    def _moved_rows(self, mask: torch.Tensor, a: np.ndarray, b: np.ndarray) -> torch.Tensor:
+    def _moved_rows(self, mask: torch.Tensor, a: np.ndarray, b: np.ndarray, bases=None) -> torch.Tensor:
         """(B, 2 Npix) images on E ([re | im], :attr:`V`'s dtype) of the neighbours of ``mask``
         that switch ``a[i]`` off and ``b[i]`` on ((B, m) each, ``-1`` for none), from its image,
         its element rows and the pair-image rows (:meth:`swap_images`)."""
-        y, G = self.swap_base(mask)
+        y, G = self.swap_base(mask, bases)
         m = a.shape[1]
         pidx, sign = self._move_terms(a, b)
         H = self._all_rows()

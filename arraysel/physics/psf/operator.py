@@ -395,7 +395,7 @@ class PSFModel:
             k = k.index_put((bad,), ke.to(k.dtype)) if k.requires_grad else k.index_copy(0, bad, ke.to(k.dtype))
         return (k, ~ok) if return_info else k
 
-    def swap_kernels(self, mask, out, into, return_info: bool = False):
+    def swap_kernels(self, mask, out, into, return_info: bool = False, bases=None):
         """:meth:`kernels` (no gradient) of the neighbours of the 0/1 selection ``mask`` (Ne,) that
         switch the elements ``out[b]`` off and ``into[b]`` on (int (B,): one-swap neighbours, or
         (B, m): m elements each, ``-1`` for none). The same kernels, to rounding: on the CPU the certificates'
@@ -404,7 +404,8 @@ class PSFModel:
         summed afresh, and their images on E from the selection's image and pair-image rows
         (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_images`) instead of the product of
         every neighbour; everything after them (peaks, refinement, the exact path for a neighbour
-        the certificates do not settle) is what :meth:`kernels` does."""
+        the certificates do not settle) is what :meth:`kernels` does. ``bases``: the selection
+        bases the caller keeps (:meth:`~arraysel.physics.psf.basis.PairBasis.swap_base`)."""
         m = self._weights(mask)[0]
         a = torch.as_tensor(np.asarray(out, dtype=np.int64))
         b = torch.as_tensor(np.asarray(into, dtype=np.int64))
@@ -417,7 +418,7 @@ class PSFModel:
             if self.basis is None or not a.shape[0] or not self.basis.certificates.swaps_compiled(m):
                 return self.kernels(w, return_info=return_info)
             return self._fast_or_exact(w, return_info, env=self.basis.certificates.swap_envelopes(m, a, b),
-                                       images=self.basis.swap_images(m, a, b, w))
+                                       images=self.basis.swap_images(m, a, b, w, bases))
 
     def reference_kernel(self) -> torch.Tensor:
         """The full-array kernel (window, window), cached."""

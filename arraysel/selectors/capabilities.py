@@ -1,0 +1,101 @@
+"""The objective's capabilities as a run's budget sees them: its neighbourhood and its loss model.
+
+A search asks the objective once for what makes it fast (:mod:`arraysel.objective.contract`:
+``objective.neighbourhood()``, a :class:`~arraysel.objective.contract.Neighbourhood` that scores a
+selection's neighbours in one call; ``objective.loss_model()``, a
+:class:`~arraysel.objective.contract.LossModel` that gives the gradient and the Hessian of the
+loss). :class:`~arraysel.selectors.contract.BudgetedObjective` hands them out wrapped here: the
+scoring of :class:`BudgetedNeighbourhood` is counted, clipped and recorded like ``evaluate`` of the
+neighbour masks, and :class:`BudgetedLossModel` checks that the budget allows what a gradient (one
+evaluation) or a Hessian (``Ne``) costs before it asks.
+
+An objective without a capability is said once in the log (logger ``arraysel``, warning), so a
+search that runs without it does so visibly: :func:`say_without`.
+"""
+from __future__ import annotations
+
+import logging
+import weakref
+
+import numpy as np
+
+from arraysel.objective.neighbours import check_moves, move_masks
+
+__all__ = ["BudgetedNeighbourhood", "BudgetedLossModel", "say_without", "WITHOUT"]
+
+_log = logging.getLogger("arraysel.selectors.capabilities")
+
+#: what a search does without each capability (the log line's second half)
+WITHOUT = {
+    "neighbourhood": "search runs without a neighbourhood: each neighbour is scored as its own mask",
+    "loss model": "search runs without a model of the loss: descents try their moves in a random order",
+}
+
+_said: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_said_ids: set = set()
+
+
+def say_without(objective, capability: str) -> None:
+    """Log once for ``objective`` (the objective a run wraps) that searches on it run without
+    ``capability`` (a key of :data:`WITHOUT`)."""
+    try:
+        said = _said.setdefault(objective, set())
+    except TypeError:  # an objective that takes no weak reference: remembered by id
+        said = _said_ids
+        capability_key = (id(objective), capability)
+        if capability_key in said:
+            return
+        said.add(capability_key)
+    else:
+        if capability in said:
+            return
+        said.add(capability)
+    _log.warning("objective %s: %s", type(objective).__name__, WITHOUT[capability])
+
+
+class BudgetedNeighbourhood:
+    """The wrapped objective's :class:`~arraysel.objective.contract.Neighbourhood` charged to the
+    run's budget: :meth:`evaluate` scores the neighbours in the pieces the budget allows and
+    records them (``view`` the :class:`~arraysel.selectors.contract.BudgetedObjective`)."""
+
+    def __init__(self, view, inner):
+        self._view = view
+        self._inner = inner
+
+    def evaluate(self, mask, out, into) -> dict[str, np.ndarray]:
+        """``{name: float64 (B,)}`` of the neighbours of ``mask`` that switch ``out[i]`` off and
+        ``into[i]`` on (``(B, m)`` or ``(B,)``), counted, clipped and recorded like
+        ``evaluate`` of their masks."""
+        m, a, b = check_moves(mask, out, into)
+        view = self._view
+        return view._in_pieces(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
+                               lambda sl: move_masks(m, a[sl], b[sl]))
+
+    def prepare(self) -> None:
+        """Nothing: a run's objective is prepared before its budget starts (the runners)."""
+
+
+class BudgetedLossModel:
+    """The wrapped objective's :class:`~arraysel.objective.contract.LossModel` charged to the run's
+    budget: a gradient needs one evaluation, a model ``Ne`` (:class:`BudgetExhausted
+    <arraysel.selectors.contract.BudgetExhausted>` when the budget does not allow them)."""
+
+    def __init__(self, view, inner):
+        self._view = view
+        self._inner = inner
+
+    def _allow(self, n: int, what: str) -> None:
+        view = self._view
+        view._check_open()
+        view._started()
+        if view.budget.allowed(n) < n:
+            raise view._exhausted(f"{what} ({n} evaluations)")
+
+    def gradient(self, mask) -> np.ndarray:
+        self._allow(1, "the loss's gradient")
+        return self._inner.gradient(mask)
+
+    def model(self, mask) -> tuple[np.ndarray, np.ndarray]:
+        self._allow(self._view.n_elements, "the loss's Hessian")
+        return self._inner.model(mask)
+
