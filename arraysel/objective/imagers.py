@@ -22,7 +22,7 @@ import torch
 from arraysel.physics.imaging import Imager, KernelImager, VolumeImager
 
 __all__ = ["scene_imagers", "scene_points", "matrix_model", "exact_notice", "estimate_seconds",
-           "neighbourhood_for", "default_chunk", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D"]
+           "neighbourhood_for", "default_chunk", "check_masks", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D"]
 
 _log = logging.getLogger(__name__)
 
@@ -142,7 +142,7 @@ def _setup_key(setup) -> tuple:
     return (repr(fields), d.shape, hashlib.sha256(d.tobytes()).hexdigest())
 
 
-def _check_masks(n: int, k: int) -> torch.Tensor:
+def check_masks(n: int, k: int) -> torch.Tensor:
     """The full array and two random selections of ``k`` elements (seed 0), where the check must hold."""
     g = torch.Generator().manual_seed(0)
     checks = [torch.ones(n, dtype=torch.float64)]
@@ -168,7 +168,7 @@ def matrix_model(setup, k: int, dtype=torch.float32, device="cpu", fast: bool = 
         return MatrixPSF(setup, dtype=dtype, device=device), "disabled (volume.fast = false)"
     base = FastSettings()
     refused: list[str] = []
-    checks = _check_masks(setup.probe.n_elements, k)
+    checks = check_masks(setup.probe.n_elements, k)
 
     def build() -> dict:
         # the fewest interpolation harmonics whose check is within a hundredth of the tolerance (a

@@ -351,14 +351,10 @@ def sector_fast_state(objective: SectorObjective, i: int, build: bool = True) ->
     from arraysel.physics.volume.fast import FastPathUnavailable
     from arraysel.physics.volume.sector import SECTOR_FAST, SECTOR_FAST_LADDER
 
-    n, k = objective.n_elements, objective.k
-    g = torch.Generator().manual_seed(0)
-    rows = [torch.ones(n, dtype=torch.float64)]
-    for _ in range(2):
-        m = torch.zeros(n, dtype=torch.float64)
-        m[torch.randperm(n, generator=g)[:k]] = 1
-        rows.append(m)
-    checks = torch.stack(rows)
+    from arraysel.objective.imagers import check_masks
+
+    k = objective.k
+    checks = check_masks(objective.n_elements, k)
     why: list[str] = []
 
     def make() -> dict:
