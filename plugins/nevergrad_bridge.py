@@ -30,10 +30,15 @@ step asks ``num_workers`` points, scores them in one ``objective.evaluate``
 call and tells the Means (NaN/Inf told as a large finite loss). nevergrad's own
 budget is ``ng_budget`` (default: the run's evaluation limit, else 20000);
 when it is used up before arraysel's budget a new optimizer starts (fresh
-random stream). nevergrad's warnings are silenced inside the run.
+random stream). nevergrad's (and pycma's) warnings are silenced inside the run.
+nevergrad's diagonal CMA, NGOpt's choice for a few hundred dimensions and
+more, loses its mean-shift samples under parallel asks (nevergrad issue 1690:
+"Mean shift samples are expected but missing"); the run then starts a fresh
+optimizer, as at the end of its nevergrad budget, and says so in the log.
 """
 from __future__ import annotations
 
+import logging
 import warnings
 
 import numpy as np
@@ -44,6 +49,10 @@ from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.contract import Option, Selector, numpy_rng, top_k
 
 _DEFAULT_NG_BUDGET = 20_000
+#: the message of pycma's step-size adaptation when nevergrad's diagonal CMA loses its samples
+_CMA_TPA = "Mean shift samples are expected but missing"
+
+_log = logging.getLogger("arraysel")
 
 
 def _nevergrad():
@@ -139,20 +148,38 @@ class NevergradSelector(Selector):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ng.errors.NevergradWarning)
             warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.filterwarnings("ignore", module="cma")
             while True:  # one optimizer per nevergrad budget
                 opt = self._make(ng, n, ng_budget, rng)
-                while opt.num_ask < ng_budget:
-                    todo = min(opt.num_workers, ng_budget - opt.num_ask)
-                    cands = [opt.ask() for _ in range(todo)]
-                    masks = np.stack([self._decode(c.value, n, k, repair, gc) for c in cands])
-                    values = objective.score(masks)
-                    worst = np.max(values[np.isfinite(values)], initial=1.0)
-                    for c, m, v in zip(cands, masks, values):
-                        loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
-                        if lamarck and not np.array_equal(np.asarray(c.value) > 0, m):
-                            lamarck = _tell_repaired(ng, opt, c, m, loss)
-                        else:
-                            opt.tell(c, loss)
+                told = 0
+                try:
+                    while opt.num_ask < ng_budget:
+                        lamarck = self._step(ng, opt, objective, n, k, ng_budget, repair, gc, lamarck)
+                        told += 1
+                except RuntimeError as exc:
+                    # nevergrad's diagonal CMA (NGOpt's choice for a few hundred dimensions or more)
+                    # loses its mean-shift samples under parallel asks (nevergrad issue 1690):
+                    # start a fresh optimizer; the best selection so far is kept by the budget
+                    if _CMA_TPA not in str(exc) or not told:
+                        raise
+                    _log.info("nevergrad: %s lost its state after %d steps (nevergrad issue 1690); "
+                              "starting a fresh one", type(opt).__name__, told)
+
+    def _step(self, ng, opt, objective, n: int, k: int, ng_budget: int, repair, gc, lamarck: bool) -> bool:
+        """Ask ``num_workers`` points, score them in one call, tell their losses; returns whether
+        the optimizer still takes repaired points (``lamarck``)."""
+        todo = min(opt.num_workers, ng_budget - opt.num_ask)
+        cands = [opt.ask() for _ in range(todo)]
+        masks = np.stack([self._decode(c.value, n, k, repair, gc) for c in cands])
+        values = objective.score(masks)
+        worst = np.max(values[np.isfinite(values)], initial=1.0)
+        for c, m, v in zip(cands, masks, values):
+            loss = float(v) if np.isfinite(v) else float(10.0 * abs(worst) + 1e6)
+            if lamarck and not np.array_equal(np.asarray(c.value) > 0, m):
+                lamarck = _tell_repaired(ng, opt, c, m, loss)
+            else:
+                opt.tell(c, loss)
+        return lamarck
 
 
 @hookimpl
