@@ -237,3 +237,18 @@ def test_every_selector_on_a_tiny_sector_scene(tiny, name):
     assert len(sel) == tiny.k == len(set(sel)) and all(0 <= e < tiny.n_elements for e in sel)
     assert rows[0]["evaluations"] <= 60 and math.isfinite(rows[0]["Mean"])
     assert list(rows[1]["elements"]) == sel
+
+
+def test_a_sector_scene_keeps_its_constraints():
+    # a [constraints] section of a sector scene reaches the selectors: every run's selection holds
+    # one element of each of the 16 channels of a 4-bank multiplexer of the 8 x 8 probe
+    from arraysel.run.experiment import Experiment
+    from arraysel.selectors.contract import Budget
+    from arraysel.selectors.registry import get_registry
+
+    obj = build_objective(_scene(constraints={"groups": "mux-64-4", "mode": "exactly-one"}), dtype=torch.float32)
+    assert obj.constraints is not None and not obj.constraints.trivial
+    for name in ("random", "swap", "uniform", "spiral"):
+        row = Experiment(obj, get_registry()[name], options={}, budget=Budget(evaluations=30), seed=0, k=16).run()
+        assert row["error"] == "", (name, row["error"])
+        obj.constraints.check([int(i) for i in row["elements"].split()])

@@ -71,6 +71,8 @@ class SectorObjective(Objective):
         self.dtype, self.chunk = dtype, int(chunk)
         self.settings = st = self.scene.objective_settings()
         self.setup = self.scene.sector_setup()
+        #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
+        self.constraints = self.scene.constraints()
         probe = self.setup.probe
         self.n_elements, self.k = probe.n_elements, st.k
         self.element_grid = probe.layout_grid
