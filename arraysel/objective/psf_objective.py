@@ -369,7 +369,7 @@ class Objective:
         with torch.no_grad(), self._timed():
             base = self.as_masks(m[None])[0]
             res = self._score(int(a.shape[0]), lambda im, i, n: im.image_moves(base, a[i:i + n], b[i:i + n],
-                                                                                  bases=self.swap_bases(im)),
+                                                                                  bases=self.swap_bases(im.model)),
                               return_kernels)
         return self._images_out(res, return_kernels, False)
 
@@ -380,13 +380,16 @@ class Objective:
             self._neigh = I.neighbourhood_for(self) or False
         return self._neigh or None
 
-    def swap_bases(self, imager):
-        """The neighbourhood bases kept for ``imager`` (one of :attr:`imagers`;
-        :class:`~arraysel.objective.swapbases.SwapBases`): the state a search's neighbourhoods
-        share, kept here, not in the physics."""
+    def swap_bases(self, model):
+        """The neighbourhood bases kept for the field point of ``model`` (one of :attr:`psfs`;
+        :class:`~arraysel.objective.swapbases.SwapBases`): the state a search's neighbourhoods and
+        the pair model share, kept here, not in the physics."""
         from arraysel.objective.swapbases import SwapBases
 
-        return self.__dict__.setdefault("_swap_bases", {}).setdefault(id(imager), SwapBases())
+        kept = self.__dict__.setdefault("_swap_bases", {})
+        if id(model) not in kept:
+            kept[id(model)] = SwapBases()
+        return kept[id(model)]
 
     def prepare_neighbourhoods(self) -> bool:
         """Form now what :meth:`evaluate_swaps` shares between selections, so that a search's first
