@@ -186,7 +186,8 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
         _masks_figure(objective, selections, out)
     except Exception as exc:  # a figure must never lose the tables
         problems.append(f"masks.png: {type(exc).__name__}: {exc}")
-    apertures = objective_info(objective).aperture_mode  # full-tx, separate (docs/apertures.md)
+    info = objective_info(objective)
+    apertures = info.aperture_mode  # full-tx, separate (docs/apertures.md)
     if apertures:
         try:
             _apertures_figure(objective, selections, out)
@@ -194,13 +195,12 @@ def write_figures(objective, selections: dict[str, Selection], table, trace, out
             problems.append(f"apertures.png: {type(exc).__name__}: {exc}")
     labels = [config for config, sel in selections.items() if len(sel) and config != "full" and not apertures]
     masks = np.array([selections[config].mask for config in labels], dtype=bool)
-    kind = objective_info(objective).kind
-    if len(labels) and kind == "planes":
+    if len(labels) and info.kind == "planes":
         try:  # a 3-D scene: its planes and the C-plane's lateral profiles
             _planes_figures(objective, labels, masks, out)
         except Exception as exc:
             problems.append(f"planes/profiles: {type(exc).__name__}: {exc}")
-    elif len(labels) and kind == "beams":  # a sector scene: pareto.png and its beam patterns
+    elif len(labels) and info.kind == "beams":  # a sector scene: pareto.png and its beam patterns
         try:
             from arraysel.run.sector_report import beam_pattern_view
 
