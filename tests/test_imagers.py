@@ -53,8 +53,11 @@ def _assert_same(before: dict, after: dict, path: str = "") -> None:
         if isinstance(value, dict):
             _assert_same(value, after[key], f"{path}/{key}")
         else:
+            # L_PSF of the full array is its distance to itself, zero up to float32 rounding
+            # (2.4e-12 on matrix-1024): that rounding is not a score, and a fast path built afresh
+            # rounds it differently; the same rtol for every other value
             np.testing.assert_allclose(np.asarray(after[key], dtype=np.float64), np.asarray(value), rtol=1e-6,
-                                       atol=0, err_msg=f"{path}/{key}")
+                                       atol=1e-10 if key == "L_PSF" else 0, err_msg=f"{path}/{key}")
 
 
 @pytest.mark.parametrize("scene", [
