@@ -551,18 +551,49 @@ def _number(c) -> str:
     return "one" if int(c) == 1 else str(int(c))
 
 
-def aperture_constraints(n_elements: int, k_tx: int, k_rx: int) -> Constraints:
+def aperture_constraints(n_elements: int, k_tx: int, k_rx: int, each: Constraints | None = None) -> Constraints:
     """The quota of separate transmit and receive apertures on the virtual problem of
     ``2 n_elements`` units (transmit elements ``0 .. Ne - 1``, then the receive elements): exactly
     ``k_tx`` of the first ``Ne`` and ``k_rx`` of the rest (two groups with counts).
-    ``docs/apertures.md``."""
+
+    ``each``: the scene's constraints, which each aperture meets on its own. Forced elements are
+    forced in both apertures (a dead element neither transmits nor receives); ``exactly-one``
+    channel groups are kept in each half (the two halves' groups replace the quota, so ``k_tx`` and
+    ``k_rx`` must each be what the groups select). ``at-most-one`` groups and symmetry are refused
+    with an error naming the key. ``docs/apertures.md``."""
     n = int(n_elements)
     for key, v in (("aperture.k_tx", k_tx), ("aperture.k_rx", k_rx)):
         if not 1 <= int(v) <= n:
             raise ParameterError(f"{key} = {v} is out of range; allowed: [1, {n}] (the probe has {n} elements)")
-    groups = np.repeat(np.arange(2, dtype=np.int64), n)
-    return Constraints(2 * n, int(k_tx) + int(k_rx), groups=groups, group_counts=[int(k_tx), int(k_rx)],
-                       source="apertures (transmit, receive)")
+    k = int(k_tx) + int(k_rx)
+    if each is None or each.trivial:
+        groups = np.repeat(np.arange(2, dtype=np.int64), n)
+        return Constraints(2 * n, k, groups=groups, group_counts=[int(k_tx), int(k_rx)],
+                           source="apertures (transmit, receive)")
+    if each.n_elements != n:
+        raise ParameterError(f"constraints are for {each.n_elements} elements; the probe has {n}")
+    if each.symmetry != "none":
+        raise ParameterError(f"constraints.symmetry = {each.symmetry!r} together with aperture.mode = 'separate' is "
+                             "not supported; allowed there: 'none'")
+    on = list(each.forced_on) + [e + n for e in each.forced_on]
+    off = list(each.forced_off) + [e + n for e in each.forced_off]
+    if each.groups is None:
+        groups, counts, source = np.repeat(np.arange(2, dtype=np.int64), n), [int(k_tx), int(k_rx)], \
+            "apertures (transmit, receive)"
+    else:
+        if each.group_mode != "exactly-one":
+            raise ParameterError(f"constraints.mode = {each.group_mode!r} together with aperture.mode = 'separate' "
+                                 "is not supported; allowed there: 'exactly-one'")
+        per = int(each.counts[np.unique(each.groups)].sum())
+        for key, v in (("aperture.k_tx", k_tx), ("aperture.k_rx", k_rx)):
+            if int(v) != per:
+                raise ParameterError(f"{key} = {v}: the channel groups ({each.describe()}) select exactly {per} "
+                                     f"elements in each aperture; allowed: {per}")
+        size = int(each.groups.max()) + 1
+        groups = np.concatenate([each.groups, each.groups + size])
+        counts = np.concatenate([each.counts, each.counts])
+        source = f"{each.source or 'groups'} in each aperture"
+    return Constraints(2 * n, k, groups=groups, group_counts=counts, forced_on=on, forced_off=off, source=source)
 
 
 def constraints_of(objective) -> Constraints | None:

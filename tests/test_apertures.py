@@ -60,9 +60,45 @@ def test_bad_aperture_keys_name_the_key(tmp_path, aperture, needle):
         _scene(tmp_path, TINY_SCENE, "bad", **aperture)
 
 
-def test_separate_with_constraints_is_refused(tmp_path):
-    with pytest.raises(ParameterError, match=r"aperture.mode = 'separate' together with a \[constraints\]"):
-        _scene(tmp_path, TINY_SCENE + '\n[constraints]\nforced_on = [0]\n', "both", mode="separate")
+def test_separate_lifts_the_scene_constraints_onto_both_apertures(tmp_path):
+    sp = build_objective(_scene(tmp_path, TINY_SCENE + '\n[constraints]\nforced_on = [0]\nforced_off = [7]\n', "both",
+                                mode="separate", k_tx=3, k_rx=2), dtype=torch.float64)
+    c = sp.constraints
+    assert (c.n_elements, c.k) == (16, 5) and c.forced_on == (0, 8) and c.forced_off == (7, 15)
+    for name in ("swap", "random", "ste"):
+        row = Experiment(sp, name, budget=Budget(evaluations=30), seed=0, progress=False).run()
+        assert row["error"] == "", row["error"]
+        tx, rx = split_apertures([int(v) for v in row["elements"].split()], 8, "separate")
+        assert (len(tx), len(rx)) == (3, 2) and 0 in tx and 0 in rx and 7 not in tx and 7 not in rx, (name, tx, rx)
+
+
+def test_separate_keeps_channel_groups_in_each_aperture():
+    each = Constraints(8, 4, groups=[0, 0, 1, 1, 2, 2, 3, 3])
+    c = aperture_constraints(8, 4, 4, each)
+    assert (c.n_elements, c.k) == (16, 8) and c.groups.tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7]
+    masks = c.random_masks(np.random.default_rng(0), 50)
+    assert c.feasible_rows(masks).all()
+    for half in (masks[:, :8], masks[:, 8:]):   # one element of every channel in each aperture
+        assert (half.reshape(50, 4, 2).sum(2) == 1).all()
+    with pytest.raises(ConstraintError, match="constraint groups"):
+        c.check([0, 1, 2, 4, 8, 10, 12, 14])     # channel 0 twice in the transmit aperture
+    for name in ("swap", "anneal", "genetic", "ste", "random", "uniform"):
+        obj = ToyObjective(16, c.k, grid=(4, 4), constraints=c)
+        row = Experiment(obj, name, budget=Budget(evaluations=60), seed=1, progress=False).run()
+        assert row["error"] == "" and c.feasible([int(v) for v in row["elements"].split()]), (name, row["error"])
+
+
+@pytest.mark.parametrize("each, k_tx, needle", [
+    (Constraints(8, 4, groups=[0, 0, 1, 1, 2, 2, 3, 3]), 3,
+     r"aperture.k_tx = 3: the channel groups .* select exactly 4 elements in each aperture; allowed: 4"),
+    (Constraints(8, 3, groups=[0, 0, 1, 1, 2, 2, 3, 3], group_mode="at-most-one"), 3,
+     r"constraints.mode = 'at-most-one' together with aperture.mode = 'separate' is not supported"),
+    (Constraints(8, 4, symmetry="x", positions=np.c_[np.arange(8.0) - 3.5, np.zeros(8)]), 4,
+     r"constraints.symmetry = 'x' together with aperture.mode = 'separate' is not supported"),
+])
+def test_separate_constraints_it_cannot_lift_are_refused_by_name(each, k_tx, needle):
+    with pytest.raises(ParameterError, match=needle):
+        aperture_constraints(8, k_tx, 4, each)
 
 
 # --------------------------------------------------------------------------- the physics of each mode

@@ -81,12 +81,10 @@ class ApertureObjective:
             self.constraints = getattr(inner, "constraints", None)
             self.k_tx, self.k_rx = n, int(inner.k)
         else:
-            if getattr(inner, "constraints", None) is not None:
-                raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not "
-                                     "supported; give one of them")
             self.k_tx = int(inner.k if k_tx is None else k_tx)
             self.k_rx = int(inner.k if k_rx is None else k_rx)
-            self.constraints = aperture_constraints(n, self.k_tx, self.k_rx)
+            #: the quota and the scene's constraints, met by each aperture
+            self.constraints = aperture_constraints(n, self.k_tx, self.k_rx, getattr(inner, "constraints", None))
             self.n_elements, self.k = 2 * n, self.k_tx + self.k_rx
         if hasattr(inner, "beam_metrics"):  # a sector scene: its exact per-beam scoring, both apertures
             self.beam_metrics = self._beam_metrics

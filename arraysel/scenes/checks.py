@@ -165,8 +165,9 @@ def sector_checks(scene) -> None:
 
 
 def aperture_checks(scene, n_elements: int, k: int) -> None:
-    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate``;
-    ``separate`` without a ``[constraints]`` section (ParameterError naming the key)."""
+    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate``
+    (ParameterError naming the key); a ``[constraints]`` section with ``separate`` is checked when
+    the objective lifts it onto both apertures (:func:`arraysel.constraints.aperture_constraints`)."""
     sec = scene.section("aperture")
     mode = sec.get("mode", "shared")
     for key in ("k_tx", "k_rx"):
@@ -178,9 +179,6 @@ def aperture_checks(scene, n_elements: int, k: int) -> None:
         if not 1 <= int(sec[key]) <= n_elements:
             raise ParameterError(f"aperture.{key} = {sec[key]} is out of range; allowed: [1, {n_elements}] "
                                  f"(the probe has {n_elements} elements)")
-    if mode == "separate" and scene.section("constraints"):
-        raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not supported; "
-                             "give one of them")
     if mode != "shared" and scene.needs_data:
         raise ParameterError(f"aperture.mode = {mode!r} applies to PSF scenes; end-to-end scenes (weights.L_conv "
                              "or weights.L_rec > 0) use one shared aperture")
