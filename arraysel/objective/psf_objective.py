@@ -84,6 +84,8 @@ def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
     m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
     if m.dim() == 1:
         m = m[None]
+    if m.dim() == 3 and m.shape[-1] == n_elements:  # a transmit aperture per transmit event (B, n_tx, Ne)
+        return checked_masks(m.reshape(-1, n_elements), n_elements, device, dtype).reshape(m.shape)
     if m.dim() != 2 or m.shape[1] != n_elements:
         raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
     m = m.to(device, dtype)
@@ -236,7 +238,7 @@ class Objective:
         return checked_masks(masks, self.n_elements, self.device, self.dtype)
 
     def _weights(self, weights: torch.Tensor) -> torch.Tensor:
-        w = weights if weights.dim() == 2 else weights[None]
+        w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): one per transmit event
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         return w.to(self.device, self.dtype)
@@ -497,7 +499,7 @@ class Objective:
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
         ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
-            w = weights if weights.dim() == 2 else weights[None]
+            w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): per transmit event
             total, terms = self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")

@@ -149,11 +149,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
                         "y or both (four-fold)"),
     },
     "aperture": {  # docs/apertures.md; arraysel.objective.aperture
-        "mode": Key("str", ("shared", "full-tx", "separate"), "shared", "what a selection is: one mask that "
-                    "transmits and receives (shared), every element transmitting and the selection receiving "
-                    "(full-tx), or two selections, k_tx transmit and k_rx receive elements (separate)"),
-        "k_tx": Key("int", (1, 4096), None, "transmit elements of a separate selection (default: selection.k)"),
-        "k_rx": Key("int", (1, 4096), None, "receive elements of a separate selection (default: selection.k)"),
+        "mode": Key("str", ("shared", "full-tx", "separate", "per-transmit"), "shared",
+                    "what a selection is: one mask that transmits and receives (shared), every element "
+                    "transmitting and the selection receiving (full-tx), two selections, k_tx transmit and k_rx receive elements (separate), or a transmit "
+                    "aperture of k_tx elements for every transmit event and a receive aperture of k_rx (per-transmit, "
+                    "matrix-probe scenes)"),
+        "k_tx": Key("int", (1, 4096), None, "transmit elements of a separate selection, of each event's "
+                    "aperture under per-transmit (default: selection.k)"),
+        "k_rx": Key("int", (1, 4096), None, "receive elements of a separate or per-transmit selection "
+                    "(default: selection.k)"),
     },
     "metrics": {
         "r_main": Key("length", (0, 1000, True), 1.5, "main-lobe radius", "wl", _GRID_UNITS),
