@@ -19,7 +19,8 @@ points: ``soft_db * log(sum_p exp(PSL_p / soft_db))`` in place of the worst ``PS
 lowers every point but the worst, and leaves that one where it was, then counts as a gain; with
 the hard maximum such plateaus stop the search). The selection returned is the best by the
 per-beam loss itself. The search stops at its time limit, at ``evaluations`` (selections scored,
-each point counted: a selection scored on six points counts six), when ``stop()`` says so, or after
+each point counted: a selection scored on six points counts six; a round that would end past the
+time limit, by the latest round's time, is not started), when ``stop()`` says so, or after
 ``patience`` batches without a gain.
 """
 from __future__ import annotations
@@ -105,11 +106,13 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
     rounds = accepted = stale = screened = 0
     evals = 1
 
-    def more() -> bool:
-        return (time.perf_counter() - t0 < seconds and stale < patience and not (stop is not None and stop())
+    def more() -> bool:  # a round that would end past the time limit is not started
+        return (time.perf_counter() - t0 + last[0] < seconds and stale < patience and not (stop is not None and stop())
                 and (limit is None or sc.scored + batch * len(pts) <= limit))
 
+    last = [0.0]   # the latest round's seconds
     while more():
+        t_round = time.perf_counter()
         rounds += 1
         cand = _swaps(m, batch, rng)
         on = [j for j in range(len(pts)) if psl[j] >= psl.max() - screen_db - 1e-9]
@@ -120,6 +123,7 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
             top = top[scr[top] < psl.max() + 1e-9]
             if not len(top):
                 stale += 1
+                last[0] = time.perf_counter() - t_round
                 continue
             cand = cand[top]
         c_loss, c_search, c_sum = sc.full(cand)
@@ -134,6 +138,7 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
                 trace.append((time.perf_counter() - t0, best["loss"]))
         else:
             stale += 1
+        last[0] = time.perf_counter() - t_round
     s = best["summary"]
     return {"mask": best["mask"], "loss": best["loss"], "worst_PSL_dB": float(s["worst_PSL_dB"]),
             "mean_width_m": float(s["mean_width_m"]), "start_loss": start, "rounds": rounds,
