@@ -128,6 +128,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "n_freq": Key("int", (1, 64), 8, "frequencies of the search's broadband beam pattern"),
         "fresh_random": Key("int", (0, 10000), 16, "fresh random selections scored on the points for the "
                             "random baseline's median (0: none)"),
+        "polish": Key("float", (0, 0.9, False), 0.0, "share of the budget of every searching selector's run "
+                      "(not the baselines) spent polishing its selection on the per-beam loss (a run's own "
+                      "polish option overrides it; 0: none)"),
+        "polish_width_ratio": Key("float", (1, 2, False), 1.048, "the polish's cap on the mean -6 dB width, "
+                                  "over the fresh random selections' median"),
     },
     "receive": {
         "fnumber": Key("float", (0, 100, False), 0.0, "receive f-number (0 = full aperture)"),
