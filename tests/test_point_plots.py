@@ -33,7 +33,7 @@ def test_point_images_figure_panels_and_data():
     ext = [(-1.0, 1.0, -2.0, 2.0)] * 3
     fig = point_images_figure(["full", "ste"], ["a", "b", "c"], imgs, ext, 60.0)
     panels = [ax for ax in fig.axes if ax.images and ax.get_title()]
-    assert [ax.get_title() for ax in panels] == [f"{s} | {p}" for s in ("full", "ste") for p in "abc"]
+    assert [ax.get_title() for ax in panels] == [f"{s}\n{p}" for s in ("full", "ste") for p in "abc"]
     for n, ax in enumerate(panels):
         assert np.asarray(ax.images[0].get_array()) == pytest.approx(image_db(imgs[n // 3, n % 3], 60.0))
         assert tuple(ax.images[0].get_extent()) == ext[n % 3]
@@ -59,6 +59,7 @@ def test_depth_table_one_row_per_config_one_column_per_point_and_metric():
 @pytest.mark.slow
 def test_tiny_sector_scene_with_cysts_through_compare(tmp_path):
     from arraysel.objective.build import build_objective
+    from arraysel.objective.sector_objective import point_label
     from arraysel.report.plots import collect_figures
     from arraysel.run.compare import compare
     from arraysel.run.sector_points import FRESH_ONE
@@ -92,7 +93,7 @@ def test_tiny_sector_scene_with_cysts_through_compare(tmp_path):
         assert len(panels) == 5 * obj.n_points
         for i in range(obj.n_points):
             want = image_db(obj.point_images(mask, i)[0].numpy(), dr)
-            assert panels[i].get_title().startswith("full | ")
+            assert panels[i].get_title() == f"full\n{point_label(obj, i)}"
             assert np.asarray(panels[i].images[0].get_array()) == pytest.approx(want, abs=1e-3)
     # and the cysts are those of the same images
     from arraysel.objective.cysts import score_cysts

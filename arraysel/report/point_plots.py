@@ -8,7 +8,8 @@ the widths and side lobes per depth, the cysts' contrast.
 * :func:`depth_table` (``depths.csv``) and :func:`depth_figure` (``depths.png``): the -6 dB widths
   and the peak side lobe of each selection per point, as the published tables give them (one row
   per selection, one column per point and metric), from ``beams.csv``;
-* :func:`cyst_rows` (``cysts.csv``): CR and gCNR per selection and cyst.
+* :func:`cyst_rows` (``cysts.csv``): CR and gCNR per selection and cyst; :func:`cyst_images_figure`
+  a cyst's phantom image through each selection.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from arraysel.errors import ParameterError
 from arraysel.report.plots import figure, styled
 
 __all__ = ["image_db", "point_images_figure", "DEPTH_METRICS", "depth_table", "depth_figure", "CYSTS_COLUMNS",
-           "cyst_rows"]
+           "cyst_rows", "cyst_images_figure"]
 
 #: the metrics of ``depths.csv``, from ``beams.csv``
 DEPTH_METRICS = ("width_x_mm", "width_y_mm", "PSL_dB", "ISLR_dB", "GLL_dB")
@@ -58,13 +59,13 @@ def point_images_figure(labels: list[str], point_labels: list[str], images, exte
             ax = fig.add_subplot(B, P, b * P + p + 1)
             im = ax.imshow(image_db(images[b, p], dynamic_range), origin="lower", cmap="gray",
                            vmin=-dynamic_range, vmax=0, extent=extents[p], aspect="equal", interpolation="nearest")
-            ax.set_title(f"{label} | {point}", fontsize=7)
+            ax.set_title(f"{label}\n{point}", fontsize=7)
             ax.tick_params(labelsize=6)
             if b == B - 1:
                 ax.set_xlabel("x = R u (mm)", fontsize=7)
             if p == 0:
                 ax.set_ylabel("y = R v (mm)", fontsize=7)
-    fig.subplots_adjust(hspace=0.45, wspace=0.35)
+    fig.subplots_adjust(hspace=0.5, wspace=0.35, top=1 - 0.45 / (2.2 * B + 0.5))
     if im is not None:
         bar = fig.colorbar(im, ax=fig.axes, shrink=0.5, fraction=0.03, pad=0.02)
         bar.set_label(f"dB re. the point's peak ({dynamic_range:g} dB range)")
@@ -128,3 +129,35 @@ def cyst_rows(config: str, seed, points: list[tuple], radius_m: float, metrics: 
     return [{"config": config, "seed": seed, "point": label, "theta_x_deg": ax, "theta_y_deg": ay,
              "range_mm": r * 1e3, "radius_mm": radius_m * 1e3, "CR_dB": float(metrics["CR_dB"][index, j]),
              "gCNR": float(metrics["gCNR"][index, j])} for j, (label, ax, ay, r) in enumerate(points)]
+
+
+@styled
+def cyst_images_figure(labels: list[str], envelopes, extent: tuple, radius_mm: float, centre_mm=(0.0, 0.0),
+                       dynamic_range: float = 40.0, titles: list[str] | None = None):
+    """One panel a selection: a cyst phantom's envelope image (B, H, W) in dB re. its own peak,
+    ``extent`` ``(x0, x1, y0, y1)`` mm, shown out to three radii around the cyst, its outline
+    (``radius_mm`` around ``centre_mm``) dashed; ``titles`` (default the labels) above the panels. Returns a Figure."""
+    env = np.asarray(envelopes, dtype=np.float64)
+    if env.ndim != 3 or env.shape[0] != len(labels):
+        raise ParameterError(f"envelopes must have shape ({len(labels)}, H, W), got {env.shape}")
+    n = len(labels)
+    cols = min(n, 4)
+    rows = max(1, math.ceil(n / cols))
+    fig = figure((2.6 * cols + 0.8, 2.5 * rows + 0.4))
+    t = np.linspace(0, 2 * math.pi, 181)
+    im = None
+    for b in range(n):
+        ax = fig.add_subplot(rows, cols, b + 1)
+        im = ax.imshow(image_db(env[b], dynamic_range), origin="lower", cmap="gray", vmin=-dynamic_range, vmax=0,
+                       extent=extent, aspect="equal", interpolation="bilinear")
+        ax.plot(centre_mm[0] + radius_mm * np.cos(t), centre_mm[1] + radius_mm * np.sin(t), "c--", lw=0.6)
+        ax.set_xlim(centre_mm[0] - 3 * radius_mm, centre_mm[0] + 3 * radius_mm)   # the cyst and its ring
+        ax.set_ylim(centre_mm[1] - 3 * radius_mm, centre_mm[1] + 3 * radius_mm)
+        ax.set_title((titles or labels)[b], fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.set_xlabel("x (mm)", fontsize=7)
+    fig.subplots_adjust(hspace=0.55, wspace=0.3)
+    if im is not None:
+        bar = fig.colorbar(im, ax=fig.axes, shrink=0.5, fraction=0.03, pad=0.02)
+        bar.set_label(f"envelope, dB re. peak ({dynamic_range:g} dB)")
+    return fig
