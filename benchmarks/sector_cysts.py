@@ -6,7 +6,8 @@ The scene is the one ``run.json`` holds, with a ``[cysts]`` section (the options
 on every point by default). Writes ``cysts.csv`` (one row per selection and cyst), ``summary.csv``
 (per selection: the mean CR and gCNR over the cysts, the worst side lobe and the mean width over
 the points), ``cysts.png`` (one phantom realisation through each selection, on the point
-``--show``), ``points-40dB.png`` and ``points-60dB.png``.
+``--show``), ``points-40dB.png`` and ``points-60dB.png``, and the folder's per-depth table
+(``depths.csv``, ``depths.png``, from its ``beams.csv``).
 
     python benchmarks/sector_cysts.py benchmarks/results/compare-matrix-sector \\
         --extra benchmarks/results/sector-polish/continued/polish.csv --out benchmarks/results/sector-cysts
@@ -118,6 +119,10 @@ def main(argv=None) -> None:
     for dr in () if args.no_points else (40.0, 60.0):
         save_figure(pp.point_images_figure([labels[b] for b in keep], [p[0] for p in pts], stack[keep], exts, dr),
                     args.out / f"points-{dr:g}dB.png")
+    if not args.no_points and (args.folder / "beams.csv").is_file():   # the folder's per-depth table
+        beams = pd.read_csv(args.folder / "beams.csv")
+        write_csv(args.out / "depths.csv", pp.depth_table(beams))
+        save_figure(pp.depth_figure(beams), args.out / "depths.png")
     print(summary.to_string(index=False))
     print(f"images {t_img:.1f} s ({len(labels)} selections x {obj.n_points} points); cysts {t_cyst:.1f} s")
 
