@@ -3,9 +3,10 @@
 search objective.
 
 **The phantom.** A cyst is centred on a point of the scene (``cysts.points``) at range ``R`` and
-direction ``(u0, v0)``. Scatterers lie on the point's surface (the sphere of its range, sampled on
-the scene's grid of direction cosines, steps ``du``, ``dv``), at the grid's shifts from the point:
-each sample holds a Poisson number of scatterers, ``density`` per resolution cell (the full
+direction ``(u0, v0)``. Scatterers lie on the sphere of its range, at the shifts of the scene's
+grid of direction cosines (steps ``du``, ``dv``) from the point, out to every shift at which the
+point's PSF reaches the point's surface (``u0 + e_u du``, ``|e_u|`` below the grid's samples, the
+same in ``v``), inside the visible region (``u^2 + v^2 < 1``): each shift holds a Poisson number of scatterers, ``density`` per resolution cell (the full
 aperture's main lobe, ``(lambda0 / D_x)(lambda0 / D_y)`` in ``u``-``v``), each with a complex
 Gaussian amplitude, so a sample's amplitude is complex Gaussian with that count as its variance.
 The scatterers within ``radius`` of the centre (``R hypot(du, dv) <= radius``) are removed: the
@@ -17,11 +18,12 @@ the scatterer field with the selection's PSF of the point, as the scene scores i
 delay-and-sum image on the point's surface): a scatterer shifted by ``(du, dv)`` from the point is
 imaged as the point's PSF shifted by ``(du, dv)``. This holds where the PSF does not change with
 the direction (the far field of the aperture, the same transmits seen from nearby directions); it
-ignores how the PSF changes across the sector (steering, the transmits' coverage), scatterers off
-the surface (the PSF's axial extent: a 2-D phantom on the C-surface, no slice thickness) and
-shifts beyond the surface (the PSF is known on the surface only). It keeps what sets a cyst's
-contrast between selections: every side lobe and grating lobe of the PSF over the sector brings
-speckle into the cyst.
+ignores how the PSF changes across the sector (steering, the transmits' coverage: a scatterer
+outside the sector, which the transmits reach less, is imaged as brightly as the point) and
+scatterers off the surface (the PSF's axial extent: a 2-D phantom on the C-surface, no slice
+thickness); the PSF is known on the surface only, so a lobe beyond it brings nothing. It keeps what
+sets a cyst's contrast between selections: every side lobe and grating lobe of the PSF over the
+surface brings speckle into the cyst.
 
 **The metrics**, on the envelope ``|image|``, pooled over the realisations, inside the disc of
 ``inside`` times the radius and in the ring from ``ring_inner`` to ``ring_outer`` radii:
@@ -148,14 +150,16 @@ class CystPhantom:
         self.settings = settings
         self.index = int(index)
         H, W = self.v.size, self.u.size
-        # the sample nearest the centre: a scatterer at the shift (iy, ix) - c0 is imaged as the PSF shifted so
+        # the sample nearest the centre, where the PSF's peak lies (the point itself, between samples)
         self.c0 = (int(round((self.centre[1] - self.v[0]) / self.dv)), int(round((self.centre[0] - self.u[0]) / self.du)))
         if not (0 <= self.c0[0] < H and 0 <= self.c0[1] < W):
             raise ParameterError(f"centre {self.centre} lies outside the surface")
-        sy, sx = np.meshgrid((np.arange(H) - self.c0[0]) * self.dv, (np.arange(W) - self.c0[1]) * self.du,
-                             indexing="ij")
-        #: scatterers kept (outside the anechoic disc), (H, W) bool
-        self.keep = self.range * np.hypot(sx, sy) > settings.radius
+        # the scatterers: at every shift (ey, ex) of the grid, |ey| < H, |ex| < W, from the point (a
+        # scatterer there is imaged as the PSF shifted so), in the visible region
+        ey, ex = np.meshgrid(np.arange(-(H - 1), H) * self.dv, np.arange(-(W - 1), W) * self.du, indexing="ij")
+        visible = (self.centre[0] + ex) ** 2 + (self.centre[1] + ey) ** 2 < 1
+        #: scatterers kept (in the visible region, outside the anechoic disc), (2H - 1, 2W - 1) bool
+        self.keep = visible & (self.range * np.hypot(ex, ey) > settings.radius)
         py, px = np.meshgrid(self.v - self.centre[1], self.u - self.centre[0], indexing="ij")
         d = self.range * np.hypot(px, py)
         r = settings.radius
@@ -168,9 +172,10 @@ class CystPhantom:
         self.per_sample = settings.density * abs(self.du * self.dv) / (float(lobe[0]) * float(lobe[1]))
 
     def fields(self) -> np.ndarray:
-        """The seeded scatterer fields (realisations, H, W), complex, zero inside the disc."""
+        """The seeded scatterer fields (realisations, 2H - 1, 2W - 1) on the shifts of :attr:`keep`,
+        complex, zero inside the disc and outside the visible region."""
         rng = np.random.default_rng(np.random.SeedSequence([int(self.settings.seed), self.index]))
-        shape = (int(self.settings.realisations), self.v.size, self.u.size)
+        shape = (int(self.settings.realisations), *self.keep.shape)
         return speckle_field(shape, self.per_sample, rng) * self.keep
 
     def images(self, psf) -> np.ndarray:
@@ -182,10 +187,10 @@ class CystPhantom:
             raise ParameterError(f"psf must have shape ({H}, {W}), got {k.shape}")
         if not np.isfinite(k).all():
             raise NumericalError("the PSF is not finite")
-        shape = (2 * H - 1, 2 * W - 1)
+        # pixel p sums a_e psf[p - e] over the shifts e: the full convolution, read from H - 1 on
+        shape = (3 * H - 2, 3 * W - 2)
         full = np.fft.ifft2(np.fft.fft2(self.fields(), shape) * np.fft.fft2(k, shape)[None])
-        c0y, c0x = self.c0
-        return np.abs(full[:, c0y:c0y + H, c0x:c0x + W])
+        return np.abs(full[:, H - 1:2 * H - 1, W - 1:2 * W - 1])
 
     def metrics(self, psf) -> dict[str, float]:
         """``{"CR_dB", "gCNR"}`` of the phantom through ``psf`` (module docstring)."""
