@@ -52,6 +52,7 @@ from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.objective.tensors import checked_masks, objective_device  # noqa: F401  (checked_masks: its former home)
 from arraysel.physics.imaging import PlaneSet
 from arraysel.selection import masks_from_indices
+from arraysel.scenes.scene import ObjectiveSettings
 from arraysel.scenes.schema import Scene, load_scene
 
 _log = logging.getLogger(__name__)
@@ -142,9 +143,11 @@ class Objective:
 
     Parameters
     ----------
-    scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one.
-    device : "cpu" or "cuda" (or a torch.device).
-    dtype : torch.float32 (default) or torch.float64.
+    scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one; or its
+        :class:`~arraysel.scenes.scene.ObjectiveSettings` together with ``imagers`` (no scene:
+        :meth:`assemble`).
+    device : "cpu" (default) or "cuda" (or a torch.device); with ``imagers``, theirs by default.
+    dtype : torch.float32 (default) or torch.float64; with ``imagers``, theirs by default.
     chunk : masks per batch inside :meth:`evaluate` (default :data:`DEFAULT_CHUNK`, 128 on a 3-D scene).
     fast : False: the exact paths only.
     imagers : the imagers to score (default :func:`~arraysel.objective.imagers.scene_imagers` of the
@@ -156,16 +159,27 @@ class Objective:
     #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`)
     image_kind: str | None = None
 
-    def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int | None = None,
-                 fast: bool = True, imagers=None):
-        self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
-        self.device = objective_device(device)
-        self.dtype = dtype
+    def __init__(self, scene: Scene | ObjectiveSettings | str = "paper", device=None, dtype=None,
+                 chunk: int | None = None, fast: bool = True, imagers=None):
+        if isinstance(scene, ObjectiveSettings):
+            if not imagers:
+                raise ParameterError("Objective(settings, imagers=...): an objective assembled from its settings "
+                                     "needs its imagers (arraysel.objective.imagers.scene_imagers gives a scene's)")
+            self.scene, st = None, scene
+        else:
+            self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
+            st = self.scene.objective_settings()
+        if imagers is not None:
+            imagers = list(imagers)
+            device = imagers[0].device if device is None else device
+            dtype = imagers[0].dtype if dtype is None else dtype
+        self.device = objective_device("cpu" if device is None else device)
+        self.dtype = torch.float32 if dtype is None else dtype
         self.fast_requested = bool(fast)
         #: the scene's settings, read once: the objective does not go back to the scene
-        self.settings = st = self.scene.objective_settings()
+        self.settings = st
         if imagers is None:
-            imagers = I.scene_imagers(self.scene, st, dtype=dtype, device=self.device, fast=fast)
+            imagers = I.scene_imagers(self.scene, st, dtype=self.dtype, device=self.device, fast=fast)
         #: the imagers (one per field point), :mod:`arraysel.physics.imaging`
         self.imagers = list(imagers)
         self.chunk = int(I.default_chunk(self.imagers) if chunk is None else chunk)
@@ -175,9 +189,11 @@ class Objective:
         #: on a full grid (else None) and the element centres (Ne, 3) as (x, y, z) in metres
         self.element_grid, self.element_positions = self.imagers[0].layout()
         #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
-        self.constraints = self.scene.constraints()
-        #: the field points (one per imager; a sector scene's, one per beam of its per-beam view)
-        self.points = I.scene_points(self.scene)
+        #: (or without a scene)
+        self.constraints = None if self.scene is None else self.scene.constraints()
+        #: the field points (one per imager; a sector scene's, one per beam of its per-beam view;
+        #: without a scene, the imagers' own)
+        self.points = I.scene_points(self.scene) if self.scene is not None else [im.point for im in self.imagers]
         self.n_points = len(self.points)
         self.aggregate = st.aggregate
         first = self.imagers[0]
@@ -211,8 +227,18 @@ class Objective:
         self.setup, self.model, self.coords = first.setup, first.model, first.coords
         self.exact_reason = next((im.exact_reason for im in self.imagers if im.exact), None)
         #: the per-beam view of the scene's points (:func:`~arraysel.objective.imagers.scene_beams`: a
-        #: sector scene's :class:`~arraysel.objective.sector_objective.SectorBeams`), None for others
-        self.beams = I.scene_beams(self)
+        #: sector scene's :class:`~arraysel.objective.sector_beams.SectorBeams`), None for others
+        self.beams = None if self.scene is None else I.scene_beams(self)
+
+    @classmethod
+    def assemble(cls, settings: ObjectiveSettings, imagers, chunk: int | None = None) -> "Objective":
+        """The objective assembled from ``settings`` (:class:`~arraysel.scenes.scene.ObjectiveSettings`:
+        ``k``, the loss weights, the metric radii, the aggregate) and ``imagers`` (a list of
+        :class:`~arraysel.physics.imaging.Imager`, on their device and dtype): it scores their plane
+        sets and reads nothing else. Without a scene it has no constraints, no per-beam view and no
+        worker recipe; ``Objective(scene)`` is this assembly of the scene's settings and
+        :func:`~arraysel.objective.imagers.scene_imagers`."""
+        return cls(settings, chunk=chunk, imagers=imagers)
 
     @property
     def fast(self) -> bool:
@@ -576,8 +602,9 @@ class Objective:
 
     def worker_factory(self) -> "SceneObjectiveFactory | None":
         """A picklable recipe that rebuilds this objective on a worker (the scene, device, dtype
-        and chunk); ``None`` for a subclass, which must give its own."""
-        if type(self) is not Objective:
+        and chunk); ``None`` for a subclass, which must give its own, and for an objective assembled
+        without a scene."""
+        if type(self) is not Objective or self.scene is None:
             return None
         return SceneObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
                                      chunk=int(self.chunk))

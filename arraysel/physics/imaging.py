@@ -101,7 +101,9 @@ class Imager:
     pixel positions in metres; ``"uv"``: shifts of direction sines); ``model`` (the physics model
     behind it); ``setup`` (its setup); ``exact`` (True when it images on the exact path only);
     ``exact_reason`` (why, else None); ``moves_from_selection`` (True when :meth:`image_moves`
-    images a selection's neighbours from the selection's own images, cheaper than imaging their masks).
+    images a selection's neighbours from the selection's own images, cheaper than imaging their masks);
+    ``point`` (the field point it images, in metres: ``(x, z)`` of a 1-D point, ``(x, y, z)`` of a
+    3-D one; None for a beam pattern).
     """
 
     n_elements: int
@@ -111,6 +113,7 @@ class Imager:
     exact: bool = False
     exact_reason: str | None = None
     moves_from_selection: bool = False
+    point: tuple | None = None
 
     def wrap(self, images) -> PlaneSet:
         """A :class:`PlaneSet` of this imager's planes from ``images`` (``{name: (B, H, W)}``, or the
@@ -191,6 +194,7 @@ class KernelImager(Imager):
         self.coords = {KERNEL_PLANE: kernel_coords(model.setup.window, p)}
         self.exact = model.basis is None
         self.moves_from_selection = True
+        self.point = tuple(float(v) for v in model.setup.scatterer_position)
 
     def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
         return self.wrap(self.model.kernels(weights, receive=receive))
@@ -238,6 +242,7 @@ class VolumeImager(Imager):
         self.exact_reason = exact_reason
         self.exact = exact_reason is not None
         self.batch = int(batch)
+        self.point = tuple(float(v) for v in self.setup.scatterer)
 
     def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
         return self.wrap(self.model.planes(weights) if receive is None else self.model.planes(weights, receive=receive))
