@@ -37,3 +37,15 @@ def test_an_objective_assembled_from_settings_and_imagers_scores_as_its_scene(sc
 def test_settings_without_imagers_are_refused():
     with pytest.raises(ParameterError, match="imagers"):
         Objective(load_scene("matrix-1024").objective_settings())
+
+
+def test_kernel_only_methods_ask_the_imagers():
+    """What only serves kernels is refused by what the imagers give (a beam pattern: one plane off a
+    pixel grid), and the quadratic model's pair basis is an imager's PSF model (none here)."""
+    sector = build_objective(load_scene(copy.deepcopy(TINY)))
+    with pytest.raises(ParameterError, match=r"planes, not a 2-D kernel .*\['pattern'\].*Objective\.planes"):
+        sector.kernels(np.ones((1, sector.n_elements)))
+    with pytest.raises(ParameterError, match=r"\['pattern'\]"):
+        sector.evaluate(np.ones((1, sector.n_elements)), return_kernels=True)
+    assert sector.image_kind == "planes" and set(sector.planes(np.ones((1, sector.n_elements)))) == {"pattern"}
+    assert not sector.hessian_from_pairs and sector.psfs == [] and sector.imagers[0].psf_model is None

@@ -156,7 +156,8 @@ class Objective:
 
     metric_names = METRIC_NAMES
     #: "kernels" when each field point's image is one 2-D kernel (:meth:`kernels`), "planes" when the
-    #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`)
+    #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`): what the imagers say, for
+    #: readers of the objective (its own methods ask the imagers)
     image_kind: str | None = None
 
     def __init__(self, scene: Scene | ObjectiveSettings | str = "paper", device=None, dtype=None,
@@ -217,11 +218,11 @@ class Objective:
         self.reset_counters()
         #: :meth:`mask_hessian` from the pair basis (:mod:`arraysel.objective.pair_model`) where it
         #: applies (False: always the autograd of ``mask_loss``)
-        self.hessian_from_pairs = self.image_kind == "kernels"
+        self.hessian_from_pairs = all(im.psf_model is not None for im in self.imagers)
         # what the imagers hold, under the names of the former 1-D and 3-D objectives: the 1-D points'
         # PSFModel (``psfs``, ``psf`` the first) and setups; the first imager's setup, physics model,
         # pixel positions ``{plane: (H, W, 3)}`` in metres, and why it uses its exact path (None: fast)
-        self.psfs = [im.model for im in self.imagers if self.image_kind == "kernels"]
+        self.psfs = [im.psf_model for im in self.imagers if im.psf_model is not None]
         self.psf = self.psfs[0] if self.psfs else None
         self.setups = [im.setup for im in self.imagers]
         self.setup, self.model, self.coords = first.setup, first.model, first.coords
@@ -289,8 +290,11 @@ class Objective:
         return [point]
 
     def _kernels_only(self, what: str) -> None:
-        if self.image_kind != "kernels":
-            raise ParameterError(f"a 3-D scene has planes, not a 2-D kernel: use Objective.{what}")
+        """ParameterError unless every imager gives one 2-D kernel on a pixel grid (its ``pitch``)."""
+        other = next((im for im in self.imagers if im.pitch is None), None)
+        if other is not None:
+            raise ParameterError(f"scene {self.settings.name!r} has planes, not a 2-D kernel on a pixel grid "
+                                 f"(its imager gives {list(other.plane_names)}): use Objective.{what}")
 
     def _one_imager(self):
         if len(self.imagers) != 1:

@@ -103,7 +103,9 @@ class Imager:
     ``exact_reason`` (why, else None); ``moves_from_selection`` (True when :meth:`image_moves`
     images a selection's neighbours from the selection's own images, cheaper than imaging their masks);
     ``point`` (the field point it images, in metres: ``(x, z)`` of a 1-D point, ``(x, y, z)`` of a
-    3-D one; None for a beam pattern).
+    3-D one; None for a beam pattern); ``psf_model`` (the 1-D point's
+    :class:`~arraysel.physics.psf.PSFModel` whose pair basis gives the loss's quadratic model,
+    else None).
     """
 
     n_elements: int
@@ -114,6 +116,7 @@ class Imager:
     exact_reason: str | None = None
     moves_from_selection: bool = False
     point: tuple | None = None
+    psf_model = None
 
     def wrap(self, images) -> PlaneSet:
         """A :class:`PlaneSet` of this imager's planes from ``images`` (``{name: (B, H, W)}``, or the
@@ -183,7 +186,7 @@ class KernelImager(Imager):
     """
 
     def __init__(self, model, exact_reason: str | None = None):
-        self.model = model
+        self.model = self.psf_model = model
         self.exact_reason = exact_reason
         self.setup = model.setup
         self.n_elements = model.n_elements
