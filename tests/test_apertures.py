@@ -230,7 +230,7 @@ def test_per_transmit_is_refused_on_a_1d_scene(tmp_path):
 
 
 def test_sector_separate_is_the_two_way_pattern_of_the_two_masks():
-    from arraysel.objective.sector_objective import SectorObjective
+    from arraysel.objective.sector_objective import SectorBeams
     tree = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
             "acquisition": {"fs_over_fc": 4.0},
             "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
@@ -239,7 +239,7 @@ def test_sector_separate_is_the_two_way_pattern_of_the_two_masks():
             "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0},
             "aperture": {"mode": "separate", "k_tx": 20, "k_rx": 12}}
     sp = build_objective(load_scene(copy.deepcopy(tree)), dtype=torch.float64)
-    assert isinstance(sp.inner, SectorObjective) and (sp.n_elements, sp.k, sp.element_grid) == (128, 32, (16, 8))
+    assert isinstance(sp.inner.beams, SectorBeams) and (sp.n_elements, sp.k, sp.element_grid) == (128, 32, (16, 8))
     tx, rx = _masks(64, 20, 2, 6), _masks(64, 12, 2, 7)
     got = sp.evaluate(np.concatenate([tx, rx], 1))
     t, r = torch.tensor(tx, dtype=torch.float64), torch.tensor(rx, dtype=torch.float64)
