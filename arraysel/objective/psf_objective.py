@@ -276,7 +276,7 @@ class Objective:
         return checked_masks(masks, self.n_elements, self.device, self.dtype)
 
     def _weights(self, weights: torch.Tensor) -> torch.Tensor:
-        w = weights if weights.dim() == 2 else weights[None]
+        w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): one per transmit event
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         return w.to(self.device, self.dtype)
@@ -545,7 +545,7 @@ class Objective:
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
         ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
-            w = weights if weights.dim() == 2 else weights[None]
+            w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): per transmit event
             total, terms = self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")

@@ -48,6 +48,8 @@ def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
     m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
     if m.dim() == 1:
         m = m[None]
+    if m.dim() == 3 and m.shape[-1] == n_elements:  # a transmit aperture per transmit event (B, n_tx, Ne)
+        return checked_masks(m.reshape(-1, n_elements), n_elements, device, dtype).reshape(m.shape)
     if m.dim() != 2 or m.shape[1] != n_elements:
         raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
     m = m.to(device, dtype)
