@@ -61,14 +61,15 @@ def _point_info(objective) -> list[tuple]:
 
 
 def point_files(objective, rows: list[dict], beams, figures: bool = True) -> tuple[dict, dict]:
-    """The files of the module docstring for a :class:`SectorObjective` (none for another
-    objective); ``beams``: the ``beams.csv`` DataFrame. Returns ``({file name: DataFrame},
+    """The files of the module docstring for a sector scene's objective (none for another
+    objective, or one seen through separate apertures); ``beams``: the ``beams.csv`` DataFrame. Returns ``({file name: DataFrame},
     {file name: a function that draws its Figure})``: the store writes them."""
     from arraysel.objective.cysts import CystSettings, score_cysts
-    from arraysel.objective.sector_objective import SectorObjective
+    from arraysel.objective.contract import objective_info
     from arraysel.report import point_plots as pp
 
-    if not isinstance(objective, SectorObjective):
+    info = objective_info(objective)
+    if info.kind != "beams" or info.aperture_mode is not None:   # a sector scene's own objective only
         return {}, {}
     tables = {"depths.csv": pp.depth_table(beams)}
     cysts = CystSettings.from_scene(objective.scene)

@@ -206,22 +206,24 @@ def cyst_checks(scene) -> None:
 
 
 def aperture_checks(scene, n_elements: int, k: int) -> None:
-    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate``;
-    ``separate`` without a ``[constraints]`` section (ParameterError naming the key)."""
+    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate`` or
+    ``per-transmit``, which needs a matrix-probe scene imaged on planes (ParameterError naming the
+    key); a ``[constraints]`` section is checked when the objective lifts it onto each aperture
+    (:func:`arraysel.constraints.aperture_constraints`)."""
     sec = scene.section("aperture")
     mode = sec.get("mode", "shared")
     for key in ("k_tx", "k_rx"):
         if key not in sec:
             continue
-        if mode != "separate":
-            raise ParameterError(f"aperture.{key} applies to aperture.mode = 'separate' only "
+        if mode not in ("separate", "per-transmit"):
+            raise ParameterError(f"aperture.{key} applies to aperture.mode = 'separate' or 'per-transmit' only "
                                  f"(aperture.mode = {mode!r})")
         if not 1 <= int(sec[key]) <= n_elements:
             raise ParameterError(f"aperture.{key} = {sec[key]} is out of range; allowed: [1, {n_elements}] "
                                  f"(the probe has {n_elements} elements)")
-    if mode == "separate" and scene.section("constraints"):
-        raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not supported; "
-                             "give one of them")
+    if mode == "per-transmit" and (not scene.is_volume or scene.is_sector):
+        raise ParameterError("aperture.mode = 'per-transmit' applies to matrix-probe scenes imaged on planes (such as "
+                             "matrix-1024); allowed on this scene: shared, full-tx, separate")
     if mode != "shared" and scene.needs_data:
         raise ParameterError(f"aperture.mode = {mode!r} applies to PSF scenes; end-to-end scenes (weights.L_conv "
                              "or weights.L_rec > 0) use one shared aperture")

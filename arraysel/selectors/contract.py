@@ -459,6 +459,8 @@ class Selector:
         (:meth:`missing`, :meth:`install_hint`) and ``arraysel list`` marks it
     extra : the arraysel extra that installs ``requires`` (``pip install 'arraysel[extra]'``);
         None: install the packages themselves
+    baseline : a reference layout or sampler (``uniform``, ``spiral``, ``random``), not a search: a
+        scene's default polish (``sector.polish``) leaves its selections as they are
 
     Subclasses implement :meth:`select`. Options are available as
     ``self.options`` (a dict holding every declared option). Every subclass
@@ -476,6 +478,7 @@ class Selector:
     scores_neighbourhoods: ClassVar[bool] = False
     requires: ClassVar[tuple[str, ...]] = ()
     extra: ClassVar[str | None] = None
+    baseline: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
