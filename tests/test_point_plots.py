@@ -73,7 +73,7 @@ def test_tiny_sector_scene_with_cysts_through_compare(tmp_path):
         compare(obj, ["random", "uniform", "swap"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=30),
                 progress=False)
     assert not json.loads((tmp_path / "run.json").read_text()).get("figure_errors")
-    for name in ("points-40dB.png", "points-60dB.png", "depths.png"):
+    for name in ("points-40dB.png", "points-60dB.png", "depths.png", "cysts.png"):
         assert (tmp_path / name).stat().st_size > 1000, name
     cysts = pd.read_csv(tmp_path / "cysts.csv")
     assert list(cysts["config"].unique()) == ["full", "random", "uniform", "swap", FRESH_ONE]
@@ -100,3 +100,5 @@ def test_tiny_sector_scene_with_cysts_through_compare(tmp_path):
 
     again = score_cysts(obj, mask)
     assert cysts[cysts["config"] == "full"]["CR_dB"].to_numpy() == pytest.approx(again["CR_dB"][0], abs=1e-3)
+    panels = [ax for ax in figs["cysts"].axes if ax.images]
+    assert len(panels) == 5 and panels[0].get_title().startswith("full\nCR ")

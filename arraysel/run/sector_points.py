@@ -1,6 +1,6 @@
 """The points of a sector scene's comparison, drawn and checked on a handful of selections
 (``docs/sector.md``): ``points-40dB.png``, ``points-60dB.png``, ``depths.csv``, ``depths.png`` and,
-with a ``[cysts]`` section, ``cysts.csv`` (:mod:`arraysel.report.point_plots`,
+with a ``[cysts]`` section, ``cysts.csv`` and ``cysts.png`` (:mod:`arraysel.report.point_plots`,
 :mod:`arraysel.objective.cysts`).
 
 The selections are the table's (the full array and each configuration's listed selection, those of
@@ -98,4 +98,27 @@ def point_files(objective, rows: list[dict], beams, figures: bool = True) -> tup
     draw = {f"points-{dr:g}dB.png": functools.partial(pp.point_images_figure, labels, names, stack, extents, dr)
             for dr in DYNAMIC_RANGES}
     draw["depths.png"] = functools.partial(pp.depth_figure, beams)
+    if cysts is not None:
+        draw["cysts.png"] = _cyst_view(objective, cysts, labels, images, met)
     return tables, draw
+
+
+def _cyst_view(objective, cysts, labels: list[str], images: dict, met: dict):
+    """``cysts.png``: one realisation of one cyst (the one nearest the cysts' median range, on the
+    axis first) through each selection, its CR and gCNR in the titles."""
+    from arraysel.objective.cysts import CystPhantom
+    from arraysel.report import point_plots as pp
+
+    setup = objective.setup
+    ranges = [setup.range_of(i) for i in cysts.points]
+    mid = float(np.median(ranges))
+    j = min(range(len(ranges)), key=lambda n: (abs(ranges[n] - mid), sum(map(abs, setup.direction_of(cysts.points[n])))))
+    i = cysts.points[j]
+    ph = CystPhantom(setup.u, setup.v, setup.direction_of(i), setup.range_of(i), objective.scene.sector_geometry()["lobe"],
+                     cysts, index=i)
+    env = np.stack([ph.images(img)[0] for img in images[i]])
+    r = setup.range_of(i) * 1e3
+    u0, v0 = setup.direction_of(i)
+    titles = [f"{lab}\nCR {met['CR_dB'][b, j]:.1f} dB, gCNR {met['gCNR'][b, j]:.2f}" for b, lab in enumerate(labels)]
+    return functools.partial(pp.cyst_images_figure, labels, env, (setup.u[0] * r, setup.u[-1] * r, setup.v[0] * r,
+                             setup.v[-1] * r), cysts.radius * 1e3, (u0 * r, v0 * r), 40.0, titles)
