@@ -287,14 +287,15 @@ class BudgetedObjective:
         return self._in_pieces(int(hard.shape[0]), lambda sl: self._inner.evaluate(hard[sl], **kwargs),
                                lambda sl: hard[sl])
 
-    def _in_pieces(self, total: int, call, masks_of) -> dict[str, np.ndarray]:
-        """Score ``total`` masks by ``call(slice)`` in pieces the budget allows, recording the
-        ``masks_of(slice)``; raise :class:`BudgetExhausted` after the allowed first masks when the
-        budget does not allow them all."""
+    def _in_pieces(self, total: int, call, masks_of, piece: int | None = None) -> dict[str, np.ndarray]:
+        """Score ``total`` masks by ``call(slice)`` in pieces the budget allows (of ``piece``, default
+        :attr:`piece`, at most), recording the ``masks_of(slice)``; raise :class:`BudgetExhausted`
+        after the allowed first masks when the budget does not allow them all."""
         parts: list[dict] = []
         done = 0
+        piece = self.piece if piece is None else int(piece)
         while done < total:
-            want = min(self.piece, total - done)
+            want = min(piece, total - done)
             if self.budget.seconds is not None and self._per_mask > 0:
                 # under a time limit, a piece must fit in the time left (at least one mask)
                 want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
