@@ -392,9 +392,9 @@ class Objective:
         Each imager images the neighbours from the selection where it can
         (:meth:`~arraysel.physics.imaging.Imager.image_moves`: on a 1-D point the certificates'
         channel envelopes and the images of the neighbours are corrected from the selection's own,
-        :meth:`~arraysel.physics.psf.PSFModel.swap_kernels`); on a 3-D scene's fast path a dense set
-        of one-element swaps (a whole neighbourhood) is scored from the selection's planes plus the
-        low-rank change of each swap (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
+        :meth:`~arraysel.physics.psf.PSFModel.swap_kernels`); on a 3-D scene's fast path each move is scored
+        from the selection's planes plus its low-rank change, blocks of swaps of a few outgoing
+        elements by batched products (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
         and ``into`` may be padded with ``-1`` (moves of different sizes in one call)."""
         from arraysel.objective.matrix_neighbours import check_selection
         from arraysel.objective.neighbours import check_moves
@@ -402,11 +402,10 @@ class Objective:
         m, a, b = check_moves(mask, out, into)
         check_selection(m, self.n_elements)
         nb = self._neighbourhood()
-        if (nb is not None and not return_kernels and a.shape[0] and a.shape[1] == 1 and (a >= 0).all()
-                and nb.dense(a[:, 0])):
+        if nb is not None and not return_kernels and a.shape[0]:
             with torch.no_grad(), self._timed():
                 nb.select(m)
-                res = nb.score(nb.swap_columns(a[:, 0], b[:, 0]), int(a.shape[0]))
+                res = nb.score(nb.move_columns(a, b), int(a.shape[0]))
                 self.evaluations += int(a.shape[0])
             return {k: res[k] for k in self._columns}
         if return_kernels:
@@ -466,7 +465,9 @@ class Objective:
             return None
         if not all(im.moves_from_selection for im in self.imagers) and self._neighbourhood() is None:
             return None
-        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
+        nb = self._neighbourhood()
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods,
+                                  block=None if nb is None else nb.block())
 
     def loss_model(self):
         """The :class:`~arraysel.objective.contract.LossModel` of :meth:`mask_loss`: the gradient

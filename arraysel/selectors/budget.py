@@ -329,14 +329,16 @@ class BudgetGate:
         if self.budget.allowed(n) < n:
             raise self.exhausted(f"{what}")
 
-    def masks(self, total: int, call: Callable, masks_of: Callable) -> dict[str, np.ndarray]:
-        """Score ``total`` masks by ``call(slice) -> {name: (n,)}`` in the pieces the budget allows,
-        recording the masks ``masks_of(slice)`` (bool ``(n, Ne)``) with their ``Mean``; the scores
-        of all of them, or :class:`BudgetExhausted` after the allowed first ones."""
+    def masks(self, total: int, call: Callable, masks_of: Callable, piece: int | None = None) -> dict[str, np.ndarray]:
+        """Score ``total`` masks by ``call(slice) -> {name: (n,)}`` in the pieces the budget allows
+        (of ``piece`` masks at most, default :attr:`piece`), recording the masks ``masks_of(slice)``
+        (bool ``(n, Ne)``) with their ``Mean``; the scores of all of them, or
+        :class:`BudgetExhausted` after the allowed first ones."""
         parts: list[dict] = []
         done = 0
+        piece = self.piece if piece is None else int(piece)
         while done < total:
-            want = min(self.piece, total - done)
+            want = min(piece, total - done)
             if self.budget.seconds is not None and self._per_mask > 0:
                 # under a time limit, a piece must fit in the time left (at least one mask)
                 want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))

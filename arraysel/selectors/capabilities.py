@@ -63,14 +63,29 @@ class BudgetedNeighbourhood:
     def __init__(self, gate, inner):
         self._gate = gate
         self._inner = inner
+        self._block = inner.block()
+
+    def block(self):
+        """The :class:`~arraysel.objective.contract.SwapBlock` the wrapped neighbourhood prefers."""
+        return self._block
 
     def evaluate(self, mask, out, into) -> dict[str, np.ndarray]:
         """``{name: float64 (B,)}`` of the neighbours of ``mask`` that switch ``out[i]`` off and
         ``into[i]`` on (``(B, m)`` or ``(B,)``), counted, clipped and recorded like
-        ``evaluate`` of their masks."""
+        ``evaluate`` of their masks. For a neighbourhood that prefers blocks the moves go to it
+        ordered by their first outgoing element, in pieces of whole blocks (``outgoing`` x ``Ne``)."""
         m, a, b = check_moves(mask, out, into)
-        return self._gate.masks(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
-                                lambda sl: move_masks(m, a[sl], b[sl]))
+        gate = self._gate
+        if self._block is None:
+            return gate.masks(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
+                              lambda sl: move_masks(m, a[sl], b[sl]))
+        order = np.argsort(a[:, 0], kind="stable")
+        a, b = a[order], b[order]
+        res = gate.masks(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
+                         lambda sl: move_masks(m, a[sl], b[sl]), piece=max(gate.piece, self._block.outgoing * m.size))
+        back = np.empty_like(order)
+        back[order] = np.arange(order.size)
+        return {k: v[back] for k, v in res.items()}
 
     def prepare(self) -> None:
         """Nothing: a run's objective is prepared before its budget starts (the runners)."""
