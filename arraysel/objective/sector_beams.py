@@ -26,10 +26,25 @@ from arraysel.objective.tensors import check_masks, checked_masks
 from arraysel.physics.imaging import Imager, PlaneSet
 
 __all__ = ["SectorBeams", "SectorPointImager", "BEAM_COLUMNS", "sector_fast_state", "point_label",
-           "SECTOR_FAST_VERSION"]
+           "SECTOR_FAST_VERSION", "per_beam_attribute"]
 
 #: the per-beam metrics of :meth:`SectorBeams.beam_metrics`, per point
 BEAM_COLUMNS = ("PSL_dB", "ISLR_dB", "GLL_dB", "width_x_6dB", "width_y_6dB")
+
+
+def per_beam_attribute(name: str, what: str) -> property:
+    """A read-only attribute of an objective that reads ``name`` of its per-beam view
+    (``objective.beams``: a sector scene's :class:`SectorBeams`); on any other scene an
+    AttributeError (``hasattr`` is False, as on an objective without the view)."""
+
+    def get(self):
+        beams = self.__dict__.get("beams")
+        if beams is None:
+            raise AttributeError(f"{name}: scene {self.settings.name!r} has no per-beam view (a sector scene has)")
+        return getattr(beams, name)
+
+    return property(get, doc=f"{what} (a sector scene's per-beam view, :class:`~arraysel.objective."
+                             f"sector_beams.SectorBeams`.{name}).")
 
 
 class SectorPointImager(Imager):
