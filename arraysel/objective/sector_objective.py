@@ -220,13 +220,15 @@ class SectorObjective(Objective):
             return False
         return True
 
-    def point_images(self, masks, i: int, exact: bool = False, receive=None) -> torch.Tensor:
+    def point_images(self, masks, i: int, exact: bool = False, receive=None, base=None) -> torch.Tensor:
         """Point ``i``'s complex images (B, Hv, Hu) of hard masks or weights (B, Ne): the fast path
         in batches of :attr:`chunk` when available and ``exact`` is False, else the exact path one
         selection at a time. The fast model is built when it is not cached only for a batch of at
         least :attr:`fast_min_masks` selections (below that, its build costs more than the exact
         path; :meth:`fast_point` builds it on demand). ``receive``: separate receive masks or
-        weights (B, Ne), ``masks`` then the transmit apodization."""
+        weights (B, Ne), ``masks`` then the transmit apodization. ``base`` (Ne,): a selection each
+        mask differs from in a few elements (a local search's moves: the fast path's receive sums
+        then come from it, :meth:`~arraysel.physics.volume.fast.MatrixFastPSF.image`)."""
         from arraysel.physics.volume.sector import SURFACE
 
         m = self.as_masks(masks) if not isinstance(masks, torch.Tensor) else masks
@@ -237,8 +239,9 @@ class SectorObjective(Objective):
             r = r.to(self.device, self.dtype)
         fast = not exact and self.fast_point(i, build=m.shape[0] >= self.fast_min_masks)
         step = max(1, self.chunk) if fast else 1
+        bw = None if base is None else torch.as_tensor(np.asarray(base)).reshape(-1).to(self.device, self.dtype)
         parts = [self.exact.surfaces(m[b:b + step], i, exact=not fast,
-                                     receive=None if r is None else r[b:b + step])[SURFACE]
+                                     receive=None if r is None else r[b:b + step], base=bw)[SURFACE]
                  for b in range(0, m.shape[0], step)]
         img = torch.cat(parts)
         if not bool(torch.isfinite(img).all()):
@@ -270,12 +273,13 @@ class SectorObjective(Objective):
             out.append(self._segments[key])
         return out
 
-    def beam_metrics(self, masks, points=None, exact: bool = False, receive=None) -> dict[str, np.ndarray]:
+    def beam_metrics(self, masks, points=None, exact: bool = False, receive=None, base=None) -> dict[str, np.ndarray]:
         """The per-beam metrics (module docstring) of hard masks (B, Ne) on the points' PSFs (the
         fast path when available, :meth:`point_images`; ``exact``: the exact path): ``{name: float64
         (B, P)}`` for the names of :data:`BEAM_COLUMNS` (dB; widths in metres), one column per point
         of ``points`` (default all). Not counted as evaluations of the search. ``receive``:
-        separate receive masks (B, Ne) (grating lobes then from the lattice of both apertures' elements)."""
+        separate receive masks (B, Ne) (grating lobes then from the lattice of both apertures' elements);
+        ``base``: as :meth:`point_images`."""
         from arraysel.physics.volume.sector import SURFACE
 
         m = self.as_masks(masks)
@@ -290,7 +294,7 @@ class SectorObjective(Objective):
                 for b0 in range(0, m.shape[0], step):
                     mb = m[b0:b0 + step]
                     rb = None if r is None else r[b0:b0 + step]
-                    surf = {SURFACE: self.point_images(mb, i, exact=exact, receive=rb)}
+                    surf = {SURFACE: self.point_images(mb, i, exact=exact, receive=rb, base=base)}
                     res = lobe_metrics(surf, coords, target=self.points[i],
                                        grating_uv=self._grating(both[b0:b0 + step], i), terms=BEAM_COLUMNS)
                     for k in BEAM_COLUMNS:
@@ -298,17 +302,17 @@ class SectorObjective(Objective):
         return out
 
     def beam_loss(self, masks, width_cap: float, width_weight: float = 100.0, exact: bool = False,
-                  metrics: dict | None = None, points=None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                  metrics: dict | None = None, points=None, base=None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The per-beam loss of hard masks (B, Ne) on the points' PSFs: the worst ``PSL_dB`` over
         the points plus ``width_weight`` dB per unit of the mean -6 dB width's relative excess over
         ``width_cap`` (metres; the mean over points of the x and y widths). Returns
         ``(loss float64 (B,), summary)``, the summary ``{"worst_PSL_dB", "mean_width_m"}`` (B,) and
         ``"PSL_dB"`` (B, P) per point. ``metrics``: the masks' :meth:`beam_metrics`, if already
         computed (``masks`` is then not scored again); ``points``: over these points only (default
-        all)."""
+        all); ``base``: as :meth:`point_images`."""
         cap = check_number("width_cap", width_cap, lo=0, lo_open=True, hi=1.0)
         wt = check_number("width_weight", width_weight, lo=0)
-        bm = self.beam_metrics(masks, points=points, exact=exact) if metrics is None else metrics
+        bm = self.beam_metrics(masks, points=points, exact=exact, base=base) if metrics is None else metrics
         worst = bm["PSL_dB"].max(1)
         width = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
         loss = worst + wt * np.maximum(width / cap - 1.0, 0.0)
