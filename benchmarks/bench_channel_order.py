@@ -2,11 +2,11 @@
 
 The certificates' channel envelopes are computed one receive channel of one selection at a time:
 a neighbour's channel corrected from the selection's held channel sums
-(``pairkernels._swap_peaks_kernel``: every swap neighbourhood a search scores; and
+(``peakkernels._swap_peaks_kernel``: every swap neighbourhood a search scores; and
 ``_swap_channels_kernel``, the refinement's corrected channels, written whole), or a small
 batch's channel summed from the rows of ``pair_channels`` its selection uses
 (``_channel_peaks_kernel``). The pairs are visited receive element by receive element
-(``pairkernels.receive_major``, what the package does for the two peak kernels) or selection by
+(``peakkernels.receive_major``, what the package does for the two peak kernels) or selection by
 selection (numpy's ``nonzero`` order, what it keeps for the corrected channels). Both orders give the same values,
 bit for bit (checked); the figures are the time of one call, the best of ``--repeat``, the two
 orders alternated ``--rounds`` times in one process on the same inputs.
@@ -44,7 +44,7 @@ def _scene_inputs(name: str, pairs: int, distinct: int, masks: int):
     import numpy as np
 
     from arraysel.objective.psf_objective import build_objective
-    from arraysel.physics import pairkernels as pk
+    from arraysel.physics import peakkernels as pk
 
     obj = build_objective(name)
     basis = getattr(getattr(obj, "psf", None), "basis", None)
@@ -76,7 +76,7 @@ def _scene_inputs(name: str, pairs: int, distinct: int, masks: int):
 def _orders(used):
     import numpy as np
 
-    from arraysel.physics import pairkernels as pk
+    from arraysel.physics import peakkernels as pk
 
     sel_b, sel_e = np.nonzero(used)
     return {"receive-major": pk.receive_major(used),
@@ -86,7 +86,7 @@ def _orders(used):
 def _measure(s, rounds: int, repeat: int) -> dict:
     import numpy as np
 
-    from arraysel.physics import pairkernels as pk
+    from arraysel.physics import peakkernels as pk
 
     A, Y, a, b, ntx = s["A"], s["Y"], s["a"], s["b"], s["ntx"]
     kernels = {

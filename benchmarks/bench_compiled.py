@@ -2,8 +2,8 @@
 
 Batched ``Objective.evaluate`` of the same random masks with the compiled passes that serve a
 batch without gradient on the CPU (the Table-1 metrics, ``arraysel.objective.metric_kernels``;
-the certificates' peak search and the window cut, ``pairkernels.peak_stats`` and
-``pairkernels.cut_windows_compiled``) switched on, then off (torch's operations, as every
+the certificates' peak search and the window cut, ``peakkernels.peak_stats`` and
+``peakkernels.cut_windows_compiled``) switched on, then off (torch's operations, as every
 gradient step and every other device uses them). The two settings alternate ``--rounds`` times
 (this machine's speed drifts between runs, so only alternated figures are compared). The
 Means of the two settings are compared with the Mean of the same kernels scored in float64:

@@ -42,6 +42,37 @@ def sparse_csr(crow, col, val, size):
         return torch.sparse_csr_tensor(crow, col, val, size=size, check_invariants=True)
 
 
+def block_matrix(lo: torch.Tensor, hi: torch.Tensor, outside: torch.Tensor, max_run: int, window_samples: int,
+                 segment: int, margin: float, dtype: torch.dtype, device) -> torch.Tensor:
+    """Sparse (nQ, ntx*Ne*M*nS) matrix summing, per block of ``outside`` (nbz, nbx) bool, the
+    envelope of the run of segments that holds the block's samples ``lo``, ``hi`` (ntx, nbz, nbx,
+    Ne; local to the channel windows) (layout of :meth:`Certificates.envelopes`; ``M`` =
+    ``max_run``, ``nS`` segments of ``segment`` samples), its entries ``margin``
+    (:attr:`Certificates.bound_margin`)."""
+    ntx, _, _, ne = lo.shape
+    M, nS, sg = max_run, window_samples // segment, segment
+    qz, qx = torch.nonzero(outside, as_tuple=True)
+    nq = qz.numel()
+    lo_q = lo[:, qz, qx]
+    hi_q = hi[:, qz, qx]
+    has = hi_q >= lo_q
+    first = (lo_q // sg).clamp(0, nS - 1)
+    run = (hi_q // sg - lo_q // sg).clamp(0, M - 1)
+    n_ar = torch.arange(ntx)[:, None, None]
+    e_ar = torch.arange(ne)[None, None, :]
+    col = ((n_ar * ne + e_ar) * M + run) * nS + first
+    q_ar = torch.arange(nq)[None, :, None].expand_as(col)
+    rows_i = q_ar[has]
+    cols_i = col[has]
+    width = ntx * ne * M * nS
+    order = torch.argsort(rows_i * width + cols_i)
+    rows_i, cols_i = rows_i[order], cols_i[order]
+    crow = torch.zeros(nq + 1, dtype=torch.long)
+    crow[1:] = torch.cumsum(torch.bincount(rows_i, minlength=nq), 0)
+    vals = torch.full((rows_i.numel(),), margin, dtype=dtype)
+    return sparse_csr(crow, cols_i, vals, (nq, width)).to(device)
+
+
 class RawChannels(NamedTuple):
     """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
     gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
@@ -128,38 +159,13 @@ class Certificates:
         has_all = hi >= lo
         runs = torch.where(has_all, hi // sg - lo // sg + 1, torch.zeros_like(lo))
         self = cls(model, pair_channels, window_offset, T, max(1, int(runs.max())), None, None)
-        self.block_envelopes_e = self._block_matrix(lo, hi, layout.outside1)
-        self.block_envelopes_band = self._block_matrix(lo, hi, layout.outside2) if layout.strips else \
+        tier = dict(max_run=self.max_run, window_samples=T, segment=self.segment, margin=self.bound_margin,
+                    dtype=model.dtype, device=model.device)
+        self.block_envelopes_e = block_matrix(lo, hi, layout.outside1, **tier)
+        self.block_envelopes_band = block_matrix(lo, hi, layout.outside2, **tier) if layout.strips else \
             sparse_csr(torch.zeros(1, dtype=torch.long), torch.zeros(0, dtype=torch.long),
                  torch.zeros(0, dtype=model.dtype), (0, self.block_envelopes_e.shape[1])).to(model.device)
         return self
-
-    def _block_matrix(self, lo, hi, outside):
-        """Sparse (nQ, ntx*Ne*M*nS) matrix summing, per block, the envelope of the run of
-        segments that holds the block's samples (layout of :meth:`envelopes`)."""
-        model = self.model
-        ntx, _, _, ne = lo.shape
-        M, nS, sg = self.max_run, self.window_samples // self.segment, self.segment
-        qz, qx = torch.nonzero(outside, as_tuple=True)
-        nq = qz.numel()
-        lo_q = lo[:, qz, qx]
-        hi_q = hi[:, qz, qx]
-        has = hi_q >= lo_q
-        first = (lo_q // sg).clamp(0, nS - 1)
-        run = (hi_q // sg - lo_q // sg).clamp(0, M - 1)
-        n_ar = torch.arange(ntx)[:, None, None]
-        e_ar = torch.arange(ne)[None, None, :]
-        col = ((n_ar * ne + e_ar) * M + run) * nS + first
-        q_ar = torch.arange(nq)[None, :, None].expand_as(col)
-        rows_i = q_ar[has]
-        cols_i = col[has]
-        width = ntx * ne * M * nS
-        order = torch.argsort(rows_i * width + cols_i)
-        rows_i, cols_i = rows_i[order], cols_i[order]
-        crow = torch.zeros(nq + 1, dtype=torch.long)
-        crow[1:] = torch.cumsum(torch.bincount(rows_i, minlength=nq), 0)
-        vals = torch.full((rows_i.numel(),), self.bound_margin, dtype=model.dtype)
-        return sparse_csr(crow, cols_i, vals, (nq, width)).to(model.device)
 
     #: rounding safety margin of the block bounds: the block matrices' entries, and the factor
     #: of the compiled sums (:meth:`bound`)
@@ -229,7 +235,7 @@ class Certificates:
         env = w.new_empty(nch, self.max_run, nS, B)
         seg = env[:, 0]
         if self._channels_from_rows(w):
-            from arraysel.physics.pairkernels import channel_peaks_into
+            from arraysel.physics.peakkernels import channel_peaks_into
 
             seg.zero_()
             channel_peaks_into(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), env.numpy())
@@ -268,9 +274,9 @@ class Certificates:
         over every receive element are formed once (``Y[e] = sum_{j in mask} A_je``, float64), and
         a neighbour's channel on each receive element it uses is ``Y[e] - sum A_out,e + sum
         A_into,e``, 2 m + 1 rows read where summing it afresh reads k
-        (:func:`~arraysel.physics.pairkernels.swap_peaks_into`). CPU, no gradient
+        (:func:`~arraysel.physics.peakkernels.swap_peaks_into`). CPU, no gradient
         (:meth:`swaps_compiled`)."""
-        from arraysel.physics.pairkernels import swap_peaks_into
+        from arraysel.physics.peakkernels import swap_peaks_into
 
         ne = self.model.n_elements
         ntx = len(self.model.transmits)
@@ -303,7 +309,7 @@ class Certificates:
         where a fresh sum reads the k rows of the selection) when at most
         :attr:`swap_sums_moved_max` elements differ and fewer than :attr:`swap_sums_refresh`
         corrections were made in a row; summed afresh otherwise."""
-        from arraysel.physics.pairkernels import row_sums
+        from arraysel.physics.peakkernels import row_sums
 
         ne = self.model.n_elements
         if held is not None and held[2] < self.swap_sums_refresh:
@@ -380,14 +386,14 @@ class Certificates:
         weight), on the receive elements each uses only (the others undefined): the held channel
         sums corrected by the rows of the elements switched (``2 m + 1`` rows read a channel where
         the product reads every row of ``pair_channels``)."""
-        from arraysel.physics.pairkernels import swap_channels
+        from arraysel.physics.peakkernels import swap_channels
 
         y = swap_channels(self.pair_channels.numpy(), self._swap_sums[1], out, into, on)
         return y.reshape(on.shape[0], self.model.n_elements, 2, len(self.model.transmits), self.window_samples)
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
         """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of
-        ``pair_channels`` its selection uses (:func:`~arraysel.physics.pairkernels.channel_peaks_into`)
+        ``pair_channels`` its selection uses (:func:`~arraysel.physics.peakkernels.channel_peaks_into`)
         instead of forming the receive products: on the CPU without gradient, for a batch
         smaller than :data:`~arraysel.physics.compiled.MIN_BATCH` after
         :attr:`compiled_bound_warm` of them (a loop of gradient steps; a cold single-mask run

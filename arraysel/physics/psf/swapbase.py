@@ -23,7 +23,7 @@ __all__ = ["form_base", "move_base"]
 def move_base(basis, H: np.ndarray, y: np.ndarray, G: np.ndarray, gone: np.ndarray, new: np.ndarray) -> None:
     """Carry the base ``(y, G)`` of a selection of ``basis`` in place by the move ``gone`` off,
     ``new`` on (element indices), ``H`` every pair-image row on E (``basis._all_rows()``)."""
-    from arraysel.physics.pairkernels import move_rows
+    from arraysel.physics.peakkernels import move_rows
 
     ln = basis.pair_lookup().numpy()
     y[:] = move_rows(H, y[0], G, gone[None], new[None], *basis._move_terms(gone[None], new[None]),

@@ -59,11 +59,11 @@ def cut_windows(img: torch.Tensor, z0: torch.Tensor, x0: torch.Tensor, size: int
     their (detached) norms (scaled by each window's peak magnitude first; an all-zero window
     stays zero). A batch of at least :data:`~arraysel.physics.compiled.MIN_BATCH` images without
     gradient on the CPU is cut by a compiled kernel
-    (:func:`~arraysel.physics.pairkernels.cut_windows_compiled`: the same values to rounding)."""
+    (:func:`~arraysel.physics.peakkernels.cut_windows_compiled`: the same values to rounding)."""
     B = img.shape[0]
     if (B >= compiled.MIN_BATCH and not img.requires_grad and img.device.type == "cpu"
             and img.dtype in (torch.complex64, torch.complex128)):
-        from arraysel.physics.pairkernels import cut_windows_compiled
+        from arraysel.physics.peakkernels import cut_windows_compiled
 
         win, norm = cut_windows_compiled(torch.view_as_real(img.resolve_conj()).numpy(),
                                          z0.cpu().numpy(), x0.cpu().numpy(), size)
