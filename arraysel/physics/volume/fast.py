@@ -190,6 +190,140 @@ def _receive_amplitudes(A: list[torch.Tensor], f: list[torch.Tensor], fc: float,
                               f"with {max_k} terms (residual {resid:.2e})")
 
 
+def _transmit_responses(ex: MatrixPSF, rx_pos: torch.Tensor, eta_s: torch.Tensor, fc: float, fs: float,
+                        check_tol: float):
+    """Per transmit of ``ex``: the demodulator's tone response ``L_n`` (F,), the frequency grid
+    ``f``, the receive amplitudes ``A_n`` (Ne, F) (``conj(RC)`` with the scatterer's receive delay
+    taken out), the relevance of each frequency (normalised to the largest over the transmits) and
+    the transmit delays ``xi_n`` (P,) in samples. Raises :class:`FastPathUnavailable` when a pixel
+    reads a sample outside the RF record."""
+    L, fgrid, A, relevance, tx_pos = [], [], [], [], []
+    for n, t in enumerate(ex.transmits):
+        s0, s1 = ex._samples[n]
+        xi = ex._tx_pos[n].to("cpu", torch.float64)                    # (P,)
+        x = xi[:, None] + rx_pos
+        if float(x.min()) < 0 or float(x.max()) > t.grid.n_time - 2:
+            raise FastPathUnavailable(
+                f"transmit {n}: some pixel reads a sample outside the RF record (samples {float(x.min()):.1f} "
+                f"to {float(x.max()):.1f} read, record [0, {t.grid.n_time - 2}]); the exact path skips "
+                "those reads, the fast path cannot: shrink the planes or use the exact path")
+        Ln = _tone_response(t, s0, s1, fc, fs, 0.1 * math.sqrt(check_tol))
+        f = t.grid.f.to(torch.float64)
+        kf = 2 * math.pi * f / fs
+        RC = t.rx_factor.to(torch.complex128)                            # (Ne, F)
+        An = RC.conj() * torch.polar(torch.ones_like(eta_s[:, None] * kf), eta_s[:, None] * kf[None])
+        L.append(Ln)
+        fgrid.append(f)
+        A.append(An)
+        relevance.append(Ln.abs() * RC.abs().amax(0) * t.tx_field.abs().amax(0).to(torch.float64))
+        tx_pos.append(xi)
+    rel_max = max(float(r.max()) for r in relevance)
+    return L, fgrid, A, [r / rel_max for r in relevance], tx_pos
+
+
+def _transmit_subspaces(ex: MatrixPSF, L: list[torch.Tensor], tol: float):
+    """Per transmit: ``C_n`` (Ne, r_n) and ``Phi_n`` (r_n, F), the weighted SVD of ``conj(G_n)``
+    truncated at ``tol`` (``conj T_n ~ (w @ C_n) Phi_n``)."""
+    C_list, Phi = [], []
+    for n, t in enumerate(ex.transmits):
+        G = t.tx_field.to(torch.complex128).conj()                       # (Ne, F)
+        D = L[n].abs() * t.rx_factor.abs().amax(0).to(torch.float64)
+        D = D / D.max()
+        U, S, Vh = torch.linalg.svd(G * D[None], full_matrices=False)
+        r = int((S > tol * S[0]).sum())
+        safe = torch.where(D > 0, D, torch.ones_like(D))
+        C_list.append(U[:, :r] * S[:r])                                  # (Ne, r)
+        Phi.append(torch.where(D[None] > 0, Vh[:r] / safe[None], torch.zeros_like(Vh[:r])))  # (r, F)
+    return C_list, Phi
+
+
+def _node_groups(delta: torch.Tensor, fgrid, relevance, fs: float, kc: float, st: FastSettings, width: int):
+    """Chebyshev nodes per pixel on ``[min_e delta, max_e delta]``: a pixel whose receive delays
+    span a phase half-width ``a_p`` needs the fewest nodes that interpolate ``exp(i a_p t)`` on
+    [-1, 1] to tol; pixels are grouped by that count (pixels near the scatterer need few).
+    ``width``: columns per pixel and node (harmonics times amplitude terms). Returns the pixels'
+    interval midpoints and half-widths (P,), the groups ``(nodes, pixels, column offset)`` and
+    the number of columns."""
+    tol = st.tol
+    lo, hi = delta.amin(1), delta.amax(1)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    band = torch.cat([(2 * math.pi * f / fs - kc)[r > tol] for f, r in zip(fgrid, relevance)]).abs().max()
+    a_pix = band * half                                                  # (P,) phase half-spans
+    need = torch.full_like(a_pix, -1, dtype=torch.long)
+    for n_nodes in range(4, st.max_nodes + 1, 2):
+        left = need < 0
+        if not bool(left.any()):
+            break
+        reach = _node_reach(n_nodes, tol, float(a_pix[left].max()))
+        need[left & (a_pix <= reach)] = n_nodes
+    if bool((need < 0).any()):
+        raise FastPathUnavailable(f"the receive delays of a pixel span too long a time for "
+                                  f"{st.max_nodes} interpolation nodes (phase span {2 * float(a_pix.max()):.1f} rad)")
+    groups = []                                                          # (nodes, pixels, column offset)
+    off = 0
+    for n_nodes in sorted(set(need.tolist())):
+        idx = torch.nonzero(need == n_nodes).flatten()
+        groups.append((n_nodes, idx, off))
+        off += idx.numel() * n_nodes * width
+    return mid, half, groups, off
+
+
+def _receive_matrix(delta, rx_pos, mid, half, groups, n_cols: int, a_ek, kc: float, orders, chunk: int, cdtype):
+    """The receive matrix ``B`` (Ne, columns), each group's columns ordered (pixel, q, node, k)."""
+    n_elements, K, Q = delta.shape[1], a_ek.shape[1], len(orders)
+    B = torch.empty(n_elements, n_cols, dtype=cdtype)
+    for n_nodes, idx, off in groups:
+        nodes = _chebyshev_nodes(n_nodes)
+        width = Q * n_nodes * K
+        for p0 in range(0, idx.numel(), chunk):
+            ii = idx[p0:p0 + chunk]
+            dl = delta[ii]                                               # (p, Ne)
+            hh = half[ii, None]
+            tnorm = torch.where(hh > 0, (dl - mid[ii, None]) / torch.where(hh > 0, hh, torch.ones_like(hh)),
+                                torch.zeros_like(dl))
+            ell = _lagrange(nodes.expand(dl.shape[0], n_nodes), tnorm)  # (p, Ne, S)
+            ph = torch.polar(torch.ones_like(dl), kc * dl)               # (p, Ne)
+            reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[ii]) for q in orders], 1)
+            blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)  # (p, Q, Ne, S)
+            blk = blk[..., None] * a_ek[None, None, :, None, :]           # (p, Q, Ne, S, K)
+            c0 = off + p0 * width
+            B[:, c0:c0 + ii.numel() * width] = blk.permute(2, 0, 1, 3, 4).reshape(n_elements, -1).to(cdtype)
+    return B
+
+
+def _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, n_cols: int, fs: float, fc: float,
+                     kc: float, tol: float, orders, chunk: int, cdtype):
+    """The transmit tensor ``Psi`` (n_tx, r_max, columns), zero-padded in g, in the receive
+    matrix's column order."""
+    n_tx, r_max, Q, K = len(fgrid), max(ranks), len(orders), rx_basis[0].shape[0]
+    Psi = torch.zeros(n_tx, r_max, n_cols, dtype=cdtype)
+    for n in range(n_tx):
+        f = fgrid[n]
+        kf = 2 * math.pi * f / fs
+        h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
+        W = (Phi[n] * L[n][None])[:, None, None, :] * h[None, :, None, :] * rx_basis[n][None, None]  # (r, Q, K, F)
+        # frequencies where the echo has no weight add nothing (a thousandth of ``tol``): leave them out
+        mag = W.abs().amax((0, 1, 2))
+        keep = mag > 1e-3 * tol * mag.max()
+        W, kf = W[..., keep], kf[keep]
+        xi = tx_pos[n]
+        for n_nodes, idx, off in groups:
+            nodes = _chebyshev_nodes(n_nodes)
+            width = Q * n_nodes * K
+            for p0 in range(0, idx.numel(), chunk):
+                ii = idx[p0:p0 + chunk]
+                dnode = mid[ii, None] + half[ii, None] * nodes[None]     # (p, S) delta_pm
+                zeta = xi[ii, None] + dnode                              # (p, S)
+                E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
+                pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[ii, None]
+                                               - kc * dnode) for q in orders], 1)  # (p, Q, S)
+                # sum_f W[g,q,k,f] E[p,s,f]  -> (g, p, q, s, k)
+                v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
+                c0 = off + p0 * width
+                Psi[n, :ranks[n], c0:c0 + ii.numel() * width] = v.reshape(ranks[n], -1).to(cdtype)
+    return Psi
+
+
 class MatrixFastPSF:
     """The fast path of :class:`~arraysel.physics.volume.psf.MatrixPSF` (module docstring).
 
@@ -229,7 +363,6 @@ class MatrixFastPSF:
         s, st = self.setup, self.settings
         probe, acq = s.probe, s.acq
         fs, c, fc = acq.fs, acq.c, probe.fc
-        tol = st.tol
         ex = self.exact
         rx_pos = ex._rx_pos.to("cpu", torch.float64)                       # (P, Ne) eta_e(p), samples
         pos = torch.as_tensor(probe.element_positions(), dtype=torch.float64)
@@ -240,117 +373,18 @@ class MatrixFastPSF:
         orders = list(range(-st.replicas, st.replicas + 1))
         n_tx = len(ex.transmits)
 
-        L, fgrid, A, relevance, tx_pos = [], [], [], [], []
-        for n, t in enumerate(ex.transmits):
-            s0, s1 = ex._samples[n]
-            xi = ex._tx_pos[n].to("cpu", torch.float64)                    # (P,)
-            x = xi[:, None] + rx_pos
-            if float(x.min()) < 0 or float(x.max()) > t.grid.n_time - 2:
-                raise FastPathUnavailable(
-                    f"transmit {n}: some pixel reads a sample outside the RF record (samples {float(x.min()):.1f} "
-                    f"to {float(x.max()):.1f} read, record [0, {t.grid.n_time - 2}]); the exact path skips "
-                    "those reads, the fast path cannot: shrink the planes or use the exact path")
-            Ln = _tone_response(t, s0, s1, fc, fs, 0.1 * math.sqrt(st.check_tol))
-            f = t.grid.f.to(torch.float64)
-            kf = 2 * math.pi * f / fs
-            RC = t.rx_factor.to(torch.complex128)                            # (Ne, F)
-            An = RC.conj() * torch.polar(torch.ones_like(eta_s[:, None] * kf), eta_s[:, None] * kf[None])
-            L.append(Ln)
-            fgrid.append(f)
-            A.append(An)
-            relevance.append(Ln.abs() * RC.abs().amax(0) * t.tx_field.abs().amax(0).to(torch.float64))
-            tx_pos.append(xi)
-        rel_max = max(float(r.max()) for r in relevance)
-        relevance = [r / rel_max for r in relevance]
-        a_ek, rx_basis = _receive_amplitudes(A, fgrid, fc, relevance, tol)
+        L, fgrid, A, relevance, tx_pos = _transmit_responses(ex, rx_pos, eta_s, fc, fs, st.check_tol)
+        a_ek, rx_basis = _receive_amplitudes(A, fgrid, fc, relevance, st.tol)
         K = a_ek.shape[1]
-
-        # transmit subspaces (weighted SVD of conj(G_n))
-        C_list, Phi = [], []
-        for n, t in enumerate(ex.transmits):
-            G = t.tx_field.to(torch.complex128).conj()                       # (Ne, F)
-            D = L[n].abs() * t.rx_factor.abs().amax(0).to(torch.float64)
-            D = D / D.max()
-            U, S, Vh = torch.linalg.svd(G * D[None], full_matrices=False)
-            r = int((S > tol * S[0]).sum())
-            safe = torch.where(D > 0, D, torch.ones_like(D))
-            C_list.append(U[:, :r] * S[:r])                                  # (Ne, r)
-            Phi.append(torch.where(D[None] > 0, Vh[:r] / safe[None], torch.zeros_like(Vh[:r])))  # (r, F)
+        C_list, Phi = _transmit_subspaces(ex, L, st.tol)
         ranks = [int(cn.shape[1]) for cn in C_list]
-
-        # Chebyshev nodes per pixel on [min_e delta, max_e delta]: a pixel whose receive delays span
-        # a phase half-width a_p needs the fewest nodes that interpolate exp(i a_p t) on [-1, 1] to tol;
-        # pixels are grouped by that count (pixels near the scatterer need few)
-        lo, hi = delta.amin(1), delta.amax(1)
-        mid, half = (lo + hi) / 2, (hi - lo) / 2
-        band = torch.cat([(2 * math.pi * f / fs - kc)[r > tol] for f, r in zip(fgrid, relevance)]).abs().max()
-        a_pix = band * half                                                  # (P,) phase half-spans
-        need = torch.full_like(a_pix, -1, dtype=torch.long)
-        for n_nodes in range(4, st.max_nodes + 1, 2):
-            left = need < 0
-            if not bool(left.any()):
-                break
-            reach = _node_reach(n_nodes, tol, float(a_pix[left].max()))
-            need[left & (a_pix <= reach)] = n_nodes
-        if bool((need < 0).any()):
-            raise FastPathUnavailable(f"the receive delays of a pixel span too long a time for "
-                                      f"{st.max_nodes} interpolation nodes (phase span {2 * float(a_pix.max()):.1f} rad)")
         Q = len(orders)
         P = rx_pos.shape[0]
-        groups = []                                                          # (nodes, pixels, column offset)
-        off = 0
-        for n_nodes in sorted(set(need.tolist())):
-            idx = torch.nonzero(need == n_nodes).flatten()
-            groups.append((n_nodes, idx, off))
-            off += idx.numel() * Q * n_nodes * K
-        n_cols = off
-
-        # receive matrix B: (Ne, columns), each group's columns ordered (pixel, q, node, k)
-        B = torch.empty(self.n_elements, n_cols, dtype=self.cdtype)
-        for n_nodes, idx, off in groups:
-            nodes = _chebyshev_nodes(n_nodes)
-            width = Q * n_nodes * K
-            for p0 in range(0, idx.numel(), chunk):
-                ii = idx[p0:p0 + chunk]
-                dl = delta[ii]                                               # (p, Ne)
-                hh = half[ii, None]
-                tnorm = torch.where(hh > 0, (dl - mid[ii, None]) / torch.where(hh > 0, hh, torch.ones_like(hh)),
-                                    torch.zeros_like(dl))
-                ell = _lagrange(nodes.expand(dl.shape[0], n_nodes), tnorm)  # (p, Ne, S)
-                ph = torch.polar(torch.ones_like(dl), kc * dl)               # (p, Ne)
-                reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[ii]) for q in orders], 1)
-                blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)  # (p, Q, Ne, S)
-                blk = blk[..., None] * a_ek[None, None, :, None, :]           # (p, Q, Ne, S, K)
-                c0 = off + p0 * width
-                B[:, c0:c0 + ii.numel() * width] = blk.permute(2, 0, 1, 3, 4).reshape(self.n_elements, -1).to(self.cdtype)
-
-        # transmit tensor Psi: (n_tx, r_max, columns), zero-padded in g
+        mid, half, groups, n_cols = _node_groups(delta, fgrid, relevance, fs, kc, st, Q * K)
+        B = _receive_matrix(delta, rx_pos, mid, half, groups, n_cols, a_ek, kc, orders, chunk, self.cdtype)
         r_max = max(ranks)
-        Psi = torch.zeros(n_tx, r_max, n_cols, dtype=self.cdtype)
-        for n in range(n_tx):
-            f = fgrid[n]
-            kf = 2 * math.pi * f / fs
-            h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
-            W = (Phi[n] * L[n][None])[:, None, None, :] * h[None, :, None, :] * rx_basis[n][None, None]  # (r, Q, K, F)
-            # frequencies where the echo has no weight add nothing (a thousandth of ``tol``): leave them out
-            mag = W.abs().amax((0, 1, 2))
-            keep = mag > 1e-3 * tol * mag.max()
-            W, kf = W[..., keep], kf[keep]
-            xi = tx_pos[n]
-            for n_nodes, idx, off in groups:
-                nodes = _chebyshev_nodes(n_nodes)
-                width = Q * n_nodes * K
-                for p0 in range(0, idx.numel(), chunk):
-                    ii = idx[p0:p0 + chunk]
-                    dnode = mid[ii, None] + half[ii, None] * nodes[None]     # (p, S) delta_pm
-                    zeta = xi[ii, None] + dnode                              # (p, S)
-                    E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
-                    pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[ii, None]
-                                                   - kc * dnode) for q in orders], 1)  # (p, Q, S)
-                    # sum_f W[g,q,k,f] E[p,s,f]  -> (g, p, q, s, k)
-                    v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
-                    c0 = off + p0 * width
-                    Psi[n, :ranks[n], c0:c0 + ii.numel() * width] = v.reshape(ranks[n], -1).to(self.cdtype)
+        Psi = _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, n_cols, fs, fc, kc, st.tol,
+                               orders, chunk, self.cdtype)
         order = torch.cat([idx for _, idx, _ in groups])
         #: (pixels in the groups' order, nodes a pixel, column offset) per group, and the inverse order
         self._groups = [(idx.numel(), Q * n_nodes * K, off) for n_nodes, idx, off in groups]
