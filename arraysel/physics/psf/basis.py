@@ -17,6 +17,10 @@ It is built from parts, each an object in its own module made from explicit inpu
 * the **refinement** (:class:`~arraysel.physics.psf.refinement.Refinement`, ``basis.refinement``):
   the certified kernels (:meth:`PairBasis.kernels` runs them), peak location, ties and loose
   blocks; it reads the basis's images and stored tensors and the certificates.
+
+The images of a selection's neighbours from the pair-image rows a local search keeps
+(:meth:`PairBasis.swap_images`, :meth:`PairBasis.pair_rows`) are functions of the basis in
+:mod:`~arraysel.physics.psf.neighbourimages`, which the methods of the same names call.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import torch
 from arraysel.errors import check_number
 from arraysel.physics.psf.build import BasisBuilder, combined_tail, pixel_norms
 from arraysel.physics.psf.certificate import Certificates
+from arraysel.physics.psf import neighbourimages
 from arraysel.physics.psf.layout import LAYOUT_FIELDS, BasisLayout, pair_index
 from arraysel.physics.psf.refinement import Refinement
 from arraysel.physics.psf.state import ErrorConstants, basis_state, restore_state
@@ -337,67 +342,6 @@ class PairBasis:
 
         return min(int(self.swap_rows_max_bytes), memory_limit_bytes())
 
-    def pair_lookup(self) -> torch.Tensor:
-        """(Ne, Ne) long: the index of pair (e, j) (either order) among :attr:`pairs_e`, :attr:`pairs_j`."""
-        look = self.__dict__.get("_pair_lookup")
-        if look is None:
-            ne = self.model.n_elements
-            look = torch.empty(ne, ne, dtype=torch.long)
-            idx = torch.arange(self.pairs_e.numel())
-            look[self.pairs_e.cpu(), self.pairs_j.cpu()] = idx
-            look[self.pairs_j.cpu(), self.pairs_e.cpu()] = idx
-            self._pair_lookup = look
-        return look
-
-    def _row_store(self):
-        """``(H, have)``: the kept pair-image rows on E and which of them are formed, made empty on
-        first use; ``None`` when all P rows do not fit :meth:`swap_rows_cap` (or ``V`` holds the
-        rows itself)."""
-        if self.U is None:
-            return None
-        store = self.__dict__.get("_swap_rows")
-        if store is None and self.bytes_of_pair_rows() <= self.swap_rows_cap():
-            store = self._swap_rows = (torch.empty(self.pairs_e.numel(), self.V.shape[1], dtype=self.V.dtype,
-                                                   device=self.V.device),
-                                       torch.zeros(self.pairs_e.numel(), dtype=torch.bool))
-        return store
-
-    def pair_rows(self, pairs: torch.Tensor) -> torch.Tensor:
-        """(n, 2 Npix) pair images on E ([re | im]) of the pairs ``pairs`` (long (n,)): rows of
-        ``U V`` (of ``V`` without compression). Rows formed once are kept while all P of them fit
-        :meth:`swap_rows_cap`: a search's next neighbourhood needs mostly the same rows."""
-        if self.U is None:
-            return self.V[pairs.to(self.V.device)]
-        store = self._row_store()
-        if store is None:
-            return self.U[pairs.to(self.U.device)] @ self.V
-        H, have = store
-        pairs = pairs.cpu()
-        need = torch.unique(pairs[~have[pairs]])
-        if need.numel():
-            H[need.to(H.device)] = self.U[need.to(self.U.device)] @ self.V
-            have[need] = True
-        return H[pairs.to(H.device)]
-
-    def fill_pair_rows(self, block: int = 256) -> bool:
-        """Form now every pair-image row :meth:`pair_rows` keeps (``block`` rows a product), so that
-        a search's neighbourhoods (:meth:`swap_images`) gather rows instead of forming them: the
-        one-off work of a swap search (a few seconds, :meth:`bytes_of_pair_rows` of memory), done
-        before its budget starts. Returns whether all rows are kept (False: they do not fit
-        :meth:`swap_rows_cap`, and each neighbourhood forms the rows it needs)."""
-        if self.U is None:
-            return True
-        store = self._row_store()
-        if store is None:
-            return False
-        H, have = store
-        todo = torch.nonzero(~have).flatten()
-        for i in range(0, todo.numel(), block):
-            idx = todo[i:i + block]
-            H.index_copy_(0, idx.to(H.device), self.U[idx.to(self.U.device)] @ self.V)
-            have[idx] = True
-        return True
-
     def bytes_of_pair_rows(self) -> int:
         """Bytes of all pair-image rows on E (what :meth:`fill_pair_rows` keeps)."""
         return int(self.pairs_e.numel() * self.V.shape[1] * self.V.element_size())
@@ -410,20 +354,6 @@ class PairBasis:
     #: update that base by rows instead of forming it afresh (2 m column gathers of the pair rows
     #: against the product of the selection's coefficients: docs/performance.md, tuning constants)
     swap_base_moved_max = 8
-
-    def _all_rows(self):
-        """Every pair-image row on E as one numpy array (P, 2 Npix), on the CPU, when they are all
-        at hand (kept by :meth:`fill_pair_rows`, or ``V`` itself without compression); else None.
-        (numpy's gathers and float32 -> float64 sums of rows run several times faster than
-        torch's on one thread.)"""
-        if self.V.device.type != "cpu":
-            return None
-        if self.U is None:
-            return self.V.numpy()
-        store = self.__dict__.get("_swap_rows")
-        if store is None or not bool(store[1].all()):
-            return None
-        return store[0].numpy()
 
     #: bytes the neighbourhood bases of :meth:`swap_base` may keep: the images and element rows
     #: of the latest selections (float64, ``16 (Ne + 1) Npix`` bytes each: 43 MB on a 128-element
@@ -449,85 +379,35 @@ class PairBasis:
     #: neighbour's ``2 m (m + 1)`` of them cost less than the product, and forms the product beyond
     move_row_cost = 20
 
-    def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor, bases=None):
-        """:meth:`images` ``(w, with_error=True)`` of the neighbours ``w`` (B, Ne) of the 0/1
-        selection ``mask`` (Ne,) that switch the elements ``out[b]`` off and ``into[b]`` on (int
-        (B,): one-swap neighbours, or (B, m): m elements each, ``-1`` for none). The image is bilinear in the
-        selection: with ``G_e = sum_{j in mask} H_ej`` the image rows of element e (``H`` the pair
-        images, :meth:`pair_rows`; ``G`` and the image from :meth:`swap_base`, in float64), a
-        neighbour's image on E is the selection's, less ``G_a`` of each ``a`` in ``out[b]``, plus
-        ``G_c`` of each ``c`` in ``into[b]``, plus ``H_cc'`` of each pair ``c <= c'`` of ``into[b]``
-        and ``H_aa'`` of each pair ``a < a'`` of ``out[b]``, less ``H_ac`` of every ``a``, ``c``
-        (for one swap: ``y - G_a + G_c + H_cc - H_ac``): 2 m (m + 1) sums of rows where
-        :meth:`images` forms the product ``(c U) V`` of every neighbour (which it still forms
-        while those rows cost more: :attr:`move_row_cost`). The error bounds are :meth:`images`'
-        own (from ``c U``). ``bases``: the kept bases :meth:`swap_base` takes the selection's from
-        (None: formed afresh). No gradient."""
-        with torch.no_grad():
-            c = self._pairs(w)
-            cu = c @ self.U if self.U is not None else None
-            eps, win_err = self._image_errors(c, cu)
-            a, b = (v.cpu().reshape(-1, 1) if v.ndim < 2 else v.cpu() for v in (out, into))
-            a, b = a.numpy(), b.numpy()
-            a, b = -np.sort(-a, axis=1), -np.sort(-b, axis=1)   # each row's elements first, then -1
-            count = (a >= 0).sum(1)
-            # many rows a neighbour: the product of its coefficients costs less
-            wide = torch.from_numpy(2 * count * (count + 1) * self.move_row_cost > cu.shape[1]) if cu is not None \
-                else torch.zeros(a.shape[0], dtype=torch.bool)
-            if bool(wide.all()):
-                yb = cu @ self.V
-            elif not bool(wide.any()):
-                yb = self._moved_rows(mask, a, b, bases)
-            else:
-                narrow = ~wide.numpy()
-                width = max(1, int(count[narrow].max()))
-                yb = torch.empty(a.shape[0], self.V.shape[1], dtype=self.V.dtype)
-                yb[~wide] = self._moved_rows(mask, a[narrow, :width], b[narrow, :width], bases)
-                yb[wide] = (cu[wide.to(cu.device)] @ self.V).to(yb.device)
-            img = torch.complex(yb[:, : self.npix], yb[:, self.npix:]).reshape(w.shape[0], *self.shape)
-        return img, eps, win_err
+    # the neighbours' images and the pair-image rows: arraysel.physics.psf.neighbourimages
+    def pair_lookup(self) -> torch.Tensor:
+        """(Ne, Ne) long: the index of pair (e, j) (either order) among :attr:`pairs_e`,
+        :attr:`pairs_j` (:func:`~arraysel.physics.psf.neighbourimages.pair_lookup`)."""
+        return neighbourimages.pair_lookup(self)
+
+    def pair_rows(self, pairs: torch.Tensor) -> torch.Tensor:
+        """(n, 2 Npix) pair images on E ([re | im]) of the pairs ``pairs`` (long (n,)), kept while
+        they fit :meth:`swap_rows_cap` (:func:`~arraysel.physics.psf.neighbourimages.pair_rows`)."""
+        return neighbourimages.pair_rows(self, pairs)
+
+    def fill_pair_rows(self, block: int = 256) -> bool:
+        """Form now every pair-image row :meth:`pair_rows` keeps; whether all are kept
+        (:func:`~arraysel.physics.psf.neighbourimages.fill_pair_rows`)."""
+        return neighbourimages.fill_pair_rows(self, block)
+
+    def _all_rows(self):
+        """Every pair-image row on E as one numpy array (P, 2 Npix) when all are at hand, else
+        None (:func:`~arraysel.physics.psf.neighbourimages.all_rows`)."""
+        return neighbourimages.all_rows(self)
 
     def _move_terms(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(pidx, sign)``, (B, 2 m^2) each: the pair-image rows (indices into :attr:`pairs_e`)
-        that the moves ``a[i]`` off, ``b[i]`` on ((B, m) each, ``-1`` for none) add to an image
-        besides the element rows ``G``: the pairs within ``b`` (diagonal included) and within
-        ``a`` (sign 1), and the pairs between them (sign -1); sign 0 where a pair names a
-        padding entry."""
-        m = a.shape[1]
-        ln = self.pair_lookup().numpy()
-        pairs = [(1.0, b[:, i], b[:, j]) for i in range(m) for j in range(i, m)]
-        pairs += [(1.0, a[:, i], a[:, j]) for i in range(m) for j in range(i + 1, m)]
-        pairs += [(-1.0, a[:, i], b[:, j]) for i in range(m) for j in range(m)]
-        if not pairs:  # moves of none
-            return np.zeros((a.shape[0], 0), dtype=np.int64), np.zeros((a.shape[0], 0))
-        return (np.stack([ln[np.maximum(p, 0), np.maximum(q, 0)] for _, p, q in pairs], axis=1),
-                np.stack([s * ((p >= 0) & (q >= 0)) for s, p, q in pairs], axis=1))
+        """The pair-image rows moves add to an image (:func:`~arraysel.physics.psf.neighbourimages.move_terms`)."""
+        return neighbourimages.move_terms(self, a, b)
 
-    def _moved_rows(self, mask: torch.Tensor, a: np.ndarray, b: np.ndarray, bases=None) -> torch.Tensor:
-        """(B, 2 Npix) images on E ([re | im], :attr:`V`'s dtype) of the neighbours of ``mask``
-        that switch ``a[i]`` off and ``b[i]`` on ((B, m) each, ``-1`` for none), from its image,
-        its element rows and the pair-image rows (:meth:`swap_images`)."""
-        y, G = self.swap_base(mask, bases)
-        m = a.shape[1]
-        pidx, sign = self._move_terms(a, b)
-        H = self._all_rows()
-        if H is not None:  # compiled: one pass over the kept rows
-            from arraysel.physics.pairkernels import move_rows
-
-            return torch.from_numpy(move_rows(H, y.numpy()[0], G.numpy(), a, b, pidx, sign))
-        dev = G.device
-        Gz = torch.cat([G, torch.zeros_like(G[:1])])      # row Ne: the padding entries' (zero)
-        at, bt = (torch.from_numpy(np.where(v >= 0, v, G.shape[0])).to(dev) for v in (a, b))
-        yb = y.expand(a.shape[0], -1).clone()
-        for i in range(m):
-            yb.sub_(Gz[at[:, i]]).add_(Gz[bt[:, i]])
-        for t in range(pidx.shape[1]):
-            rows = self.pair_rows(torch.from_numpy(pidx[:, t]))
-            if (sign[:, t] == sign[0, t]).all():                # no padding in this term: one sign
-                yb.add_(rows, alpha=float(sign[0, t]))
-            else:
-                yb.add_(rows.to(yb.dtype) * torch.from_numpy(sign[:, t]).to(dev, yb.dtype)[:, None])
-        return yb.to(self.V.dtype)
+    def swap_images(self, mask: torch.Tensor, out: torch.Tensor, into: torch.Tensor, w: torch.Tensor, bases=None):
+        """:meth:`images` ``(w, with_error=True)`` of the neighbours ``w`` of the selection ``mask``
+        that switch ``out`` off and ``into`` on (:func:`~arraysel.physics.psf.neighbourimages.swap_images`)."""
+        return neighbourimages.swap_images(self, mask, out, into, w, bases)
 
     def _rounding(self, c: torch.Tensor, cn2: torch.Tensor | None = None) -> torch.Tensor:
         """(B,) rounding allowance of one image pixel ``c @ H_p``: ``2 sqrt(P) u |c| max_p |H_p|``."""
