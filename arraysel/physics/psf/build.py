@@ -100,6 +100,59 @@ def _missed_spectral(grams: torch.Tensor, grams_b: torch.Tensor, pairs: int, ske
     return math.sqrt(float((lam + slack).clamp(min=0).sum())) * (1 + 1e-6)
 
 
+def _sketch(tile_images, npix: int, P: int, columns: int) -> torch.Tensor:
+    """``Y^T`` (L, P) float64: the sparse sign sketch ``Y = H S`` of the pair images (P pairs,
+    ``npix`` pixels of E), ``L`` = ``columns`` (at most ``2 npix``) columns, read a tile at a time
+    from ``tile_images()`` (:meth:`BasisBuilder._tile_images`)."""
+    from arraysel.physics.pairkernels import sparse_sketch_add
+
+    # sparse sign sketch: each real column of H adds, with a random sign, to ``zeta``
+    # random columns of the sketch (a sparse random embedding, applied a tile of pixels at
+    # a time in ``zeta P`` adds a column; on the built-in probes it misses as little as the
+    # earlier randomised Fourier sketch, and what it misses is bounded exactly below)
+    L = min(columns, 2 * npix)
+    zeta = min(8, L)
+    gen = torch.Generator().manual_seed(20261124)
+    hit = torch.randint(L, (2 * npix, zeta), generator=gen)
+    sign = torch.where(torch.rand(2 * npix, zeta, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    sign /= math.sqrt(zeta)
+    # the sketch only has to span the dominant subspace (what it misses is measured exactly
+    # below), so it is accumulated in float32
+    Yt = torch.zeros(L, P, dtype=torch.float32)
+    for G, Ht in tile_images():
+        rows = _tile_rows(G, npix)
+        sparse_sketch_add(Yt.numpy(), Ht.contiguous().numpy(), hit[rows].numpy(), sign[rows].numpy())
+    return Yt.double()
+
+
+def _project(Q: torch.Tensor, tile_images, tiles, core: torch.Tensor, npix: int, P: int, tile: int):
+    """The second pass over the pair images' tiles (``tile``-sided, P pairs, ``npix`` pixels of
+    E): ``B^T = H^T Q`` (2 Npix, L), the pixels' squared column norms (Npix,), the ``core``
+    columns of ``H`` (P, 2 ncore), the tiles' Gram matrices and the seconds spent on them."""
+    Bt = torch.zeros(2 * npix, Q.shape[1], dtype=torch.float64)  # B^T = H^T Q
+    col2 = torch.zeros(npix, dtype=torch.float64)
+    Hc = torch.empty(P, core.numel(), dtype=torch.float64)
+    in_core = torch.full((2 * npix,), -1, dtype=torch.long)
+    in_core[core] = torch.arange(core.numel())
+    m = 2 * tile * tile
+    grams = torch.zeros(len(tiles), m, m, dtype=torch.float64)
+    gram_s = 0.0
+    prod = torch.empty(2 * max(G.numel() for G in tiles), Q.shape[1], dtype=torch.float64)
+    for t, (G, Ht) in enumerate(tile_images()):
+        rows = _tile_rows(G, npix)
+        Bt[rows] = torch.matmul(Ht, Q, out=prod[:Ht.shape[0]])
+        at = in_core[rows]
+        Hc[:, at[at >= 0]] = Ht[at >= 0].T
+        t0 = time.perf_counter()
+        grams[t] = _padded_gram(Ht, m)
+        gram_s += time.perf_counter() - t0
+        # the pixels' squared column norms: the Gram matrix's diagonal
+        g = G.numel()
+        d = grams[t].diagonal()
+        col2[G] = d[:g] + d[g:2 * g]
+    return Bt, col2, Hc, grams, gram_s
+
+
 def window_plans(model, window_offset: torch.Tensor, X: torch.Tensor, Z: torch.Tensor,
                  dtx: torch.Tensor | None = None):
     """Yield, transmit by transmit (so that callers converting them hold one float64 plan at a
@@ -413,60 +466,76 @@ class BasisBuilder:
         orthonormal (P, r) and ``V = U^T H``.
 
         Small probes (P <= :attr:`sketch_columns`): ``H`` is formed and the P x P Gram matrix
-        diagonalised (exact). Larger ones: two passes over :attr:`missed_tile`-sided tiles of
-        pixels of ``H``, which is held whole only in the model's dtype and only up to
-        :attr:`keep_images_max_bytes` (else the second pass computes the tiles again): a sparse
-        sign sketch ``Y = H S`` gives an orthonormal ``Q`` spanning the pairs' dominant
-        subspace; the second pass forms ``B = Q^T H``, the pixels' column norms, the core
-        columns and the tiles' Gram matrices (what ``Q`` missed, :func:`_missed_spectral`);
-        the SVD of ``B`` gives ``U = Q W``, ``V = W^T B``.
+        diagonalised (exact, :meth:`_compress_exact`). Larger ones (:meth:`_compress_sketched`):
+        two passes over :attr:`missed_tile`-sided tiles of pixels of ``H``, which is held whole
+        only in the model's dtype and only up to :attr:`keep_images_max_bytes` (else the second
+        pass computes the tiles again): a sparse sign sketch ``Y = H S`` gives an orthonormal
+        ``Q`` spanning the pairs' dominant subspace; the second pass forms ``B = Q^T H``, the
+        pixels' column norms, the core columns and the tiles' Gram matrices (what ``Q`` missed,
+        :func:`_missed_spectral`); the SVD of ``B`` gives ``U = Q W``, ``V = W^T B``.
 
         Returns a :class:`Compression` record.
         """
+        core = torch.cat([self.layout.core_pix, self.layout.npix + self.layout.core_pix])
+        if self.layout.pairs_e.numel() <= self.sketch_columns:
+            return self._compress_exact(X, plan, rank_tol, core, progress)
+        return self._compress_sketched(X, plan, rank_tol, core, progress)
+
+    def _compress_exact(self, X: np.ndarray, plan: tuple, rank_tol: float, core: torch.Tensor,
+                        progress) -> Compression:
+        """:meth:`compress` of a small probe: ``H`` formed whole and its Gram matrix diagonalised."""
+        model = self.model
+        P = self.layout.pairs_e.numel()
+        H = self.dense_pair_images(X, plan)
+        if progress is not None:
+            progress.step("pair images on E")
+        col = pixel_norms(H)
+        Hc = H[:, core].to(model.device, model.dtype)
+        gram = H @ H.T
+        evals, evecs = torch.linalg.eigh(gram)
+        evals = evals.flip(0).clamp(min=0)
+        evecs = evecs.flip(1)
+        total = float(evals.sum())
+        tail = total - torch.cumsum(evals, 0)
+        rank = int(torch.nonzero(tail <= rank_tol * total).flatten()[0]) + 1
+        # U @ V costs P*R + R*N per selection against P*N for H itself
+        if rank * (P + H.shape[1]) >= 0.9 * P * H.shape[1]:
+            return Compression(U=None, V=H.to(model.device, model.dtype), rank=P, rank_tail=0.0,
+                               pixel_residual=0.0, column_norm=float(col.max()), spectral_tail=0.0,
+                               missed=0.0, core_images=Hc)
+        U = evecs[:, :rank]
+        V = U.T @ H
+        rho = float((col ** 2 - pixel_norms(V) ** 2).clamp(min=0).sqrt().max())
+        return Compression(U=U.to(model.device, model.dtype), V=V.to(model.device, model.dtype), rank=rank,
+                           rank_tail=float(tail[rank - 1] / total), pixel_residual=rho,
+                           column_norm=float(col.max()),
+                           spectral_tail=float(evals[rank].sqrt()) if rank < P else 0.0,
+                           missed=0.0, core_images=Hc)
+
+    def _tile_images(self, X: np.ndarray, plan: tuple, tiles, kept: torch.Tensor | None):
+        """Yield ``(G, Ht)``: the tiles' pair images, float64, columns as rows
+        (:meth:`pair_image_tiles`), from the images ``kept`` (P columns, the model's dtype) when
+        there are some, each written over the previous one (reused buffers: no fresh pages for
+        each tile); else delay-and-summed again, a tile at a time."""
+        if kept is None:
+            yield from self.pair_image_tiles(X, plan, tiles)
+            return
+        npix, P = self.layout.npix, self.layout.pairs_e.numel()
+        rows_max = 2 * max(G.numel() for G in tiles)
+        b32 = torch.empty(rows_max, P, dtype=kept.dtype)
+        b64 = torch.empty(rows_max, P, dtype=torch.float64)
+        for G in tiles:
+            n = 2 * G.numel()
+            torch.index_select(kept, 0, _tile_rows(G, npix), out=b32[:n])
+            yield G, b64[:n].copy_(b32[:n])
+
+    def _compress_sketched(self, X: np.ndarray, plan: tuple, rank_tol: float, core: torch.Tensor,
+                           progress) -> Compression:
+        """:meth:`compress` of a large probe: a sketch, a projection onto it, and the SVD of that."""
         model = self.model
         P = self.layout.pairs_e.numel()
         npix = self.layout.npix
-        core = torch.cat([self.layout.core_pix, npix + self.layout.core_pix])
-        if P <= self.sketch_columns:
-            H = self.dense_pair_images(X, plan)
-            if progress is not None:
-                progress.step("pair images on E")
-            col = pixel_norms(H)
-            Hc = H[:, core].to(model.device, model.dtype)
-            gram = H @ H.T
-            evals, evecs = torch.linalg.eigh(gram)
-            evals = evals.flip(0).clamp(min=0)
-            evecs = evecs.flip(1)
-            total = float(evals.sum())
-            tail = total - torch.cumsum(evals, 0)
-            rank = int(torch.nonzero(tail <= rank_tol * total).flatten()[0]) + 1
-            # U @ V costs P*R + R*N per selection against P*N for H itself
-            if rank * (P + H.shape[1]) >= 0.9 * P * H.shape[1]:
-                return Compression(U=None, V=H.to(model.device, model.dtype), rank=P, rank_tail=0.0,
-                                   pixel_residual=0.0, column_norm=float(col.max()), spectral_tail=0.0,
-                                   missed=0.0, core_images=Hc)
-            U = evecs[:, :rank]
-            V = U.T @ H
-            rho = float((col ** 2 - pixel_norms(V) ** 2).clamp(min=0).sqrt().max())
-            return Compression(U=U.to(model.device, model.dtype), V=V.to(model.device, model.dtype), rank=rank,
-                               rank_tail=float(tail[rank - 1] / total), pixel_residual=rho,
-                               column_norm=float(col.max()),
-                               spectral_tail=float(evals[rank].sqrt()) if rank < P else 0.0,
-                               missed=0.0, core_images=Hc)
-        from arraysel.physics.pairkernels import sparse_sketch_add
-
-        tile = self.missed_tile
-        tiles = _tile_pixels(self.layout.shape, tile)
-        # sparse sign sketch: each real column of H adds, with a random sign, to ``zeta``
-        # random columns of the sketch (a sparse random embedding, applied a tile of pixels at
-        # a time in ``zeta P`` adds a column; on the built-in probes it misses as little as the
-        # earlier randomised Fourier sketch, and what it misses is bounded exactly below)
-        L = min(self.sketch_columns, 2 * npix)
-        zeta = min(8, L)
-        gen = torch.Generator().manual_seed(20261124)
-        hit = torch.randint(L, (2 * npix, zeta), generator=gen)
-        sign = torch.where(torch.rand(2 * npix, zeta, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0)
-        sign /= math.sqrt(zeta)
+        tiles = _tile_pixels(self.layout.shape, self.missed_tile)
         # both passes read the pair images kept in the model's dtype when they fit (the column
         # norms and the basis then describe those rounded images, which differ from the float64
         # ones by less than the rounding allowance of an evaluation); else each pass
@@ -475,52 +544,15 @@ class BasisBuilder:
             if self.keeps_images(P, npix, model.dtype) else None
 
         def tile_images():
-            # (G, Ht): the tiles' pair images, float64, columns as rows (:meth:`pair_image_tiles`),
-            # each written over the previous one (reused buffers: no fresh pages for each tile)
-            if kept is None:
-                yield from self.pair_image_tiles(X, plan, tiles)
-                return
-            rows_max = 2 * max(G.numel() for G in tiles)
-            b32 = torch.empty(rows_max, P, dtype=kept.dtype)
-            b64 = torch.empty(rows_max, P, dtype=torch.float64)
-            for G in tiles:
-                n = 2 * G.numel()
-                torch.index_select(kept, 0, _tile_rows(G, npix), out=b32[:n])
-                yield G, b64[:n].copy_(b32[:n])
+            return self._tile_images(X, plan, tiles, kept)
 
-        # the sketch only has to span the dominant subspace (what it misses is measured exactly
-        # below), so it is accumulated in float32
-        Yt = torch.zeros(L, P, dtype=torch.float32)
-        for G, Ht in tile_images():
-            rows = _tile_rows(G, npix)
-            sparse_sketch_add(Yt.numpy(), Ht.contiguous().numpy(), hit[rows].numpy(), sign[rows].numpy())
-        Yt = Yt.double()
+        Yt = _sketch(tile_images, npix, P, self.sketch_columns)
         if progress is not None:
             progress.step("sketch of the pair images on E")
         Q = torch.linalg.qr(Yt.T)[0]
         del Yt
-        Bt = torch.zeros(2 * npix, Q.shape[1], dtype=torch.float64)  # B^T = H^T Q
-        col2 = torch.zeros(npix, dtype=torch.float64)
-        Hc = torch.empty(P, core.numel(), dtype=torch.float64)
-        in_core = torch.full((2 * npix,), -1, dtype=torch.long)
-        in_core[core] = torch.arange(core.numel())
-        m = 2 * tile * tile
-        grams = torch.zeros(len(tiles), m, m, dtype=torch.float64)
-        gram_s = 0.0
-        prod = torch.empty(2 * max(G.numel() for G in tiles), Q.shape[1], dtype=torch.float64)
-        for t, (G, Ht) in enumerate(tile_images()):
-            rows = _tile_rows(G, npix)
-            Bt[rows] = torch.matmul(Ht, Q, out=prod[:Ht.shape[0]])
-            at = in_core[rows]
-            Hc[:, at[at >= 0]] = Ht[at >= 0].T
-            t0 = time.perf_counter()
-            grams[t] = _padded_gram(Ht, m)
-            gram_s += time.perf_counter() - t0
-            # the pixels' squared column norms: the Gram matrix's diagonal
-            g = G.numel()
-            d = grams[t].diagonal()
-            col2[G] = d[:g] + d[g:2 * g]
-        del kept
+        Bt, col2, Hc, grams, gram_s = _project(Q, tile_images, tiles, core, npix, P, self.missed_tile)
+        del kept, tile_images
         if progress is not None:
             progress.step(f"projection of the pair images on E (of which the tiles' Gram matrices {gram_s:.1f} s)")
         B = Bt.T
@@ -530,6 +562,7 @@ class BasisBuilder:
         total = float(col2.sum())
         missed = max(0.0, total - float(evals.sum()))
         frob = math.sqrt(missed) * (1 + 1e-6)
+        tile = self.missed_tile
         missed = min(frob, _missed_spectral(grams, _tile_grams(B, self.layout.shape, tile), P, Q.shape[1]))
         _log.info("  what the sketch missed: spectral norm <= %.3g (Frobenius %.3g) of |H|_F %.3g",
                   missed, frob, math.sqrt(total))

@@ -21,8 +21,10 @@ runs its :meth:`Refinement.kernels`. Its inputs (constructor arguments):
 
 It owns ``kernel_tol``, the counts ``settled`` (kernels that reached each costly step since
 the basis was made: ``"finer"``, the stored rank's tighter bound, and ``"exact_windows"``, their
-window delay-and-summed exactly), its caches (the block DAS plans and transmit distances, E's
-DAS plan and the core's pixel positions) and ``hot``, the
+window delay-and-summed exactly), ``exact`` (the
+:class:`~arraysel.physics.psf.exactpixels.ExactPixels` that delay-and-sum a selection on chosen
+pixels, with the caches of the block DAS plans and transmit distances and E's DAS plan), the
+core's pixel positions and ``hot``, the
 :class:`~arraysel.physics.psf.hotblocks.HotBlocks` that settle the blocks left loose again and
 again from their pair matrices.
 """
@@ -30,13 +32,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from arraysel.physics import compiled
-from arraysel.physics.beamform import das_apply
-from arraysel.physics.psf.build import window_plans
 from arraysel.physics.psf.certificate import RawChannels, largest_bound
+from arraysel.physics.psf.exactpixels import ExactPixels
 from arraysel.physics.psf.hotblocks import HotBlocks
 from arraysel.physics.psf.window import cut_windows, window_start
 
@@ -65,21 +65,6 @@ def _windows(setup, pz, px, rows, cols):
     return z0, x0, fits
 
 
-def _pixel_blocks(zi: torch.Tensor, xi: torch.Tensor, b: int, n_x: int) -> tuple[list, list, list]:
-    """``(blocks, rows, order)`` of grid pixels (zi, xi): the blocks (``b`` x ``b`` pixels, ``n_x``
-    grid columns) that hold them, each block's pixels as row-major indices within it, and the
-    positions of those pixels in ``zi``."""
-    blocks, rows, order = [], [], []
-    qz, qx = zi // b, xi // b
-    for z_, x_ in torch.unique(torch.stack([qz, qx], 1), dim=0).tolist():
-        sel = torch.nonzero((qz == z_) & (qx == x_)).flatten()
-        bw = min(b, n_x - x_ * b)
-        blocks.append((z_, x_))
-        rows.append((zi[sel] - z_ * b) * bw + (xi[sel] - x_ * b))
-        order.append(sel)
-    return blocks, rows, order
-
-
 class Refinement:
     """Peak location, refinement and the certified kernels of a
     :class:`~arraysel.physics.psf.basis.PairBasis` (``basis.refinement``; its inputs and what it
@@ -92,14 +77,14 @@ class Refinement:
         self.certificates = certificates
         self.kernel_tol = self.kernel_tol if kernel_tol is None else float(kernel_tol)
         if shared is None:
-            self._block_plans: dict = {}  # block -> its DAS plan (:meth:`_plans_for_blocks`)
-            self._block_dtx: dict = {}  # block -> its transmit distances (:meth:`_block_transmit_distances`)
-            self._e_plan_holder: dict = {}  # E's DAS plan (:meth:`_e_plans`)
+            #: the exact values on chosen pixels and the DAS plans' caches (:class:`ExactPixels`)
+            self.exact = ExactPixels(self.model, self.layout, certificates)
             self.settled = {"finer": 0, "exact_windows": 0}  #: kernels that reached each costly step
-            self.hot = HotBlocks(self.model, certificates, self._plans_for_blocks)
+            self.hot = HotBlocks(self.model, certificates, self.exact.plans_for_blocks)
         else:
-            self._block_plans, self._block_dtx = shared._block_plans, shared._block_dtx
-            self._e_plan_holder, self.settled, self.hot = shared._e_plan_holder, shared.settled, shared.hot
+            self.exact, self.settled, self.hot = shared.exact, shared.settled, shared.hot
+        self._plans_for_blocks = self.exact.plans_for_blocks  # block DAS plans, cached
+        self._block_plans, self._block_dtx = self.exact.blocks, self.exact.dtx  # the plan caches
         self._core_pos = None  # E pixel -> its column among the core's (:meth:`_settle_in_core`)
 
     #: at most this many pixels tied with the peak (within the error bound) are settled exactly
@@ -113,115 +98,15 @@ class Refinement:
     #: at most this many blocks are beamformed exactly to settle a selection (else: exact path)
     refine_max_blocks = 1024
 
-    #: memory (bytes) of the block DAS plans kept (one block: ntx x block^2 x Ne entries of index, weight and rotation)
-    plan_cache_bytes = 256 * 2 ** 20
-
-    @property
-    def plan_index_dtype(self) -> torch.dtype:
-        """Integer type of the block plans' sample indices (local to the channel windows): 16
-        bits where the windows allow, so that the plan cache holds more blocks (256 elements:
-        167 blocks in :attr:`plan_cache_bytes` instead of 117 with 64-bit indices)."""
-        return torch.int16 if self.certificates.window_samples < 2 ** 15 else torch.int32
-
-    @property
-    def plan_cache_blocks(self) -> int:
-        """Block DAS plans kept in memory (from :attr:`plan_cache_bytes`)."""
-        model = self.model
-        entry = self.plan_index_dtype.itemsize + model.dtype.itemsize + model.cdtype.itemsize
-        per = len(model.transmits) * model.block ** 2 * model.n_elements * entry
-        return max(16, self.plan_cache_bytes // per)
-
-    def _plans_for_blocks(self, blocks: list) -> list:
-        """DAS plans of the pixels of the grid blocks ``blocks`` ((qz, qx) pairs), row-major,
-        clipped to the grid: per block ``(i0, w, rot)`` stacked over the transmits, shapes
-        (ntx, npix, Ne) (sample index, interpolation weight, complex rotation). Cached; the
-        missing blocks are planned together (:meth:`_window_plans`)."""
-        missing = list(dict.fromkeys(q for q in blocks if q not in self._block_plans))
-        made = {}
-        if missing:
-            model = self.model
-            b = model.block
-            zs, xs, sizes = [], [], []
-            for qz, qx in missing:
-                Z, X = torch.meshgrid(model.z_grid[qz * b:(qz + 1) * b], model.x_grid[qx * b:(qx + 1) * b],
-                                      indexing="ij")
-                zs.append(Z.reshape(-1))
-                xs.append(X.reshape(-1))
-                sizes.append(Z.numel())
-            dtx = self._block_transmit_distances(missing, xs, zs)
-            offset = self.certificates.window_offset
-            per_tx = list(zip(*window_plans(self.model, offset, torch.cat(xs), torch.cat(zs), dtx)))
-            stacked = (torch.stack(per_tx[0]).to(model.device, self.plan_index_dtype),
-                       torch.stack(per_tx[1]).to(model.device, model.dtype),
-                       torch.stack(per_tx[2]).to(model.device, model.cdtype))
-            parts = [a.split(sizes, dim=1) for a in stacked]
-            for i, q in enumerate(missing):
-                made[q] = tuple(a[i].contiguous() for a in parts)
-                if len(self._block_plans) < self.plan_cache_blocks:
-                    self._block_plans[q] = made[q]
-        return [self._block_plans.get(q) or made[q] for q in blocks]
-
     #: grid blocks planned and delay-and-summed at once by :meth:`_das`
     das_blocks = 32
-
-    def _block_transmit_distances(self, blocks: list, xs: list, zs: list) -> torch.Tensor:
-        """(ntx, Npix) transmit distances of the pixels (``xs``, ``zs``: one tensor per block) of
-        ``blocks``, kept per block for good (7 transmits x 64 pixels a block: 8 MB for a 400 x
-        400 grid): an evicted block plan is made again without them, which are most of its
-        cost for a large aperture (each pixel's minimum over 4 points an element)."""
-        from arraysel.physics.beamform import transmit_distance
-
-        model = self.model
-        s = model.setup
-        known = self._block_dtx
-        todo = [i for i, q in enumerate(blocks) if q not in known]
-        if todo:
-            x = torch.cat([xs[i] for i in todo])
-            z = torch.cat([zs[i] for i in todo])
-            d = torch.stack([transmit_distance(x, z, t.delays, s.probe, s.acq.c) for t in model.transmits])
-            for i, part in zip(todo, d.split([xs[i].numel() for i in todo], dim=1)):
-                known[blocks[i]] = part.clone()
-        return torch.cat([known[q] for q in blocks], dim=1)
 
     def _das(self, X: torch.Tensor, blocks: list, rows: list | None = None) -> torch.Tensor:
         """Exact image values of one selection (I/Q channels X: (ntx, Ne, T) complex, or its
         :class:`RawChannels`) on the pixels of ``blocks`` ((qz, qx) pairs), or on the given pixel
-        rows of each block's plan. Blocks are planned and summed :attr:`das_blocks` at a time,
-        so a window's 256 blocks do not hold all their plans at once (2.3 MB a block for a
-        256-element probe)."""
-        if not isinstance(X, RawChannels) and not X.requires_grad and X.device.type == "cpu":
-            # no gradient wanted: complex channels as raw ones (time order, receive weights applied)
-            y = torch.view_as_real(X).permute(1, 3, 0, 2).contiguous().numpy()
-            X = RawChannels(y, np.ones(y.shape[0], dtype=y.dtype), 1)
-        blocks = [(int(qz), int(qx)) for qz, qx in blocks]
-        if len(blocks) > self.das_blocks:
-            step = self.das_blocks
-            return torch.cat([self._das(X, blocks[i:i + step], None if rows is None else rows[i:i + step])
-                              for i in range(0, len(blocks), step)])
-        plans = self._plans_for_blocks(blocks)
-        if rows is not None:
-            plans = [tuple(a[:, r] for a in pl) for pl, r in zip(plans, rows)]
-        if isinstance(X, RawChannels):
-            # the compiled sum, a block at a time (concatenating the blocks' plans copied more
-            # than the sums read)
-            return torch.cat([self._das_compiled(X, pl) for pl in plans])
-        i0, wt, rot = (torch.cat([pl[j] for pl in plans], dim=1) if len(plans) > 1 else plans[0][j]
-                       for j in range(3))
-        img = 0
-        for n in range(len(self.model.transmits)):
-            img = img + das_apply(X[n], i0[n], wt[n], rot[n])
-        return img
-
-    def _das_compiled(self, X: RawChannels, plan: tuple) -> torch.Tensor:
-        """Exact image values of one selection (its raw channels) on the pixels of one block plan
-        (stacked over the transmits) by the compiled sum over every transmit, which skips the
-        entries outside the aperture."""
-        i0, wt, rot = plan
-        from arraysel.physics.pairkernels import das_stacked_raw
-
-        out = das_stacked_raw(X.y, X.we, i0.contiguous().numpy(), wt.contiguous().numpy(),
-                              torch.view_as_real(rot.contiguous()).numpy(), X.segment)
-        return torch.complex(*torch.from_numpy(out).to(self.model.dtype).unbind(1))
+        rows of each block's plan, :attr:`das_blocks` blocks at a time
+        (:meth:`ExactPixels.das <arraysel.physics.psf.exactpixels.ExactPixels.das>`)."""
+        return self.exact.das(X, blocks, rows, self.das_blocks)
 
     def strip_bounds(self, c: torch.Tensor, slots: torch.Tensor, slack: torch.Tensor | None = None) -> torch.Tensor:
         """(n, B) float64 upper bounds of ``max |I|`` on the whole strip blocks ``slots`` (their
@@ -350,22 +235,13 @@ class Refinement:
             we = wg.numpy().astype(y.dtype)
             yield from ((i, RawChannels(y[k], we[k], self.certificates.segment)) for k, i in enumerate(part))
 
-    def _exact_pixels(self, X, zi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-        """Exact compound image values at grid pixels (zi, xi) of one selection from its I/Q
-        channels ``X`` (ntx, Ne, T) (or its :class:`RawChannels`): delay-and-sum with the cached
-        block plans, as the exact path."""
-        blocks, rows, order = _pixel_blocks(zi.cpu(), xi.cpu(), self.model.block, self.model.setup.n_x)
-        vals = self._das(X, blocks, rows)
-        out = torch.empty_like(vals)
-        out[torch.cat(order).to(vals.device)] = vals
-        return out
-
     def _locate(self, img: torch.Tensor, eps: torch.Tensor, w: torch.Tensor, row0: int, col0: int):
         """Peak pixel of the exact image, from an approximation ``img`` (B, h, wd) at grid offset
         (row0, col0) whose |.| error is at most ``eps`` (B,).
 
         Every pixel within 2 eps of the approximate peak may be the exact peak: those are
-        evaluated exactly (:meth:`_exact_pixels`) and the largest wins (the first in row-major
+        evaluated exactly (:meth:`ExactPixels.pixels
+        <arraysel.physics.psf.exactpixels.ExactPixels.pixels>`) and the largest wins (the first in row-major
         order, as ``argmax`` on the exact image). Returns the peak's grid row and column, a lower
         bound ``thr`` of the exact peak value and a flag (False: more than :attr:`max_ties` ties,
         or an all-zero image).
@@ -375,7 +251,7 @@ class Refinement:
             if B >= compiled.MIN_BATCH and img.device.type == "cpu" and img.dtype in (torch.complex64,
                                                                                       torch.complex128):
                 # one compiled read of each image (a batch of at least MIN_BATCH)
-                from arraysel.physics.pairkernels import peak_stats
+                from arraysel.physics.peakkernels import peak_stats
 
                 two_eps = 2 * eps.detach().cpu().double()
                 val, arg, n, cand = (torch.from_numpy(a) for a in peak_stats(
@@ -393,7 +269,7 @@ class Refinement:
                     amb = self._settle_in_core(cand, amb, arg, w)
             for b, x in self._grouped_channels(w.detach(), amb.tolist(), raw=True):
                 idx = torch.nonzero(cand[b]).flatten()
-                v = self._exact_pixels(x, idx // wd + row0, idx % wd + col0).abs()
+                v = self.exact.pixels(x, idx // wd + row0, idx % wd + col0, self.das_blocks).abs()
                 arg[b] = idx[int(torch.argmax(v))]
         return arg // wd + row0, arg % wd + col0, val - eps, ok
 
@@ -433,14 +309,29 @@ class Refinement:
         Certified: the exact peak is located (pixels tied with the approximate peak within the
         error bound are evaluated exactly), its window fits in the region, and the lower bound of
         the peak beats the bound of |I| outside the region (tier 1: E; tier 2: the band, whose
-        loose blocks are then beamformed exactly, :meth:`refine`).
-        """
-        s = self.model.setup
+        loose blocks are then beamformed exactly, :meth:`refine`); in steps, :meth:`_tier_one`
+        to :meth:`_exact_rest`."""
         with torch.no_grad():
             wd = w.detach()
             if env is None:
                 env = self.certificates.envelopes(wd)
         img, eps, win_err = self.basis.images(w, with_error=True) if images is None else images
+        out, ok, peaks = self._tier_one(w, wd, env, img, eps, win_err)
+        if tier_one:
+            return out, ok.cpu()
+        out, ok = self._tier_two(w, wd, env, img, eps, win_err, out, ok, peaks)
+        if self.basis.finer is not None:
+            out, ok = self._finer_windows(w, out, ok, peaks)
+        out, ok = self._finer_kernels(w, out, ok, peaks)
+        return self._exact_rest(w, out, ok, peaks)
+
+    def _tier_one(self, w, wd, env, img, eps, win_err):
+        """Tier 1 of :meth:`kernels`: ``(out, ok, peaks)``, the windows of ``img`` whose peak the
+        bound outside E certifies (:meth:`refine` retrying those the largest bound does not) and
+        whose window fits in E within :attr:`kernel_tol`, and ``peaks`` = ``(located, win_z,
+        win_x)``: the selections whose peak is certified and their windows' grid offsets (-1
+        elsewhere), whether or not the window fits in E (tier 2 adds its own)."""
+        s = self.model.setup
         pz, px, thr, ok = self._locate(img, eps, w, self.layout.rows.start, self.layout.cols.start)
         z0, x0, fits = _windows(s, pz, px, self.layout.rows, self.layout.cols)
         with torch.no_grad():
@@ -460,55 +351,68 @@ class Refinement:
         x0e = torch.where(ok, x0 - self.layout.cols.start, torch.zeros_like(x0))
         out, norm = cut_windows(img, z0e, x0e, s.window)
         ok = ok & (win_err <= self.kernel_tol * norm)
-        if tier_one:
-            return out, ok.cpu()
-        # tier 2 (the band) for the selections whose peak tier 1 could not certify; a certified
-        # peak whose window leaves E or whose error bound is too loose gets an exact window below
-        # (cheaper than the band's product, which reads every strip pair image, and exact)
+        return out, ok, (located, win_z, win_x)
+
+    def _tier_two(self, w, wd, env, img, eps, win_err, out, ok, peaks):
+        """Tier 2 (the band) of :meth:`kernels` for the selections whose peak tier 1 could not
+        certify; writes the peaks it certifies into ``peaks``. A certified peak whose window
+        leaves E or whose error bound is too loose gets an exact window later (cheaper than the
+        band's product, which reads every strip pair image, and exact)."""
+        s = self.model.setup
+        located, win_z, win_x = peaks
         todo = torch.nonzero(~ok & ~located).flatten()
-        if todo.numel() and self.layout.npix2:
-            w2 = w[todo]
-            band = self.basis.band_images(w2, img[todo])
-            pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.layout.rows.start, 0)
-            z02, x02, fits2 = _windows(s, pz2, px2, self.layout.rows, slice(0, s.n_x))
-            with torch.no_grad():
-                ok2 = ok2 & fits2
-                bounds = self.certificates.bound(wd[todo], 2, per_block=True, env=env[:, todo])
-                passed = ok2 & (largest_bound(bounds) < thr2)
-                retry = torch.nonzero(ok2 & ~passed).flatten()
-                if retry.numel():
-                    passed[retry] = self.refine(wd[todo][retry], thr2[retry], bounds=bounds[:, retry]).to(passed.device)
-            with torch.no_grad():
-                sel = torch.nonzero(passed).flatten()
-                located[todo[sel]] = True
-                win_z[todo[sel]], win_x[todo[sel]] = z02[sel], x02[sel]
-            z0b = torch.where(passed, z02 - self.layout.rows.start, torch.zeros_like(z02))
-            k2, norm2 = cut_windows(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
-            passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
+        if not (todo.numel() and self.layout.npix2):
+            return out, ok
+        w2 = w[todo]
+        band = self.basis.band_images(w2, img[todo])
+        pz2, px2, thr2, ok2 = self._locate(band, eps[todo], w2, self.layout.rows.start, 0)
+        z02, x02, fits2 = _windows(s, pz2, px2, self.layout.rows, slice(0, s.n_x))
+        with torch.no_grad():
+            ok2 = ok2 & fits2
+            bounds = self.certificates.bound(wd[todo], 2, per_block=True, env=env[:, todo])
+            passed = ok2 & (largest_bound(bounds) < thr2)
+            retry = torch.nonzero(ok2 & ~passed).flatten()
+            if retry.numel():
+                passed[retry] = self.refine(wd[todo][retry], thr2[retry], bounds=bounds[:, retry]).to(passed.device)
+        with torch.no_grad():
             sel = torch.nonzero(passed).flatten()
+            located[todo[sel]] = True
+            win_z[todo[sel]], win_x[todo[sel]] = z02[sel], x02[sel]
+        z0b = torch.where(passed, z02 - self.layout.rows.start, torch.zeros_like(z02))
+        k2, norm2 = cut_windows(band, z0b, torch.where(passed, x02, torch.zeros_like(x02)), s.window)
+        passed = passed & (win_err[todo] <= self.kernel_tol * norm2)
+        sel = torch.nonzero(passed).flatten()
+        if sel.numel():
+            out = out.index_put((todo[sel],), k2[sel])
+            ok = ok.clone()
+            ok[todo[sel]] = True
+        return out, ok
+
+    def _finer_windows(self, w, out, ok, peaks):
+        """Located, only the error bound too loose: the full stored rank's tighter bound
+        (``basis.finer``), on the certified window (when it lies in E)."""
+        located, win_z, win_x = peaks
+        n, rows, cols = self.model.setup.window, self.layout.rows, self.layout.cols
+        inside = ~ok & located & (win_z >= rows.start) & (win_z + n <= rows.stop) & \
+            (win_x >= cols.start) & (win_x + n <= cols.stop)
+        todo = torch.nonzero(inside).flatten()
+        if todo.numel():
+            img_f, _, werr_f = self.basis.finer.images(w[todo], with_error=True)
+            k_f, norm_f = cut_windows(img_f, win_z[todo] - rows.start, win_x[todo] - cols.start, n)
+            sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
+            self.settled["finer"] += todo.numel()
             if sel.numel():
-                out = out.index_put((todo[sel],), k2[sel])
+                out = out.index_put((todo[sel],), k_f[sel].to(out.dtype))
                 ok = ok.clone()
                 ok[todo[sel]] = True
-        if self.basis.finer is not None:
-            # located, only the error bound too loose: the full stored rank's tighter bound, on the
-            # certified window (when it lies in E)
-            n, rows, cols = s.window, self.layout.rows, self.layout.cols
-            inside = ~ok & located & (win_z >= rows.start) & (win_z + n <= rows.stop) & \
-                (win_x >= cols.start) & (win_x + n <= cols.stop)
-            todo = torch.nonzero(inside).flatten()
-            if todo.numel():
-                img_f, _, werr_f = self.basis.finer.images(w[todo], with_error=True)
-                k_f, norm_f = cut_windows(img_f, win_z[todo] - rows.start, win_x[todo] - cols.start, n)
-                sel = torch.nonzero(werr_f <= self.kernel_tol * norm_f).flatten()
-                self.settled["finer"] += todo.numel()
-                if sel.numel():
-                    out = out.index_put((todo[sel],), k_f[sel].to(out.dtype))
-                    ok = ok.clone()
-                    ok[todo[sel]] = True
+        return out, ok
+
+    def _finer_kernels(self, w, out, ok, peaks):
+        """Not located: a tighter error bound (the full stored rank, ``basis.finer``) settles
+        most of the rest."""
+        located = peaks[0]
         todo = torch.nonzero(~ok & ~located).flatten()
         if todo.numel() and self.basis.finer is not None:
-            # a tighter error bound (the full stored rank) settles most of the rest
             k3, ok3 = self.basis.finer.kernels(w[todo])
             sel = torch.nonzero(ok3.to(todo.device)).flatten()
             self.settled["finer"] += todo.numel()
@@ -516,10 +420,15 @@ class Refinement:
                 out = out.index_put((todo[sel],), k3[sel])
                 ok = ok.clone()
                 ok[todo[sel]] = True
+        return out, ok
+
+    def _exact_rest(self, w, out, ok, peaks):
+        """The peak and its window are certified and only the image's error bound is too loose:
+        the window itself is delay-and-summed exactly from the selection's channels (at most
+        :attr:`exact_windows_max` of them). Returns :meth:`kernels`' result."""
+        located, win_z, win_x = peaks
         todo = torch.nonzero(~ok & located).flatten()
         if todo.numel() and todo.numel() <= self.exact_windows_max:
-            # the peak and its window are certified and only the image's error bound is too
-            # loose: the window itself is delay-and-summed exactly from the selection's channels
             out = out.index_put((todo,), self._exact_windows(w[todo], win_z[todo], win_x[todo]).to(out.dtype))
             self.settled["exact_windows"] += todo.numel()
             ok = ok.clone()
@@ -544,54 +453,15 @@ class Refinement:
             (torch.finfo(self.model.dtype).bits // 8)
         return max(1, self.channel_group_bytes // per)
 
-    def _e_plans(self) -> list:
-        """DAS plan of the pixels of E (row-major), per transmit ``(i0, wt, rot)`` numpy arrays
-        ((Npix_E, Ne) sample index local to the channel windows, interpolation weight, and
-        (Npix_E, Ne, 2) phase rotation), made on first use and kept."""
-        plans = self._e_plan_holder.get("plans")
-        if plans is None:
-            model = self.model
-            Z, X = torch.meshgrid(model.z_grid[self.layout.rows], model.x_grid[self.layout.cols], indexing="ij")
-            plans = [(i0.to(torch.int32).contiguous().numpy(), w.to(model.dtype).contiguous().numpy(),
-                      torch.view_as_real(rot.to(model.cdtype)).contiguous().numpy())
-                     for i0, w, rot in window_plans(model, self.certificates.window_offset, X.reshape(-1),
-                                                    Z.reshape(-1))]
-            self._e_plan_holder["plans"] = plans
-        return plans
-
     def _exact_windows(self, w: torch.Tensor, z0: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
         """Kernels (B, window, window) of selections ``w`` from the exact image on their windows at
         grid offsets (z0, x0) (delay-and-sum of their I/Q channels, as the exact path;
-        differentiable), normalised as :func:`cut_windows` does. Windows inside E read the DAS
-        plan of E (:meth:`_e_plans`, made once): the compiled sum without gradient, torch's
-        ``das_apply`` on the same plan rows with one; windows outside E go through the block
-        plans."""
+        differentiable, :meth:`ExactPixels.window <arraysel.physics.psf.exactpixels.ExactPixels.window>`),
+        normalised as :func:`cut_windows` does."""
         n = self.model.setup.window
-        ar = torch.arange(n)
-        wins = []
         grad = w.requires_grad or w.device.type != "cpu"
-        for i, x in self._grouped_channels(w, list(range(w.shape[0]))):
-            zi = (int(z0[i]) + ar)[:, None].expand(n, n).reshape(-1)
-            xi = (int(x0[i]) + ar)[None, :].expand(n, n).reshape(-1)
-            inside = (self.layout.rows.start <= int(z0[i]) and int(z0[i]) + n <= self.layout.rows.stop
-                      and self.layout.cols.start <= int(x0[i]) and int(x0[i]) + n <= self.layout.cols.stop)
-            if inside:
-                pix = (zi - self.layout.rows.start) * self.layout.shape[1] + (xi - self.layout.cols.start)
-                if grad:
-                    img = 0
-                    for t, (i0, wt, rot) in enumerate(self._e_plans()):
-                        img = img + das_apply(x[t], torch.from_numpy(i0)[pix].long().to(x.device),
-                                              torch.from_numpy(wt)[pix].to(x.device),
-                                              torch.view_as_complex(torch.from_numpy(rot)[pix]).to(x.device))
-                    wins.append(img.reshape(n, n))
-                    continue
-                from arraysel.physics.pairkernels import das_plan_rows
-
-                v = torch.from_numpy(das_plan_rows(torch.view_as_real(x.contiguous()).numpy(),
-                                                   self._e_plans(), pix.numpy()))
-                wins.append(torch.complex(v[:, 0], v[:, 1]).to(x.dtype).reshape(n, n))
-            else:
-                wins.append(self._exact_pixels(x, zi, xi).reshape(n, n))
+        wins = [self.exact.window(x, int(z0[i]), int(x0[i]), grad, self.das_blocks)
+                for i, x in self._grouped_channels(w, list(range(w.shape[0])))]
         win = torch.stack(wins)
         zero = torch.zeros(w.shape[0], dtype=torch.long)
         return cut_windows(win, zero, zero, n)[0]
