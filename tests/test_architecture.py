@@ -204,11 +204,12 @@ FORMER_WEIGHT_NAMES = {"psf", "conv", "rec", "contrast", "slr", "ent", "row"}
 
 def test_the_loss_has_one_home():
     """Nothing but ``objective.losses`` defines a loss term or sums the loss; the PSF objective,
-    the toy objective and the trainer assemble theirs with ``training_loss``."""
+    the toy objective and the trainer assemble theirs with ``training_loss`` (the PSF objective's
+    losses: ``objective.objective_losses``)."""
     for m in MODULES:
         if m != "arraysel.objective.losses":
             assert not _defined_functions(m) & LOSS_FUNCTIONS, (m, _defined_functions(m) & LOSS_FUNCTIONS)
-    for m in ("arraysel.objective.psf_objective", "arraysel.objective.toy", "arraysel.e2e.trainer"):
+    for m in ("arraysel.objective.objective_losses", "arraysel.objective.toy", "arraysel.e2e.trainer"):
         names = {a.name for n in ast.walk(_tree(m)) if isinstance(n, ast.ImportFrom)
                  and n.module == "arraysel.objective.losses" for a in n.names}
         assert "training_loss" in names, m
@@ -296,7 +297,7 @@ def _foreign_self_reads(cls: ast.ClassDef) -> set[str]:
 
 #: the pair basis's parts: module -> the class that is the part
 PSF_PARTS = {"arraysel.physics.psf.certificate": "Certificates", "arraysel.physics.psf.refinement": "Refinement",
-             "arraysel.physics.psf.build": "BasisBuilder"}
+             "arraysel.physics.psf.build": "BasisBuilder", "arraysel.physics.psf.exactpixels": "ExactPixels"}
 
 
 def test_pair_basis_is_built_from_parts_not_mixins():
@@ -446,9 +447,8 @@ def test_the_cli_and_api_use_the_result_not_the_files():
 
 #: the most lines of a module, a class and a function (its ``def`` line to its last line)
 SIZE_LIMITS = {"module": 600, "class": 400, "function": 80}
-#: the packages held to the limits (``("arraysel", "arraysel_plugins")``: all of them)
-SIZED = ("arraysel.cli", "arraysel.e2e", "arraysel.io", "arraysel.report", "arraysel.run", "arraysel.scenes",
-         "arraysel.selectors", "arraysel_plugins")
+#: the packages held to the limits: all of them, with no exemption
+SIZED = ("arraysel", "arraysel_plugins")
 
 
 def oversized(name: str, text: str) -> list[str]:
@@ -466,7 +466,9 @@ def oversized(name: str, text: str) -> list[str]:
 
 def test_modules_classes_and_functions_are_a_size_a_newcomer_can_read():
     sized = sorted(m for m in MODULES if any(m == p or m.startswith(p + ".") for p in SIZED))
-    assert {"arraysel.selectors.localsearch", "arraysel.io.cache", "arraysel_plugins.swap"} <= set(sized)
+    assert set(sized) == set(MODULES)  # every module, no exemption
+    assert {"arraysel.selectors.localsearch", "arraysel.physics.psf.refinement", "arraysel.constraints",
+            "arraysel_plugins.swap"} <= set(sized)
     too_big = [line for m in sized for line in oversized(m, MODULES[m].read_text(encoding="utf-8"))]
     assert not too_big, "split by concept:\n" + "\n".join(too_big)
 

@@ -42,13 +42,12 @@ import torch
 
 from arraysel.objective import imagers as I
 from arraysel.objective import metrics as M
+from arraysel.objective import objective_losses, objective_moves
 from arraysel.objective.contract import WorkerFactory, dtype_name
-from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
-from arraysel.objective.pair_model import pair_model
 from arraysel.objective.plane_metrics import plane_scorer
 from arraysel.objective.sector_beams import per_beam_attribute
 from arraysel.objective.point_columns import AGGREGATES, aggregated, images_out, point_metric_names  # noqa: F401
-from arraysel.errors import NumericalError, ParameterError, SelectionError
+from arraysel.errors import ParameterError, SelectionError
 from arraysel.objective.tensors import checked_masks, objective_device  # noqa: F401  (checked_masks: its former home)
 from arraysel.physics.imaging import PlaneSet
 from arraysel.selection import masks_from_indices
@@ -334,26 +333,7 @@ class Objective:
         from the selection's planes plus its low-rank change, blocks of swaps of a few outgoing
         elements by batched products (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
         and ``into`` may be padded with ``-1`` (moves of different sizes in one call)."""
-        from arraysel.objective.matrix_neighbours import check_selection
-        from arraysel.objective.neighbours import check_moves
-
-        m, a, b = check_moves(mask, out, into)
-        check_selection(m, self.n_elements)
-        nb = self._neighbourhood()
-        if nb is not None and not return_kernels and a.shape[0]:
-            with torch.no_grad(), self._timed():
-                nb.select(m)
-                res = nb.score(nb.move_columns(a, b), int(a.shape[0]))
-                self.evaluations += int(a.shape[0])
-            return {k: res[k] for k in self._columns}
-        if return_kernels:
-            self._kernels_only("evaluate_moves")
-        with torch.no_grad(), self._timed():
-            base = self.as_masks(m[None])[0]
-            res = self._score(int(a.shape[0]), lambda im, i, n: im.image_moves(base, a[i:i + n], b[i:i + n],
-                                                                                  bases=self.swap_bases(im.model)),
-                              return_kernels)
-        return self._images_out(res, return_kernels, False)
+        return objective_moves.score_moves(self, mask, out, into, return_kernels)
 
     def _neighbourhood(self):
         """The neighbourhood that scores all swaps of a selection from its planes, or None
@@ -364,48 +344,23 @@ class Objective:
 
     def swap_bases(self, model):
         """The neighbourhood bases kept for the field point of ``model`` (one of :attr:`psfs`;
-        :class:`~arraysel.objective.swapbases.SwapBases`): the state a search's neighbourhoods and
-        the pair model share, kept here, not in the physics."""
-        from arraysel.objective.swapbases import SwapBases
-
-        kept = self.__dict__.setdefault("_swap_bases", {})
-        if id(model) not in kept:
-            kept[id(model)] = SwapBases()
-        return kept[id(model)]
+        :func:`~arraysel.objective.objective_moves.swap_bases`)."""
+        return objective_moves.swap_bases(self, model)
 
     def prepare_neighbourhoods(self) -> bool:
         """Form now what :meth:`evaluate_swaps` shares between selections, so that a search's first
-        neighbourhoods do not pay for it: each 1-D point's pair-image rows
-        (:meth:`~arraysel.physics.psf.basis.PairBasis.fill_pair_rows`; a few seconds and
-        ``k``-independent memory: 0.32 GiB on the paper scene, 1.3 GiB for 128 elements), a 3-D
-        scene's elements' transmit rows, their diagonal terms and the right factors of the cross terms
-        (:mod:`arraysel.objective.matrix_neighbours`; about 1.3 GiB on matrix-1024). Returns whether
-        everything is kept (False: beyond the memory cap, each neighbourhood forms the rows it needs)."""
-        done = True
-        for im in self.imagers:
-            done = im.prepare_moves() and done
-        nb = self._neighbourhood()
-        if nb is not None:
-            nb.diagonal()
-            nb.rights()
-        return done
+        neighbourhoods do not pay for it; whether everything is kept
+        (:func:`~arraysel.objective.objective_moves.prepare_neighbourhoods`)."""
+        return objective_moves.prepare_neighbourhoods(self)
 
     def neighbourhood(self):
-        """The :class:`~arraysel.objective.contract.Neighbourhood` a search scores neighbours with:
-        :meth:`evaluate_moves`, prepared by :meth:`prepare_neighbourhoods`; None for a subclass
+        """The :class:`~arraysel.objective.contract.Neighbourhood` a search scores neighbours with
+        (:func:`~arraysel.objective.objective_moves.moves_neighbourhood`); None for a subclass
         that scores masks its own way and has no neighbourhood of its own (its neighbours are
-        scored as masks), and a scene whose imagers image a selection's neighbours only as masks
-        (:attr:`~arraysel.physics.imaging.Imager.moves_from_selection`: a sector scene's beam pattern)
-        unless its planes score all swaps at once (a 3-D scene's fast path on the CPU)."""
-        from arraysel.objective.contract import MovesNeighbourhood
-
+        scored as masks)."""
         if type(self).evaluate is not Objective.evaluate:
             return None
-        if not all(im.moves_from_selection for im in self.imagers) and self._neighbourhood() is None:
-            return None
-        nb = self._neighbourhood()
-        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods,
-                                  block=None if nb is None else nb.block())
+        return objective_moves.moves_neighbourhood(self)
 
     def loss_model(self):
         """The :class:`~arraysel.objective.contract.LossModel` of :meth:`mask_loss`: the gradient
@@ -470,78 +425,23 @@ class Objective:
 
     def _psf_loss(self, weights: torch.Tensor, kappas: list[torch.Tensor] | None = None, receive=None):
         """The scene-weighted PSF loss ``(total (B,), terms)`` of ``weights`` (B, Ne), from their
-        kernels ``kappas`` (one tensor per point) when the caller has them."""
-        wts = {k: self.weights.get(k, 0.0) for k in PSF_WEIGHT_KEYS}
-        need = [k for k, v in wts.items() if v > 0]
-        if not need:
-            z = weights.sum(-1) * 0
-            return z, {}
-        terms = (self.psf_terms(weights, terms=need, receive=receive) if kappas is None
-                 else self.terms_of_kernels(kappas, need))
-        return training_loss(terms, wts)
+        kernels ``kappas`` when the caller has them (:func:`~arraysel.objective.objective_losses.psf_loss`)."""
+        return objective_losses.psf_loss(self, weights, kappas, receive)
 
     def mask_loss(self, weights: torch.Tensor, receive=None):
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
-        ``receive``: separate receive weights (B, Ne)."""
-        with self._timed():
-            w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): per transmit event
-            total, terms = self._psf_loss(w, receive=receive)
-            if not bool(torch.isfinite(total.detach()).all()):
-                raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
-            self.evaluations += int(w.shape[0])
-            if w.requires_grad:
-                self.gradient_steps += 1
-        return total, terms
+        ``receive``: separate receive weights (B, Ne) (:func:`~arraysel.objective.objective_losses.mask_loss`)."""
+        return objective_losses.mask_loss(self, weights, receive)
 
     def mask_hessian(self, mask) -> tuple[np.ndarray, np.ndarray]:
         """The gradient ``(Ne,)`` and the Hessian ``(Ne, Ne)`` (float64) of :meth:`mask_loss` at
-        ``mask`` (weights ``(Ne,)``): the loss's quadratic model, by which swap descents with
-        ``model = quadratic`` rank swaps: from the pair basis where it applies
-        (:func:`~arraysel.objective.pair_model.pair_model`, :attr:`hessian_from_pairs`), else one
-        forward pass and ``Ne`` Hessian-vector products in one batched backward pass; the same
-        values to rounding. Counted as ``Ne`` evaluations and one gradient step."""
-        n = self.n_elements
-        with self._timed():
-            fast = pair_model(self, mask) if self.hessian_from_pairs else None
-            if fast is not None:
-                _total, g, H = fast
-            else:
-                w = torch.as_tensor(np.asarray(mask, dtype=np.float64), dtype=self.dtype,
-                                    device=self.device).reshape(1, n).requires_grad_(True)
-                total, _terms = self._psf_loss(w)
-                (g,) = torch.autograd.grad(total.sum(), w, create_graph=True)
-                eye = torch.eye(n, dtype=self.dtype, device=self.device)[:, None, :]
-                (H,) = torch.autograd.grad(g, w, eye, is_grads_batched=True)
-                g = g.detach()[0].double().cpu().numpy()
-                H = H.detach()[:, 0, :].double().cpu().numpy()
-            if not (np.isfinite(g).all() and np.isfinite(H).all()):
-                raise NumericalError("mask_hessian is not finite (NaN/Inf) for this selection")
-            self.evaluations += n
-            self.gradient_steps += 1
-        return g, H
+        ``mask`` (:func:`~arraysel.objective.objective_losses.mask_hessian`)."""
+        return objective_losses.mask_hessian(self, mask)
 
     def selection_loss(self, P: torch.Tensor, P_soft: torch.Tensor, step: int = 0):
-        """Training loss of a (Ne, k) selection matrix: (scalar total, terms).
-
-        Element weights are the row sums of P (clamped to [0, 1]); L_ent and
-        L_row act on P_soft (:mod:`arraysel.objective.losses`). A scene that
-        weights L_conv or L_rec is trained end to end (``arraysel train``), not here.
-        """
-        with self._timed():
-            if P.dim() != 2 or P.shape[0] != self.n_elements:
-                raise SelectionError(f"P must have shape ({self.n_elements}, k), got {tuple(P.shape)}")
-            w = P.sum(1).clamp(0, 1)[None]
-            psf = self._psf_loss(w)[1]
-            total, terms = training_loss({k: v.sum() for k, v in psf.items()}, self.weights, P_soft=P_soft)
-            if self.settings.needs_data:
-                raise ParameterError(f"scene {self.settings.name!r} weights L_conv/L_rec: train it with "
-                                     "`arraysel train` (end-to-end training computes those terms)")
-            if not bool(torch.isfinite(total.detach())):
-                raise NumericalError("selection_loss is not finite (NaN/Inf)")
-            self.evaluations += 1
-            if P.requires_grad:
-                self.gradient_steps += 1
-        return total, terms
+        """Training loss of a (Ne, k) selection matrix: (scalar total, terms)
+        (:func:`~arraysel.objective.objective_losses.selection_loss`)."""
+        return objective_losses.selection_loss(self, P, P_soft)
 
     def worker_factory(self) -> "SceneObjectiveFactory | None":
         """A picklable recipe that rebuilds this objective on a worker (the scene, device, dtype
