@@ -192,9 +192,8 @@ def beam_polish_plan(objective, selector_cls, options: dict) -> BeamPolish | Non
     ``objective``, or None: only a sector scene's objective without constraints is polished on its
     points; the share is the run's ``polish`` option when given, else the scene's ``sector.polish``
     for a selector that searches (not a ``baseline``, spending evaluations)."""
-    from arraysel.objective.sector_objective import SectorObjective
-
-    if not isinstance(objective, SectorObjective) or objective.constraints is not None:
+    info = objective_info(objective)
+    if info.kind != "beams" or info.aperture_mode is not None or objective.constraints is not None:
         return None
     scene = objective.scene
     if "polish" in options:

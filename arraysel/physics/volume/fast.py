@@ -49,7 +49,8 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, SelectionError, check_number
-from arraysel.physics.volume.psf import MatrixPSF, check_element_weights, check_surfaces, plane_axes, split_planes
+from arraysel.physics.volume.psf import (MatrixPSF, check_element_weights, check_surfaces, plane_axes, split_planes,
+                                         transmit_event_weights)
 
 __all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
 
@@ -390,16 +391,24 @@ class MatrixFastPSF:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`); with
         ``receive`` (B, Ne) separate receive weights (``weights`` the transmit apodization): the
         receive sum ``gamma`` of ``receive``, the transmit sum ``c`` of ``weights`` (bilinear).
-        ``base`` (Ne,): weights that each row of the receive weights differs from in a few elements
-        (a local search's selection; its moves' receive sums are then formed from it, the same sums)."""
-        w = check_element_weights(weights, self.n_elements, self.dtype, self.device)
-        r = w if receive is None else check_element_weights(receive, self.n_elements, self.dtype, self.device)
-        if r.shape != w.shape:
-            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w.shape)}, "
+        ``weights`` (B, n_tx, Ne): one transmit apodization per transmit event (``receive``
+        required), each event's coefficients ``c_n`` from its own. ``base`` (Ne,): weights that each
+        row of the receive weights differs from in a few elements (a local search's selection; its
+        moves' receive sums are then formed from it, the same sums)."""
+        n_tx = self._C.shape[0]
+        w = transmit_event_weights(weights, n_tx, self.n_elements, self.dtype, self.device)
+        if w.shape[1] > 1 and receive is None:
+            raise SelectionError("per-transmit weights (B, n_tx, Ne) need the receive weights (receive=)")
+        r = w[:, 0] if receive is None else check_element_weights(receive, self.n_elements, self.dtype, self.device)
+        if r.shape != w[:, 0].shape:
+            raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w[:, 0].shape)}, "
                                  f"got {tuple(r.shape)}")
         Bn = w.shape[0]
         gamma = torch.view_as_complex(self._receive_sums(r, base).reshape(Bn, -1, 2))   # (B, columns)
-        c = torch.einsum("be,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
+        if w.shape[1] == 1:
+            c = torch.einsum("be,ner->bnr", w[:, 0].to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
+        else:  # one transmit apodization per transmit event: each event's own field coefficients
+            c = torch.einsum("bne,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)
         z = c @ self._Psi                                                    # (B, columns)
         prod = gamma * z
         # split, not slices: a slice's backward fills a full-size zero tensor per group
