@@ -291,12 +291,13 @@ class MatrixNeighbourhood:
 
     def block(self):
         """The requests this neighbourhood scores fastest (:class:`~arraysel.objective.contract.SwapBlock`):
-        swaps grouped by outgoing element, each with every incoming element; one outgoing element a
-        call is enough (on matrix-1024 a neighbour costs about as much in a block of one as of four),
-        and lets a first-improvement descent move sooner."""
+        :data:`BLOCK_ROWS` outgoing elements a call, each swapped with every incoming element (one
+        batched product reads the right factors once for them all: on a loaded machine, where
+        memory traffic is what a neighbour costs, blocks of four outgoing elements scored 2.6x as
+        many neighbours a second as blocks of one, ``benchmarks/results/bench-matrix-neighbours``)."""
         from arraysel.objective.contract import SwapBlock
 
-        return SwapBlock(outgoing=1)
+        return SwapBlock(outgoing=BLOCK_ROWS)
 
     def dense(self, out: np.ndarray) -> np.ndarray:
         """For each swap with the outgoing elements ``out``: whether it goes by the block path (its
