@@ -551,18 +551,56 @@ def _number(c) -> str:
     return "one" if int(c) == 1 else str(int(c))
 
 
-def aperture_constraints(n_elements: int, k_tx: int, k_rx: int) -> Constraints:
+def aperture_constraints(n_elements: int, k_tx: int, k_rx: int, each: Constraints | None = None,
+                         n_events: int = 1) -> Constraints:
     """The quota of separate transmit and receive apertures on the virtual problem of
     ``2 n_elements`` units (transmit elements ``0 .. Ne - 1``, then the receive elements): exactly
-    ``k_tx`` of the first ``Ne`` and ``k_rx`` of the rest (two groups with counts).
-    ``docs/apertures.md``."""
+    ``k_tx`` of the first ``Ne`` and ``k_rx`` of the rest (two groups with counts). With
+    ``n_events`` > 1 (per-transmit apertures) the problem has ``(n_events + 1) Ne`` units: block
+    ``n`` (units ``n Ne .. (n + 1) Ne - 1``) is transmit event ``n``'s aperture of ``k_tx``
+    elements, the last block the receive aperture of ``k_rx``.
+
+    ``each``: the scene's constraints, which each aperture meets on its own. Forced elements are
+    forced in both apertures (a dead element neither transmits nor receives); ``exactly-one``
+    channel groups are kept in each half (the two halves' groups replace the quota, so ``k_tx`` and
+    ``k_rx`` must each be what the groups select). ``at-most-one`` groups and symmetry are refused
+    with an error naming the key. ``docs/apertures.md``."""
     n = int(n_elements)
     for key, v in (("aperture.k_tx", k_tx), ("aperture.k_rx", k_rx)):
         if not 1 <= int(v) <= n:
             raise ParameterError(f"{key} = {v} is out of range; allowed: [1, {n}] (the probe has {n} elements)")
-    groups = np.repeat(np.arange(2, dtype=np.int64), n)
-    return Constraints(2 * n, int(k_tx) + int(k_rx), groups=groups, group_counts=[int(k_tx), int(k_rx)],
-                       source="apertures (transmit, receive)")
+    if int(n_events) < 1:
+        raise ParameterError(f"n_events = {n_events}: a transmit aperture needs at least one transmit event")
+    blocks = int(n_events) + 1
+    quota = [int(k_tx)] * (blocks - 1) + [int(k_rx)]
+    k, size_all = sum(quota), blocks * n
+    what = "apertures (transmit, receive)" if blocks == 2 else f"apertures ({blocks - 1} transmit events, receive)"
+    if each is None or each.trivial:
+        groups = np.repeat(np.arange(blocks, dtype=np.int64), n)
+        return Constraints(size_all, k, groups=groups, group_counts=quota, source=what)
+    if each.n_elements != n:
+        raise ParameterError(f"constraints are for {each.n_elements} elements; the probe has {n}")
+    if each.symmetry != "none":
+        raise ParameterError(f"constraints.symmetry = {each.symmetry!r} together with aperture.mode = 'separate' is "
+                             "not supported; allowed there: 'none'")
+    on = [e + b * n for b in range(blocks) for e in each.forced_on]
+    off = [e + b * n for b in range(blocks) for e in each.forced_off]
+    if each.groups is None:
+        groups, counts, source = np.repeat(np.arange(blocks, dtype=np.int64), n), quota, what
+    else:
+        if each.group_mode != "exactly-one":
+            raise ParameterError(f"constraints.mode = {each.group_mode!r} together with aperture.mode = 'separate' "
+                                 "is not supported; allowed there: 'exactly-one'")
+        per = int(each.counts[np.unique(each.groups)].sum())
+        for key, v in (("aperture.k_tx", k_tx), ("aperture.k_rx", k_rx)):
+            if int(v) != per:
+                raise ParameterError(f"{key} = {v}: the channel groups ({each.describe()}) select exactly {per} "
+                                     f"elements in each aperture; allowed: {per}")
+        size = int(each.groups.max()) + 1
+        groups = np.concatenate([each.groups + b * size for b in range(blocks)])
+        counts = np.concatenate([each.counts] * blocks)
+        source = f"{each.source or 'groups'} in each aperture"
+    return Constraints(size_all, k, groups=groups, group_counts=counts, forced_on=on, forced_off=off, source=source)
 
 
 def constraints_of(objective) -> Constraints | None:

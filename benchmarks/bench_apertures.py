@@ -1,6 +1,8 @@
 """Milliseconds a mask of a scene's objective with one shared aperture, a full transmit with a
 sparse receive (``aperture.mode = "full-tx"``) and separate transmit and receive apertures
-(``"separate"``, ``k_tx = k_rx = k``), on random selections (``docs/apertures.md``).
+(``"separate"``, ``k_tx = k_rx = k``) and, on scenes imaged on planes, a transmit aperture per
+transmit event (``"per-transmit"``, ``k_tx = k_rx = k``), on random selections
+(``docs/apertures.md``).
 
 ``objective.evaluate`` of a batch (one warm-up call of two masks first, not timed), float32, one
 torch thread, the median of ``--repeats`` calls divided by the batch. The 1-D scenes evaluate
@@ -55,6 +57,13 @@ def main() -> None:
         for mode, masks in (("full-tx", shared), ("separate", both)):
             obj = build_objective(load_scene(scene, overrides={"aperture": {"mode": mode}}))
             row.append(f"{mode} {ms_a_mask(obj, masks, args.repeats):.2f}")
+        if getattr(base, "image_kind", None) == "planes" and not hasattr(base, "beam_metrics"):
+            obj = build_objective(load_scene(scene, overrides={"aperture": {"mode": "per-transmit"}}))
+            events = np.zeros((b, obj.n_elements), dtype=bool)
+            for r in range(b):
+                for block in range(obj.n_events + 1):
+                    events[r, block * n + rng.choice(n, k, replace=False)] = True
+            row.append(f"per-transmit ({obj.n_events} events) {ms_a_mask(obj, events, args.repeats):.2f}")
         print(" | ".join(row) + " ms a mask", flush=True)
 
 

@@ -44,7 +44,16 @@ def main(argv=None):
     ap.add_argument("--starts", nargs="+", default=["ste", "swap", "random", "spiral"])
     ap.add_argument("--from-csv", default=None,
                     help="a polish.csv of an earlier run: its polished selections (and only those) are the starts")
+    ap.add_argument("--only", nargs="+", default=None,
+                    help="with --from-csv: only the polished selections of these configs")
     ap.add_argument("--batch", type=int, default=48)
+    ap.add_argument("--patience", type=int, default=20)
+    ap.add_argument("--screen-db", type=float, default=0.0,
+                    help="screen on the points within this many dB of the worst (inf: score every point)")
+    ap.add_argument("--soft-db", type=float, default=0.0,
+                    help="search on the smooth maximum over the points at this temperature (0: the worst)")
+    ap.add_argument("--width-ratio", type=float, default=1.05,
+                    help="the loss's width cap over the narrowest baseline's mean width")
     ap.add_argument("--keep", type=int, default=4)
     ap.add_argument("--points", type=int, nargs="+", default=None,
                     help="score on these points only (default all)")
@@ -92,15 +101,15 @@ def main(argv=None):
                      "elements": " ".join(map(str, np.flatnonzero(m)))})
     base = pd.DataFrame(rows)
     print(base[["config", "worst_PSL_dB", "mean_width_mm"]].to_string(index=False), flush=True)
-    cap = 1.05 * float(base["mean_width_mm"].min()) * 1e-3
+    cap = args.width_ratio * float(base["mean_width_mm"].min()) * 1e-3
     starts = {s: (comp[s] if s in comp else masks[s]) for s in args.starts if s in comp or s in masks}
     if args.from_csv:
         prev = pd.read_csv(args.from_csv)
         starts = {r["config"]: mask_of(int(v) for v in r["elements"].split())
-                  for _, r in prev[prev["kind"] == "polished"].iterrows()}
+                  for _, r in prev[prev["kind"] == "polished"].iterrows() if not args.only or r["config"] in args.only}
     for s, m in starts.items():
         res = polish_on_beams(obj, m, width_cap=cap, seconds=args.seconds, batch=args.batch, keep=args.keep, seed=0,
-                              points=pts)
+                              points=pts, patience=args.patience, screen_db=args.screen_db, soft_db=args.soft_db)
         print(f"  {s}: loss {res['start_loss']:.2f} -> {res['loss']:.2f} dB, worst PSL {res['worst_PSL_dB']:.2f} dB, "
               f"width {res['mean_width_m'] * 1e3:.3f} mm; {res['rounds']} rounds, {res['accepted']} accepted, "
               f"{res['evaluations']} full + {res['screened']} screened scores in {res['seconds']:.0f} s", flush=True)

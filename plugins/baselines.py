@@ -28,6 +28,7 @@ class UniformSelector(Selector):
     description = "k evenly spaced elements (every second element for k = Ne/2; both directions on a matrix)"
     options = {}
     deterministic = True
+    baseline = True
 
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
@@ -55,6 +56,7 @@ class RandomSelector(Selector):
                         "are slow, so a time budget is not overrun by much)", lo=1),
     }
     deterministic = False
+    baseline = True
 
     def planned_evaluations(self, n_elements, k):
         return self.options["n"]

@@ -32,6 +32,7 @@ class SpiralSelector(Selector):
                                lo=-360.0, hi=360.0),
     }
     deterministic = True
+    baseline = True
 
     def select(self, objective, k, seed):
         n = int(objective.n_elements)

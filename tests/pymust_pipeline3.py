@@ -77,10 +77,12 @@ class PyMUSTScene3:
         return self._das[key]
 
     def planes(self, mask: np.ndarray, receive: np.ndarray | None = None) -> dict:
-        """The compound image on each plane: {name: complex (H, W)}; ``receive`` as in :meth:`iq`."""
+        """The compound image on each plane: {name: complex (H, W)}; ``receive`` as in :meth:`iq`;
+        ``mask`` (n_tx, Ne): a transmit apodization per transmit event."""
         out = {k: np.zeros(np.asarray(v).shape[:2], dtype=np.complex128) for k, v in self.coords.items()}
+        events = np.ndim(mask) == 2     # one transmit apodization per transmit event
         for tx in range(len(self.delays)):
-            IQ = self.iq(mask, tx, receive)
+            IQ = self.iq(mask[tx] if events else mask, tx, receive)
             flat = IQ.flatten(order="F")
             for name in out:
                 M = self.das(IQ.shape, tx, name)

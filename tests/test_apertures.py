@@ -13,7 +13,7 @@ import torch
 
 from arraysel.constraints import ConstraintError, Constraints, aperture_constraints
 from arraysel.errors import ParameterError, SelectionError
-from arraysel.objective.aperture import ApertureObjective, split_apertures
+from arraysel.objective.aperture import ApertureObjective, split_apertures, split_events
 from arraysel.objective.build import build_objective
 from arraysel.objective.toy import ToyObjective
 from arraysel.run.experiment import Experiment
@@ -48,9 +48,9 @@ def tiny(tmp_path_factory):
 
 # --------------------------------------------------------------------------- the scene keys
 @pytest.mark.parametrize("aperture, needle", [
-    ({"mode": "both"}, "aperture.mode = 'both' is not allowed; choose one of ['shared', 'full-tx', 'separate']"),
-    ({"mode": "shared", "k_tx": 4}, "aperture.k_tx applies to aperture.mode = 'separate' only"),
-    ({"mode": "full-tx", "k_rx": 4}, "aperture.k_rx applies to aperture.mode = 'separate' only"),
+    ({"mode": "both"}, "aperture.mode = 'both' is not allowed; choose one of ['shared', 'full-tx', 'separate', 'per-transmit']"),
+    ({"mode": "shared", "k_tx": 4}, "aperture.k_tx applies to aperture.mode = 'separate' or 'per-transmit' only"),
+    ({"mode": "full-tx", "k_rx": 4}, "aperture.k_rx applies to aperture.mode = 'separate' or 'per-transmit' only"),
     ({"mode": "separate", "k_tx": 9}, "aperture.k_tx = 9 is out of range; allowed: [1, 8]"),
     ({"mode": "separate", "k_rx": 0}, "aperture.k_rx = 0 is out of range"),
     ({"mode": "separate", "width": 3}, "unknown scene key 'aperture.width'"),
@@ -60,9 +60,45 @@ def test_bad_aperture_keys_name_the_key(tmp_path, aperture, needle):
         _scene(tmp_path, TINY_SCENE, "bad", **aperture)
 
 
-def test_separate_with_constraints_is_refused(tmp_path):
-    with pytest.raises(ParameterError, match=r"aperture.mode = 'separate' together with a \[constraints\]"):
-        _scene(tmp_path, TINY_SCENE + '\n[constraints]\nforced_on = [0]\n', "both", mode="separate")
+def test_separate_lifts_the_scene_constraints_onto_both_apertures(tmp_path):
+    sp = build_objective(_scene(tmp_path, TINY_SCENE + '\n[constraints]\nforced_on = [0]\nforced_off = [7]\n', "both",
+                                mode="separate", k_tx=3, k_rx=2), dtype=torch.float64)
+    c = sp.constraints
+    assert (c.n_elements, c.k) == (16, 5) and c.forced_on == (0, 8) and c.forced_off == (7, 15)
+    for name in ("swap", "random", "ste"):
+        row = Experiment(sp, name, budget=Budget(evaluations=30), seed=0, progress=False).run()
+        assert row["error"] == "", row["error"]
+        tx, rx = split_apertures([int(v) for v in row["elements"].split()], 8, "separate")
+        assert (len(tx), len(rx)) == (3, 2) and 0 in tx and 0 in rx and 7 not in tx and 7 not in rx, (name, tx, rx)
+
+
+def test_separate_keeps_channel_groups_in_each_aperture():
+    each = Constraints(8, 4, groups=[0, 0, 1, 1, 2, 2, 3, 3])
+    c = aperture_constraints(8, 4, 4, each)
+    assert (c.n_elements, c.k) == (16, 8) and c.groups.tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7]
+    masks = c.random_masks(np.random.default_rng(0), 50)
+    assert c.feasible_rows(masks).all()
+    for half in (masks[:, :8], masks[:, 8:]):   # one element of every channel in each aperture
+        assert (half.reshape(50, 4, 2).sum(2) == 1).all()
+    with pytest.raises(ConstraintError, match="constraint groups"):
+        c.check([0, 1, 2, 4, 8, 10, 12, 14])     # channel 0 twice in the transmit aperture
+    for name in ("swap", "anneal", "genetic", "ste", "random", "uniform"):
+        obj = ToyObjective(16, c.k, grid=(4, 4), constraints=c)
+        row = Experiment(obj, name, budget=Budget(evaluations=60), seed=1, progress=False).run()
+        assert row["error"] == "" and c.feasible([int(v) for v in row["elements"].split()]), (name, row["error"])
+
+
+@pytest.mark.parametrize("each, k_tx, needle", [
+    (Constraints(8, 4, groups=[0, 0, 1, 1, 2, 2, 3, 3]), 3,
+     r"aperture.k_tx = 3: the channel groups .* select exactly 4 elements in each aperture; allowed: 4"),
+    (Constraints(8, 3, groups=[0, 0, 1, 1, 2, 2, 3, 3], group_mode="at-most-one"), 3,
+     r"constraints.mode = 'at-most-one' together with aperture.mode = 'separate' is not supported"),
+    (Constraints(8, 4, symmetry="x", positions=np.c_[np.arange(8.0) - 3.5, np.zeros(8)]), 4,
+     r"constraints.symmetry = 'x' together with aperture.mode = 'separate' is not supported"),
+])
+def test_separate_constraints_it_cannot_lift_are_refused_by_name(each, k_tx, needle):
+    with pytest.raises(ParameterError, match=needle):
+        aperture_constraints(8, k_tx, 4, each)
 
 
 # --------------------------------------------------------------------------- the physics of each mode
@@ -133,8 +169,68 @@ def test_3d_separate_fast_path_matches_the_exact_path(tmp_path):
     assert np.array_equal(got["Mean"], want["Mean"])
 
 
+PER_TX_SCENE = TINY_MATRIX_SCENE.replace("n_tx_x = 1\nn_tx_y = 1", "n_tx_x = 2\nn_tx_y = 1")
+
+
+def test_per_transmit_apertures_on_a_matrix_scene(tmp_path):
+    """Two transmit events, each with its own 3 of 16 elements, and a receive aperture of 4: the
+    score is the physics of the three masks, the quota is kept by the selectors, the table's
+    transmit column is the union of the events."""
+    pt = build_objective(_scene(tmp_path, PER_TX_SCENE, "tiny3d-pt", mode="per-transmit", k_tx=3, k_rx=4),
+                         dtype=torch.float64)
+    inner = pt.inner
+    assert (pt.n_events, pt.n_elements, pt.k) == (2, 48, 10) and pt.element_grid == (12, 4)
+    assert pt.constraints.counts.tolist() == [3, 3, 4]
+    ev, rx = _masks(16, 3, 4, 7).reshape(2, 2, 16), _masks(16, 4, 2, 8)
+    got = pt.evaluate(np.concatenate([ev[:, 0], ev[:, 1], rx], 1))
+    want = inner.evaluate(ev, receive=rx)
+    assert np.array_equal(got["Mean"], want["Mean"])
+    one = inner.evaluate(ev[:, 0], receive=rx)["Mean"]     # the first event's aperture for both events
+    assert not np.allclose(got["Mean"], one)
+    same = inner.evaluate(np.stack([ev[:, 0], ev[:, 0]], 1), receive=rx)["Mean"]
+    np.testing.assert_allclose(same, one, rtol=1e-9)
+    for name in ("swap", "random", "anneal"):
+        row = Experiment(pt, name, budget=Budget(evaluations=30), seed=0, progress=False).run()
+        assert row["error"] == "", row["error"]
+        sel = [int(v) for v in row["elements"].split()]
+        events, r = split_events(sel, 16, 2)
+        assert [len(e) for e in events] == [3, 3] and len(r) == 4, (name, sel)
+        assert split_apertures(sel, 16, "per-transmit", 2)[0] == sorted(set(events[0]) | set(events[1]))
+    w = torch.tensor(np.concatenate([ev[:1, 0], ev[:1, 1], rx[:1]], 1), dtype=torch.float64).requires_grad_(True)
+    total, _ = pt.mask_loss(w)
+    total.sum().backward()
+    assert bool(torch.isfinite(w.grad).all()) and float(w.grad[0, :16].abs().sum()) > 0 and float(w.grad[0, 16:32].abs().sum()) > 0
+    assert torch.isfinite(total).all()
+    with pytest.raises(SelectionError, match=r"empty transmit aperture .* \(batch position, transmit event\) \[\(0, 1\)\]"):
+        pt.evaluate(np.concatenate([ev[:1, 0], 0 * ev[:1, 1], rx[:1]], 1))
+
+
+def test_compare_and_export_of_per_transmit_apertures(tmp_path):
+    import pandas as pd
+
+    from arraysel.cli.main import main
+    scene = tmp_path / "pt.toml"
+    scene.write_text(PER_TX_SCENE + '\n[aperture]\nmode = "per-transmit"\nk_tx = 3\nk_rx = 4\n')
+    out, exp = tmp_path / "cmp", tmp_path / "exp"
+    assert main(["compare", "--scene", str(scene), "--selectors", "random", "--seeds", "0", "--budget-evals", "5",
+                 "--out", str(out), "--no-progress", "--in-process", "--no-figures"]) == 0
+    row = pd.read_csv(out / "table1.csv", dtype=str).set_index("config").loc["random"]
+    events = [[int(v) for v in part.split()] for part in row["tx_elements"].split(" | ")]
+    assert [len(e) for e in events] == [3, 3] and len(row["rx_elements"].split()) == 4
+    assert main(["export", "--compare", str(out), "--config", "random", "--out", str(exp), "--formats", "csv"]) == 0
+    lines = (exp / "transmit_events.csv").read_text().splitlines()[2:]
+    assert [[int(v) for v in line.split(",")[1].split()] for line in lines] == events
+    ch = pd.read_csv(exp / "channels.csv", comment="#")
+    assert ch.loc[ch["transmit"] == 1, "element"].tolist() == sorted(set(events[0]) | set(events[1]))
+
+
+def test_per_transmit_is_refused_on_a_1d_scene(tmp_path):
+    with pytest.raises(ParameterError, match="aperture.mode = 'per-transmit' applies to matrix-probe scenes"):
+        _scene(tmp_path, TINY_SCENE, "pt1d", mode="per-transmit")
+
+
 def test_sector_separate_is_the_two_way_pattern_of_the_two_masks():
-    from arraysel.objective.sector_objective import SectorObjective
+    from arraysel.objective.sector_objective import SectorBeams
     tree = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
             "acquisition": {"fs_over_fc": 4.0},
             "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
@@ -143,7 +239,7 @@ def test_sector_separate_is_the_two_way_pattern_of_the_two_masks():
             "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0},
             "aperture": {"mode": "separate", "k_tx": 20, "k_rx": 12}}
     sp = build_objective(load_scene(copy.deepcopy(tree)), dtype=torch.float64)
-    assert isinstance(sp.inner, SectorObjective) and (sp.n_elements, sp.k, sp.element_grid) == (128, 32, (16, 8))
+    assert isinstance(sp.inner.beams, SectorBeams) and (sp.n_elements, sp.k, sp.element_grid) == (128, 32, (16, 8))
     tx, rx = _masks(64, 20, 2, 6), _masks(64, 12, 2, 7)
     got = sp.evaluate(np.concatenate([tx, rx], 1))
     t, r = torch.tensor(tx, dtype=torch.float64), torch.tensor(rx, dtype=torch.float64)
@@ -176,6 +272,21 @@ def test_the_quota_is_channel_groups_with_counts():
         aperture_constraints(8, 3, 9)
     with pytest.raises(ParameterError, match="group_counts other than one need mode = 'exactly-one'"):
         Constraints(16, 5, groups=np.repeat([0, 1], 8), group_counts=[3, 2], group_mode="at-most-one")
+
+
+def test_a_separate_neighbourhood_scores_the_selectors_units(tiny):
+    """The wrapper's own neighbourhood and loss model, not the inner objective's (of 8 elements),
+    reached through the attribute forwarding."""
+    sp = tiny["separate"]
+    mask = np.zeros(16, dtype=bool)
+    mask[[0, 2, 5, 7, 9, 10, 12, 15]] = True
+    out, into = np.array([[0], [9]]), np.array([[1], [11]])
+    got = sp.neighbourhood().evaluate(mask, out, into)["Mean"]
+    moved = np.stack([mask, mask])
+    moved[0, [0, 1]] = [False, True]
+    moved[1, [9, 11]] = [False, True]
+    np.testing.assert_array_equal(got, sp.evaluate(moved)["Mean"])
+    assert sp.loss_model().gradient(mask.astype(float)).shape == (16,)
 
 
 def test_ste_columns_draw_within_their_half():

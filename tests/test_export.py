@@ -152,8 +152,11 @@ def _pymust_image(pymust, param: dict, scatterer, coords):
     apodization weights the RF columns)."""
     X, Y, Z = (np.ascontiguousarray(coords[..., i])[..., None] for i in range(3))
     img = np.zeros(coords.shape[:2], dtype=np.complex128)
-    for tx in np.atleast_2d(param["TXdelays"]):
+    events = param.get("TXapodizations")                  # per-transmit apertures: one row an event
+    for i, tx in enumerate(np.atleast_2d(param["TXdelays"])):
         P = pymust.utils.Param(dict(param))
+        if events is not None:
+            P["TXapodization"] = np.atleast_2d(events)[i].reshape(1, -1)
         RF, _ = pymust.simus3(*(np.array([v]) for v in scatterer), np.array([1.0]), tx.reshape(1, -1), P)
         IQ = pymust.rf2iq(RF * np.asarray(P["RXapodization"]).reshape(1, -1), P)
         M = pymust.dasmtx3(1j * np.array(IQ.shape), X, Y, Z, tx.reshape(1, -1), P)
@@ -186,6 +189,40 @@ def test_exported_selection_simulated_by_pymust_matches_the_exact_3d_psf(tmp_pat
     ours = model.planes(torch.tensor(ap.weights[None]))["xy"][0].numpy()
     ref = _pymust_image(pymust, _load_param(path), scat, model.coords["xy"].numpy())
     assert ours.shape == (6, 6) and _si_mse(ours, ref) <= 1e-4
+
+
+def test_per_transmit_apertures_exported_and_simulated_by_pymust_match_the_exact_3d_psf(tmp_path):
+    from arraysel.physics.volume import MatrixPSF, MatrixPSFSetup, diverging_delays3, tilt_grid
+
+    pymust = _pymust()
+    p = _holey()
+    acq = Acquisition.for_probe(p)
+    d = diverging_delays3(p, *tilt_grid(2, 1, 10, 10), 5e-3, acq)   # 2 diverging waves, one aperture each
+    lam = acq.c / p.fc
+    scat = (0.5e-3, -0.3e-3, 15e-3)
+    setup = MatrixPSFSetup(p, acq, d, scat, half_x=1.5 * lam, half_y=1.5 * lam, half_z=lam, pixel=lam / 2,
+                           planes=("xy",))
+    rng = np.random.default_rng(2)
+    events = np.zeros((2, 36), dtype=bool)
+    events[0, rng.choice(36, 12, replace=False)] = events[1, rng.choice(36, 12, replace=False)] = True
+    rx = rng.choice(36, 16, replace=False)
+    ap = Aperture.of(p, transmit=events.any(0), receive=rx)
+    paths = export_selection(ap, tmp_path, ["mat", "csv"], acquisition=acq, delays=d, transmit_events=events)
+    rows = (tmp_path / "transmit_events.csv").read_text().splitlines()
+    assert rows[1] == "event,elements" and rows[2] == "0," + " ".join(str(e) for e in np.flatnonzero(events[0]))
+    param = _load_param(paths["mat"])
+    assert np.array_equal(np.atleast_2d(param["TXapodizations"]) > 0, events)
+    model = MatrixPSF(setup, dtype=torch.float64)
+    ours = model.planes(torch.tensor(events[None], dtype=torch.float64),
+                        receive=torch.tensor(ap.receive[None], dtype=torch.float64))["xy"][0].numpy()
+    ref = _pymust_image(pymust, param, scat, model.coords["xy"].numpy())
+    err = _si_mse(ours, ref)
+    assert err <= 1e-4
+    union = model.planes(torch.tensor(ap.transmit[None], dtype=torch.float64),
+                         receive=torch.tensor(ap.receive[None], dtype=torch.float64))["xy"][0].numpy()
+    assert _si_mse(union, ref) > max(1e-4, 10 * err)           # the events are not their union
+    with pytest.raises(ParameterError, match="transmit_events: their union must be the aperture's transmit"):
+        export_selection(ap, tmp_path / "bad", ["csv"], transmit_events=events[:1])
 
 
 def test_separate_apertures_in_the_parameter_set_give_pymusts_rf(tmp_path):

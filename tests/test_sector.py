@@ -14,7 +14,8 @@ import torch
 
 from arraysel.errors import ParameterError
 from arraysel.objective.build import build_objective
-from arraysel.objective.sector_objective import BEAM_COLUMNS, SectorObjective
+from arraysel.objective.psf_objective import Objective
+from arraysel.objective.sector_objective import BEAM_COLUMNS, SectorBeams, SectorObjective
 from arraysel.physics.volume.sector import SURFACE, beam_point, sector_grid
 from arraysel.report.beams import non_dominated
 from arraysel.scenes.schema import load_scene
@@ -56,7 +57,8 @@ def test_builtin_sector_scene_and_its_geometry():
     # the grid: 0 on a sample, the step samples_per_lobe times finer than lambda / D, past the edge
     assert 0.0 in st.u and np.diff(st.u) == pytest.approx(geo["step"])
     assert st.u[-1] >= geo["half_uv"][0] and st.u[-1] - geo["step"] < geo["half_uv"][0]
-    assert isinstance(build_objective(s), SectorObjective)
+    obj = build_objective(s)   # the one Objective, over the beam pattern, with its points' per-beam view
+    assert type(obj) is Objective and isinstance(obj.beams, SectorBeams) and obj.n_points == 6
 
 
 @pytest.mark.parametrize("over, key", [
@@ -150,6 +152,40 @@ def test_beam_pattern_search_terms_and_gradient(tiny):
     total, _ = tiny.mask_loss(w)
     total.sum().backward()
     assert torch.isfinite(w.grad).all() and w.grad.abs().sum() > 0
+
+
+def test_the_sector_scene_is_the_one_objective_over_its_imagers(tiny):
+    """The sector scene's search imager is its beam pattern (one plane in u-v), its points are the
+    per-beam view's imagers (one plane on each point's surface), and it has no neighbourhood (its
+    neighbours are scored as masks, as before); a scene without the view has no beam_metrics."""
+    from arraysel.objective.contract import objective_info
+    from arraysel.objective.sector_objective import SEARCH_COLUMNS, SectorPointImager
+    from arraysel.physics.imaging import PATTERN_PLANE, PatternImager
+
+    (im,) = tiny.imagers
+    assert isinstance(im, PatternImager) and im.frame == "uv" and not im.moves_from_selection
+    assert tiny.n_points == 2 and tiny.breakdown_names == SEARCH_COLUMNS and tiny.chunk == 64
+    assert tiny.neighbourhood() is None and objective_info(tiny).kind == "beams"
+    masks = np.zeros((2, tiny.n_elements), dtype=bool)
+    masks[0] = True
+    masks[1] = tiny.fresh_random_masks(1)[0]
+    w = torch.tensor(masks, dtype=torch.float64)
+    ps = im.image(w)
+    assert ps.names == (PATTERN_PLANE,) and ps.kernel.shape == (2,) + ps.coords[PATTERN_PLANE].shape[:2]
+    assert not ps.kernel.is_complex() and bool((ps.kernel >= 0).all())
+    torch.testing.assert_close(im.reference().kernel, ps.kernel[:1])       # the full array's pattern
+    got = tiny.evaluate(masks)
+    want = tiny._metrics(0, ps)
+    for name in got:
+        np.testing.assert_allclose(got[name], want[name].double().numpy(), rtol=1e-12, err_msg=name)
+    point = tiny.beams.imagers[1]
+    assert isinstance(point, SectorPointImager)
+    surf = point.image(w[:1], exact=True)
+    assert surf.names == (SURFACE,) and surf.kernel.is_complex()
+    assert tuple(surf.coords[SURFACE].shape) == tuple(surf.kernel.shape[1:]) + (3,)
+    torch.testing.assert_close(surf.kernel, tiny.point_images(w[:1], 1, exact=True))
+    other = build_objective(load_scene("matrix-1024"))
+    assert other.beams is None and not hasattr(other, "beam_metrics") and objective_info(other).kind == "planes"
 
 
 def test_non_dominated():

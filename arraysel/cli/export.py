@@ -113,6 +113,8 @@ def _elements(args, n: int):
 
 
 def run(args) -> int:
+    import numpy as np
+
     from arraysel.io.masks import parse_elements
     from arraysel.io.outputs import check_outputs, check_result_folder, folder_files, scene_input
     from arraysel.physics.probe_files import Aperture, load_probe
@@ -149,17 +151,23 @@ def run(args) -> int:
     n = probe.n_elements
     mode = "shared" if scene is None or text is None else scene.section("aperture").get("mode", "shared")
     where = f"{args.compare}/table1.csv, config {args.config}"
-    elements = parse_elements(text, n * (2 if mode == "separate" else 1), None, where=where) \
-        if text is not None else _elements(args, n)
+    n_events = len(delays) if mode == "per-transmit" else 1
+    blocks = {"separate": 2, "per-transmit": n_events + 1}.get(mode, 1)
+    elements = parse_elements(text, n * blocks, None, where=where) if text is not None else _elements(args, n)
     tx = None if args.transmit is None else parse_elements(args.transmit, n, None, where="--transmit")
     rx = None if args.receive is None else parse_elements(args.receive, n, None, where="--receive")
-    if mode != "shared":  # a comparison of separate or full-tx apertures (docs/apertures.md)
-        from arraysel.objective.aperture import split_apertures
+    events = None
+    if mode != "shared":  # a comparison of full-tx, separate or per-transmit apertures (docs/apertures.md)
+        from arraysel.objective.aperture import split_apertures, split_events
 
-        tx, rx = split_apertures(elements, n, mode)
+        tx, rx = split_apertures(elements, n, mode, n_events)
+        if mode == "per-transmit":
+            events = np.zeros((n_events, n), dtype=bool)
+            for i, ev in enumerate(split_events(elements, n, n_events)[0]):
+                events[i, ev] = True
         elements = None
     aperture = Aperture.of(probe, elements, transmit=tx, receive=rx, weights=_weights(args.weights))
-    paths = export_selection(aperture, args.out, formats, acquisition=acq, delays=delays)
+    paths = export_selection(aperture, args.out, formats, acquisition=acq, delays=delays, transmit_events=events)
     print(f"{probe.name}: {int(aperture.active.sum())} of {n} elements (transmit {int(aperture.transmit.sum())}, "
           f"receive {int(aperture.receive.sum())})")
     for path in paths.values():

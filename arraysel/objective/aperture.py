@@ -39,13 +39,24 @@ __all__ = ["APERTURE_MODES", "ApertureObjective", "ApertureObjectiveFactory", "s
 _log = logging.getLogger(__name__)
 
 #: the values of the scene key ``aperture.mode``
-APERTURE_MODES = ("shared", "full-tx", "separate")
+APERTURE_MODES = ("shared", "full-tx", "separate", "per-transmit")
 
 
-def split_apertures(elements, n_probe: int, mode: str) -> tuple[list[int], list[int]]:
+def split_events(elements, n_probe: int, n_events: int) -> tuple[list[list[int]], list[int]]:
+    """The transmit elements of each transmit event and the receive elements of a
+    ``per-transmit`` selection ``elements`` (units: block ``n`` of ``n_probe`` units is event
+    ``n``'s transmit aperture, the last block the receive aperture)."""
+    n, sel = int(n_probe), sorted(int(e) for e in elements)
+    events = [[e - b * n for e in sel if b * n <= e < (b + 1) * n] for b in range(int(n_events))]
+    return events, [e - int(n_events) * n for e in sel if e >= int(n_events) * n]
+
+
+def split_apertures(elements, n_probe: int, mode: str, n_events: int = 1) -> tuple[list[int], list[int]]:
     """The transmit and receive elements of a selection ``elements`` (indices of the selector's
     problem) under ``mode``: ``shared`` both the selection, ``full-tx`` every element and the
-    selection, ``separate`` the units below ``n_probe`` and those above less ``n_probe``."""
+    selection, ``separate`` the units below ``n_probe`` and those above less ``n_probe``,
+    ``per-transmit`` the elements that transmit in any of the ``n_events`` events
+    (:func:`split_events` gives each event's) and the receive block's."""
     sel = sorted(int(e) for e in elements)
     if mode == "shared":
         return sel, sel
@@ -53,6 +64,9 @@ def split_apertures(elements, n_probe: int, mode: str) -> tuple[list[int], list[
         return list(range(int(n_probe))), sel
     if mode == "separate":
         return [e for e in sel if e < n_probe], [e - n_probe for e in sel if e >= n_probe]
+    if mode == "per-transmit":
+        events, rx = split_events(sel, n_probe, n_events)
+        return sorted(set().union(*events)), rx
     raise ParameterError(f"aperture.mode = {mode!r}; allowed: {', '.join(APERTURE_MODES)}")
 
 
@@ -63,31 +77,38 @@ class ApertureObjective:
     ----------
     inner : the scene's objective (its ``evaluate``, ``mask_loss`` and ``psf_terms`` take
         ``receive=`` weights)
-    mode : ``"full-tx"`` or ``"separate"``
-    k_tx, k_rx : the transmit and receive counts of ``separate`` (each in ``[1, Ne]``)
+    mode : ``"full-tx"``, ``"separate"`` or ``"per-transmit"`` (a matrix-probe scene scored on
+        planes: one transmit aperture per transmit event and one receive aperture)
+    k_tx, k_rx : the transmit (of each event) and receive counts (each in ``[1, Ne]``)
 
     Attributes it does not define are ``inner``'s (the scene, the settings, the counters).
     """
 
     def __init__(self, inner, mode: str, k_tx: int | None = None, k_rx: int | None = None):
-        if mode not in ("full-tx", "separate"):
-            raise ParameterError(f"aperture.mode = {mode!r}; ApertureObjective takes 'full-tx' or 'separate' "
-                                 f"(allowed in a scene: {', '.join(APERTURE_MODES)})")
+        if mode not in APERTURE_MODES[1:]:
+            raise ParameterError(f"aperture.mode = {mode!r}; ApertureObjective takes 'full-tx', 'separate' or "
+                                 f"'per-transmit' (allowed in a scene: {', '.join(APERTURE_MODES)})")
         self._inner = inner
         self.aperture_mode = mode
         self.n_probe = n = int(inner.n_elements)
+        #: transmit events with an aperture of their own (``per-transmit``; else 1)
+        self.n_events = 1
+        if mode == "per-transmit":
+            if getattr(inner, "image_kind", None) != "planes" or hasattr(inner, "beam_metrics"):
+                raise ParameterError("aperture.mode = 'per-transmit' applies to matrix-probe scenes imaged on planes "
+                                     "(such as matrix-1024); allowed on this scene: shared, full-tx, separate")
+            self.n_events = int(inner.imagers[0].setup.delays.shape[0])
         if mode == "full-tx":
             self.n_elements, self.k = n, int(inner.k)
             self.constraints = getattr(inner, "constraints", None)
             self.k_tx, self.k_rx = n, int(inner.k)
         else:
-            if getattr(inner, "constraints", None) is not None:
-                raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not "
-                                     "supported; give one of them")
             self.k_tx = int(inner.k if k_tx is None else k_tx)
             self.k_rx = int(inner.k if k_rx is None else k_rx)
-            self.constraints = aperture_constraints(n, self.k_tx, self.k_rx)
-            self.n_elements, self.k = 2 * n, self.k_tx + self.k_rx
+            #: the quota and the scene's constraints, met by each aperture
+            self.constraints = aperture_constraints(n, self.k_tx, self.k_rx, getattr(inner, "constraints", None),
+                                                    n_events=self.n_events)
+            self.n_elements, self.k = (self.n_events + 1) * n, self.n_events * self.k_tx + self.k_rx
         if hasattr(inner, "beam_metrics"):  # a sector scene: its exact per-beam scoring, both apertures
             self.beam_metrics = self._beam_metrics
         psfs = getattr(inner, "psfs", None)
@@ -112,7 +133,7 @@ class ApertureObjective:
         grid = getattr(self._inner, "element_grid", None)
         if grid is None or self.aperture_mode == "full-tx":
             return grid
-        return (2 * int(grid[0]), int(grid[1]))
+        return ((self.n_events + 1) * int(grid[0]), int(grid[1]))
 
     @property
     def element_positions(self):
@@ -124,9 +145,10 @@ class ApertureObjective:
         span = float(np.ptp(pos[:, axis]))
         steps = np.diff(np.unique(np.round(pos[:, axis], 12)))
         gap = float(steps.min()) if steps.size else 1e-3
-        rx = pos.copy()
-        rx[:, axis] += span + gap
-        return np.concatenate([pos, rx])
+        blocks = [pos.copy() for _ in range(self.n_events + 1)]
+        for b, block in enumerate(blocks):
+            block[:, axis] += b * (span + gap)
+        return np.concatenate(blocks)
 
     # -- masks -> transmit and receive weights ---------------------------------------------------
     def _tensor(self, masks) -> torch.Tensor:
@@ -138,18 +160,21 @@ class ApertureObjective:
         return m
 
     def apertures(self, masks) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(transmit, receive)`` weights ``(B, Ne)`` each of masks ``(B, n_elements)``; a
-        separate selection without transmit or without receive elements is refused."""
+        """``(transmit, receive)`` weights ``(B, Ne)`` each of masks ``(B, n_elements)``
+        (``per-transmit``: transmit ``(B, n_events, Ne)``, one aperture per event); a selection
+        without transmit (of an event) or without receive elements is refused."""
         m = self._tensor(masks)
-        n = self.n_probe
+        n, e = self.n_probe, self.n_events
         if self.aperture_mode == "full-tx":
             return torch.ones_like(m), m
-        tx, rx = m[:, :n], m[:, n:]
-        for name, w in (("transmit", tx), ("receive", rx)):
+        tx, rx = m[:, :e * n], m[:, e * n:]
+        for name, w in (("transmit", tx.reshape(-1, n)), ("receive", rx)):
             empty = torch.nonzero(w.detach().sum(1) == 0).flatten().tolist()
             if empty:
-                raise SelectionError(f"empty {name} aperture (no {name} element) at batch position(s) {empty}")
-        return tx, rx
+                where = f"batch position(s) {empty}" if e == 1 or name == "receive" else \
+                    f"(batch position, transmit event) {[divmod(i, e) for i in empty]}"
+                raise SelectionError(f"empty {name} aperture (no {name} element) at {where}")
+        return (tx if e == 1 else tx.reshape(-1, e, n)), rx
 
     # -- the objective contract ---------------------------------------------------------------
     def evaluate(self, masks, **kwargs) -> dict:
@@ -169,6 +194,20 @@ class ApertureObjective:
 
     def evaluate_swaps(self, mask, out, into) -> dict:
         return self.evaluate_moves(mask, np.asarray(out)[:, None], np.asarray(into)[:, None])
+
+    def neighbourhood(self):
+        """Neighbours scored as their masks (:meth:`evaluate_moves`): the inner objective's own
+        neighbourhood is of one shared aperture and must not be reached through the forwarding."""
+        from arraysel.objective.contract import MovesNeighbourhood
+
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
+
+    def loss_model(self):
+        """The :class:`~arraysel.objective.contract.LossModel` of this objective's
+        :meth:`mask_loss` (the selector's units), not of the inner objective's."""
+        from arraysel.objective.contract import AutogradLossModel
+
+        return AutogradLossModel(self.mask_loss, self._inner.dtype, self._inner.device, hessian=self.mask_hessian)
 
     def prepare_neighbourhoods(self) -> bool:
         """Nothing to form: a neighbour is scored as its masks (the inner objective's shared
@@ -205,7 +244,7 @@ class ApertureObjective:
         return self._inner.beam_metrics(tx, points, receive=rx)
 
     def fresh_random_masks(self, n: int | None = None, seed: int = 0) -> np.ndarray:
-        """A sector scene's fresh random selections of the selector's problem (``separate``:
+        """Fresh random selections of the selector's problem (``separate``, ``per-transmit``:
         uniformly random feasible ones; ``full-tx``: the scene's)."""
         if self.aperture_mode == "full-tx":
             return self._inner.fresh_random_masks(n, seed)
@@ -214,7 +253,7 @@ class ApertureObjective:
 
     def split(self, elements) -> tuple[list[int], list[int]]:
         """The transmit and receive elements of a selection (:func:`split_apertures`)."""
-        return split_apertures(elements, self.n_probe, self.aperture_mode)
+        return split_apertures(elements, self.n_probe, self.aperture_mode, self.n_events)
 
     def worker_factory(self):
         f = self._inner.worker_factory()

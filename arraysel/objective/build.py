@@ -30,8 +30,8 @@ def objective_for(scene: str, device: str = "cpu", dtype_name: str = "float32", 
 
 def build_objective(scene="paper", device="cpu", dtype=None, **kw):
     """Build (or reuse, within a process) the objective of a scene: the
-    :class:`~arraysel.objective.psf_objective.Objective` over its imagers (1-D and 3-D scenes), a
-    sector scene's :class:`~arraysel.objective.sector_objective.SectorObjective` (keywords: theirs)."""
+    :class:`~arraysel.objective.psf_objective.Objective` over its imagers (1-D, 3-D and sector
+    scenes; keywords: its own)."""
     import torch
 
     from arraysel.objective import psf_objective
@@ -42,12 +42,7 @@ def build_objective(scene="paper", device="cpu", dtype=None, **kw):
     except (RuntimeError, TypeError):
         raise ParameterError(f"device must be 'cpu' or 'cuda' (or a torch device), got {device!r}") from None
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
-    cls = None
-    if sc.is_sector:
-        from arraysel.objective.sector_objective import SectorObjective
-        cls = SectorObjective
-    obj = psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype,
-                                        objective_class=cls, **kw)
+    obj = psf_objective.build_objective(sc, device=device, dtype=torch.float32 if dtype is None else dtype, **kw)
     mode = sc.section("aperture").get("mode", "shared")
     if mode == "shared":
         return obj

@@ -298,9 +298,11 @@ class ObjectiveInfo:
     metric_kw: dict | None = None
     #: the element pitch in metres (``setup.pitch``; None: not said)
     pitch: float | None = None
-    #: separate transmit and receive apertures (``aperture_mode``: ``full-tx``, ``separate``;
+    #: separate transmit and receive apertures (``aperture_mode``: ``full-tx``, ``separate``, ``per-transmit``;
     #: None: one shared aperture, :mod:`arraysel.objective.aperture`)
     aperture_mode: str | None = None
+    #: transmit events with an aperture of their own (``aperture_mode`` ``per-transmit``), else 1
+    aperture_events: int = 1
     #: the scene's objective under a wrapper of one (an aperture objective's ``inner``), else the
     #: objective itself
     scene_objective: Any = None
@@ -323,6 +325,7 @@ def objective_info(objective) -> ObjectiveInfo:
                          metric_kw=None if kw is None else dict(kw),
                          pitch=getattr(getattr(objective, "setup", None), "pitch", None),
                          aperture_mode=getattr(objective, "aperture_mode", None),
+                         aperture_events=int(getattr(objective, "n_events", 1) or 1),
                          scene_objective=getattr(objective, "inner", objective))
 
 

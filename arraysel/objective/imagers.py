@@ -1,15 +1,19 @@
-"""A scene's imagers (:mod:`arraysel.physics.imaging`): the one place that tells a 1-D scene from a 3-D one.
+"""A scene's imagers (:mod:`arraysel.physics.imaging`): the one place that tells a 1-D scene from a
+3-D one and from a sector scene.
 
 :func:`scene_imagers` gives a 1-D scene one :class:`~arraysel.physics.imaging.KernelImager` per
-field point (each on its :class:`~arraysel.physics.psf.PSFModel`) and a 3-D scene (a ``[volume]``
+field point (each on its :class:`~arraysel.physics.psf.PSFModel`), a 3-D scene (a ``[volume]``
 section) one :class:`~arraysel.physics.imaging.VolumeImager` on the planes model of
-:func:`matrix_model`: the fast 3-D path, loaded from the cache (``arraysel cache``) or built and
-checked against the exact path, else the exact path. The
+:func:`matrix_model` (the fast 3-D path, loaded from the cache (``arraysel cache``) or built and
+checked against the exact path, else the exact path) and a sector scene (a ``[sector]`` section)
+one :class:`~arraysel.physics.imaging.PatternImager`, its two-way beam pattern over the sector. The
 :class:`~arraysel.objective.psf_objective.Objective` scores whatever plane sets they give.
 
-What differs between the two kinds besides their planes is here too: the time and memory notice of
-the exact path (:func:`exact_notice`, :func:`estimate_seconds`) and the neighbourhood that scores
-all swaps of a selection of a 3-D scene from its own planes (:func:`neighbourhood_for`).
+What differs between the kinds besides their planes is here too: the time and memory notice of
+the exact path (:func:`exact_notice`, :func:`estimate_seconds`), the neighbourhood that scores
+all swaps of a selection of a 3-D scene from its own planes (:func:`neighbourhood_for`) and the
+per-beam view of a sector scene's points (:func:`scene_beams`: one imager per point, on its
+surface, :class:`~arraysel.objective.sector_beams.SectorBeams`).
 """
 from __future__ import annotations
 
@@ -19,10 +23,12 @@ import logging
 import numpy as np
 import torch
 
-from arraysel.physics.imaging import Imager, KernelImager, VolumeImager
+from arraysel.objective.tensors import check_masks
+from arraysel.physics.imaging import Imager, KernelImager, PatternImager, VolumeImager
 
-__all__ = ["scene_imagers", "scene_points", "matrix_model", "exact_notice", "estimate_seconds",
-           "neighbourhood_for", "default_chunk", "check_masks", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D"]
+__all__ = ["scene_imagers", "scene_points", "scene_beams", "matrix_model", "exact_notice", "estimate_seconds",
+           "neighbourhood_for", "default_chunk", "check_masks", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D",
+           "DEFAULT_CHUNK_PATTERN"]
 
 _log = logging.getLogger(__name__)
 
@@ -41,11 +47,24 @@ DEFAULT_CHUNK = 256
 #: masks per batch on a 3-D scene: the fast path's matrix product is most efficient from about
 #: 128 masks (``benchmarks/bench_matrix_fast.py``)
 DEFAULT_CHUNK_3D = 128
+#: masks per batch on a sector scene (its beam pattern; its points' per-beam images on their fast path)
+DEFAULT_CHUNK_PATTERN = 64
+#: estimated seconds a mask of a sector scene's beam pattern
+_PATTERN_SECONDS = 0.005
 
 
 def scene_imagers(scene, settings, dtype=torch.float32, device="cpu", fast: bool = True) -> list[Imager]:
     """The imagers of ``scene`` (module docstring), read with its ``settings``
-    (``Scene.objective_settings()``); ``fast`` False: the exact paths only."""
+    (``Scene.objective_settings()``); ``fast`` False: the exact paths only (a sector scene: its
+    points' per-beam images, :func:`scene_beams`)."""
+    if scene.is_sector:
+        from arraysel.physics.beampattern import BeamPattern
+
+        setup = scene.sector_setup()
+        pattern = BeamPattern.from_probe(setup.probe, scene.acquisition(),
+                                         sector_deg=scene.sector_geometry()["half_angles"],
+                                         n_freq=int(scene.value("sector", "n_freq")), dtype=dtype, device=device)
+        return [PatternImager(pattern, setup)]
     if scene.is_volume:
         model, why = matrix_model(scene.matrix_setup(), settings.k, dtype, device, bool(fast) and settings.fast)
         return [VolumeImager(model, why)]
@@ -63,13 +82,29 @@ def scene_imagers(scene, settings, dtype=torch.float32, device="cpu", fast: bool
 
 
 def scene_points(scene) -> list:
-    """The field points of ``scene``, one per imager: ``(x, z)`` in metres (1-D), the scatterer's
-    ``(x, y, z)`` (3-D)."""
+    """The field points of ``scene``: ``(x, z)`` in metres (1-D, one per imager), the scatterer's
+    ``(x, y, z)`` (3-D), a sector scene's points ``(x, y, z)`` (one per beam, :func:`scene_beams`)."""
+    if scene.is_sector:
+        return list(scene.sector_setup().points)
     return [scene.matrix_setup().scatterer] if scene.is_volume else scene.points()
+
+
+def scene_beams(objective):
+    """The per-beam view of a sector scene's objective
+    (:class:`~arraysel.objective.sector_beams.SectorBeams`: its points' images on their surfaces,
+    one imager per point, and their per-beam metrics), None for any other scene (a 1-D scene's is
+    :class:`~arraysel.objective.beams1d.PSFBeams`, made on demand)."""
+    if not objective.scene.is_sector:
+        return None
+    from arraysel.objective.sector_beams import SectorBeams
+
+    return SectorBeams(objective)
 
 
 def default_chunk(imagers: list[Imager]) -> int:
     """Masks per batch of ``Objective.evaluate`` when none is given."""
+    if any(isinstance(im, PatternImager) for im in imagers):
+        return DEFAULT_CHUNK_PATTERN
     return DEFAULT_CHUNK_3D if any(isinstance(im, VolumeImager) for im in imagers) else DEFAULT_CHUNK
 
 
@@ -86,10 +121,13 @@ def _fmt_seconds(sec: float) -> str:
 def estimate_seconds(imagers: list[Imager], n_masks: int, chunk: int) -> float:
     """Estimated wall time (s) of imaging ``n_masks`` masks on every imager: a 1-D point on its exact
     path by :meth:`~arraysel.physics.psf.PSFModel.exact_seconds_per_mask` (its fast path counts as
-    free, milliseconds a mask), a 3-D scene about 10 ms a mask on its fast path, 1 s on its exact path."""
+    free, milliseconds a mask), a 3-D scene about 10 ms a mask on its fast path, 1 s on its exact path, a sector scene's beam
+    pattern 5 ms."""
     total = 0.0
     for im in imagers:
-        if isinstance(im, VolumeImager):
+        if isinstance(im, PatternImager):
+            total += n_masks * _PATTERN_SECONDS
+        elif isinstance(im, VolumeImager):
             total += n_masks * (1.0 if im.exact else 0.01)
         elif im.exact:
             p = im.model
@@ -102,6 +140,8 @@ def estimate_seconds(imagers: list[Imager], n_masks: int, chunk: int) -> float:
 def exact_notice(name: str, imagers: list[Imager], chunk: int, n_masks: int | None = None) -> str:
     """One line saying that (and why) the scene ``name`` runs on an exact path, with its time (and for
     a 1-D scene its memory); or that every imager has its fast path."""
+    if any(isinstance(im, PatternImager) for im in imagers):
+        return f"scene {name!r}: search on the sector's two-way beam pattern"
     if any(isinstance(im, VolumeImager) for im in imagers):
         im = imagers[0]
         if not im.exact:
@@ -140,17 +180,6 @@ def _setup_key(setup) -> tuple:
     fields = (setup.probe, setup.acq, setup.scatterer, setup.half_x, setup.half_y, setup.half_z, setup.pixel,
               setup.planes, setup.reflectivity, setup.iq_bandwidth, setup.options)
     return (repr(fields), d.shape, hashlib.sha256(d.tobytes()).hexdigest())
-
-
-def check_masks(n: int, k: int) -> torch.Tensor:
-    """The full array and two random selections of ``k`` elements (seed 0), where the check must hold."""
-    g = torch.Generator().manual_seed(0)
-    checks = [torch.ones(n, dtype=torch.float64)]
-    for _ in range(2):
-        m = torch.zeros(n, dtype=torch.float64)
-        m[torch.randperm(n, generator=g)[:k]] = 1
-        checks.append(m)
-    return torch.stack(checks)
 
 
 def matrix_model(setup, k: int, dtype=torch.float32, device="cpu", fast: bool = True):

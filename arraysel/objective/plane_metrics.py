@@ -7,8 +7,15 @@ compiled batch pass included); any other set of planes by
 with the figures of merit of 2-D arrays (``PSL_dB`` and, on a set holding the C-plane, the -6 dB
 widths) besides the Table-1 terms. The two are the same definitions (``docs/metrics.md``); a
 kernel's pixel grid is what lets the first use offset tables instead of positions.
+
+:func:`plane_scorer` gives the scoring of one imager's plane sets against its own reference: the
+above, or for a plane set in the u-v frame (a sector scene's beam pattern,
+:class:`~arraysel.physics.imaging.PatternImager`) the search terms of
+:meth:`~arraysel.objective.beam_objective.BeamPatternScorer.search_terms`.
 """
 from __future__ import annotations
+
+from typing import Callable
 
 from torch import Tensor
 
@@ -16,7 +23,7 @@ from arraysel.objective.metrics import METRIC_NAMES, psf_metrics
 from arraysel.objective.metrics3d import C_PLANE, MERIT_NAMES, psf3d_metrics
 from arraysel.physics.imaging import PlaneSet
 
-__all__ = ["plane_metrics", "plane_metric_names"]
+__all__ = ["plane_metrics", "plane_metric_names", "plane_scorer"]
 
 
 def plane_metric_names(plane_names, pitch) -> tuple[str, ...]:
@@ -38,3 +45,26 @@ def plane_metrics(planes: PlaneSet, reference: PlaneSet, *, wavelength: float, r
         return psf_metrics(kappa, kappa_ref=reference.kernel[0].to(kappa.dtype), pitch=planes.pitch, **radii)
     ref = {k: v.to(planes.images[k].dtype) for k, v in reference.images.items()}
     return psf3d_metrics(planes.images, planes.coords, planes_ref=ref, **radii)
+
+
+def plane_scorer(imager, *, wavelength: float, r_main: float = 1.5, r_guard: float = 2.5,
+                 quantile: float = 0.99) -> tuple[tuple[str, ...], Callable]:
+    """``(names, score)`` of an :class:`~arraysel.physics.imaging.Imager`: ``score(planes, terms=None)``
+    gives the metrics ``{name: (B,)}`` of its plane sets against its full-array plane set
+    (:meth:`~arraysel.physics.imaging.Imager.reference`), differentiable in the planes; ``names``
+    what it gives without ``terms`` (module docstring; radii as :func:`plane_metrics`)."""
+    if imager.frame == "uv":
+        from arraysel.objective.beam_objective import SEARCH_NAMES, BeamPatternScorer
+
+        scorer = BeamPatternScorer(imager.model)
+
+        def pattern_terms(planes: PlaneSet, terms=None) -> dict[str, Tensor]:
+            return scorer.search_terms(planes.kernel, imager.reference().kernel[0], terms)
+
+        return SEARCH_NAMES, pattern_terms
+    radii = dict(wavelength=wavelength, r_main=r_main, r_guard=r_guard, quantile=quantile)
+
+    def metrics(planes: PlaneSet, terms=None) -> dict[str, Tensor]:
+        return plane_metrics(planes, imager.reference(), terms=terms, **radii)
+
+    return plane_metric_names(imager.plane_names, imager.pitch), metrics

@@ -1,23 +1,21 @@
 """The objective every selection strategy is judged by: one objective over a scene's imagers.
 
-:class:`Objective` scores the plane sets of a scene's imagers (:mod:`arraysel.physics.imaging`;
+:class:`Objective` is assembled from a scene's settings and imagers (:mod:`arraysel.physics.imaging`;
 :func:`~arraysel.objective.imagers.scene_imagers`: one kernel per field point of a 1-D probe, the
-three planes of a matrix probe's 3-D PSF) against the imagers' full-array plane sets
-(:func:`~arraysel.objective.plane_metrics.plane_metrics`):
+three planes of a matrix probe's 3-D PSF, a sector scene's beam pattern) and scores their plane sets
+against their full-array plane sets (:func:`~arraysel.objective.plane_metrics.plane_scorer`):
 
-* :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks,
-  returning every Table-1 metric (chunked, so memory stays bounded), and the figures of merit of
-  2-D arrays (``PSL_dB``, ``width_x_6dB``, ``width_y_6dB``) on a 3-D scene;
-* :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft
-  element weights (the same weights are the TX apodization and the RX
-  channel weights);
-* :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection
-  matrix (PSF terms + entropy + row terms, :mod:`arraysel.objective.losses`;
-  a scene that weights the end-to-end terms is trained by ``arraysel train``).
+* :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks, returning every Table-1
+  metric (chunked, so memory stays bounded), and the figures of merit of 2-D arrays (``PSL_dB``,
+  ``width_x_6dB``, ``width_y_6dB``) on a 3-D scene, the pattern's lobe metrics on a sector scene;
+* :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft element weights (the
+  same weights are the TX apodization and the RX channel weights);
+* :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection matrix (PSF terms +
+  entropy + row terms, :mod:`arraysel.objective.losses`; a scene that weights the end-to-end terms
+  is trained by ``arraysel train``).
 
-It counts evaluated masks, gradient steps and the wall time spent inside it,
-so a comparison can report every strategy's budget and overhead.
-Only the terms with a non-zero weight are computed.
+It counts evaluated masks, gradient steps and the wall time spent inside it, so a comparison can
+report every strategy's budget and overhead. Only the terms with a non-zero weight are computed.
 
 A scene with several field points (``medium.points``) has one imager per point
 (``Objective.imagers``; ``Objective.psfs`` their :class:`~arraysel.physics.psf.PSFModel`);
@@ -47,85 +45,22 @@ from arraysel.objective import metrics as M
 from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.pair_model import pair_model
-from arraysel.objective.plane_metrics import plane_metric_names, plane_metrics
+from arraysel.objective.plane_metrics import plane_scorer
+from arraysel.objective.sector_beams import per_beam_attribute
+from arraysel.objective.point_columns import AGGREGATES, aggregated, images_out, point_metric_names  # noqa: F401
 from arraysel.errors import NumericalError, ParameterError, SelectionError
-from arraysel.objective.tensors import objective_device
+from arraysel.objective.tensors import checked_masks, objective_device  # noqa: F401  (checked_masks: its former home)
 from arraysel.physics.imaging import PlaneSet
 from arraysel.selection import masks_from_indices
+from arraysel.scenes.scene import ObjectiveSettings
 from arraysel.scenes.schema import Scene, load_scene
 
 _log = logging.getLogger(__name__)
 
 METRIC_NAMES = M.METRIC_NAMES
-#: aggregates over the field points of a several-point scene
-AGGREGATES = ("mean", "worst")
 #: most masks per batch of :meth:`Objective.evaluate` on a 1-D scene (:data:`arraysel.objective.imagers.DEFAULT_CHUNK`)
 DEFAULT_CHUNK = I.DEFAULT_CHUNK
 _fmt_seconds = I._fmt_seconds
-
-
-def point_metric_names(n_points: int) -> tuple[str, ...]:
-    """Breakdown keys of a scene with ``n_points`` field points (none for one point).
-
-    ``"<metric>@p<i>"`` for point i (in ``medium.points`` order), then
-    ``"<metric>@mean"`` and ``"<metric>@worst"`` (the largest value over the
-    points; every metric is lower-is-better).
-    """
-    if n_points <= 1:
-        return ()
-    names = [f"{m}@p{i}" for i in range(n_points) for m in METRIC_NAMES]
-    names += [f"{m}@{a}" for a in AGGREGATES for m in METRIC_NAMES]
-    return tuple(names)
-
-
-def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
-    """``masks`` (B, Ne) or (Ne,) (numpy or torch) as a (B, Ne) tensor on ``device`` in ``dtype``;
-    SelectionError for a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
-    m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
-    if m.dim() == 1:
-        m = m[None]
-    if m.dim() != 2 or m.shape[1] != n_elements:
-        raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
-    m = m.to(device, dtype)
-    if not bool(torch.isfinite(m).all()):
-        raise SelectionError("masks contain NaN or Inf")
-    if bool((m < 0).any()):
-        raise SelectionError("mask weights must be >= 0")
-    if bool((m.sum(1) == 0).any()):
-        bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
-        raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
-    return m
-
-
-def aggregated(per_point: list[dict], aggregate: str) -> dict[str, np.ndarray]:
-    """The columns of a several-point scene from each point's metrics ``{name: (B,)}``: the headline
-    metrics (the points' mean, or their worst for ``aggregate = "worst"``), then every metric per
-    point, their mean and their worst (:func:`point_metric_names`)."""
-    res = {}
-    for name in METRIC_NAMES:
-        st = torch.stack([d[name] for d in per_point], -1)
-        mean, worst = st.mean(-1), st.amax(-1)
-        res[name] = (mean if aggregate == "mean" else worst).numpy()
-        for p, d in enumerate(per_point):
-            res[f"{name}@p{p}"] = d[name].numpy()
-        res[f"{name}@mean"] = mean.numpy()
-        res[f"{name}@worst"] = worst.numpy()
-    return res
-
-
-def images_out(res: dict, kernels: bool, planes: bool, imagers) -> dict:
-    """``res`` with the plane sets :meth:`Objective._score` kept as ``"kernels"`` ((B, w, w), or
-    (B, P, w, w) for P points) and/or ``"planes"`` (``{name: (B, H, W)}``, or ``{"p<i>": ...}``), numpy."""
-    sets = res.pop("_planes", None)
-    one = len(imagers) == 1
-    if kernels:
-        w = imagers[0].setup.window
-        ks = [s.kernel.numpy() if s is not None else np.zeros((0, w, w), np.complex64) for s in sets]
-        res["kernels"] = ks[0] if one else np.stack(ks, 1)
-    if planes:
-        per = [{k: v.numpy() for k, v in s.images.items()} if s is not None else {} for s in sets]
-        res["planes"] = per[0] if one else {f"p{i}": d for i, d in enumerate(per)}
-    return res
 
 
 class _Timer:
@@ -146,9 +81,11 @@ class Objective:
 
     Parameters
     ----------
-    scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one.
-    device : "cpu" or "cuda" (or a torch.device).
-    dtype : torch.float32 (default) or torch.float64.
+    scene : a :class:`~arraysel.scenes.schema.Scene` or the name/path of one; or its
+        :class:`~arraysel.scenes.scene.ObjectiveSettings` together with ``imagers`` (no scene:
+        :meth:`assemble`).
+    device : "cpu" (default) or "cuda" (or a torch.device); with ``imagers``, theirs by default.
+    dtype : torch.float32 (default) or torch.float64; with ``imagers``, theirs by default.
     chunk : masks per batch inside :meth:`evaluate` (default :data:`DEFAULT_CHUNK`, 128 on a 3-D scene).
     fast : False: the exact paths only.
     imagers : the imagers to score (default :func:`~arraysel.objective.imagers.scene_imagers` of the
@@ -157,19 +94,31 @@ class Objective:
 
     metric_names = METRIC_NAMES
     #: "kernels" when each field point's image is one 2-D kernel (:meth:`kernels`), "planes" when the
-    #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`)
+    #: scene's image is a set of planes (:meth:`planes`, :attr:`coords`): what the imagers say, for
+    #: readers of the objective (its own methods ask the imagers)
     image_kind: str | None = None
 
-    def __init__(self, scene: Scene | str = "paper", device="cpu", dtype=torch.float32, chunk: int | None = None,
-                 fast: bool = True, imagers=None):
-        self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
-        self.device = objective_device(device)
-        self.dtype = dtype
+    def __init__(self, scene: Scene | ObjectiveSettings | str = "paper", device=None, dtype=None,
+                 chunk: int | None = None, fast: bool = True, imagers=None):
+        if isinstance(scene, ObjectiveSettings):
+            if not imagers:
+                raise ParameterError("Objective(settings, imagers=...): an objective assembled from its settings "
+                                     "needs its imagers (arraysel.objective.imagers.scene_imagers gives a scene's)")
+            self.scene, st = None, scene
+        else:
+            self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
+            st = self.scene.objective_settings()
+        if imagers is not None:
+            imagers = list(imagers)
+            device = imagers[0].device if device is None else device
+            dtype = imagers[0].dtype if dtype is None else dtype
+        self.device = objective_device("cpu" if device is None else device)
+        self.dtype = torch.float32 if dtype is None else dtype
         self.fast_requested = bool(fast)
         #: the scene's settings, read once: the objective does not go back to the scene
-        self.settings = st = self.scene.objective_settings()
+        self.settings = st
         if imagers is None:
-            imagers = I.scene_imagers(self.scene, st, dtype=dtype, device=self.device, fast=fast)
+            imagers = I.scene_imagers(self.scene, st, dtype=self.dtype, device=self.device, fast=fast)
         #: the imagers (one per field point), :mod:`arraysel.physics.imaging`
         self.imagers = list(imagers)
         self.chunk = int(I.default_chunk(self.imagers) if chunk is None else chunk)
@@ -179,20 +128,25 @@ class Objective:
         #: on a full grid (else None) and the element centres (Ne, 3) as (x, y, z) in metres
         self.element_grid, self.element_positions = self.imagers[0].layout()
         #: the scene's constraints (:mod:`arraysel.constraints`), None without a [constraints] section
-        self.constraints = self.scene.constraints()
-        #: the field points, one per imager
-        self.points = I.scene_points(self.scene)
-        self.n_points = len(self.imagers)
+        #: (or without a scene)
+        self.constraints = None if self.scene is None else self.scene.constraints()
+        #: the field points (one per imager; a sector scene's, one per beam of its per-beam view;
+        #: without a scene, the imagers' own)
+        self.points = I.scene_points(self.scene) if self.scene is not None else [im.point for im in self.imagers]
+        self.n_points = len(self.points)
         self.aggregate = st.aggregate
         first = self.imagers[0]
         self.image_kind = "kernels" if all(im.pitch is not None for im in self.imagers) else "planes"
         self.metric_kw = dict(wavelength=st.wavelength, **st.metric_radii)
-        if self.image_kind == "kernels":
+        if first.pitch is not None:
             self.metric_kw = dict(pitch=first.pitch[0], **self.metric_kw)
-        self._columns = plane_metric_names(first.plane_names, first.pitch)
-        #: extra result keys: every metric per point, their mean and worst (several points), or the
-        #: figures of merit of a set of planes
-        self.breakdown_names = (point_metric_names(self.n_points) if self.n_points > 1
+        # each imager's scoring of its plane sets against its reference, and the names it gives
+        scorers = [plane_scorer(im, wavelength=st.wavelength, **st.metric_radii) for im in self.imagers]
+        self._columns = scorers[0][0]
+        self._scorers = [fn for _names, fn in scorers]
+        #: extra result keys: every metric per point, their mean and worst (several imagers), or the
+        #: figures of merit of a set of planes (the pattern's lobe metrics of a sector scene)
+        self.breakdown_names = (point_metric_names(len(self.imagers)) if len(self.imagers) > 1
                                 else tuple(n for n in self._columns if n not in METRIC_NAMES))
         self.weights = dict(st.weights)
         self._announced = False
@@ -202,20 +156,44 @@ class Objective:
         self.reset_counters()
         #: :meth:`mask_hessian` from the pair basis (:mod:`arraysel.objective.pair_model`) where it
         #: applies (False: always the autograd of ``mask_loss``)
-        self.hessian_from_pairs = self.image_kind == "kernels"
+        self.hessian_from_pairs = all(im.psf_model is not None for im in self.imagers)
         # what the imagers hold, under the names of the former 1-D and 3-D objectives: the 1-D points'
         # PSFModel (``psfs``, ``psf`` the first) and setups; the first imager's setup, physics model,
         # pixel positions ``{plane: (H, W, 3)}`` in metres, and why it uses its exact path (None: fast)
-        self.psfs = [im.model for im in self.imagers if self.image_kind == "kernels"]
+        self.psfs = [im.psf_model for im in self.imagers if im.psf_model is not None]
         self.psf = self.psfs[0] if self.psfs else None
         self.setups = [im.setup for im in self.imagers]
         self.setup, self.model, self.coords = first.setup, first.model, first.coords
         self.exact_reason = next((im.exact_reason for im in self.imagers if im.exact), None)
+        #: the per-beam view of the scene's points (:func:`~arraysel.objective.imagers.scene_beams`: a
+        #: sector scene's :class:`~arraysel.objective.sector_beams.SectorBeams`), None for others
+        self.beams = None if self.scene is None else I.scene_beams(self)
+
+    @classmethod
+    def assemble(cls, settings: ObjectiveSettings, imagers, chunk: int | None = None) -> "Objective":
+        """The objective assembled from ``settings`` (:class:`~arraysel.scenes.scene.ObjectiveSettings`:
+        ``k``, the loss weights, the metric radii, the aggregate) and ``imagers`` (a list of
+        :class:`~arraysel.physics.imaging.Imager`, on their device and dtype): it scores their plane
+        sets and reads nothing else. Without a scene it has no constraints, no per-beam view and no
+        worker recipe; ``Objective(scene)`` is this assembly of the scene's settings and
+        :func:`~arraysel.objective.imagers.scene_imagers`."""
+        return cls(settings, chunk=chunk, imagers=imagers)
 
     @property
     def fast(self) -> bool:
         """True when every imager has its fast path."""
         return not any(im.exact for im in self.imagers)
+
+    # ------------------------------------------------------------------ the per-beam view (sector scenes)
+    beam_metrics = per_beam_attribute("beam_metrics", "The per-beam metrics of masks on the points' PSFs")
+    beam_loss = per_beam_attribute("beam_loss", "The per-beam loss of masks on the points' PSFs")
+    point_images = per_beam_attribute("point_images", "A point's complex images on its surface")
+    fast_point = per_beam_attribute("fast_point", "Install a point's fast model")
+    fresh_random_masks = per_beam_attribute("fresh_random_masks", "Fresh random selections of k elements")
+    fresh_random = per_beam_attribute("fresh_random", "How many fresh random selections are scored per beam")
+    exact = per_beam_attribute("exact", "The points' PSFs on their surfaces (SectorPSF)")
+    pattern = per_beam_attribute("pattern", "The two-way beam pattern over the sector")
+    fast_refused = per_beam_attribute("fast_refused", "The points whose fast model was refused, with why")
 
     # ------------------------------------------------------------------ exact-path notice
     def estimate_seconds(self, n_masks: int = 1) -> float:
@@ -236,25 +214,29 @@ class Objective:
         return checked_masks(masks, self.n_elements, self.device, self.dtype)
 
     def _weights(self, weights: torch.Tensor) -> torch.Tensor:
-        w = weights if weights.dim() == 2 else weights[None]
+        w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): one per transmit event
         if w.shape[-1] != self.n_elements:
             raise SelectionError(f"weights must have shape (B, {self.n_elements}), got {tuple(w.shape)}")
         return w.to(self.device, self.dtype)
 
     def _point_list(self, point):
+        n = len(self.imagers)
         if point is None:
-            return list(range(self.n_points))
-        if not isinstance(point, int) or not 0 <= point < self.n_points:
-            raise ParameterError(f"point = {point!r} is out of range; the scene has {self.n_points} field point(s)")
+            return list(range(n))
+        if not isinstance(point, int) or not 0 <= point < n:
+            raise ParameterError(f"point = {point!r} is out of range; the scene has {n} field point(s)")
         return [point]
 
     def _kernels_only(self, what: str) -> None:
-        if self.image_kind != "kernels":
-            raise ParameterError(f"a 3-D scene has planes, not a 2-D kernel: use Objective.{what}")
+        """ParameterError unless every imager gives one 2-D kernel on a pixel grid (its ``pitch``)."""
+        other = next((im for im in self.imagers if im.pitch is None), None)
+        if other is not None:
+            raise ParameterError(f"scene {self.settings.name!r} has planes, not a 2-D kernel on a pixel grid "
+                                 f"(its imager gives {list(other.plane_names)}): use Objective.{what}")
 
     def _one_imager(self):
-        if self.n_points != 1:
-            raise ParameterError(f"the scene has {self.n_points} field points, each with its own kernel: "
+        if len(self.imagers) != 1:
+            raise ParameterError(f"the scene has {len(self.imagers)} field points, each with its own kernel: "
                                  "use Objective.kernels(masks, point)")
         return self.imagers[0]
 
@@ -263,7 +245,7 @@ class Objective:
         """The full-array PSF kernel: (window, window), or (P, window, window) for a several-point
         scene when ``point`` is None."""
         self._kernels_only("reference_planes")
-        if point is None and self.n_points == 1:
+        if point is None and len(self.imagers) == 1:
             point = 0
         if point is not None:
             return self.imagers[self._point_list(point)[0]].reference().kernel[0]
@@ -275,12 +257,13 @@ class Objective:
         self._kernels_only("planes")
         with torch.no_grad(), self._timed():
             m = self.as_masks(masks)
-            pts = self._point_list(0 if point is None and self.n_points == 1 else point)
+            one = len(self.imagers) == 1
+            pts = self._point_list(0 if point is None and one else point)
             out = []
             for p in pts:
                 im = self.imagers[p]
                 out.append(torch.cat([im.image(m[i:i + n]).kernel for i, n in self._chunks(im, m.shape[0])]))
-            return out[0] if len(pts) == 1 and (point is not None or self.n_points == 1) else torch.stack(out, 1)
+            return out[0] if len(pts) == 1 and (point is not None or one) else torch.stack(out, 1)
 
     def planes(self, weights) -> dict[str, torch.Tensor]:
         """The complex planes ``{name: (B, H, W)}`` of weights (B, Ne), differentiable (one imager)."""
@@ -300,9 +283,9 @@ class Objective:
         step = max(1, min(self.chunk, imager.masks_per_batch()))
         return [(i, min(step, n - i)) for i in range(0, n, step)]
 
-    def _metrics(self, imager, planes: PlaneSet, terms=None) -> dict[str, torch.Tensor]:
-        kw = {k: v for k, v in self.metric_kw.items() if k != "pitch"}
-        return plane_metrics(planes, imager.reference(), terms=terms, **kw)
+    def _metrics(self, p: int, planes: PlaneSet, terms=None) -> dict[str, torch.Tensor]:
+        """The metrics of imager ``p``'s plane set (:func:`~arraysel.objective.plane_metrics.plane_scorer`)."""
+        return self._scorers[p](planes, terms)
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, masks, return_kernels: bool = False, return_planes: bool = False,
@@ -411,11 +394,14 @@ class Objective:
         """The :class:`~arraysel.objective.contract.Neighbourhood` a search scores neighbours with:
         :meth:`evaluate_moves`, prepared by :meth:`prepare_neighbourhoods`; None for a subclass
         that scores masks its own way and has no neighbourhood of its own (its neighbours are
-        scored as masks), and a 3-D scene off its fast path on the CPU."""
+        scored as masks), and a scene whose imagers image a selection's neighbours only as masks
+        (:attr:`~arraysel.physics.imaging.Imager.moves_from_selection`: a sector scene's beam pattern)
+        unless its planes score all swaps at once (a 3-D scene's fast path on the CPU)."""
         from arraysel.objective.contract import MovesNeighbourhood
 
-        if type(self).evaluate is not Objective.evaluate or (self.image_kind == "planes"
-                                                             and self._neighbourhood() is None):
+        if type(self).evaluate is not Objective.evaluate:
+            return None
+        if not all(im.moves_from_selection for im in self.imagers) and self._neighbourhood() is None:
             return None
         nb = self._neighbourhood()
         return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods,
@@ -438,7 +424,7 @@ class Objective:
             for i, n in self._chunks(im, n_masks):
                 ps, fb = images_of(im, i, n)
                 self.fallbacks += int(fb.sum())
-                met = self._metrics(im, ps)
+                met = self._metrics(p, ps)
                 for name in self._columns:
                     per[p][name].append(met[name].double().cpu())
                 if keep:
@@ -446,7 +432,7 @@ class Objective:
         self.evaluations += int(n_masks)
         empty = torch.zeros(0, dtype=torch.float64)
         per_np = [{name: torch.cat(v) if v else empty for name, v in d.items()} for d in per]
-        res = ({name: v.numpy() for name, v in per_np[0].items()} if self.n_points == 1
+        res = ({name: v.numpy() for name, v in per_np[0].items()} if len(self.imagers) == 1
                else aggregated(per_np, self.aggregate))
         if keep:
             res["_planes"] = [PlaneSet.cat(k) if k else None for k in kept]
@@ -475,7 +461,7 @@ class Objective:
         return self._terms([im.wrap(k) for im, k in zip(self.imagers, kappas)], terms)
 
     def _terms(self, sets: list[PlaneSet], terms=None) -> dict[str, torch.Tensor]:
-        per = [self._metrics(im, ps, terms) for im, ps in zip(self.imagers, sets)]
+        per = [self._metrics(p, ps, terms) for p, ps in enumerate(sets)]
         if len(per) == 1:
             return per[0]
         # (differentiable) mean over the points, or the worst point: the largest value (lower is better)
@@ -498,7 +484,7 @@ class Objective:
         """Scene-weighted PSF loss of soft weights (B, Ne) in [0, 1]: (total (B,), terms);
         ``receive``: separate receive weights (B, Ne)."""
         with self._timed():
-            w = weights if weights.dim() == 2 else weights[None]
+            w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): per transmit event
             total, terms = self._psf_loss(w, receive=receive)
             if not bool(torch.isfinite(total.detach()).all()):
                 raise NumericalError("mask_loss is not finite (NaN/Inf) for some weights")
@@ -559,8 +545,9 @@ class Objective:
 
     def worker_factory(self) -> "SceneObjectiveFactory | None":
         """A picklable recipe that rebuilds this objective on a worker (the scene, device, dtype
-        and chunk); ``None`` for a subclass, which must give its own."""
-        if type(self) is not Objective:
+        and chunk); ``None`` for a subclass, which must give its own, and for an objective assembled
+        without a scene."""
+        if type(self) is not Objective or self.scene is None:
             return None
         return SceneObjectiveFactory(self.scene.to_dict(), device=str(self.device), dtype=dtype_name(self.dtype),
                                      chunk=int(self.chunk))
@@ -577,13 +564,9 @@ _CACHE: dict = {}
 
 def build_objective(scene="paper", device="cpu", dtype=torch.float32, objective_class=None, **kw) -> Objective:
     """Build (or reuse, within a process) the objective of a scene: an ``objective_class``
-    (default :class:`Objective`, 1-D and 3-D scenes alike; :func:`arraysel.objective.build.build_objective`
-    picks a sector scene's :class:`~arraysel.objective.sector_objective.SectorObjective`)."""
+    (default :class:`Objective`, for every scene: 1-D, 3-D and sector scenes alike)."""
     sc = load_scene(scene) if not isinstance(scene, Scene) else scene
     cls = Objective if objective_class is None else objective_class
-    if sc.is_sector and cls is Objective:
-        raise ParameterError(f"scene {sc.name!r} is a sector scene: build it with arraysel.build_objective "
-                             "(arraysel.objective.build), which gives its SectorObjective")
     key = (cls.__name__, repr(sc.tree), str(device), str(dtype), tuple(sorted(kw.items())))
     obj = _CACHE.get(key)
     if obj is None:

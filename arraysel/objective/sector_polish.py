@@ -8,11 +8,22 @@ over the points, plus a penalty on the mean -6 dB width past a cap) costs a frac
 selection, so a local search can run on it directly.
 
 :func:`polish_on_beams` is that search: swap moves (one selected element out, one unselected in),
-drawn at random in batches. Since the loss is the worst point's side lobe, each batch is first
-screened on the point that sets it (one point's images, a sixth of the cost on the built-in
-scene); the best screened moves are then scored on every point, and the best of them is taken
-when it lowers the loss. The search stops at its time limit or after ``patience`` batches without
-a gain.
+drawn at random in batches. Each batch is first screened on the points whose side lobe lies within
+``screen_db`` of the worst (``screen_db = 0``: the worst point alone, a sixth of the cost on the
+built-in scene; a polished selection has its points' side lobes within a fraction of a dB of each
+other, and a move screened on one point then mostly raises another); the best ``keep`` screened
+moves are scored on every point, and the best of them is taken when it lowers the search's loss.
+A move's images come from the fast path's sums of the current selection (``base``: its receive
+sums change by two elements' rows, not by all of them).
+
+The search's loss is the per-beam loss, or, with ``soft_db > 0``, its smooth maximum over the
+points: ``soft_db * log(sum_p exp(PSL_p / soft_db))`` in place of the worst ``PSL_p`` (a move that
+lowers every point but the worst, and leaves that one where it was, then counts as a gain; with
+the hard maximum such plateaus stop the search). The selection returned is the best by the
+per-beam loss itself. The search stops at its time limit, at ``evaluations`` (selections scored,
+each point counted: a selection scored on six points counts six; a round that would end past the
+time limit, by the latest round's time, is not started), when ``stop()`` says so, or after
+``patience`` batches without a gain.
 """
 from __future__ import annotations
 
@@ -34,18 +45,47 @@ def _swaps(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+class _Scores:
+    """The per-beam scores of a polish: the hard loss, the search's (soft) loss, the counters."""
+
+    def __init__(self, objective, pts, cap, weight, soft):
+        self.obj, self.pts, self.cap, self.weight, self.soft = objective, pts, cap, weight, soft
+        self.scored = 0   # selection-points scored
+
+    def full(self, masks, base=None):
+        loss, summ = self.obj.beam_loss(masks, width_cap=self.cap, width_weight=self.weight, points=self.pts,
+                                        base=base)
+        self.scored += len(masks) * len(self.pts)
+        return loss, self.search(summ["PSL_dB"], loss - summ["worst_PSL_dB"]), summ
+
+    def search(self, psl: np.ndarray, penalty: np.ndarray) -> np.ndarray:
+        if self.soft <= 0:
+            return psl.max(1) + penalty
+        top = psl.max(1, keepdims=True)
+        return (top[:, 0] + self.soft * np.log(np.exp((psl - top) / self.soft).sum(1))) + penalty
+
+    def screen(self, masks, on: list[int], base) -> np.ndarray:
+        bm = self.obj.beam_metrics(masks, points=[self.pts[j] for j in on], base=base)
+        self.scored += len(masks) * len(on)
+        return bm["PSL_dB"].max(1)
+
+
 def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0, batch: int = 48, keep: int = 4,
-                    patience: int = 20, width_weight: float = 100.0, seed: int = 0, points=None) -> dict:
+                    patience: int = 20, width_weight: float = 100.0, seed: int = 0, points=None,
+                    screen_db: float = 0.0, soft_db: float = 0.0, evaluations: int | None = None,
+                    stop=None) -> dict:
     """Swap-move local search of ``mask`` (Ne,) bool on ``objective.beam_loss`` (module docstring).
 
     Parameters: ``width_cap`` (metres) and ``width_weight`` as :meth:`beam_loss`; ``seconds`` the
     time limit; ``batch`` moves drawn a round, ``keep`` of them scored on every point; ``patience``
     rounds without a gain before it stops; ``seed`` of the moves; ``points``: the loss over these
-    points only (default all).
+    points only (default all); ``screen_db`` [0, inf]: screen on the points within this many dB of
+    the worst; ``soft_db`` [0, 10]: the smooth maximum's temperature (0: the worst point's side lobe);
+    ``evaluations``: the most selection-points scored; ``stop``: a callable, True to stop.
 
     Returns ``{"mask", "loss", "worst_PSL_dB", "mean_width_m", "start_loss", "rounds", "accepted",
-    "evaluations" (selections scored on every point), "screened" (on one point), "seconds",
-    "trace" [(seconds, loss)]}``.
+    "evaluations" (selections scored on every point), "screened" (before that), "scored"
+    (selection-points in all), "seconds", "trace" [(seconds, loss)]}``; ``loss`` is the per-beam loss.
     """
     m = np.asarray(mask, dtype=bool).reshape(-1)
     if m.shape[0] != objective.n_elements or not (0 < int(m.sum()) < m.shape[0]):
@@ -55,38 +95,55 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
     batch = int(check_number("batch", batch, lo=1, hi=4096, integer=True))
     keep = int(check_number("keep", keep, lo=1, hi=batch, integer=True))
     patience = int(check_number("patience", patience, lo=1, integer=True))
+    screen_db = check_number("screen_db", screen_db, lo=0)
+    soft = check_number("soft_db", soft_db, lo=0, hi=10)
+    limit = None if evaluations is None else int(check_number("evaluations", evaluations, lo=1, integer=True))
     rng = np.random.default_rng(int(check_number("seed", seed, lo=0, integer=True)))
     t0 = time.perf_counter()
     pts = list(range(objective.n_points)) if points is None else [int(p) for p in points]
-    loss, summ = objective.beam_loss(m[None], width_cap=width_cap, width_weight=width_weight, points=pts)
-    best = float(loss[0])
-    psl = summ["PSL_dB"][0]
-    start, trace = best, [(0.0, best)]
+    sc = _Scores(objective, pts, width_cap, width_weight, soft)
+    loss, cur, summ = sc.full(m[None])
+    cur, psl = float(cur[0]), summ["PSL_dB"][0]
+    best = {"mask": m, "loss": float(loss[0]), "summary": {k: v[0] for k, v in summ.items()}}
+    start, trace = best["loss"], [(0.0, best["loss"])]
     rounds = accepted = stale = screened = 0
-    evaluations = 1
-    while time.perf_counter() - t0 < seconds and stale < patience:
+    evals = 1
+
+    def more() -> bool:  # a round that would end past the time limit is not started
+        return (time.perf_counter() - t0 + last[0] < seconds and stale < patience and not (stop is not None and stop())
+                and (limit is None or sc.scored + batch * len(pts) <= limit))
+
+    last = [0.0]   # the latest round's seconds
+    while more():
+        t_round = time.perf_counter()
         rounds += 1
         cand = _swaps(m, batch, rng)
-        worst = int(np.argmax(psl))
-        scr = objective.beam_metrics(cand, points=[pts[worst]])["PSL_dB"][:, 0]
-        screened += batch
-        top = np.argsort(scr)[:keep]
-        top = top[scr[top] < psl[worst] + 1e-9]
-        if not len(top):
-            stale += 1
-            continue
-        c_loss, c_sum = objective.beam_loss(cand[top], width_cap=width_cap, width_weight=width_weight, points=pts)
-        evaluations += len(top)
-        j = int(np.argmin(c_loss))
-        if c_loss[j] < best - 1e-9:
-            m, best, summ = cand[top[j]].copy(), float(c_loss[j]), {k: v[j:j + 1] for k, v in c_sum.items()}
-            psl = summ["PSL_dB"][0]
+        on = [j for j in range(len(pts)) if psl[j] >= psl.max() - screen_db - 1e-9]
+        if len(on) < len(pts):
+            scr = sc.screen(cand, on, m)
+            screened += batch
+            top = np.argsort(scr)[:keep]
+            top = top[scr[top] < psl.max() + 1e-9]
+            if not len(top):
+                stale += 1
+                last[0] = time.perf_counter() - t_round
+                continue
+            cand = cand[top]
+        c_loss, c_search, c_sum = sc.full(cand, m)
+        evals += len(cand)
+        j = int(np.argmin(c_search))
+        if c_search[j] < cur - 1e-9:
+            m, cur, psl = cand[j].copy(), float(c_search[j]), c_sum["PSL_dB"][j]
             accepted += 1
             stale = 0
-            trace.append((time.perf_counter() - t0, best))
+            if c_loss[j] < best["loss"] - 1e-9:
+                best = {"mask": m, "loss": float(c_loss[j]), "summary": {k: v[j] for k, v in c_sum.items()}}
+                trace.append((time.perf_counter() - t0, best["loss"]))
         else:
             stale += 1
-    return {"mask": m, "loss": best, "worst_PSL_dB": float(summ["worst_PSL_dB"][0]),
-            "mean_width_m": float(summ["mean_width_m"][0]), "start_loss": start, "rounds": rounds,
-            "accepted": accepted, "evaluations": evaluations, "screened": screened,
+        last[0] = time.perf_counter() - t_round
+    s = best["summary"]
+    return {"mask": best["mask"], "loss": best["loss"], "worst_PSL_dB": float(s["worst_PSL_dB"]),
+            "mean_width_m": float(s["mean_width_m"]), "start_loss": start, "rounds": rounds,
+            "accepted": accepted, "evaluations": evals, "screened": screened, "scored": sc.scored,
             "seconds": time.perf_counter() - t0, "trace": trace}

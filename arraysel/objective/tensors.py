@@ -1,13 +1,15 @@
-"""Argument checks and small tensor helpers shared by :mod:`arraysel.objective.metrics` and
-:mod:`arraysel.objective.losses` (one definition each)."""
+"""Argument checks and small tensor helpers shared by :mod:`arraysel.objective.metrics`,
+:mod:`arraysel.objective.losses` and the objective (one definition each): the check of a batch of
+masks (:func:`checked_masks`) and the selections a fast path is checked on (:func:`check_masks`)."""
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from arraysel.errors import ParameterError
+from arraysel.errors import ParameterError, SelectionError
 
-__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2", "objective_device"]
+__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2", "objective_device", "checked_masks", "check_masks"]
 
 
 def _check_tensor(name: str, x: object) -> Tensor:
@@ -38,3 +40,35 @@ def objective_device(device) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ParameterError("device = 'cuda' but no CUDA device is available; use --device cpu")
     return device
+
+
+def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
+    """``masks`` (B, Ne) or (Ne,) (numpy or torch) as a (B, Ne) tensor on ``device`` in ``dtype``;
+    SelectionError for a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
+    m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
+    if m.dim() == 1:
+        m = m[None]
+    if m.dim() == 3 and m.shape[-1] == n_elements:  # a transmit aperture per transmit event (B, n_tx, Ne)
+        return checked_masks(m.reshape(-1, n_elements), n_elements, device, dtype).reshape(m.shape)
+    if m.dim() != 2 or m.shape[1] != n_elements:
+        raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
+    m = m.to(device, dtype)
+    if not bool(torch.isfinite(m).all()):
+        raise SelectionError("masks contain NaN or Inf")
+    if bool((m < 0).any()):
+        raise SelectionError("mask weights must be >= 0")
+    if bool((m.sum(1) == 0).any()):
+        bad = torch.nonzero(m.sum(1) == 0).flatten().tolist()
+        raise SelectionError(f"empty selection (no active element) at batch position(s) {bad}")
+    return m
+
+
+def check_masks(n: int, k: int) -> torch.Tensor:
+    """The full array and two random selections of ``k`` elements (seed 0), where the check must hold."""
+    g = torch.Generator().manual_seed(0)
+    checks = [torch.ones(n, dtype=torch.float64)]
+    for _ in range(2):
+        m = torch.zeros(n, dtype=torch.float64)
+        m[torch.randperm(n, generator=g)[:k]] = 1
+        checks.append(m)
+    return torch.stack(checks)

@@ -14,6 +14,9 @@ scores plane sets and never asks which physics made them.
 * :class:`VolumeImager` (a matrix probe): the three planes of the 3-D PSF through the scatterer
   (``"xy"`` the C-plane, ``"xz"``, ``"yz"``; :class:`~arraysel.physics.volume.MatrixPSF` or its fast
   path), at their positions in the volume.
+* :class:`PatternImager` (a sector scene's search): one plane, the two-way power beam pattern over
+  the shifts of the steered sector (:class:`~arraysel.physics.beampattern.BeamPattern`), real, at
+  its ``(du, dv, 0)`` positions in the u-v frame (:attr:`Imager.frame` ``"uv"``).
 
 The full array's plane set (the reference of the metrics) comes from the same imager
 (:meth:`Imager.reference`). A scene with several field points has one imager per point.
@@ -26,10 +29,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["PlaneSet", "Imager", "KernelImager", "VolumeImager", "KERNEL_PLANE"]
+__all__ = ["PlaneSet", "Imager", "KernelImager", "VolumeImager", "PatternImager", "KERNEL_PLANE", "PATTERN_PLANE"]
 
 #: the name of a kernel imager's one plane
 KERNEL_PLANE = "kernel"
+#: the name of a pattern imager's one plane
+PATTERN_PLANE = "pattern"
 
 
 @dataclass(frozen=True)
@@ -92,14 +97,26 @@ class Imager:
     """The interface of an imager (module docstring); subclasses fill it.
 
     Attributes: ``n_elements``; ``plane_names`` (the names of its planes, in order); ``pitch``
-    (``(row, column)`` pitch in metres of a one-plane regular grid, else None); ``model`` (the physics
-    model behind it); ``setup`` (its setup); ``exact`` (True when it images on the exact path only).
+    (``(row, column)`` pitch in metres of a one-plane regular grid, else None); ``frame`` (``"xyz"``:
+    pixel positions in metres; ``"uv"``: shifts of direction sines); ``model`` (the physics model
+    behind it); ``setup`` (its setup); ``exact`` (True when it images on the exact path only);
+    ``exact_reason`` (why, else None); ``moves_from_selection`` (True when :meth:`image_moves`
+    images a selection's neighbours from the selection's own images, cheaper than imaging their masks);
+    ``point`` (the field point it images, in metres: ``(x, z)`` of a 1-D point, ``(x, y, z)`` of a
+    3-D one; None for a beam pattern); ``psf_model`` (the 1-D point's
+    :class:`~arraysel.physics.psf.PSFModel` whose pair basis gives the loss's quadratic model,
+    else None).
     """
 
     n_elements: int
     plane_names: tuple = ()
     pitch: tuple | None = None
+    frame: str = "xyz"
     exact: bool = False
+    exact_reason: str | None = None
+    moves_from_selection: bool = False
+    point: tuple | None = None
+    psf_model = None
 
     def wrap(self, images) -> PlaneSet:
         """A :class:`PlaneSet` of this imager's planes from ``images`` (``{name: (B, H, W)}``, or the
@@ -169,7 +186,7 @@ class KernelImager(Imager):
     """
 
     def __init__(self, model, exact_reason: str | None = None):
-        self.model = model
+        self.model = self.psf_model = model
         self.exact_reason = exact_reason
         self.setup = model.setup
         self.n_elements = model.n_elements
@@ -179,6 +196,8 @@ class KernelImager(Imager):
         self.plane_names = (KERNEL_PLANE,)
         self.coords = {KERNEL_PLANE: kernel_coords(model.setup.window, p)}
         self.exact = model.basis is None
+        self.moves_from_selection = True
+        self.point = tuple(float(v) for v in model.setup.scatterer_position)
 
     def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
         return self.wrap(self.model.kernels(weights, receive=receive))
@@ -226,6 +245,7 @@ class VolumeImager(Imager):
         self.exact_reason = exact_reason
         self.exact = exact_reason is not None
         self.batch = int(batch)
+        self.point = tuple(float(v) for v in self.setup.scatterer)
 
     def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
         return self.wrap(self.model.planes(weights) if receive is None else self.model.planes(weights, receive=receive))
@@ -236,3 +256,32 @@ class VolumeImager(Imager):
 
     def masks_per_batch(self) -> int:
         return self.batch
+
+
+class PatternImager(Imager):
+    """The imager of a sector scene's search: its two-way power beam pattern as one plane (module
+    docstring).
+
+    Parameters: ``pattern``, the :class:`~arraysel.physics.beampattern.BeamPattern` over the sector;
+    ``setup``, the scene's :class:`~arraysel.physics.volume.sector.SectorSetup` (its probe).
+    """
+
+    frame = "uv"
+
+    def __init__(self, pattern, setup):
+        self.model = self.pattern = pattern
+        self.setup = setup
+        self.n_elements = int(pattern.n_elements)
+        self.dtype, self.device = pattern.dtype, pattern.device
+        self.plane_names = (PATTERN_PLANE,)
+        self.coords = {PATTERN_PLANE: pattern.coords.cpu().numpy()}
+
+    def image(self, weights: Tensor, receive: Tensor | None = None) -> PlaneSet:
+        return self.wrap(self.pattern.pattern(weights, receive))
+
+    def layout(self):
+        probe = self.setup.probe
+        return probe.layout_grid, probe.element_positions()
+
+    def masks_per_batch(self) -> int:
+        return 1 << 30

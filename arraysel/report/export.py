@@ -137,10 +137,17 @@ def _mat_bytes(param: dict) -> bytes:
 
 
 def export_selection(aperture: Aperture, folder: "str | os.PathLike", formats: Iterable[str] | None = None,
-                     acquisition=None, delays=None) -> dict[str, Path]:
+                     acquisition=None, delays=None, transmit_events=None) -> dict[str, Path]:
     """Write ``aperture`` to ``folder`` (created) in ``formats`` (keys of :data:`EXPORT_FILES`,
     default all); ``acquisition`` and ``delays`` go into the MUST parameter set. Returns
-    ``{format: path}``."""
+    ``{format: path}``.
+
+    ``transmit_events`` (per-transmit apertures, ``docs/apertures.md``): boolean ``(n_tx, Ne)``,
+    the elements that transmit in each transmit event (``aperture.transmit`` is their union).
+    It adds ``transmit_events.csv`` (``event,elements``: one row per event, its elements
+    space-separated; key ``"events"``) and the field ``TXapodizations`` (``n_tx x Ne``: event
+    ``i``'s transmit apodization, for ``simus3`` with row ``i`` of ``TXdelays``) to the MUST
+    parameter set."""
     formats = list(EXPORT_FILES) if formats is None else [str(f).strip().lower() for f in formats]
     bad = [f for f in formats if f not in EXPORT_FILES]
     if bad or not formats:
@@ -149,10 +156,18 @@ def export_selection(aperture: Aperture, folder: "str | os.PathLike", formats: I
         raise ParameterError(f"aperture must be an arraysel.physics.probe_files.Aperture, got "
                              f"{type(aperture).__name__}")
     aperture.check()
+    events = None if transmit_events is None else _checked_events(transmit_events, aperture, delays)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = {f: folder / EXPORT_FILES[f] for f in formats}
     param = must_param(aperture, acquisition, delays) if {"mat", "npz"} & set(formats) else None
+    if events is not None:
+        if param is not None:
+            param["TXapodizations"] = events * aperture.weights[None]
+        rows = ["# arraysel transmit events: the elements that transmit in each transmit event "
+                "(row i goes with row i of TXdelays)", "event,elements"]
+        rows += [f"{i},{' '.join(str(int(e)) for e in np.flatnonzero(ev))}" for i, ev in enumerate(events)]
+        atomic_write_text(folder / "transmit_events.csv", "\n".join(rows) + "\n")
     for f, path in paths.items():
         if f == "csv":
             atomic_write_text(path, channel_map_csv(aperture))
@@ -167,4 +182,23 @@ def export_selection(aperture: Aperture, folder: "str | os.PathLike", formats: I
             from arraysel.report.plots import save_figure
 
             save_figure(aperture_figure(aperture), path)
+    if events is not None:
+        paths["events"] = folder / "transmit_events.csv"
     return paths
+
+
+def _checked_events(events, aperture: Aperture, delays) -> np.ndarray:
+    """``events`` as a boolean ``(n_tx, Ne)`` array whose union is the aperture's transmit elements
+    (and whose rows match the delays' transmits); ParameterError naming ``transmit_events``."""
+    ev = np.asarray(events)
+    n = aperture.probe.n_elements
+    if ev.ndim != 2 or ev.shape[1] != n:
+        raise ParameterError(f"transmit_events must be a boolean (n_tx, {n}) array, got shape {ev.shape}")
+    ev = ev.astype(bool)
+    if delays is not None and np.ndim(delays) == 2 and np.shape(delays)[0] != ev.shape[0]:
+        raise ParameterError(f"transmit_events has {ev.shape[0]} events, the delays {np.shape(delays)[0]} transmits")
+    if not np.array_equal(ev.any(0), aperture.transmit):
+        raise ParameterError("transmit_events: their union must be the aperture's transmit elements")
+    if not ev.any(1).all():
+        raise ParameterError(f"transmit_events: event {int(np.argmin(ev.any(1)))} has no transmit element")
+    return ev

@@ -75,10 +75,12 @@ def write_tables(out: Path, runs, trace=None) -> tuple[Any, Any]:
 def aperture_columns(table, meta: dict):
     """``table`` with the columns ``tx_elements`` and ``rx_elements`` after ``elements`` when the
     comparison's scene (``meta``, its ``run.json``) has ``aperture.mode`` ``full-tx`` or
-    ``separate`` (``docs/apertures.md``): each row's transmit and receive elements of the probe
-    (``elements`` holds the selector's units: under ``separate`` the receive element ``e`` is
-    unit ``Ne + e``). A shared-aperture scene's table is returned as it is."""
-    from arraysel.objective.aperture import split_apertures
+    ``separate`` or ``per-transmit`` (``docs/apertures.md``): each row's transmit and receive
+    elements of the probe (``elements`` holds the selector's units: under ``separate`` the receive
+    element ``e`` is unit ``Ne + e``; under ``per-transmit`` ``tx_elements`` lists each transmit
+    event's elements, the events separated by `` | ``). A shared-aperture scene's table is returned
+    as it is."""
+    from arraysel.objective.aperture import split_events, split_apertures
     from arraysel.selection import Selection
 
     scene = meta.get("scene") if isinstance(meta.get("scene"), dict) else {}
@@ -86,13 +88,18 @@ def aperture_columns(table, meta: dict):
     if mode == "shared" or "elements" not in table.columns or not meta.get("n_elements"):
         return table
     n_units = int(meta["n_elements"])
-    n_probe = n_units // (2 if mode == "separate" else 1)
+    events = int(meta.get("aperture_events", 1))
+    n_probe = n_units // {"separate": 2, "per-transmit": events + 1}.get(mode, 1)
     tx, rx = [], []
     for row in table.to_dict("records"):
         text = row["elements"]
         sel = Selection.from_text(text, n_units).indices if isinstance(text, str) and text.strip() else ()
-        t, r = split_apertures(sel, n_probe, mode) if sel else ([], [])
-        tx.append(Selection.of(t, n_probe).text if t else "")
+        if mode == "per-transmit":
+            ev, r = split_events(sel, n_probe, events) if sel else ([], [])
+            tx.append(" | ".join(Selection.of(e, n_probe).text for e in ev) if sel else "")
+        else:
+            t, r = split_apertures(sel, n_probe, mode) if sel else ([], [])
+            tx.append(Selection.of(t, n_probe).text if t else "")
         rx.append(Selection.of(r, n_probe).text if r else "")
     table = table.copy()
     at = list(table.columns).index("elements") + 1

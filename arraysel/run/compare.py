@@ -363,6 +363,8 @@ def _meta(objective, plan: _Plan, old_meta, scene_name, scene_dict, command_line
         "command_line": list(command_line) if command_line is not None else list(sys.argv),
         "scene_name": scene_name, "scene": scene_dict,
         "n_elements": int(objective.n_elements), "k": int(objective.k),
+        **({"aperture_events": objective_info(objective).aperture_events}
+           if objective_info(objective).aperture_mode == "per-transmit" else {}),
         "device": _text(objective_info(objective).device), "dtype": _text(objective_info(objective).dtype),
         "seeds": all_seeds, "budget": plan.budget.to_dict(), "selectors": sel_meta,
         "versions": _versions(), "cpu_count": os.cpu_count(),

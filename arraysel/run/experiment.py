@@ -44,6 +44,7 @@ import numpy as np
 from arraysel.errors import ParameterError, SelectionError, check_number, error_text as _error_text
 from arraysel.objective.contract import objective_info
 from arraysel.report.columns import METRICS, ROW_COLUMNS, TRACE_COLUMNS  # noqa: F401  (re-exported)
+from arraysel.run.sector_report import beam_polish_plan
 from arraysel.selection import Selection
 from arraysel.constraints import constraints_of
 from arraysel.selectors.constrained import ConstrainedObjective
@@ -154,12 +155,13 @@ class Experiment:
         watch = _RunProgress(config, budget, recorder, selector.planned_evaluations(n, k),
                              auto=self.progress is None) if self.progress is not False else contextlib.nullcontext()
         polish = float(selector.options.get("polish") or 0.0)
+        beams = beam_polish_plan(obj, cls, self.options)  # a sector scene: polish on the per-beam loss
+        if beams is not None:
+            polish = beams.share
+            beams.prepare(obj)
         try:
             with watch:
-                stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
-                result = _run_selector(selector, obj, k, stage, seed, recorder, started, constraints)
-                if polish > 0:
-                    result = _polish(obj, k, budget, seed, recorder, check_selection(result, n, k), constraints)
+                result = _search(selector, obj, k, budget, seed, recorder, started, constraints, polish, beams)
             checked = check_selection(result, n, k)
             if constraints is not None:
                 constraints.check(checked)  # names the constraint a selector's result breaks
@@ -203,10 +205,14 @@ class Experiment:
             "seconds": wall, "evaluations": used, "gradient_steps": g1 - g0,
             "objective_seconds": obj_seconds, "overhead_seconds": max(0.0, wall - obj_seconds),
             "elements": None if selection is None else Selection(tuple(selection), n),
-            "options": json.dumps(self.options, sort_keys=True, default=str) if self.options else "",
+            "options": _options_text(self.options if beams is None else {**self.options, "polish": beams.share}),
             "error": error,
             "budget_flag": late_start_flag(started[0] if started else None, budget), **extra,
         }
+
+
+def _options_text(options: dict) -> str:
+    return json.dumps(options, sort_keys=True, default=str) if options else ""
 
 
 def with_end_row(row: dict, trace: list[dict]) -> list[dict]:
@@ -286,6 +292,21 @@ def _run_selector(selector, obj, k: int, budget: Budget, seed: int, recorder: Re
         view.close()  # a thread the selector left running can no longer count or record
         if view.first_call_s is not None:
             started.append(view.first_call_s)
+
+
+def _search(selector, obj, k: int, budget: Budget, seed: int, recorder: Recorder, started: list, constraints,
+            polish: float, beams) -> list[int]:
+    """The selector's run on ``1 - polish`` of the budget, then its polish on the rest: on the per-beam
+    loss with ``beams`` (a sector scene's :class:`~arraysel.run.sector_report.BeamPolish`), else a
+    swap local search (:func:`_polish`)."""
+    n = int(obj.n_elements)
+    stage = _share_of(budget, obj, 1.0 - polish) if polish > 0 else budget
+    result = _run_selector(selector, obj, k, stage, seed, recorder, started, constraints)
+    if beams is not None:
+        return beams.run(obj, budget, seed, check_selection(result, n, k))
+    if polish > 0:
+        return _polish(obj, k, budget, seed, recorder, check_selection(result, n, k), constraints)
+    return result
 
 
 def _best_or_first(recorder: Recorder) -> list[int]:

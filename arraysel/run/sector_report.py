@@ -9,6 +9,7 @@ charged to them. An objective without ``beam_metrics`` gets none of these files.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -19,7 +20,7 @@ from arraysel.objective.contract import objective_info
 from arraysel.report import beams as B
 from arraysel.report import tables as reporting
 
-__all__ = ["sector_tables", "effective_options", "beam_pattern_view", "beam_source"]
+__all__ = ["sector_tables", "effective_options", "beam_pattern_view", "beam_source", "BeamPolish", "beam_polish_plan"]
 
 _log = logging.getLogger(__name__)
 
@@ -137,3 +138,70 @@ def beam_pattern_view(objective, labels: list[str], masks: np.ndarray):
         segs = [s.numpy() for s in view.grating_directions(w)]
     lobes = uv_plots.lattice_grating_lobes(acq.c / probe.fc, probe.pitch_x, probe.pitch_y, view.extent)
     return uv_plots.beam_pattern_figure(labels, pat, view.du.numpy(), view.dv.numpy(), sines, lobes, segs)
+
+
+#: the polish's search settings on a sector scene (``docs/sector.md``): 32 swaps a round, screened on
+#: the points within 1 dB of the worst (every point once the side lobes are that close: then no
+#: screening), the best 8 scored on every point, on the smooth maximum of the points' side lobes at 0.3 dB
+BEAM_POLISH_SETTINGS = {"batch": 32, "keep": 8, "screen_db": 1.0, "soft_db": 0.3, "patience": 60,
+                        "width_weight": 300.0}
+
+
+@dataclasses.dataclass
+class BeamPolish:
+    """The polish of a run on a sector scene: the selector searches on the beam pattern for ``1 -
+    share`` of its budget, then :func:`~arraysel.objective.sector_polish.polish_on_beams` spends the
+    rest on the per-beam loss (width cap ``width_ratio`` x the fresh random median's mean -6 dB
+    width), its per-beam scores charged to the budget (each selection scored on one point counts as
+    one evaluation)."""
+
+    share: float
+    width_ratio: float
+    cap: float | None = None
+
+    def prepare(self, objective) -> None:
+        """Before the budget starts: the points' fast models (from the cache, else built) and the cap."""
+        for i in range(objective.n_points):
+            objective.fast_point(i)
+        fresh = objective.fresh_random_masks()
+        if not len(fresh):
+            fresh = objective.fresh_random_masks(16)
+        bm = objective.beam_metrics(fresh)
+        width = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
+        self.cap = self.width_ratio * float(np.median(width))
+
+    def run(self, objective, budget, seed: int, start: list[int]) -> list[int]:
+        """Polish ``start`` with what is left of the started ``budget``; the polished selection."""
+        from arraysel.objective.sector_polish import polish_on_beams
+
+        mask = np.zeros(int(objective.n_elements), dtype=bool)
+        mask[list(start)] = True
+        left = budget.remaining_evaluations()
+        res = polish_on_beams(objective, mask, width_cap=self.cap, seconds=budget.remaining_seconds(), seed=seed,
+                              evaluations=None if math.isinf(left) else max(1, int(left)), **BEAM_POLISH_SETTINGS)
+        objective.evaluations += int(res["scored"])
+        _log.info("polish on the per-beam loss: %.2f -> %.2f dB (worst side lobe %.2f dB, mean width %.3f mm; "
+                  "%d rounds, %d moves taken, %d selection-points scored, %.0f s)", res["start_loss"], res["loss"],
+                  res["worst_PSL_dB"], res["mean_width_m"] * 1e3, res["rounds"], res["accepted"], res["scored"],
+                  res["seconds"])
+        return [int(i) for i in np.flatnonzero(res["mask"])]
+
+
+def beam_polish_plan(objective, selector_cls, options: dict) -> BeamPolish | None:
+    """The :class:`BeamPolish` of a run of ``selector_cls`` with ``options`` (as given) on
+    ``objective``, or None: only a sector scene's objective without constraints is polished on its
+    points; the share is the run's ``polish`` option when given, else the scene's ``sector.polish``
+    for a selector that searches (not a ``baseline``, spending evaluations)."""
+    info = objective_info(objective)
+    if info.kind != "beams" or info.aperture_mode is not None or objective.constraints is not None:
+        return None
+    scene = objective.scene
+    if "polish" in options:
+        share = float(options["polish"] or 0.0)
+    elif selector_cls.baseline or not selector_cls.needs_evaluations:
+        share = 0.0
+    else:
+        share = float(scene.value("sector", "polish"))
+    if share <= 0:
+        return None
+    return BeamPolish(share, float(scene.value("sector", "polish_width_ratio")))

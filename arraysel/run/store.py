@@ -152,22 +152,33 @@ class CompareStore:
 
     def write_sector(self, objective, rows: list[dict], figures: bool = True) -> list[str]:
         """A sector scene's ``beams.csv``, ``pareto.csv`` and (``figures``) ``pareto.png``
-        (:mod:`arraysel.run.sector_report`); returns the problems met."""
+        (:mod:`arraysel.run.sector_report`), then the files of its points
+        (:mod:`arraysel.run.sector_points`); returns the problems met."""
         from arraysel.report.beams import pareto_figure
         from arraysel.report.tables import write_csv
+        from arraysel.run.sector_points import point_files
         from arraysel.run.sector_report import sector_tables
 
         beams, pareto = sector_tables(objective, rows)
         with self._writing():
             write_csv(self.out / "beams.csv", beams)
             write_csv(self.out / "pareto.csv", pareto)
-        if not figures:
-            return []
-        try:
-            plots.save_figure(pareto_figure(pareto), self.out / "pareto.png")
-        except Exception as exc:  # a figure must never lose the tables
-            return [f"pareto.png: {type(exc).__name__}: {exc}"]
-        return []
+        problems = []
+        if figures:
+            try:
+                plots.save_figure(pareto_figure(pareto), self.out / "pareto.png")
+            except Exception as exc:  # a figure must never lose the tables
+                problems.append(f"pareto.png: {type(exc).__name__}: {exc}")
+        tables, draw = point_files(objective, rows, beams, figures)  # depths.csv/png, points-*.png, cysts.csv
+        with self._writing():
+            for name, table in tables.items():
+                write_csv(self.out / name, table)
+        for name, make in draw.items():
+            try:
+                plots.save_figure(make(), self.out / name)
+            except Exception as exc:  # a figure must never lose the tables
+                problems.append(f"{name}: {type(exc).__name__}: {exc}")
+        return problems
 
     def write_figures(self, objective, selections: dict[str, Selection], table, trace) -> list[str]:
         """The figures (:func:`write_figures`); returns the problems met."""

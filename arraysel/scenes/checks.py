@@ -164,23 +164,66 @@ def sector_checks(scene) -> None:
                              "sector.half_angle_deg")
 
 
+def cyst_checks(scene) -> None:
+    """The optional ``[cysts]`` section of a sector scene (``docs/sector.md``): its points among
+    ``sector.points``, its background ring outside the cyst, its radius at least two samples of each
+    point's surface and its ring inside the surface (errors name the key)."""
+    if "cysts" not in scene.tree:
+        return
+    if not scene.is_sector:
+        raise ParameterError("[cysts] applies to sector scenes only (a [sector] section): the cysts are imaged "
+                             "with the PSFs of the sector's points")
+    pts = scene.get("sector", "points")
+    idx = scene.value("cysts", "points")
+    idx = list(range(len(pts))) if idx is None else list(idx)
+    for j, i in enumerate(idx):
+        if not 0 <= int(i) < len(pts):
+            raise ParameterError(f"cysts.points[{j}] = {i} is out of range; allowed: [0, {len(pts) - 1}] (the "
+                                 f"indices of sector.points, which has {len(pts)})")
+    if not idx:
+        raise ParameterError("cysts.points is empty; give at least one index of sector.points (or leave it out)")
+    lo, hi = float(scene.value("cysts", "ring_inner")), float(scene.value("cysts", "ring_outer"))
+    if hi <= lo:
+        raise ParameterError(f"cysts.ring_outer = {hi:g} must be > cysts.ring_inner = {lo:g} (multiples of "
+                             "the radius)")
+    radius = float(scene.length("cysts", "radius"))
+    geo = scene.sector_geometry()
+    step, (hu, hv) = geo["step"], geo["half_uv"]
+    for i in idx:
+        ax, ay, r = pts[int(i)]
+        rng = float(scene.length("sector", "points", r))
+        if radius / rng < 2 * step - 1e-12:
+            raise ParameterError(f"cysts.radius = {radius * 1e3:.4g} mm is {radius / rng / step:.2f} samples of "
+                                 f"the surface of sector.points[{i}] (range {rng * 1e3:.4g} mm, step {step:.4g} "
+                                 f"in u); allowed: at least 2 samples, {2 * step * rng * 1e3:.3g} mm")
+        u0, v0 = math.sin(math.radians(ax)), math.sin(math.radians(ay))
+        reach = hi * radius / rng
+        if abs(u0) + reach > hu or abs(v0) + reach > hv:
+            top = min(hu - abs(u0), hv - abs(v0)) * rng / hi
+            raise ParameterError(f"cysts.radius = {radius * 1e3:.4g} mm: the background ring of the cyst at "
+                                 f"sector.points[{i}] (out to cysts.ring_outer = {hi:g} radii) leaves the point's "
+                                 f"surface; allowed: at most {top * 1e3:.3g} mm there")
+
+
 def aperture_checks(scene, n_elements: int, k: int) -> None:
-    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate``;
-    ``separate`` without a ``[constraints]`` section (ParameterError naming the key)."""
+    """The ``[aperture]`` section: ``k_tx`` and ``k_rx`` in ``[1, Ne]`` and only with ``separate`` or
+    ``per-transmit``, which needs a matrix-probe scene imaged on planes (ParameterError naming the
+    key); a ``[constraints]`` section is checked when the objective lifts it onto each aperture
+    (:func:`arraysel.constraints.aperture_constraints`)."""
     sec = scene.section("aperture")
     mode = sec.get("mode", "shared")
     for key in ("k_tx", "k_rx"):
         if key not in sec:
             continue
-        if mode != "separate":
-            raise ParameterError(f"aperture.{key} applies to aperture.mode = 'separate' only "
+        if mode not in ("separate", "per-transmit"):
+            raise ParameterError(f"aperture.{key} applies to aperture.mode = 'separate' or 'per-transmit' only "
                                  f"(aperture.mode = {mode!r})")
         if not 1 <= int(sec[key]) <= n_elements:
             raise ParameterError(f"aperture.{key} = {sec[key]} is out of range; allowed: [1, {n_elements}] "
                                  f"(the probe has {n_elements} elements)")
-    if mode == "separate" and scene.section("constraints"):
-        raise ParameterError("aperture.mode = 'separate' together with a [constraints] section is not supported; "
-                             "give one of them")
+    if mode == "per-transmit" and (not scene.is_volume or scene.is_sector):
+        raise ParameterError("aperture.mode = 'per-transmit' applies to matrix-probe scenes imaged on planes (such as "
+                             "matrix-1024); allowed on this scene: shared, full-tx, separate")
     if mode != "shared" and scene.needs_data:
         raise ParameterError(f"aperture.mode = {mode!r} applies to PSF scenes; end-to-end scenes (weights.L_conv "
                              "or weights.L_rec > 0) use one shared aperture")
@@ -199,7 +242,9 @@ def check_scene(scene):
     aperture_checks(scene, probe.n_elements, int(k))
     if scene.is_sector:
         sector_checks(scene)
+        cyst_checks(scene)
         return scene
+    cyst_checks(scene)  # refuses [cysts] outside a sector scene
     if scene.is_volume:
         volume_checks(scene)
         return scene

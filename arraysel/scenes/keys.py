@@ -128,6 +128,25 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "n_freq": Key("int", (1, 64), 8, "frequencies of the search's broadband beam pattern"),
         "fresh_random": Key("int", (0, 10000), 16, "fresh random selections scored on the points for the "
                             "random baseline's median (0: none)"),
+        "polish": Key("float", (0, 0.9, False), 0.0, "share of the budget of every searching selector's run "
+                      "(not the baselines) spent polishing its selection on the per-beam loss (a run's own "
+                      "polish option overrides it; 0: none)"),
+        "polish_width_ratio": Key("float", (1, 2, False), 1.048, "the polish's cap on the mean -6 dB width, "
+                                  "over the fresh random selections' median"),
+    },
+    "cysts": {  # optional in a sector scene: anechoic cysts in speckle, compare's cysts.csv (docs/sector.md)
+        "points": Key("ints", (0, 31), None, "the sector.points (indices) whose PSF images a cyst centred on the "
+                      "point (default: every point)"),
+        "radius": Key("length", (0, 0.05, True), 0.004, "cyst radius, m", "m", _POS_UNITS),
+        "density": Key("float", (0, 1000, True), 10.0, "scatterers per resolution cell (the full aperture's "
+                       "main lobe, (lambda0 R / D)^2 at the cyst's range R)"),
+        "inside": Key("float", (0, 1, True), 0.8, "the region read inside a cyst: the disc of this fraction of "
+                      "its radius (clear of its blurred edge)"),
+        "ring_inner": Key("float", (1, 10, False), 1.2, "the background ring read around a cyst starts at this "
+                          "multiple of its radius"),
+        "ring_outer": Key("float", (1, 10, True), 2.0, "... and ends at this multiple (> ring_inner)"),
+        "realisations": Key("int", (1, 1000), 8, "seeded speckle realisations pooled per cyst"),
+        "seed": Key("int", (0, 2 ** 31 - 1), 0, "seed of the scatterers (the same for every selection)"),
     },
     "receive": {
         "fnumber": Key("float", (0, 100, False), 0.0, "receive f-number (0 = full aperture)"),
@@ -149,11 +168,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
                         "y or both (four-fold)"),
     },
     "aperture": {  # docs/apertures.md; arraysel.objective.aperture
-        "mode": Key("str", ("shared", "full-tx", "separate"), "shared", "what a selection is: one mask that "
-                    "transmits and receives (shared), every element transmitting and the selection receiving "
-                    "(full-tx), or two selections, k_tx transmit and k_rx receive elements (separate)"),
-        "k_tx": Key("int", (1, 4096), None, "transmit elements of a separate selection (default: selection.k)"),
-        "k_rx": Key("int", (1, 4096), None, "receive elements of a separate selection (default: selection.k)"),
+        "mode": Key("str", ("shared", "full-tx", "separate", "per-transmit"), "shared",
+                    "what a selection is: one mask that transmits and receives (shared), every element "
+                    "transmitting and the selection receiving (full-tx), two selections, k_tx transmit and k_rx receive elements (separate), or a transmit "
+                    "aperture of k_tx elements for every transmit event and a receive aperture of k_rx (per-transmit, "
+                    "matrix-probe scenes)"),
+        "k_tx": Key("int", (1, 4096), None, "transmit elements of a separate selection, of each event's "
+                    "aperture under per-transmit (default: selection.k)"),
+        "k_rx": Key("int", (1, 4096), None, "receive elements of a separate or per-transmit selection "
+                    "(default: selection.k)"),
     },
     "metrics": {
         "r_main": Key("length", (0, 1000, True), 1.5, "main-lobe radius", "wl", _GRID_UNITS),

@@ -112,12 +112,12 @@ def layout_projection(objective, chosen, gc=None) -> np.ndarray:
 
 
 def _nearest_distance(points: np.ndarray, kept: np.ndarray) -> np.ndarray:
-    """The distance from each of ``points`` (n, d) to the nearest of ``kept`` (m, d): the squared
-    distances summed coordinate by coordinate (no (n, m, d) array), the root of their minimum."""
-    d2 = np.zeros((points.shape[0], kept.shape[0]))
-    for c in range(points.shape[1]):
-        d2 += (points[:, c, None] - kept[None, :, c]) ** 2
-    return np.sqrt(d2.min(axis=1))
+    """The distance from each of ``points`` (n, d) to the nearest of ``kept`` (m, d), by a k-d tree
+    of ``kept`` (n log m: a virtual array of 10,240 units with 2,560 kept takes milliseconds, where
+    the (n, m) distance table took seconds)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(kept, dtype=np.float64)).query(np.asarray(points, dtype=np.float64))[0]
 
 
 def chirp_selection(objective, k: int, rng: np.random.Generator, m: int = CHIRP_CANDIDATES) -> list[int]:

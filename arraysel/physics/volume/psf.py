@@ -213,6 +213,22 @@ def check_element_weights(weights, n_elements: int, dtype, device) -> torch.Tens
     return w.to(device=device, dtype=dtype)
 
 
+def transmit_event_weights(weights, n_tx: int, n_elements: int, dtype, device) -> torch.Tensor:
+    """Transmit apodizations, one per transmit event: ``(B, n_tx, Ne)`` as given, or ``(B, Ne)``
+    (one aperture for every event) as a ``(B, 1, Ne)`` view; SelectionError for another shape or
+    a value that is not finite."""
+    if isinstance(weights, torch.Tensor) and weights.dim() == 3 or not isinstance(weights, torch.Tensor) \
+            and np.ndim(weights) == 3:
+        w = weights if isinstance(weights, torch.Tensor) else torch.as_tensor(np.asarray(weights, dtype=np.float64))
+        if w.shape[1:] != (n_tx, n_elements):
+            raise SelectionError(f"per-transmit weights must have shape (B, {n_tx}, {n_elements}) (one transmit "
+                                 f"apodization per transmit event), got {tuple(w.shape)}")
+        if not bool(torch.isfinite(w.detach()).all()):
+            raise SelectionError("weights must be finite")
+        return w.to(device=device, dtype=dtype)
+    return check_element_weights(weights, n_elements, dtype, device)[:, None]
+
+
 def peak_normalise(planes: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Each selection's planes divided by their joint peak magnitude (the largest ``|value|`` over
     all its planes; detached), so that the peak is 1. Raises NumericalError for an all-zero one."""
@@ -297,16 +313,21 @@ class MatrixPSF:
     def _weights(self, weights) -> torch.Tensor:
         return check_element_weights(weights, self.n_elements, self.dtype, self.device)
 
-    def _receive(self, w: torch.Tensor, receive) -> torch.Tensor:
-        return receive_weights(w, receive, self._weights)
+    def _apertures(self, weights, receive) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(transmit (B, n_tx or 1, Ne), receive (B, Ne))`` of :meth:`image`'s arguments."""
+        w = transmit_event_weights(weights, len(self.transmits), self.n_elements, self.dtype, self.device)
+        if w.shape[1] > 1 and receive is None:
+            raise SelectionError("per-transmit weights (B, n_tx, Ne) need the receive weights (receive=)")
+        return w, (w[:, 0] if receive is None else receive_weights(w[:, 0], receive, self._weights))
 
     def iq(self, weights, tx: int, elements: torch.Tensor | None = None, receive=None) -> torch.Tensor:
         """I/Q signals (B, n, T) of transmit ``tx`` for the receive ``elements`` (default all),
         on the samples the planes read (``_samples[tx]``), in units of ``image_scale``;
-        ``receive`` (B, Ne): separate RX channel weights (``weights`` then the TX apodization)."""
+        ``receive`` (B, Ne): separate RX channel weights (``weights`` then the TX apodization,
+        (B, Ne) or (B, n_tx, Ne): one per transmit event)."""
         t = self.transmits[tx]
-        w = self._weights(weights)
-        r = self._receive(w, receive)
+        w, r = self._apertures(weights, receive)
+        w = w[:, tx if w.shape[1] > 1 else 0]
         G = t.tx_field.to(self.device, self.cdtype)
         RC = t.rx_factor.to(self.device, self.cdtype)
         field_ = w.to(self.cdtype) @ G  # (B, F): the field at the scatterer
@@ -322,9 +343,11 @@ class MatrixPSF:
     def image(self, weights, receive=None) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels, concatenated in :attr:`coords` order;
         ``receive`` (B, Ne): separate RX channel weights (``weights`` then the TX apodization;
-        None: the same weights transmit and receive)."""
-        w = self._weights(weights)
-        r = self._receive(w, receive)
+        None: the same weights transmit and receive). ``weights`` (B, n_tx, Ne): a transmit
+        apodization per transmit event (per-transmit apertures; ``receive`` required)."""
+        w, r = self._apertures(weights, receive)
+        if w.shape[1] == 1:
+            w = w[:, 0]
         elements = None
         if not (w.requires_grad or r.requires_grad):
             support = (r != 0)

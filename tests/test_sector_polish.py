@@ -1,0 +1,121 @@
+"""A sector scene's polish inside a run (``sector.polish``, docs/sector.md): the selector searches on
+the beam pattern, then the rest of its budget polishes its selection on the points' per-beam loss;
+baselines are left as they are; the polish's scores are charged to the run's budget."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from arraysel.objective.sector_objective import SectorObjective
+from arraysel.run.experiment import Experiment
+from arraysel.run.sector_report import BeamPolish, beam_polish_plan
+from arraysel.scenes.schema import load_scene
+from arraysel.selectors.contract import Budget
+from arraysel.selectors.registry import get_registry
+
+TINY = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
+        "acquisition": {"fs_over_fc": 4.0},
+        "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
+                     "source_distance": "5 mm"},
+        "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 0.0, "15 mm"]], "samples_per_lobe": 3.0, "margin": 1.0,
+                   "n_freq": 4, "fresh_random": 3, "polish": 0.5},
+        "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0}}
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return SectorObjective(load_scene(copy.deepcopy(TINY)), dtype=torch.float32)
+
+
+def test_the_plan_polishes_searches_not_baselines(tiny):
+    reg = get_registry()
+    for name in ("random", "uniform", "spiral"):
+        assert reg[name].baseline and beam_polish_plan(tiny, reg[name], {}) is None, name
+    for name in ("swap", "ste", "anneal", "gumbel"):
+        plan = beam_polish_plan(tiny, reg[name], {})
+        assert isinstance(plan, BeamPolish) and plan.share == 0.5 and plan.width_ratio == 1.048, name
+    assert beam_polish_plan(tiny, reg["swap"], {"polish": 0.0}) is None          # the run's own option wins
+    assert beam_polish_plan(tiny, reg["random"], {"polish": 0.3}).share == 0.3
+    off = SectorObjective(load_scene({**copy.deepcopy(TINY), "sector": {**TINY["sector"], "polish": 0.0}}))
+    assert beam_polish_plan(off, reg["swap"], {}) is None
+    with pytest.raises(Exception, match="sector.polish"):
+        load_scene({**copy.deepcopy(TINY), "sector": {**TINY["sector"], "polish": 0.95}})
+
+
+def _loss(obj, sel, cap):
+    m = np.zeros(obj.n_elements, dtype=bool)
+    m[list(sel)] = True
+    return float(obj.beam_loss(m[None], width_cap=cap, width_weight=300.0)[0][0])
+
+
+def test_a_polished_run_lowers_the_per_beam_loss_within_its_budget(tiny):
+    # random's best of 150 evaluations on the beam pattern, then 150 evaluations of polish on the points
+    row = Experiment(tiny, "random", options={"polish": 0.5}, budget=Budget(evaluations=300), seed=2).execute()
+    stage = Experiment(tiny, "random", options={"polish": 0.0}, budget=Budget(evaluations=150), seed=2).execute()
+    assert not row["error"] and not stage["error"]
+    assert 150 < row["evaluations"] <= 300 and stage["evaluations"] <= 150
+    assert '"polish": 0.5' in row["options"]
+    plan = BeamPolish(0.5, 1.048)
+    plan.prepare(tiny)
+    assert _loss(tiny, row["elements"], plan.cap) < _loss(tiny, stage["elements"], plan.cap)
+    again = Experiment(tiny, "random", options={"polish": 0.5}, budget=Budget(evaluations=300), seed=2).execute()
+    assert list(again["elements"]) == list(row["elements"])       # an evaluation budget: reproducible
+
+
+@pytest.mark.slow
+def test_compare_polishes_the_searches_of_a_sector_scene(tmp_path, tiny):
+    from arraysel.run.compare import compare
+
+    compare(tiny, ["random", "uniform", "swap"], out_dir=tmp_path, seeds=[0], budget=Budget(evaluations=300),
+            progress=False)
+    runs = pd.read_csv(tmp_path / "runs.csv").set_index("config")
+    assert '"polish": 0.5' in runs.loc["swap", "options"]
+    assert "polish" not in str(runs.loc["random", "options"]) and runs.loc["swap", "evaluations"] <= 300
+    beams = pd.read_csv(tmp_path / "beams.csv")
+    assert "polish=0.5" in beams.loc[beams["config"] == "swap", "options"].iloc[0]
+    assert "polish=0.0" in beams.loc[beams["config"] == "random", "options"].iloc[0]
+
+
+def test_moves_from_a_base_give_the_same_images_and_metrics(tiny):
+    """A local search's moves scored from its selection's fast-path sums (``base``: the receive
+    sums change by the rows of the elements that differ) equal the same masks scored afresh."""
+    rng = np.random.default_rng(5)
+    base = np.zeros(64, dtype=bool)
+    base[rng.choice(64, 16, replace=False)] = True
+    on, off = np.flatnonzero(base), np.flatnonzero(~base)
+    moves = np.repeat(base[None], 6, axis=0)
+    moves[np.arange(6), on[:6]] = False
+    moves[np.arange(6), off[:6]] = True
+    moves[5] = base                                  # no move at all: the base itself
+    for i in range(tiny.n_points):
+        assert tiny.fast_point(i)
+        a = tiny.point_images(moves, i)
+        b = tiny.point_images(moves, i, base=base)
+        assert torch.allclose(a, b, rtol=0, atol=1e-5 * float(a.abs().max())), i
+    full = tiny.beam_metrics(moves)
+    fromb = tiny.beam_metrics(moves, base=base)
+    assert np.allclose(full["PSL_dB"], fromb["PSL_dB"], atol=1e-3)
+    assert np.allclose(full["width_x_6dB"], fromb["width_x_6dB"], rtol=1e-4)
+    far = np.roll(moves, 7, axis=1)                  # many elements differ: the full product is used
+    assert torch.allclose(tiny.point_images(far, 0), tiny.point_images(far, 0, base=base), atol=1e-6)
+
+
+def test_moves_from_a_base_on_a_mirrored_point():
+    from test_sector_fast import SMALL   # points 1 and 2 are x-y mirrors: point 2 takes point 1's model
+
+    obj = SectorObjective(load_scene(copy.deepcopy(SMALL)), dtype=torch.float32)
+    rng = np.random.default_rng(1)
+    base = np.zeros(64, dtype=bool)
+    base[rng.choice(64, 16, replace=False)] = True
+    on, off = np.flatnonzero(base), np.flatnonzero(~base)
+    moves = np.repeat(base[None], 4, axis=0)
+    moves[np.arange(4), on[:4]] = False
+    moves[np.arange(4), off[:4]] = True
+    for i in (1, 2):
+        assert obj.fast_point(i)
+        a, b = obj.point_images(moves, i), obj.point_images(moves, i, base=base)
+        assert torch.allclose(a, b, rtol=0, atol=1e-5 * float(a.abs().max())), i
