@@ -291,13 +291,14 @@ class MatrixNeighbourhood:
 
     def block(self):
         """The requests this neighbourhood scores fastest (:class:`~arraysel.objective.contract.SwapBlock`):
-        :data:`BLOCK_ROWS` outgoing elements a call, each swapped with every incoming element (one
-        batched product reads the right factors once for them all: on a loaded machine, where
-        memory traffic is what a neighbour costs, blocks of four outgoing elements scored 2.6x as
-        many neighbours a second as blocks of one, ``benchmarks/results/bench-matrix-neighbours``)."""
+        swaps grouped by outgoing element, each with every incoming element, one outgoing element a
+        call. Blocks of four score more neighbours a second on a loaded machine (one product reads
+        the right factors once for them all), but a descent moves only after a block: ``ils`` on
+        matrix-1024 in 10 minutes ended at a median Mean of 0.0156 with blocks of one against 0.053
+        with blocks of four (``benchmarks/results/compare-matrix-1024-10min``, ``-blocks4``)."""
         from arraysel.objective.contract import SwapBlock
 
-        return SwapBlock(outgoing=BLOCK_ROWS)
+        return SwapBlock(outgoing=1)
 
     def dense(self, out: np.ndarray) -> np.ndarray:
         """For each swap with the outgoing elements ``out``: whether it goes by the block path (its
