@@ -56,11 +56,17 @@ def full_images(obj, i: int, masks: np.ndarray, pts: np.ndarray, amps: np.ndarra
     bw = probe.bandwidth if st.iq_bandwidth is None else st.iq_bandwidth
     delays = [torch.as_tensor(d, dtype=torch.float64) for d in st.delays]
     grid = max((grid_for_points3(P, d, probe, acq, st.options) for d in delays), key=lambda g: (g.n_fft, g.n_time))
+    f = grid.f
     spectra = [0] * len(delays)
     for a in range(0, len(P), chunk):
-        resp = element_responses3(P[a:a + chunk], grid.f, probe, acq.c, acq.attenuation, st.options)
+        resp = element_responses3(P[a:a + chunk], f, probe, acq.c, acq.attenuation, st.options)
+        if a == 0:   # the batched products below are rx_spectra3's
+            ref = rx_spectra3(resp, rc[:chunk], f, delays[0], w, w, probe, acq.tx_cycles)
+            got = _spectra(resp.permute(2, 0, 1).contiguous(), rc[:chunk], f, delays[0], w, probe, acq.tx_cycles)
+            assert torch.allclose(got, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max())), "batched spectra"
+        resp_f = resp.permute(2, 0, 1).contiguous()                 # (F, P, Ne)
         for n, d in enumerate(delays):
-            spectra[n] = spectra[n] + rx_spectra3(resp, rc[a:a + chunk], grid.f, d, w, w, probe, acq.tx_cycles)
+            spectra[n] = spectra[n] + _spectra(resp_f, rc[a:a + chunk], f, d, w, probe, acq.tx_cycles)
     out = 0
     for n, d in enumerate(delays):
         rf = spectra_to_rf(spectra[n], grid)                    # (B, Ne, n_t)
@@ -70,6 +76,23 @@ def full_images(obj, i: int, masks: np.ndarray, pts: np.ndarray, amps: np.ndarra
         plan = das_plan3(pix, st.delays[n], probe, acq.fs, acq.c, n_t, probe.fc)
         out = out + das_apply(iq, plan.i0, plan.w, plan.rot)
     return out.reshape(-1, H, W).numpy()
+
+
+def _spectra(resp_f, rc, f, delays, w, probe, tx_cycles) -> torch.Tensor:
+    """``rx_spectra3(resp, rc, f, delays, w, w, ...)`` (B, Ne, F) as two batched matrix products
+    over the frequencies, from ``resp_f`` (F, P, Ne), the responses with frequency first."""
+    from arraysel.physics.simus import probe_response, pulse_spectrum
+
+    cdt = resp_f.dtype
+    om = 2 * math.pi * f.to(torch.float64)
+    steer = torch.polar(torch.ones_like(delays[:, None] * om), delays[:, None] * om)      # (Ne, F)
+    wt = (w.to(cdt)[:, :, None] * steer[None]).permute(2, 1, 0)                            # (F, Ne, B)
+    tx = torch.bmm(resp_f, wt)                                                             # (F, P, B)
+    H = probe_response(f, probe.fc, probe.bandwidth).to(torch.float64)
+    pulse = pulse_spectrum(f, probe.fc, tx_cycles).to(cdt)
+    tx = tx * (pulse * H)[:, None, None] * rc.to(cdt)[None, :, None]
+    rx = torch.bmm(tx.transpose(1, 2), resp_f) * H[:, None, None]                         # (F, B, Ne)
+    return rx.permute(1, 2, 0) * w.to(cdt)[:, :, None]
 
 
 def phantom(ph, lam: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
