@@ -55,8 +55,12 @@ def _assert_same(before: dict, after: dict, path: str = "") -> None:
         else:
             # L_PSF of the full array is its distance to itself, zero up to float32 rounding
             # (2.4e-12 on matrix-1024): that rounding is not a score, and a fast path built afresh
-            # rounds it differently; the same rtol for every other value
-            np.testing.assert_allclose(np.asarray(after[key], dtype=np.float64), np.asarray(value), rtol=1e-6,
+            # rounds it differently. A matrix scene's swaps are formed from the rows of the elements
+            # they move since the neighbourhood learnt to (not as masks, as when recorded): float32
+            # rounds them differently, by up to 3.5e-5 of L_PSF (tests/test_matrix_neighbours.py
+            # checks them against independently scored masks); rtol 1e-6 for every other value
+            rtol = 1e-4 if path.startswith("matrix-1024/swaps") else 1e-6
+            np.testing.assert_allclose(np.asarray(after[key], dtype=np.float64), np.asarray(value), rtol=rtol,
                                        atol=1e-10 if key == "L_PSF" else 0, err_msg=f"{path}/{key}")
 
 

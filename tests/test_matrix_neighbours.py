@@ -1,15 +1,16 @@
 """Neighbourhoods of a 3-D scene (arraysel.objective.matrix_neighbours): the neighbours' scores
 from the selection's image equal the neighbour masks scored independently (every metric, float64,
 a whole neighbourhood from the selection's image, a few swaps and moves of several elements as
-masks), gradients are untouched,
-and the swap engine uses it and finds a planted optimum."""
+masks), blocks of swaps along a walk of selections carry the selection's columns exactly,
+gradients are untouched, and the swap engine asks for whole blocks, counts each neighbour and
+finds a planted optimum."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from arraysel.objective.contract import ScoresMoves, ScoresSwaps
+from arraysel.objective.contract import ScoresMoves, ScoresSwaps, SwapBlock
 from arraysel.objective.matrix_objective import MatrixObjective
 from arraysel.objective.neighbours import move_masks, swap_masks, swap_pairs
 from scene_texts import TINY_MATRIX_SCENE
@@ -51,7 +52,7 @@ def test_whole_neighbourhood_equals_independent_masks(small, seed):
     out, into = swap_pairs(m, np.random.default_rng(seed))
     assert out.size == 16 * 48
     before = small.evaluations
-    assert small._neighbourhood().dense(out)
+    assert small._neighbourhood().dense(out).all()
     got = small.evaluate_swaps(m, out, into)
     assert small.evaluations - before == out.size
     _same(got, small.evaluate(swap_masks(m, out, into)))
@@ -60,8 +61,8 @@ def test_whole_neighbourhood_equals_independent_masks(small, seed):
 def test_a_few_swaps_move_by_move_equal_independent_masks(small):
     m = _mask(small, 2)
     out, into = swap_pairs(m, np.random.default_rng(2))
-    out, into = out[:7], into[:7]       # sparse: scored as masks
-    assert not small._neighbourhood().dense(out)
+    out, into = out[:7], into[:7]       # sparse: each formed from its own rows
+    assert not small._neighbourhood().dense(out).any()
     _same(small.evaluate_swaps(m, out, into), small.evaluate(swap_masks(m, out, into)))
 
 
@@ -85,6 +86,60 @@ def test_a_walk_of_selections_keeps_each_image_right(small):
         assert small._neighbourhood()._key == m.tobytes()
         _same(got, small.evaluate(swap_masks(m, out, into)))
         m = swap_masks(m, out[:1], into[:1])[0]
+
+
+def test_the_neighbourhood_prefers_blocks_of_one_outgoing_element(small):
+    assert small.neighbourhood().block() == SwapBlock(outgoing=1)
+
+
+def test_a_walk_of_blocks_carries_the_columns_exactly(small):
+    # a descent's walk: each step every swap of one outgoing element (a block), then a move of one
+    # swap (every other step two moves in a row); the columns of the last selection are carried
+    # over, not formed afresh, and every score equals the neighbour masks scored independently
+    m = _mask(small, 8)
+    rng = np.random.default_rng(8)
+    nb = small._neighbourhood()
+    nb.forget()
+    for step in range(6):
+        out, into = swap_pairs(m, rng)
+        pick = out == out[0]
+        _same(small.evaluate_swaps(m, out[pick], into[pick]), small.evaluate(swap_masks(m, out[pick], into[pick])))
+        m = swap_masks(m, out[:1], into[:1])[0]
+        if step % 2:
+            nb.select(m)   # two selections in a row without a block between: their moves add up
+            o2, i2 = swap_pairs(m, rng)
+            m = swap_masks(m, o2[:1], i2[:1])[0]
+    assert nb._carried == 8      # five selections the blocks asked for, three in between
+
+
+def test_a_descent_asks_for_whole_blocks_and_counts_each_neighbour(small):
+    from arraysel.selectors.contract import Budget, BudgetedObjective, Recorder
+    from arraysel.selectors.localsearch import SwapSearch
+
+    budget = Budget(evaluations=5000).start(small)
+    view = BudgetedObjective(small, budget, Recorder(small, budget), small.k)
+    search = SwapSearch(view, small.k, np.random.default_rng(9), race=1, shift=0, guide=0.0)  # no model: no Hessian
+    assert search.block == SwapBlock(outgoing=1)
+    inner, calls = search.neighbourhood, []
+
+    class Spy:
+        def evaluate(self, mask, out, into):
+            calls.append(np.asarray(out).reshape(-1))
+            return inner.evaluate(mask, out, into)
+
+        def block(self):
+            return inner.block()
+
+    search.neighbourhood = Spy()
+    m = _mask(small, 9)
+    v = float(search.score(m[None])[0])
+    used = budget.used_evaluations()
+    search.descend(m, v)
+    assert calls and budget.used_evaluations() - used == sum(c.size for c in calls) == search.scored - 1
+    n_in = small.n_elements - small.k
+    for out in calls:   # chunk 64 of 48 swaps an outgoing element: two outgoing elements a call
+        _, counts = np.unique(out, return_counts=True)
+        assert counts.size <= 2 and (counts >= n_in - 1).all()     # less a neighbour seen before
 
 
 def test_gradients_are_unaffected(small):

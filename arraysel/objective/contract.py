@@ -52,7 +52,7 @@ import numpy as np
 from arraysel.errors import ParameterError, check_number
 
 __all__ = ["ObjectiveContract", "Rebuildable", "HasLayout", "ScoresSwaps", "ScoresMoves", "HasHessian", "WorkerFactory",
-           "Neighbourhood", "LossModel", "MovesNeighbourhood", "AutogradLossModel", "loss_model_of", "ObjectiveInfo", "objective_info", "worker_factory_of", "missing_members",
+           "Neighbourhood", "SwapBlock", "LossModel", "MovesNeighbourhood", "AutogradLossModel", "loss_model_of", "ObjectiveInfo", "objective_info", "worker_factory_of", "missing_members",
            "dtype_name", "hessian_by_rows",
            "check_element_grid", "element_layout"]
 
@@ -155,13 +155,34 @@ class Neighbourhood(Protocol):
     False, rows padded with ``-1`` (as for :class:`ScoresMoves`); returns ``{name: float64 (B,)}``
     equal, to rounding, to the objective's ``evaluate`` of the ``B`` neighbour masks, and counts
     ``B`` evaluations on the objective. ``prepare()`` does the one-off work the scoring shares
-    between selections (the runners call it before a run's budget starts)."""
+    between selections (the runners call it before a run's budget starts). ``block()`` says how a
+    search should ask for one-swaps to score them fastest: a :class:`SwapBlock` (a few outgoing
+    elements a call, each with all its incoming ones), or None (any set of swaps is as cheap a
+    neighbour; :func:`~arraysel.objective.neighbours.neighbourhood_of` gives an object without
+    this method one that answers None)."""
 
     def evaluate(self, mask, out, into) -> dict:
         ...
 
     def prepare(self) -> None:
         ...
+
+    def block(self) -> "SwapBlock | None":
+        ...
+
+
+@dataclasses.dataclass(frozen=True)
+class SwapBlock:
+    """The one-swap requests a :class:`Neighbourhood` scores fastest: ``outgoing`` outgoing elements
+    a call, each swapped with every incoming element a search allows it (a matrix scene's
+    neighbourhood forms such a block by batched products; a neighbour of it costs a fraction of one
+    asked alone)."""
+
+    outgoing: int
+
+    def __post_init__(self):
+        if int(self.outgoing) < 1:
+            raise ParameterError(f"SwapBlock.outgoing must be at least 1, got {self.outgoing}")
 
 
 @runtime_checkable
@@ -183,11 +204,16 @@ class LossModel(Protocol):
 
 class MovesNeighbourhood:
     """A :class:`Neighbourhood` made of an objective's methods: ``evaluate_moves(mask, out, into)``
-    (``(B, m)`` moves) and, optionally, ``prepare()``."""
+    (``(B, m)`` moves) and, optionally, ``prepare()``; ``block`` the :class:`SwapBlock` it prefers
+    (None: none)."""
 
-    def __init__(self, evaluate_moves: Callable, prepare: Callable | None = None):
+    def __init__(self, evaluate_moves: Callable, prepare: Callable | None = None, block: "SwapBlock | None" = None):
         self._evaluate_moves = evaluate_moves
         self._prepare = prepare
+        self._block = block
+
+    def block(self) -> "SwapBlock | None":
+        return self._block
 
     def evaluate(self, mask, out, into) -> dict:
         return self._evaluate_moves(mask, out, into)

@@ -19,12 +19,20 @@ cross term ``X_ab = sum_j (B_aj Z_bj + Z_aj B_bj)``. Nothing is approximated: th
 path's own planes, to rounding.
 
 :class:`MatrixNeighbourhood` keeps ``Z``, ``D`` and, per selection, its image and the ``S_e`` it has
-needed; it scores
+needed. It scores
 
-a dense set of swaps (many ``b`` for each ``a``, a whole neighbourhood) by one batched matrix
-product per pixel group for a block of ``a``: ``X`` of the block against every element. Sparser
-requests, and moves of several elements, are scored as masks (one by one, a move's image is no
-cheaper to form than a mask's in a batch: it reads whole rows of ``B`` and ``Z``).
+* a *block* of swaps (one outgoing element ``a`` against many incoming ones, a few such ``a`` at a
+  time: what a search asks for when the neighbourhood says it prefers blocks, :meth:`block`) by one
+  batched matrix product per pixel group: the cross terms ``C_ae`` of the block's ``a`` against
+  every element;
+* any other move (a few swaps of scattered elements, moves of several elements) from its own
+  rows: ``img' = img + sum_e d_e S_e + sum_{j in p} (d @ B)_j (d @ Z)_j``, which reads the ``2 m``
+  rows of ``B`` and ``Z`` a move of ``m`` elements changes (where a mask scored on its own reads
+  all ``k`` of them).
+
+``S`` is linear in the selection (``S_e(w) = sum_f w_f C_ef``, ``C_ee = 2 D_e``), so when the
+selection moves by a few elements the ``S_e`` held are carried over by the cross terms of the
+elements moved (:meth:`select`), formed afresh every :data:`REFRESH_AFTER` moves against rounding.
 
 The neighbours' planes then go through the objective's metrics (:meth:`MatrixObjective._metrics`),
 the same function :meth:`MatrixObjective.evaluate` scores masks with.
@@ -36,14 +44,21 @@ import torch
 
 from arraysel.errors import SelectionError
 
-__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "DENSE_SHARE", "check_selection"]
+__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
+           "check_selection"]
 
-#: outgoing elements per batched product of the dense path (its output: rows x Ne images)
+#: outgoing elements per batched product of the block path (its output: rows x Ne images)
 BLOCK_ROWS = 4
-#: the neighbourhood path is taken when the requested swaps fill at least this share of the
-#: (distinct outgoing elements) x Ne block it computes (on matrix-1024 a neighbour of a block costs
-#: about a sixteenth of a mask scored by ``evaluate``; sparser requests are scored as masks)
+#: an outgoing element's swaps go by the block path when they fill at least this share of its row
+#: of Ne images (on matrix-1024 a neighbour of a block costs about a fifteenth of a mask scored by
+#: ``evaluate``); the other moves are formed from their own rows
 DENSE_SHARE = 1 / 16
+#: moves formed from their own rows per batch (each reads the rows of the elements it changes)
+MOVE_BATCH = 64
+#: most elements a selection may differ from the held one by for its ``S_e`` to be carried over
+CARRY_MAX = 16
+#: carried selections after which the held ``S_e`` are formed afresh (float32 rounding)
+REFRESH_AFTER = 32
 
 
 class MatrixNeighbourhood:
@@ -70,7 +85,10 @@ class MatrixNeighbourhood:
         self._img = None
         self._S = None
         self._have = None
-        self._U = None          # S_e + D_e as columns, per selection (dense path)
+        self._U = None          # S_e + D_e as columns, per selection (block path)
+        self._mask = None       # the held selection
+        self._pending = None    # the rows (d @ B, d @ Z) of a carried move not yet added to _U
+        self._carried = 0       # selections whose S_e were carried over since they were formed
         self._metrics = None
 
     # ---------------------------------------------------------------- shared tensors
@@ -119,10 +137,15 @@ class MatrixNeighbourhood:
     # ---------------------------------------------------------------- the selection
     def forget(self) -> None:
         """Drop the held selection (the next one is formed afresh)."""
-        self._key = self._img = self._S = self._have = self._U = None
+        self._key = self._img = self._S = self._have = self._U = self._mask = self._pending = None
+        self._carried = 0
 
     def select(self, mask: np.ndarray) -> None:
-        """Hold the image of the 0/1 selection ``mask`` (Ne,) (kept while it stays the same)."""
+        """Hold the image of the 0/1 selection ``mask`` (Ne,) (kept while it stays the same). When it
+        differs from the held one by a few elements (at most :data:`CARRY_MAX`), the ``S_e`` of every
+        element, when held, are carried over (module docstring), else formed again as they are
+        needed."""
+        mask = np.asarray(mask, dtype=bool)
         key = mask.tobytes()
         if key == self._key:
             return
@@ -133,18 +156,55 @@ class MatrixNeighbourhood:
         z = (c @ m._Psi)[0]
         self._gamma, self._z = gamma, z
         self._img = self._segsum(gamma * z)
+        changed = None if self._mask is None else np.flatnonzero(mask != self._mask)
+        if (changed is not None and changed.size <= CARRY_MAX and self._carried < REFRESH_AFTER
+                and self._U is not None):
+            self._carry(changed, np.where(mask[changed], 1.0, -1.0))
+        else:
+            self._U = self._pending = None
+            self._carried = 0
         self._S = torch.zeros(self.n_elements, self.n_pixels, dtype=self.cdtype)
         self._have = torch.zeros(self.n_elements, dtype=torch.bool)
-        self._U = None
-        self._key = key
+        self._key, self._mask = key, mask.copy()
+
+    def _carry(self, changed: np.ndarray, signs: np.ndarray) -> None:
+        """Carry the held ``S_e + D_e`` of every element (:meth:`_pairs_part`) to the selection
+        that switched ``changed`` by ``signs`` (+1 on, -1 off): ``S_e += sum_f d_f C_ef``, the
+        cross terms of the move's rows ``d @ B``, ``d @ Z`` against every element. The rows are
+        kept until the columns are next needed (:meth:`_settle`): a block formed then takes them
+        in its own product."""
+        Bc, Zc = self._rows(torch.as_tensor(changed, dtype=torch.long))
+        d = torch.as_tensor(signs, dtype=self.cdtype)[None]
+        rows = (d @ Bc, d @ Zc)
+        if self._pending is not None:     # C is linear in the rows: moves carried add up
+            rows = (rows[0] + self._pending[0], rows[1] + self._pending[1])
+        self._pending = rows
+        self._carried += 1
+
+    def _settle(self, X: torch.Tensor | None = None) -> None:
+        """Add the carried move's cross terms to the held columns: ``X`` (P, 2, Ne) when a block's
+        product formed them, else formed here."""
+        if self._pending is None:
+            return
+        if X is None:
+            X = self._cross(*self._pending)[:, :, 0]
+        self._pending = None
+        ur, ui = self._U
+        ur.add_(X[:, 0])
+        ui.add_(X[:, 1])
 
     def _single(self, elements: torch.Tensor) -> torch.Tensor:
-        """``S_e`` (E, P) of ``elements`` for the held selection (formed when first needed)."""
+        """``S_e`` (E, P) of ``elements`` for the held selection (formed when first needed, or read
+        from the columns :meth:`_pairs_part` holds)."""
         need = torch.unique(elements[~self._have[elements]])
         for i in range(0, need.numel(), 64):
             e = need[i:i + 64]
-            Be, Ze = self._rows(e)
-            self._S[e] = self._segsum(Be * self._z + self._gamma * Ze)
+            if self._U is not None:
+                ur, ui = self._pairs_part()
+                self._S[e] = torch.complex(ur[:, e], ui[:, e]).T - self.diagonal().index_select(0, e)
+            else:
+                Be, Ze = self._rows(e)
+                self._S[e] = self._segsum(Be * self._z + self._gamma * Ze)
             self._have[e] = True
         return self._S.index_select(0, elements)
 
@@ -152,16 +212,18 @@ class MatrixNeighbourhood:
     def _pairs_part(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``S_e + D_e`` of every element as columns (P, Ne), real and imaginary (per selection)."""
         if self._U is None:
-            u = (self._single(torch.arange(self.n_elements)) + self.diagonal()).T
-            self._U = (u.real.contiguous(), u.imag.contiguous())
+            u = torch.view_as_real(self._single(torch.arange(self.n_elements)) + self.diagonal())
+            u = u.permute(2, 1, 0).contiguous()                                 # (2, P, Ne)
+            self._U = (u[0], u[1])
+        self._settle()
         return self._U
 
-    def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
-        """The images of the swaps ``outs[i]`` off and every element on (the columns of active
-        elements are meaningless) as real ``(P, 2, A, Ne)``: real and imaginary parts, rows in
-        the fast path's pixel order; one batched product per pixel group."""
-        A = outs.numel()
-        Ba, Za = self._rows(outs)
+    def _cross(self, Ba: torch.Tensor, Za: torch.Tensor) -> torch.Tensor:
+        """The cross terms ``C_ae(p) = sum_{j in p} (B_aj Z_ej + Z_aj B_ej)`` of the rows ``(B_a,
+        Z_a)`` (each ``(A, cols)``) against every element as real ``(P, 2, A, Ne)`` (real and
+        imaginary parts, the fast path's pixel order; ``C_aa = 2 D_a``): one batched product per
+        pixel group."""
+        A = Ba.shape[0]
         rights = self.rights()
         rdt = self.model._B.dtype
         X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=rdt)
@@ -176,17 +238,87 @@ class MatrixNeighbourhood:
             left[:, 1, :, 2 * w:] = L[..., 0]
             torch.bmm(left.reshape(n, 2 * A, 4 * w), r, out=X[p0:p0 + n])
             p0 += n
-        X = X.reshape(self.n_pixels, 2, A, self.n_elements).neg_()
+        return X.reshape(self.n_pixels, 2, A, self.n_elements)
+
+    def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
+        """The images of the swaps ``outs[i]`` off and every element on (the columns of active
+        elements are meaningless) as real ``(P, 2, A, Ne)``: real and imaginary parts, rows in
+        the fast path's pixel order; one batched product per pixel group."""
+        Ba, Za = self._rows(outs)
+        if self._pending is not None:     # the carried move's rows in the same product
+            X = self._cross(torch.cat([self._pending[0], Ba]), torch.cat([self._pending[1], Za]))
+            self._settle(X[:, :, 0])
+            X = X[:, :, 1:]
+        else:
+            X = self._cross(Ba, Za)
+        X = X.neg_()
         v = (self._img[None] - self._single(outs) + self.diagonal().index_select(0, outs)).T   # (P, A)
         ur, ui = self._pairs_part()
         X[:, 0].add_(ur[:, None]).add_(v.real[:, :, None])
         X[:, 1].add_(ui[:, None]).add_(v.imag[:, :, None])
         return X
 
-    def dense(self, out: np.ndarray) -> bool:
-        """Whether swaps with the outgoing elements ``out`` are cheaper here than as masks: at
-        least :data:`DENSE_SHARE` of the block (distinct outgoing elements x Ne) they need."""
-        return out.size >= DENSE_SHARE * np.unique(out).size * self.n_elements
+    def move_images(self, out: torch.Tensor, into: torch.Tensor) -> torch.Tensor:
+        """The images ``(M, P)`` (complex, the fast path's pixel order) of the moves that switch
+        ``out[i]`` off and ``into[i]`` on (``(M, m)`` long, ``-1`` pads), each from the rows of
+        the elements it changes: ``img + sum_e d_e S_e + sum_{j in p} (d @ B)_j (d @ Z)_j``."""
+        M = out.shape[0]
+        dB = torch.zeros(M, self.cols, dtype=self.cdtype)
+        dZ = torch.zeros(M, self.cols, dtype=self.cdtype)
+        img = self._img[None].repeat(M, 1)
+        for idx, sign in ((out, -1.0), (into, 1.0)):
+            for j in range(idx.shape[1]):
+                e = idx[:, j]
+                ok = e >= 0
+                if bool(ok.all()):          # every move switches a j-th element: no gather of rows
+                    Be, Ze = self._rows(e)
+                    dB.add_(Be, alpha=sign)
+                    dZ.add_(Ze, alpha=sign)
+                    img.add_(self._single(e), alpha=sign)
+                    continue
+                if not bool(ok.any()):
+                    continue
+                rows, el = torch.nonzero(ok).flatten(), e[ok]
+                Be, Ze = self._rows(el)
+                dB.index_add_(0, rows, Be, alpha=sign)
+                dZ.index_add_(0, rows, Ze, alpha=sign)
+                img.index_add_(0, rows, self._single(el), alpha=sign)
+        return img.add_(self._segsum(dB.mul_(dZ)))
+
+    def block(self):
+        """The requests this neighbourhood scores fastest (:class:`~arraysel.objective.contract.SwapBlock`):
+        swaps grouped by outgoing element, each with every incoming element; one outgoing element a
+        call is enough (on matrix-1024 a neighbour costs about as much in a block of one as of four),
+        and lets a first-improvement descent move sooner."""
+        from arraysel.objective.contract import SwapBlock
+
+        return SwapBlock(outgoing=1)
+
+    def dense(self, out: np.ndarray) -> np.ndarray:
+        """For each swap with the outgoing elements ``out``: whether it goes by the block path (its
+        outgoing element's swaps fill at least :data:`DENSE_SHARE` of a row of Ne images)."""
+        _, inv, counts = np.unique(out, return_inverse=True, return_counts=True)
+        return (counts >= DENSE_SHARE * self.n_elements)[inv]
+
+    def move_columns(self, out: np.ndarray, into: np.ndarray):
+        """Yield ``(positions, re, im, cols)``: the images of the moves ``(out[i], into[i])``
+        (``(B, m)``, ``-1`` pads) of the held selection at ``positions`` of the request as the
+        columns ``cols`` of ``(P, M)`` real and imaginary parts (``cols`` None: all of them). The
+        swaps whose outgoing element has many (:meth:`dense`) go by blocks of outgoing elements
+        against every element; the other moves are formed from their own rows."""
+        block = np.zeros(out.shape[0], dtype=bool)
+        single = out.shape[1] == 1 or bool((out[:, 1:] < 0).all())
+        if single and out.shape[0] and (out[:, 0] >= 0).all():
+            block = self.dense(out[:, 0])
+        if block.any():
+            pos = np.flatnonzero(block)
+            for p, re, im, cols in self.swap_columns(out[pos, 0], into[pos, 0]):
+                yield pos[p], re, im, cols
+        rest = np.flatnonzero(~block)
+        for s in range(0, rest.size, MOVE_BATCH):
+            pos = rest[s:s + MOVE_BATCH]
+            img = self.move_images(torch.as_tensor(out[pos]), torch.as_tensor(into[pos])).T
+            yield pos, img.real.contiguous(), img.imag.contiguous(), None
 
     def swap_columns(self, out: np.ndarray, into: np.ndarray):
         """Yield ``(positions, re, im, cols)``: the images of the swaps ``(out[i], into[i])`` of

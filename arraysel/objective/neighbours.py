@@ -193,11 +193,15 @@ def neighbourhood_of(objective) -> Neighbourhood | None:
     """The :class:`Neighbourhood` of ``objective``: its ``neighbourhood()``; for an objective
     written before that method existed, one made of its ``evaluate_moves`` (or ``evaluate_swaps``,
     or ``evaluate`` of the masks) and ``prepare_neighbourhoods`` methods
-    (:class:`MovesNeighbourhood`), when it has one of them besides ``evaluate``; else ``None``. The one
+    (:class:`MovesNeighbourhood`), when it has one of them besides ``evaluate``; else ``None``. A
+    neighbourhood without ``block()`` (written before it) is given one that prefers no block. The one
     place the optional methods are looked up: a search asks once, and keeps what it gets."""
     own = getattr(objective, "neighbourhood", None)
     if callable(own):
-        return own()
+        nb = own()
+        if nb is not None and not callable(getattr(nb, "block", None)):  # written before block()
+            return MovesNeighbourhood(nb.evaluate, nb.prepare)
+        return nb
     moves = getattr(objective, "evaluate_moves", None)
     swaps = getattr(objective, "evaluate_swaps", None)
     prepare = getattr(objective, "prepare_neighbourhoods", None)

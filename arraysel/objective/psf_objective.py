@@ -1,23 +1,21 @@
 """The objective every selection strategy is judged by: one objective over a scene's imagers.
 
-:class:`Objective` scores the plane sets of a scene's imagers (:mod:`arraysel.physics.imaging`;
+:class:`Objective` is assembled from a scene's settings and imagers (:mod:`arraysel.physics.imaging`;
 :func:`~arraysel.objective.imagers.scene_imagers`: one kernel per field point of a 1-D probe, the
-three planes of a matrix probe's 3-D PSF) against the imagers' full-array plane sets
-(:func:`~arraysel.objective.plane_metrics.plane_metrics`):
+three planes of a matrix probe's 3-D PSF, a sector scene's beam pattern) and scores their plane sets
+against their full-array plane sets (:func:`~arraysel.objective.plane_metrics.plane_scorer`):
 
-* :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks,
-  returning every Table-1 metric (chunked, so memory stays bounded), and the figures of merit of
-  2-D arrays (``PSL_dB``, ``width_x_6dB``, ``width_y_6dB``) on a 3-D scene;
-* :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft
-  element weights (the same weights are the TX apodization and the RX
-  channel weights);
-* :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection
-  matrix (PSF terms + entropy + row terms, :mod:`arraysel.objective.losses`;
-  a scene that weights the end-to-end terms is trained by ``arraysel train``).
+* :meth:`Objective.evaluate`: batched, no-grad evaluation of many masks, returning every Table-1
+  metric (chunked, so memory stays bounded), and the figures of merit of 2-D arrays (``PSL_dB``,
+  ``width_x_6dB``, ``width_y_6dB``) on a 3-D scene, the pattern's lobe metrics on a sector scene;
+* :meth:`Objective.mask_loss`: differentiable, scene-weighted PSF loss of soft element weights (the
+  same weights are the TX apodization and the RX channel weights);
+* :meth:`Objective.selection_loss`: the training loss of an (Ne, k) selection matrix (PSF terms +
+  entropy + row terms, :mod:`arraysel.objective.losses`; a scene that weights the end-to-end terms
+  is trained by ``arraysel train``).
 
-It counts evaluated masks, gradient steps and the wall time spent inside it,
-so a comparison can report every strategy's budget and overhead.
-Only the terms with a non-zero weight are computed.
+It counts evaluated masks, gradient steps and the wall time spent inside it, so a comparison can
+report every strategy's budget and overhead. Only the terms with a non-zero weight are computed.
 
 A scene with several field points (``medium.points``) has one imager per point
 (``Objective.imagers``; ``Objective.psfs`` their :class:`~arraysel.physics.psf.PSFModel`);
@@ -48,6 +46,8 @@ from arraysel.objective.contract import WorkerFactory, dtype_name
 from arraysel.objective.losses import PSF_WEIGHT_KEYS, training_loss
 from arraysel.objective.pair_model import pair_model
 from arraysel.objective.plane_metrics import plane_scorer
+from arraysel.objective.sector_beams import per_beam_attribute
+from arraysel.objective.point_columns import AGGREGATES, aggregated, images_out, point_metric_names  # noqa: F401
 from arraysel.errors import NumericalError, ParameterError, SelectionError
 from arraysel.objective.tensors import checked_masks, objective_device  # noqa: F401  (checked_masks: its former home)
 from arraysel.physics.imaging import PlaneSet
@@ -58,71 +58,9 @@ from arraysel.scenes.schema import Scene, load_scene
 _log = logging.getLogger(__name__)
 
 METRIC_NAMES = M.METRIC_NAMES
-#: aggregates over the field points of a several-point scene
-AGGREGATES = ("mean", "worst")
 #: most masks per batch of :meth:`Objective.evaluate` on a 1-D scene (:data:`arraysel.objective.imagers.DEFAULT_CHUNK`)
 DEFAULT_CHUNK = I.DEFAULT_CHUNK
 _fmt_seconds = I._fmt_seconds
-
-
-def point_metric_names(n_points: int) -> tuple[str, ...]:
-    """Breakdown keys of a scene with ``n_points`` field points (none for one point).
-
-    ``"<metric>@p<i>"`` for point i (in ``medium.points`` order), then
-    ``"<metric>@mean"`` and ``"<metric>@worst"`` (the largest value over the
-    points; every metric is lower-is-better).
-    """
-    if n_points <= 1:
-        return ()
-    names = [f"{m}@p{i}" for i in range(n_points) for m in METRIC_NAMES]
-    names += [f"{m}@{a}" for a in AGGREGATES for m in METRIC_NAMES]
-    return tuple(names)
-
-
-def aggregated(per_point: list[dict], aggregate: str) -> dict[str, np.ndarray]:
-    """The columns of a several-point scene from each point's metrics ``{name: (B,)}``: the headline
-    metrics (the points' mean, or their worst for ``aggregate = "worst"``), then every metric per
-    point, their mean and their worst (:func:`point_metric_names`)."""
-    res = {}
-    for name in METRIC_NAMES:
-        st = torch.stack([d[name] for d in per_point], -1)
-        mean, worst = st.mean(-1), st.amax(-1)
-        res[name] = (mean if aggregate == "mean" else worst).numpy()
-        for p, d in enumerate(per_point):
-            res[f"{name}@p{p}"] = d[name].numpy()
-        res[f"{name}@mean"] = mean.numpy()
-        res[f"{name}@worst"] = worst.numpy()
-    return res
-
-
-def images_out(res: dict, kernels: bool, planes: bool, imagers) -> dict:
-    """``res`` with the plane sets :meth:`Objective._score` kept as ``"kernels"`` ((B, w, w), or
-    (B, P, w, w) for P points) and/or ``"planes"`` (``{name: (B, H, W)}``, or ``{"p<i>": ...}``), numpy."""
-    sets = res.pop("_planes", None)
-    one = len(imagers) == 1
-    if kernels:
-        w = imagers[0].setup.window
-        ks = [s.kernel.numpy() if s is not None else np.zeros((0, w, w), np.complex64) for s in sets]
-        res["kernels"] = ks[0] if one else np.stack(ks, 1)
-    if planes:
-        per = [{k: v.numpy() for k, v in s.images.items()} if s is not None else {} for s in sets]
-        res["planes"] = per[0] if one else {f"p{i}": d for i, d in enumerate(per)}
-    return res
-
-
-def _per_beam(name: str, what: str) -> property:
-    """A read-only attribute of the objective's per-beam view (:attr:`Objective.beams`): ``name``
-    of a sector scene's :class:`~arraysel.objective.sector_objective.SectorBeams`; on any other
-    scene an AttributeError (``hasattr`` is False, as on an objective without the view)."""
-
-    def get(self):
-        beams = self.__dict__.get("beams")
-        if beams is None:
-            raise AttributeError(f"{name}: scene {self.settings.name!r} has no per-beam view (a sector scene has)")
-        return getattr(beams, name)
-
-    return property(get, doc=f"{what} (a sector scene's per-beam view, :class:`~arraysel.objective."
-                             f"sector_objective.SectorBeams`.{name}).")
 
 
 class _Timer:
@@ -247,15 +185,15 @@ class Objective:
         return not any(im.exact for im in self.imagers)
 
     # ------------------------------------------------------------------ the per-beam view (sector scenes)
-    beam_metrics = _per_beam("beam_metrics", "The per-beam metrics of masks on the points' PSFs")
-    beam_loss = _per_beam("beam_loss", "The per-beam loss of masks on the points' PSFs")
-    point_images = _per_beam("point_images", "A point's complex images on its surface")
-    fast_point = _per_beam("fast_point", "Install a point's fast model")
-    fresh_random_masks = _per_beam("fresh_random_masks", "Fresh random selections of k elements")
-    fresh_random = _per_beam("fresh_random", "How many fresh random selections are scored per beam")
-    exact = _per_beam("exact", "The points' PSFs on their surfaces (SectorPSF)")
-    pattern = _per_beam("pattern", "The two-way beam pattern over the sector")
-    fast_refused = _per_beam("fast_refused", "The points whose fast model was refused, with why")
+    beam_metrics = per_beam_attribute("beam_metrics", "The per-beam metrics of masks on the points' PSFs")
+    beam_loss = per_beam_attribute("beam_loss", "The per-beam loss of masks on the points' PSFs")
+    point_images = per_beam_attribute("point_images", "A point's complex images on its surface")
+    fast_point = per_beam_attribute("fast_point", "Install a point's fast model")
+    fresh_random_masks = per_beam_attribute("fresh_random_masks", "Fresh random selections of k elements")
+    fresh_random = per_beam_attribute("fresh_random", "How many fresh random selections are scored per beam")
+    exact = per_beam_attribute("exact", "The points' PSFs on their surfaces (SectorPSF)")
+    pattern = per_beam_attribute("pattern", "The two-way beam pattern over the sector")
+    fast_refused = per_beam_attribute("fast_refused", "The points whose fast model was refused, with why")
 
     # ------------------------------------------------------------------ exact-path notice
     def estimate_seconds(self, n_masks: int = 1) -> float:
@@ -392,9 +330,9 @@ class Objective:
         Each imager images the neighbours from the selection where it can
         (:meth:`~arraysel.physics.imaging.Imager.image_moves`: on a 1-D point the certificates'
         channel envelopes and the images of the neighbours are corrected from the selection's own,
-        :meth:`~arraysel.physics.psf.PSFModel.swap_kernels`); on a 3-D scene's fast path a dense set
-        of one-element swaps (a whole neighbourhood) is scored from the selection's planes plus the
-        low-rank change of each swap (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
+        :meth:`~arraysel.physics.psf.PSFModel.swap_kernels`); on a 3-D scene's fast path each move is scored
+        from the selection's planes plus its low-rank change, blocks of swaps of a few outgoing
+        elements by batched products (:mod:`arraysel.objective.matrix_neighbours`). Rows of ``out``
         and ``into`` may be padded with ``-1`` (moves of different sizes in one call)."""
         from arraysel.objective.matrix_neighbours import check_selection
         from arraysel.objective.neighbours import check_moves
@@ -402,11 +340,10 @@ class Objective:
         m, a, b = check_moves(mask, out, into)
         check_selection(m, self.n_elements)
         nb = self._neighbourhood()
-        if (nb is not None and not return_kernels and a.shape[0] and a.shape[1] == 1 and (a >= 0).all()
-                and nb.dense(a[:, 0])):
+        if nb is not None and not return_kernels and a.shape[0]:
             with torch.no_grad(), self._timed():
                 nb.select(m)
-                res = nb.score(nb.swap_columns(a[:, 0], b[:, 0]), int(a.shape[0]))
+                res = nb.score(nb.move_columns(a, b), int(a.shape[0]))
                 self.evaluations += int(a.shape[0])
             return {k: res[k] for k in self._columns}
         if return_kernels:
@@ -466,7 +403,9 @@ class Objective:
             return None
         if not all(im.moves_from_selection for im in self.imagers) and self._neighbourhood() is None:
             return None
-        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods)
+        nb = self._neighbourhood()
+        return MovesNeighbourhood(self.evaluate_moves, self.prepare_neighbourhoods,
+                                  block=None if nb is None else nb.block())
 
     def loss_model(self):
         """The :class:`~arraysel.objective.contract.LossModel` of :meth:`mask_loss`: the gradient

@@ -26,10 +26,25 @@ from arraysel.objective.tensors import check_masks, checked_masks
 from arraysel.physics.imaging import Imager, PlaneSet
 
 __all__ = ["SectorBeams", "SectorPointImager", "BEAM_COLUMNS", "sector_fast_state", "point_label",
-           "SECTOR_FAST_VERSION"]
+           "SECTOR_FAST_VERSION", "per_beam_attribute"]
 
 #: the per-beam metrics of :meth:`SectorBeams.beam_metrics`, per point
 BEAM_COLUMNS = ("PSL_dB", "ISLR_dB", "GLL_dB", "width_x_6dB", "width_y_6dB")
+
+
+def per_beam_attribute(name: str, what: str) -> property:
+    """A read-only attribute of an objective that reads ``name`` of its per-beam view
+    (``objective.beams``: a sector scene's :class:`SectorBeams`); on any other scene an
+    AttributeError (``hasattr`` is False, as on an objective without the view)."""
+
+    def get(self):
+        beams = self.__dict__.get("beams")
+        if beams is None:
+            raise AttributeError(f"{name}: scene {self.settings.name!r} has no per-beam view (a sector scene has)")
+        return getattr(beams, name)
+
+    return property(get, doc=f"{what} (a sector scene's per-beam view, :class:`~arraysel.objective."
+                             f"sector_beams.SectorBeams`.{name}).")
 
 
 class SectorPointImager(Imager):
@@ -58,19 +73,22 @@ class SectorPointImager(Imager):
     def coords(self):
         return self.beams.exact.coords[self.index]
 
-    def image(self, weights: torch.Tensor, receive: torch.Tensor | None = None, exact: bool = False) -> PlaneSet:
+    def image(self, weights: torch.Tensor, receive: torch.Tensor | None = None, exact: bool = False,
+              base: torch.Tensor | None = None) -> PlaneSet:
         """The point's image of weights (B, Ne) (``receive``: separate receive weights): the fast path
         in batches of the objective's ``chunk`` when it is in use and ``exact`` is False, else the
         exact path one selection at a time. The fast model is built when it is not cached only for a
         batch of at least :attr:`SectorBeams.fast_min_masks` selections (below that, its build costs
-        more than the exact path)."""
+        more than the exact path). ``base`` (Ne,): a selection each row differs from in a few
+        elements (a local search's moves: the fast path's receive sums then come from it,
+        :meth:`~arraysel.physics.volume.fast.MatrixFastPSF.image`; the same images)."""
         from arraysel.physics.volume.sector import SURFACE
 
         b, i = self.beams, self.index
         fast = not exact and b.fast_point(i, build=weights.shape[0] >= b.fast_min_masks)
         step = max(1, b.chunk) if fast else 1
         parts = [b.exact.surfaces(weights[s:s + step], i, exact=not fast,
-                                  receive=None if receive is None else receive[s:s + step])[SURFACE]
+                                  receive=None if receive is None else receive[s:s + step], base=base)[SURFACE]
                  for s in range(0, weights.shape[0], step)]
         img = torch.cat(parts)
         if not bool(torch.isfinite(img).all()):
@@ -169,20 +187,26 @@ class SectorBeams:
             return False
         return True
 
-    def point_images(self, masks, i: int, exact: bool = False, receive=None) -> torch.Tensor:
+    def point_images(self, masks, i: int, exact: bool = False, receive=None, base=None) -> torch.Tensor:
         """Point ``i``'s complex images (B, Hv, Hu) of hard masks or weights (B, Ne): the fast path
         in batches of :attr:`chunk` when available and ``exact`` is False, else the exact path one
         selection at a time. The fast model is built when it is not cached only for a batch of at
         least :attr:`fast_min_masks` selections (below that, its build costs more than the exact
         path; :meth:`fast_point` builds it on demand). ``receive``: separate receive masks or
-        weights (B, Ne), ``masks`` then the transmit apodization (:meth:`SectorPointImager.image`)."""
+        weights (B, Ne), ``masks`` then the transmit apodization; ``base``: a selection each mask
+        differs from in a few elements (:meth:`SectorPointImager.image`)."""
         m = self.as_masks(masks) if not isinstance(masks, torch.Tensor) else masks
         m = m.to(self.device, self.dtype)
         r = None
         if receive is not None:
             r = self.as_masks(receive) if not isinstance(receive, torch.Tensor) else receive
             r = r.to(self.device, self.dtype)
-        return self.imagers[i].image(m, r, exact=exact).kernel
+        return self.imagers[i].image(m, r, exact=exact, base=self._base(base)).kernel
+
+    def _base(self, base) -> torch.Tensor | None:
+        """``base`` (a selection, any array of Ne values) as weights on the objective's device."""
+        return None if base is None else \
+            torch.as_tensor(np.asarray(base, dtype=np.float64)).reshape(-1).to(self.device, self.dtype)
 
     def _grating(self, masks: torch.Tensor, i: int) -> list[torch.Tensor]:
         """Per mask, the grating-lobe segments (G, 2, 2) in u-v around point ``i`` over the pulse's
@@ -209,13 +233,14 @@ class SectorBeams:
             out.append(self._segments[key])
         return out
 
-    def beam_metrics(self, masks, points=None, exact: bool = False, receive=None) -> dict[str, np.ndarray]:
+    def beam_metrics(self, masks, points=None, exact: bool = False, receive=None, base=None) -> dict[str, np.ndarray]:
         """The per-beam metrics (module docstring) of hard masks (B, Ne) on the points' PSFs (the
         fast path when available, :meth:`point_images`; ``exact``: the exact path): ``{name: float64
         (B, P)}`` for the names of :data:`BEAM_COLUMNS` (dB; widths in metres), one column per point
         of ``points`` (default all). Not counted as evaluations of the search. ``receive``:
         separate receive masks (B, Ne) (grating lobes then from the lattice of both apertures' elements).
-        Each point's plane sets come from its imager (:class:`SectorPointImager`)."""
+        Each point's plane sets come from its imager (:class:`SectorPointImager`); ``base``: as
+        :meth:`point_images`."""
         m = self.as_masks(masks)
         r = None if receive is None else self.as_masks(receive)
         both = m if r is None else torch.maximum(m, r)
@@ -227,7 +252,7 @@ class SectorBeams:
                 for b0 in range(0, m.shape[0], step):
                     mb = m[b0:b0 + step]
                     rb = None if r is None else r[b0:b0 + step]
-                    ps = self.imagers[i].image(mb, rb, exact=exact)
+                    ps = self.imagers[i].image(mb, rb, exact=exact, base=self._base(base))
                     res = lobe_metrics(ps.images, ps.coords, target=self.points[i],
                                        grating_uv=self._grating(both[b0:b0 + step], i), terms=BEAM_COLUMNS)
                     for k in BEAM_COLUMNS:
@@ -235,17 +260,17 @@ class SectorBeams:
         return out
 
     def beam_loss(self, masks, width_cap: float, width_weight: float = 100.0, exact: bool = False,
-                  metrics: dict | None = None, points=None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                  metrics: dict | None = None, points=None, base=None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The per-beam loss of hard masks (B, Ne) on the points' PSFs: the worst ``PSL_dB`` over
         the points plus ``width_weight`` dB per unit of the mean -6 dB width's relative excess over
         ``width_cap`` (metres; the mean over points of the x and y widths). Returns
         ``(loss float64 (B,), summary)``, the summary ``{"worst_PSL_dB", "mean_width_m"}`` (B,) and
         ``"PSL_dB"`` (B, P) per point. ``metrics``: the masks' :meth:`beam_metrics`, if already
         computed (``masks`` is then not scored again); ``points``: over these points only (default
-        all)."""
+        all); ``base``: as :meth:`point_images`."""
         cap = check_number("width_cap", width_cap, lo=0, lo_open=True, hi=1.0)
         wt = check_number("width_weight", width_weight, lo=0)
-        bm = self.beam_metrics(masks, points=points, exact=exact) if metrics is None else metrics
+        bm = self.beam_metrics(masks, points=points, exact=exact, base=base) if metrics is None else metrics
         worst = bm["PSL_dB"].max(1)
         width = (bm["width_x_6dB"].mean(1) + bm["width_y_6dB"].mean(1)) / 2
         loss = worst + wt * np.maximum(width / cap - 1.0, 0.0)

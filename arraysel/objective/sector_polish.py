@@ -13,6 +13,8 @@ drawn at random in batches. Each batch is first screened on the points whose sid
 built-in scene; a polished selection has its points' side lobes within a fraction of a dB of each
 other, and a move screened on one point then mostly raises another); the best ``keep`` screened
 moves are scored on every point, and the best of them is taken when it lowers the search's loss.
+A move's images come from the fast path's sums of the current selection (``base``: its receive
+sums change by two elements' rows, not by all of them).
 
 The search's loss is the per-beam loss, or, with ``soft_db > 0``, its smooth maximum over the
 points: ``soft_db * log(sum_p exp(PSL_p / soft_db))`` in place of the worst ``PSL_p`` (a move that
@@ -50,8 +52,9 @@ class _Scores:
         self.obj, self.pts, self.cap, self.weight, self.soft = objective, pts, cap, weight, soft
         self.scored = 0   # selection-points scored
 
-    def full(self, masks):
-        loss, summ = self.obj.beam_loss(masks, width_cap=self.cap, width_weight=self.weight, points=self.pts)
+    def full(self, masks, base=None):
+        loss, summ = self.obj.beam_loss(masks, width_cap=self.cap, width_weight=self.weight, points=self.pts,
+                                        base=base)
         self.scored += len(masks) * len(self.pts)
         return loss, self.search(summ["PSL_dB"], loss - summ["worst_PSL_dB"]), summ
 
@@ -61,8 +64,8 @@ class _Scores:
         top = psl.max(1, keepdims=True)
         return (top[:, 0] + self.soft * np.log(np.exp((psl - top) / self.soft).sum(1))) + penalty
 
-    def screen(self, masks, on: list[int]) -> np.ndarray:
-        bm = self.obj.beam_metrics(masks, points=[self.pts[j] for j in on])
+    def screen(self, masks, on: list[int], base) -> np.ndarray:
+        bm = self.obj.beam_metrics(masks, points=[self.pts[j] for j in on], base=base)
         self.scored += len(masks) * len(on)
         return bm["PSL_dB"].max(1)
 
@@ -117,7 +120,7 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
         cand = _swaps(m, batch, rng)
         on = [j for j in range(len(pts)) if psl[j] >= psl.max() - screen_db - 1e-9]
         if len(on) < len(pts):
-            scr = sc.screen(cand, on)
+            scr = sc.screen(cand, on, m)
             screened += batch
             top = np.argsort(scr)[:keep]
             top = top[scr[top] < psl.max() + 1e-9]
@@ -126,7 +129,7 @@ def polish_on_beams(objective, mask, *, width_cap: float, seconds: float = 60.0,
                 last[0] = time.perf_counter() - t_round
                 continue
             cand = cand[top]
-        c_loss, c_search, c_sum = sc.full(cand)
+        c_loss, c_search, c_sum = sc.full(cand, m)
         evals += len(cand)
         j = int(np.argmin(c_search))
         if c_search[j] < cur - 1e-9:

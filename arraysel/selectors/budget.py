@@ -2,15 +2,21 @@
 
 A :class:`Budget` holds the limits of one run (seconds, objective evaluations, gradient steps),
 measured on the objective's own counters from the moment it is started; a :class:`Recorder`
-logs every improvement of the best ``k``-selection scored (the trace). The runner gives a
-selector both through :class:`~arraysel.selectors.contract.BudgetedObjective`; the names are
-importable from :mod:`arraysel.selectors.contract` too.
+logs every improvement of the best ``k``-selection scored (the trace). :class:`BudgetGate` is the
+one small interface through which a run spends its budget: :meth:`BudgetGate.masks` scores masks
+in the pieces the budget allows and records them, :meth:`BudgetGate.losses` admits loss
+evaluations (a gradient, a Hessian, soft weights), :meth:`BudgetGate.enter` refuses a run that has
+ended. The runner gives a selector all of them through
+:class:`~arraysel.selectors.contract.BudgetedObjective`, whose every charged method and capability
+(:mod:`arraysel.selectors.capabilities`) goes through the gate; the names are importable from
+:mod:`arraysel.selectors.contract` too.
 """
 from __future__ import annotations
 
 import math
 import sys
 import time
+from typing import Callable
 from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
@@ -21,7 +27,21 @@ if TYPE_CHECKING:  # torch is imported where it is used: `arraysel list` and `re
 from arraysel.errors import ArrayselError, check_number
 from arraysel.selection import mask_to_indices
 
-__all__ = ["Budget", "Recorder"]
+__all__ = ["Budget", "Recorder", "BudgetGate", "BudgetExhausted", "BudgetExceededError"]
+
+
+class BudgetExceededError(ArrayselError, RuntimeError):
+    """A selector used more objective evaluations than its budget allowed."""
+
+
+class BudgetExhausted(ArrayselError):
+    """Raised by :class:`~arraysel.selectors.contract.BudgetedObjective` when the run's budget is
+    used up.
+
+    It ends the selector's search: the runner catches it and takes the best
+    ``k``-selection scored so far (``objective.best``). A selector may catch it
+    itself to return something else, but must not call the objective again.
+    """
 
 
 class Budget:
@@ -247,3 +267,110 @@ def _looks_like_mask(elements, n_elements) -> bool:
                                           and elements.dtype.kind == "f")
     return False
 
+
+# ---------------------------------------------------------------------------
+# the gate a run's budget is spent through
+# ---------------------------------------------------------------------------
+
+class BudgetGate:
+    """The one interface through which a run spends its budget (module docstring).
+
+    Parameters: ``budget`` (started), ``recorder`` (its trace), ``k`` (only masks of ``k`` active
+    elements, meeting ``constraints`` when given, are recorded), ``piece`` (the most masks scored
+    in one call of the objective).
+
+    * :meth:`masks` scores ``total`` masks in pieces: at most ``piece`` masks, and under a time
+      limit no more than the time left allows at the measured cost per mask; the budget is
+      checked before each piece, so a time limit stops a large batch early. When the budget does
+      not allow them all, the allowed first masks are scored and recorded, then
+      :class:`BudgetExhausted` is raised: a call either returns every score asked for or ends the
+      search;
+    * :meth:`losses` raises :class:`BudgetExhausted` unless the budget allows ``n`` evaluations
+      now (they are counted by the objective itself);
+    * :meth:`enter` raises :class:`~arraysel.errors.ArrayselError` once :meth:`close` was called
+      (a thread the selector left running cannot score, count or record anything for the runs
+      that follow) and notes the time of the run's first call (:attr:`first_call_s`).
+    """
+
+    def __init__(self, budget: Budget, recorder: Recorder, k: int, piece: int, constraints=None):
+        self.budget = budget
+        self.recorder = recorder
+        self.k = int(k)
+        self.piece = max(1, int(piece))
+        self.constraints = constraints
+        #: seconds into the budget at which the run first called the objective; None before that
+        self.first_call_s: float | None = None
+        self.closed = False
+        self._per_mask = 0.0  # running estimate of the seconds one mask costs
+
+    def close(self) -> None:
+        """End the run: every later :meth:`enter` raises."""
+        self.closed = True
+
+    def check_open(self) -> None:
+        """Raise once the run has ended (:meth:`close`)."""
+        if self.closed:
+            raise ArrayselError("this run has ended: its objective can no longer be used (a thread the "
+                                "selector started is still calling it; stop such threads before select "
+                                "returns)")
+
+    def enter(self) -> None:
+        """:meth:`check_open`, and note the time of the run's first call."""
+        self.check_open()
+        if self.first_call_s is None:
+            self.first_call_s = float(self.budget.elapsed())
+
+    def exhausted(self, what: str) -> BudgetExhausted:
+        """The :class:`BudgetExhausted` that ends the search, saying ``what`` was asked."""
+        return BudgetExhausted(f"the run's budget ({self.budget!r}) is used up ({what})")
+
+    def losses(self, n: int, what: str) -> None:
+        """Admit ``n`` loss evaluations (``what``: for the message), or raise :class:`BudgetExhausted`."""
+        if self.budget.allowed(n) < n:
+            raise self.exhausted(f"{what}")
+
+    def masks(self, total: int, call: Callable, masks_of: Callable, piece: int | None = None) -> dict[str, np.ndarray]:
+        """Score ``total`` masks by ``call(slice) -> {name: (n,)}`` in the pieces the budget allows
+        (of ``piece`` masks at most, default :attr:`piece`), recording the masks ``masks_of(slice)``
+        (bool ``(n, Ne)``) with their ``Mean``; the scores of all of them, or
+        :class:`BudgetExhausted` after the allowed first ones."""
+        parts: list[dict] = []
+        done = 0
+        piece = self.piece if piece is None else int(piece)
+        while done < total:
+            want = min(piece, total - done)
+            if self.budget.seconds is not None and self._per_mask > 0:
+                # under a time limit, a piece must fit in the time left (at least one mask)
+                want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
+            allowed = self.budget.allowed(want)
+            if allowed <= 0:
+                raise self.exhausted(f"{done} of {total} masks of this call scored")
+            before = self.budget.used_evaluations()
+            t0 = time.perf_counter()
+            sl = slice(done, done + allowed)
+            out = call(sl)
+            per_mask = (time.perf_counter() - t0) / allowed
+            self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
+            self._record(masks_of(sl), np.asarray(out["Mean"], dtype=np.float64), before)
+            parts.append(out)
+            done += allowed
+            if allowed < want:
+                raise self.exhausted(f"{done} of {total} masks of this call scored")
+        if len(parts) == 1:
+            return parts[0]
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+    def _record(self, masks: np.ndarray, means: np.ndarray, before: int) -> None:
+        ok = masks.sum(axis=1) == self.k
+        if self.constraints is not None:
+            ok &= self.constraints.feasible_rows(masks)
+        if not ok.any():
+            return
+        finite = np.where(ok & np.isfinite(means), means, np.inf)
+        i = int(np.argmin(finite))
+        if self.recorder.first is None:
+            self.recorder.first = mask_to_indices(masks[int(np.flatnonzero(ok)[0])])
+        if math.isfinite(finite[i]) and finite[i] < self.recorder.best_mean:
+            self.recorder.report(masks[i], float(finite[i]), evaluations=before + i + 1)
+        else:
+            self.recorder.reports += 1

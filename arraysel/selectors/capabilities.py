@@ -4,10 +4,12 @@ A search asks the objective once for what makes it fast (:mod:`arraysel.objectiv
 ``objective.neighbourhood()``, a :class:`~arraysel.objective.contract.Neighbourhood` that scores a
 selection's neighbours in one call; ``objective.loss_model()``, a
 :class:`~arraysel.objective.contract.LossModel` that gives the gradient and the Hessian of the
-loss). :class:`~arraysel.selectors.contract.BudgetedObjective` hands them out wrapped here: the
-scoring of :class:`BudgetedNeighbourhood` is counted, clipped and recorded like ``evaluate`` of the
-neighbour masks, and :class:`BudgetedLossModel` checks that the budget allows what a gradient (one
-evaluation) or a Hessian (``Ne``) costs before it asks.
+loss). :class:`~arraysel.selectors.contract.BudgetedObjective` hands them out wrapped here, each
+on the run's :class:`~arraysel.selectors.budget.BudgetGate` (the one interface its budget is spent
+through): the scoring of :class:`BudgetedNeighbourhood` is counted, clipped and recorded like
+``evaluate`` of the neighbour masks (:meth:`~arraysel.selectors.budget.BudgetGate.masks`), and
+:class:`BudgetedLossModel` checks that the budget allows what a gradient (one evaluation) or a
+Hessian (``Ne``) costs before it asks (:meth:`~arraysel.selectors.budget.BudgetGate.losses`).
 
 An objective without a capability is said once in the log (logger ``arraysel``, warning), so a
 search that runs without it does so visibly: :func:`say_without`.
@@ -56,20 +58,34 @@ def say_without(objective, capability: str) -> None:
 class BudgetedNeighbourhood:
     """The wrapped objective's :class:`~arraysel.objective.contract.Neighbourhood` charged to the
     run's budget: :meth:`evaluate` scores the neighbours in the pieces the budget allows and
-    records them (``view`` the :class:`~arraysel.selectors.contract.BudgetedObjective`)."""
+    records them (``gate`` the run's :class:`~arraysel.selectors.budget.BudgetGate`)."""
 
-    def __init__(self, view, inner):
-        self._view = view
+    def __init__(self, gate, inner):
+        self._gate = gate
         self._inner = inner
+        self._block = inner.block()
+
+    def block(self):
+        """The :class:`~arraysel.objective.contract.SwapBlock` the wrapped neighbourhood prefers."""
+        return self._block
 
     def evaluate(self, mask, out, into) -> dict[str, np.ndarray]:
         """``{name: float64 (B,)}`` of the neighbours of ``mask`` that switch ``out[i]`` off and
         ``into[i]`` on (``(B, m)`` or ``(B,)``), counted, clipped and recorded like
-        ``evaluate`` of their masks."""
+        ``evaluate`` of their masks. For a neighbourhood that prefers blocks the moves go to it
+        ordered by their first outgoing element, in pieces of whole blocks (``outgoing`` x ``Ne``)."""
         m, a, b = check_moves(mask, out, into)
-        view = self._view
-        return view._in_pieces(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
-                               lambda sl: move_masks(m, a[sl], b[sl]))
+        gate = self._gate
+        if self._block is None:
+            return gate.masks(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
+                              lambda sl: move_masks(m, a[sl], b[sl]))
+        order = np.argsort(a[:, 0], kind="stable")
+        a, b = a[order], b[order]
+        res = gate.masks(int(a.shape[0]), lambda sl: self._inner.evaluate(m, a[sl], b[sl]),
+                         lambda sl: move_masks(m, a[sl], b[sl]), piece=max(gate.piece, self._block.outgoing * m.size))
+        back = np.empty_like(order)
+        back[order] = np.arange(order.size)
+        return {k: v[back] for k, v in res.items()}
 
     def prepare(self) -> None:
         """Nothing: a run's objective is prepared before its budget starts (the runners)."""
@@ -77,25 +93,24 @@ class BudgetedNeighbourhood:
 
 class BudgetedLossModel:
     """The wrapped objective's :class:`~arraysel.objective.contract.LossModel` charged to the run's
-    budget: a gradient needs one evaluation, a model ``Ne`` (:class:`BudgetExhausted
-    <arraysel.selectors.contract.BudgetExhausted>` when the budget does not allow them)."""
+    budget: a gradient needs one evaluation, a model ``n_elements`` (:class:`BudgetExhausted
+    <arraysel.selectors.budget.BudgetExhausted>` when the budget does not allow them; ``gate`` the
+    run's :class:`~arraysel.selectors.budget.BudgetGate`)."""
 
-    def __init__(self, view, inner):
-        self._view = view
+    def __init__(self, gate, inner, n_elements: int):
+        self._gate = gate
         self._inner = inner
+        self._n = int(n_elements)
 
     def _allow(self, n: int, what: str) -> None:
-        view = self._view
-        view._check_open()
-        view._started()
-        if view.budget.allowed(n) < n:
-            raise view._exhausted(f"{what} ({n} evaluations)")
+        self._gate.enter()
+        self._gate.losses(n, f"{what} ({n} evaluations)")
 
     def gradient(self, mask) -> np.ndarray:
         self._allow(1, "the loss's gradient")
         return self._inner.gradient(mask)
 
     def model(self, mask) -> tuple[np.ndarray, np.ndarray]:
-        self._allow(self._view.n_elements, "the loss's Hessian")
+        self._allow(self._n, "the loss's Hessian")
         return self._inner.model(mask)
 

@@ -178,6 +178,11 @@ class _UnitNeighbourhood:
     def prepare(self) -> None:
         self._inner.prepare()
 
+    def block(self):
+        """The inner neighbourhood's block where a unit is an element (channel groups only), else
+        None (a unit's swap moves several elements)."""
+        return self._inner.block() if self._view.element_constraints.simple else None
+
 
 class _UnitLossModel:
     """A loss model of elements (``inner``) seen in the units of ``view`` (a

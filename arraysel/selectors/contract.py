@@ -28,8 +28,6 @@ The returned list must hold exactly ``k`` distinct ints in ``[0, Ne)``. When
 from __future__ import annotations
 
 import dataclasses
-import math
-import time
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -41,7 +39,8 @@ from arraysel.errors import ArrayselError, ParameterError, SelectionError, check
 from arraysel.objective.contract import loss_model_of, objective_info
 from arraysel.objective.neighbours import check_moves, check_swaps, move_masks, neighbourhood_of
 from arraysel.selection import check_selection, indices_to_mask, mask_to_indices  # noqa: F401  (one home; plugins import them from here)
-from arraysel.selectors.budget import Budget, Recorder, _is_tensor  # noqa: F401  (their home: arraysel.selectors.budget)
+from arraysel.selectors.budget import (Budget, BudgetExceededError, BudgetExhausted, BudgetGate,  # noqa: F401
+                                       Recorder, _is_tensor)  # (their home: arraysel.selectors.budget)
 from arraysel.selectors.capabilities import BudgetedLossModel, BudgetedNeighbourhood, say_without
 
 __all__ = [
@@ -50,19 +49,6 @@ __all__ = [
     "numpy_rng", "torch_rng", "check_selection", "indices_to_mask", "mask_to_indices",
     "top_k", "finite_or_inf",
 ]
-
-
-class BudgetExceededError(ArrayselError, RuntimeError):
-    """A selector used more objective evaluations than its budget allowed."""
-
-
-class BudgetExhausted(ArrayselError):
-    """Raised by :class:`BudgetedObjective` when the run's budget is used up.
-
-    It ends the selector's search: the runner catches it and takes the best
-    ``k``-selection scored so far (``objective.best``). A selector may catch it
-    itself to return something else, but must not call the objective again.
-    """
 
 
 # ---------------------------------------------------------------------------
@@ -156,38 +142,42 @@ class Option:
 class BudgetedObjective:
     """The objective as a selector sees it: the runner's bookkeeping around the real one.
 
+    The budget is spent through one small interface, the run's
+    :class:`~arraysel.selectors.budget.BudgetGate` (:attr:`gate`): every method and capability that
+    scores masks goes through :meth:`~arraysel.selectors.budget.BudgetGate.masks` (counted, clipped
+    to the budget in pieces, every mask with exactly ``k`` active elements recorded in the
+    best-so-far trace at its own evaluation count), every loss through
+    :meth:`~arraysel.selectors.budget.BudgetGate.losses`, and every call through
+    :meth:`~arraysel.selectors.budget.BudgetGate.enter` (once the run has ended, :meth:`close`,
+    called by the runner, every call raises :class:`~arraysel.errors.ArrayselError`).
+
+    What it charges (the documented selector contract, ``docs/plugins.md``):
+
     * ``evaluate(masks)`` scores hard masks (booleans, or numbers that are all 0 or 1; other
       weights are refused with a :class:`ParameterError` naming ``masks``: soft weights go to
-      ``mask_loss``) in pieces (at most ``piece`` masks,
-      and under a time limit no more than the time left allows at the measured
-      cost per mask; the budget is checked before each piece, so a time limit
-      stops a large batch early);
-      every mask with exactly ``k`` active elements is recorded (best-so-far
-      trace, at its own evaluation count). When the budget does not allow the
-      whole batch, the allowed first masks are scored and recorded, then
-      :class:`BudgetExhausted` is raised: a call either returns every score
-      asked for or ends the search (it never returns a shortened array);
+      ``mask_loss``). When the budget does not allow the whole batch, the allowed first masks are
+      scored and recorded, then :class:`BudgetExhausted` is raised: a call either returns every
+      score asked for or ends the search (it never returns a shortened array);
     * ``mask_loss`` / ``selection_loss`` raise :class:`BudgetExhausted` when the
       budget does not allow the call (soft weights are counted, not recorded);
+    * capabilities, asked from the wrapped objective once and charged by wrapping them
+      (:mod:`arraysel.selectors.capabilities`): :meth:`neighbourhood` (its neighbours of a
+      selection scored in one call) and :meth:`loss_model` (the loss's gradient and Hessian); None
+      where it has none, said once in the log;
     * every other attribute (``n_elements``, ``device``, ``dtype``, ``scene``,
       ``kernels``, the counters ``evaluations``/``gradient_steps``/``seconds``)
-      is the wrapped objective's;
-    * once the run has ended (:meth:`close`, called by the runner), every call raises
-      :class:`~arraysel.errors.ArrayselError`: a thread the selector left running cannot score,
-      count or record anything for the runs that follow.
+      is the wrapped objective's: the contract gives a selector the objective's description, and
+      :func:`~arraysel.objective.contract.objective_info` reads its optional attributes through
+      this view.
 
-    Capabilities, asked from the wrapped objective once and charged to the budget by wrapping
-    them (:mod:`arraysel.selectors.capabilities`): :meth:`neighbourhood` (its neighbours of a
-    selection scored in one call) and :meth:`loss_model` (the loss's gradient and Hessian); None
-    where it has none, said once in the log.
-
-    Helpers: :meth:`score` (``Mean`` of masks, NaN as ``+inf``),
-    :meth:`score_indices`, :meth:`fallback` (the selection the run returns when the budget
-    ends before any ``k``-selection is scored), :meth:`score_swaps` (``Mean`` of one-swap neighbours of a selection, in
-    one call: :mod:`arraysel.objective.neighbours`), :meth:`score_moves` (the same for moves of m
-    elements each), ``best`` / ``best_mean`` (best recorded so far),
-    ``budget`` (the started budget; ``budget.fraction()`` for schedules) and
-    :meth:`remaining` (evaluations the budget allows now).
+    Helpers, built on the above (they charge nothing of their own): :meth:`score` (``Mean`` of
+    masks, NaN as ``+inf``), :meth:`score_indices`, :meth:`evaluate_swaps` / :meth:`evaluate_moves`
+    and :meth:`score_swaps` / :meth:`score_moves` (neighbours of a selection: :meth:`neighbourhood`
+    where the objective has one, else their masks), :meth:`mask_hessian` (:meth:`loss_model`),
+    :meth:`fallback` (the selection the run returns when the budget ends before any
+    ``k``-selection is scored), ``best`` / ``best_mean`` (best recorded so far), ``budget`` (the
+    started budget; ``budget.fraction()`` for schedules) and :meth:`remaining` (evaluations the
+    budget allows now).
     """
 
     def __init__(self, objective, budget: Budget, recorder: Recorder, k: int, piece: int | None = None,
@@ -201,35 +191,32 @@ class BudgetedObjective:
         self.k = int(k)
         self.n_elements = int(objective.n_elements)
         default = int(objective_info(objective).chunk or 256)
-        self.piece = max(1, int(piece if piece is not None else min(default, 256)))
-        self._per_mask = 0.0  # running estimate of the seconds one mask costs
-        self._closed = False
+        #: the one interface the budget is spent through
+        self.gate = BudgetGate(budget, recorder, self.k, piece if piece is not None else min(default, 256),
+                               constraints)
         self._capabilities: dict = {}  # the wrapped objective's neighbourhood and loss model, asked once
-        #: seconds into the budget at which the run first called the objective (``evaluate``,
-        #: ``evaluate_swaps``, ``evaluate_moves``, ``mask_loss`` or ``selection_loss``); ``None`` before that
-        self.first_call_s: float | None = None
 
     def __getattr__(self, name):  # everything not defined here is the wrapped objective's
-        if name.startswith("__") or name in ("_inner", "_closed", "constraints", "_capabilities"):
+        if name.startswith("__") or name in ("_inner", "gate", "constraints", "_capabilities"):
             raise AttributeError(name)
-        self._check_open()
+        self.gate.check_open()
         return getattr(self._inner, name)
+
+    @property
+    def piece(self) -> int:
+        """The most masks scored in one call of the wrapped objective."""
+        return self.gate.piece
+
+    @property
+    def first_call_s(self) -> float | None:
+        """Seconds into the budget at which the run first called the objective (``evaluate``,
+        ``evaluate_swaps``, ``evaluate_moves``, ``mask_loss`` or ``selection_loss``); None before that."""
+        return self.gate.first_call_s
 
     def close(self) -> None:
         """End the run: later calls (from a thread the selector left running) raise instead of
         counting against, or recording in, a run that is over. The runner calls it."""
-        self._closed = True
-
-    def _started(self) -> None:
-        """Note the time of the run's first objective call (the late-start flag reads it)."""
-        if self.first_call_s is None:
-            self.first_call_s = float(self.budget.elapsed())
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ArrayselError("this run has ended: its objective can no longer be used (a thread the "
-                                "selector started is still calling it; stop such threads before select "
-                                "returns)")
+        self.gate.close()
 
     # -- bookkeeping -----------------------------------------------------------
     @property
@@ -244,7 +231,7 @@ class BudgetedObjective:
         """Name ``selection`` (``k`` element indices) as what the run returns when its budget ends
         before any ``k``-selection was scored (a search's start, say); nothing is scored or
         counted, and a scored selection always takes precedence."""
-        self._check_open()
+        self.gate.check_open()
         if self.recorder.first is None:
             self.recorder.first = check_selection(selection, self.n_elements, self.k)
 
@@ -254,28 +241,9 @@ class BudgetedObjective:
             return 0
         return self.budget.remaining_evaluations()
 
-    def _exhausted(self, what: str) -> BudgetExhausted:
-        return BudgetExhausted(f"the run's budget ({self.budget!r}) is used up ({what})")
-
-    def _record(self, masks: np.ndarray, means: np.ndarray, before: int) -> None:
-        ok = masks.sum(axis=1) == self.k
-        if self.constraints is not None:
-            ok &= self.constraints.feasible_rows(masks)
-        if not ok.any():
-            return
-        finite = np.where(ok & np.isfinite(means), means, np.inf)
-        i = int(np.argmin(finite))
-        if self.recorder.first is None:
-            self.recorder.first = mask_to_indices(masks[int(np.flatnonzero(ok)[0])])
-        if math.isfinite(finite[i]) and finite[i] < self.recorder.best_mean:
-            self.recorder.report(masks[i], float(finite[i]), evaluations=before + i + 1)
-        else:
-            self.recorder.reports += 1
-
     # -- the Objective contract -----------------------------------------------
     def evaluate(self, masks, **kwargs) -> dict[str, np.ndarray]:
-        self._check_open()
-        self._started()
+        self.gate.enter()
         if _is_tensor(masks):
             masks = masks.detach().cpu().numpy()
         masks = np.asarray(masks)
@@ -284,37 +252,8 @@ class BudgetedObjective:
         hard = _hard_masks(masks)
         if int(masks.shape[0]) == 0:
             return self._inner.evaluate(masks, **kwargs)
-        return self._in_pieces(int(hard.shape[0]), lambda sl: self._inner.evaluate(hard[sl], **kwargs),
+        return self.gate.masks(int(hard.shape[0]), lambda sl: self._inner.evaluate(hard[sl], **kwargs),
                                lambda sl: hard[sl])
-
-    def _in_pieces(self, total: int, call, masks_of) -> dict[str, np.ndarray]:
-        """Score ``total`` masks by ``call(slice)`` in pieces the budget allows, recording the
-        ``masks_of(slice)``; raise :class:`BudgetExhausted` after the allowed first masks when the
-        budget does not allow them all."""
-        parts: list[dict] = []
-        done = 0
-        while done < total:
-            want = min(self.piece, total - done)
-            if self.budget.seconds is not None and self._per_mask > 0:
-                # under a time limit, a piece must fit in the time left (at least one mask)
-                want = max(1, min(want, int(self.budget.remaining_seconds() / self._per_mask)))
-            allowed = self.budget.allowed(want)
-            if allowed <= 0:
-                raise self._exhausted(f"{done} of {total} masks of this call scored")
-            before = self.budget.used_evaluations()
-            t0 = time.perf_counter()
-            sl = slice(done, done + allowed)
-            out = call(sl)
-            per_mask = (time.perf_counter() - t0) / allowed
-            self._per_mask = per_mask if self._per_mask == 0 else 0.7 * self._per_mask + 0.3 * per_mask
-            self._record(masks_of(sl), np.asarray(out["Mean"], dtype=np.float64), before)
-            parts.append(out)
-            done += allowed
-            if allowed < want:
-                raise self._exhausted(f"{done} of {total} masks of this call scored")
-        if len(parts) == 1:
-            return parts[0]
-        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
     def evaluate_swaps(self, mask, out, into) -> dict[str, np.ndarray]:
         """:func:`arraysel.objective.neighbours.evaluate_swaps` of the wrapped objective (its own
@@ -328,15 +267,14 @@ class BudgetedObjective:
         neighbours of ``mask`` that switch the elements ``out[i]`` off and ``into[i]`` on
         (``(B, m)`` each), counted, clipped and recorded like :meth:`evaluate` of their masks;
         scored by :meth:`neighbourhood` where the objective has one."""
-        self._check_open()
-        self._started()
+        self.gate.enter()
         m, a, b = check_moves(mask, out, into)
         if a.shape[0] == 0:
             return self._inner.evaluate(np.zeros((0, m.size), dtype=bool))
         nb = self.neighbourhood()
         if nb is not None:
             return nb.evaluate(m, a, b)
-        return self._in_pieces(a.shape[0], lambda sl: self._inner.evaluate(move_masks(m, a[sl], b[sl])),
+        return self.gate.masks(a.shape[0], lambda sl: self._inner.evaluate(move_masks(m, a[sl], b[sl])),
                                lambda sl: move_masks(m, a[sl], b[sl]))
 
     # -- the objective's capabilities, charged to the budget -------------------
@@ -354,17 +292,17 @@ class BudgetedObjective:
         """The wrapped objective's :class:`~arraysel.objective.contract.Neighbourhood` (asked once,
         :func:`~arraysel.objective.contract.neighbourhood_of`), its scoring counted, clipped and
         recorded by this budget; None when it has none (said once in the log)."""
-        self._check_open()
+        self.gate.check_open()
         nb = self._capability("neighbourhood", neighbourhood_of)
-        return None if nb is None else BudgetedNeighbourhood(self, nb)
+        return None if nb is None else BudgetedNeighbourhood(self.gate, nb)
 
     def loss_model(self) -> BudgetedLossModel | None:
         """The wrapped objective's :class:`~arraysel.objective.contract.LossModel` (asked once,
         :func:`~arraysel.objective.contract.loss_model_of`), each gradient and Hessian checked
         against this budget; None when it has none (said once in the log)."""
-        self._check_open()
+        self.gate.check_open()
         model = self._capability("loss model", loss_model_of)
-        return None if model is None else BudgetedLossModel(self, model)
+        return None if model is None else BudgetedLossModel(self.gate, model, self.n_elements)
 
     def score_swaps(self, mask, out, into) -> np.ndarray:
         """``Mean`` of the one-swap neighbours ``(out[i], into[i])`` of ``mask`` (:meth:`evaluate_swaps`),
@@ -389,27 +327,23 @@ class BudgetedObjective:
         return self.score(masks)
 
     def mask_loss(self, weights, *args, **kwargs):
-        self._check_open()
-        self._started()
+        self.gate.enter()
         b = int(weights.shape[0]) if getattr(weights, "ndim", 1) == 2 else 1
-        if self.budget.allowed(b) < b:
-            raise self._exhausted(f"mask_loss of {b} weight vectors")
+        self.gate.losses(b, f"mask_loss of {b} weight vectors")
         return self._inner.mask_loss(weights, *args, **kwargs)
 
     def mask_hessian(self, mask):
         """``(g, H)`` of ``mask_loss`` at ``mask`` (:class:`~arraysel.objective.contract.HasHessian`):
         the model of :meth:`loss_model`; ``Ne`` evaluations."""
-        self._check_open()
+        self.gate.check_open()
         model = self.loss_model()
         if model is None:
             raise ParameterError("mask_hessian: this objective has no model of its loss (no mask_loss)")
         return model.model(mask)
 
     def selection_loss(self, P, P_soft, *args, **kwargs):
-        self._check_open()
-        self._started()
-        if self.budget.allowed(1) < 1:
-            raise self._exhausted("selection_loss")
+        self.gate.enter()
+        self.gate.losses(1, "selection_loss")
         return self._inner.selection_loss(P, P_soft, *args, **kwargs)
 
 

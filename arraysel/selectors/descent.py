@@ -61,7 +61,9 @@ class SwapDescent(SearchState):
                 if self._guided and self.guide.wants_gradient():
                     pred = self._predict(mask, a, b)
                     self._guided = pred is not None  # an objective without a usable gradient: never again
-                for pick, ng in self.guide.chunks(a, b, pred, self.chunk, limit, self.lead):
+                chunks = (self.guide.chunks(a, b, pred, self.chunk, limit, self.lead) if self.block is None
+                          else self._block_chunks(a, pred))
+                for pick, ng in chunks:
                     cands, values = self.score_swaps(mask, a[pick], b[pick])
                     i = int(np.argmin(values))
                     if values[i] < value:
@@ -86,6 +88,33 @@ class SwapDescent(SearchState):
             self.moves += 1
             self._note(mask, value)
             yield mask, value
+
+    def _block_chunks(self, a: np.ndarray, pred: np.ndarray | None):
+        """The chunks of a first-improvement descent for a neighbourhood that prefers blocks
+        (:attr:`block`): yield ``(index array into the swaps a, how many of them come first from
+        the prediction)``, each chunk every swap of a few outgoing elements (at least the block's
+        ``outgoing``, and as many as make ``chunk`` swaps), the outgoing elements in the random
+        order of ``a`` and, a share ``guide`` of each chunk, in the order of their best predicted
+        swap (:class:`GuidedOrder` over outgoing elements); ``scan`` x the outgoing elements in all."""
+        _, first, inv, counts = np.unique(a, return_index=True, return_inverse=True, return_counts=True)
+        rank = np.empty(first.size, dtype=np.int64)
+        rank[np.argsort(first, kind="stable")] = np.arange(first.size)   # position in a's random order
+        row = rank[inv]
+        counts = counts[np.argsort(rank)]
+        by_row = np.argsort(row, kind="stable")
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        opred = None
+        if pred is not None:
+            opred = np.full(first.size, np.inf)
+            np.minimum.at(opred, row, pred)
+        per = a.size / first.size
+        rows = max(self.block.outgoing, int(math.ceil(self.chunk / per)))
+        lead = int(math.ceil(self.lead / per)) if self.lead else 0
+        idx = np.arange(first.size)
+        for pick, ng in self.guide.chunks(idx, idx, opred, rows, max(1, int(math.ceil(self.scan * idx.size))), lead):
+            swaps = np.concatenate([by_row[starts[r]:ends[r]] for r in pick])
+            yield swaps, int(counts[pick[:ng]].sum())
 
     def _compound_step(self, mask: np.ndarray, value: float, a: np.ndarray, b: np.ndarray,
                        values: np.ndarray, single: tuple[np.ndarray, float]) -> tuple[np.ndarray, float]:

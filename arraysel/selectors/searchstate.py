@@ -60,6 +60,10 @@ class SearchState:
         #: the objective's :class:`~arraysel.objective.contract.Neighbourhood` (asked once; None:
         #: neighbours are scored as masks)
         self.neighbourhood = neighbourhood_of(objective)
+        #: the :class:`~arraysel.objective.contract.SwapBlock` the neighbourhood prefers (None: a
+        #: first-improvement descent scores random chunks of swaps; else whole blocks of outgoing
+        #: elements, :meth:`~arraysel.selectors.descent.SwapDescent._block_chunks`)
+        self.block = None if self.neighbourhood is None else self.neighbourhood.block()
         self._loss_model: list = []  # the objective's LossModel, asked once when a model is first wanted
         #: the channel groups a selection must meet (:func:`~arraysel.constraints.group_constraints`):
         #: swaps stay inside a group, moves that leave the feasible set are never scored

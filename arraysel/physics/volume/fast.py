@@ -370,12 +370,31 @@ class MatrixFastPSF:
             self._unsort = self._unsort.to(self.device)
 
     # ---------------------------------------------------------------- evaluate
-    def image(self, weights, receive=None) -> torch.Tensor:
+    def _receive_sums(self, r: torch.Tensor, base) -> torch.Tensor:
+        """``r @ B`` (B, 2 columns); with ``base`` (Ne,) weights that each row of ``r`` differs from in
+        a few elements (the moves of a local search), the base's sums (the latest base's kept) plus
+        the rows of ``B`` of the elements that differ: a swap costs two rows of ``B``, not ``Ne``."""
+        if base is None:
+            return r @ self._B
+        b = check_element_weights(base, self.n_elements, self.dtype, self.device)
+        d = r - b
+        rows, cols = d.nonzero(as_tuple=True)
+        if rows.numel() > r.shape[0] * self.n_elements // 8:   # not a few moves: the full product
+            return r @ self._B
+        key = b.detach().cpu().numpy().tobytes()
+        if getattr(self, "_base_sums", (None,))[0] != key:   # the latest base's sums, kept: a search asks again
+            self._base_sums = (key, b.detach() @ self._B)
+        out = self._base_sums[1].expand(r.shape[0], -1).clone()
+        return out.index_add_(0, rows, d[rows, cols, None] * self._B[cols])
+
+    def image(self, weights, receive=None, base=None) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`); with
         ``receive`` (B, Ne) separate receive weights (``weights`` the transmit apodization): the
         receive sum ``gamma`` of ``receive``, the transmit sum ``c`` of ``weights`` (bilinear).
         ``weights`` (B, n_tx, Ne): one transmit apodization per transmit event (``receive``
-        required), each event's coefficients ``c_n`` from its own."""
+        required), each event's coefficients ``c_n`` from its own. ``base`` (Ne,): weights that each
+        row of the receive weights differs from in a few elements (a local search's selection; its
+        moves' receive sums are then formed from it, the same sums)."""
         n_tx = self._C.shape[0]
         w = transmit_event_weights(weights, n_tx, self.n_elements, self.dtype, self.device)
         if w.shape[1] > 1 and receive is None:
@@ -385,7 +404,7 @@ class MatrixFastPSF:
             raise SelectionError(f"receive weights must have the transmit weights' shape {tuple(w[:, 0].shape)}, "
                                  f"got {tuple(r.shape)}")
         Bn = w.shape[0]
-        gamma = torch.view_as_complex((r @ self._B).reshape(Bn, -1, 2))       # (B, columns)
+        gamma = torch.view_as_complex(self._receive_sums(r, base).reshape(Bn, -1, 2))   # (B, columns)
         if w.shape[1] == 1:
             c = torch.einsum("be,ner->bnr", w[:, 0].to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
         else:  # one transmit apodization per transmit event: each event's own field coefficients
@@ -398,10 +417,10 @@ class MatrixFastPSF:
                         dim=1)                                               # (B, P) in the groups' order
         return img[:, self._unsort]
 
-    def planes(self, weights, receive=None) -> dict[str, torch.Tensor]:
+    def planes(self, weights, receive=None, base=None) -> dict[str, torch.Tensor]:
         """``{name: complex (B, H, W)}`` as :meth:`MatrixPSF.planes`; differentiable in ``weights``
-        (and ``receive``, separate receive weights)."""
-        return split_planes(self.image(weights, receive=receive), self._shapes)
+        (and ``receive``, separate receive weights); ``base`` as :meth:`image`."""
+        return split_planes(self.image(weights, receive=receive, base=base), self._shapes)
 
     # ---------------------------------------------------------------- check
     def state(self) -> dict[str, torch.Tensor]:

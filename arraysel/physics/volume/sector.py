@@ -110,14 +110,15 @@ class MirroredModel:
         self.model = model
         self.perm = torch.as_tensor(np.asarray(perm), dtype=torch.long)
 
-    def planes(self, weights, receive=None) -> dict[str, torch.Tensor]:
+    def planes(self, weights, receive=None, base=None) -> dict[str, torch.Tensor]:
         def mirrored(x):
             x = x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
             x = x[None] if x.dim() == 1 else x
             return x[:, self.perm.to(x.device)]
 
         w = mirrored(weights)
-        out = self.model.planes(w) if receive is None else self.model.planes(w, receive=mirrored(receive))
+        b = None if base is None else mirrored(base)[0]
+        out = self.model.planes(w, base=b) if receive is None else self.model.planes(w, receive=mirrored(receive))
         return {k: v.transpose(-1, -2) for k, v in out.items()}
 
 
@@ -206,12 +207,16 @@ class SectorPSF:
                                         coords=self.coords[i])
         return self._models[i]
 
-    def surfaces(self, weights, i: int, exact: bool = False, receive=None) -> dict[str, torch.Tensor]:
+    def surfaces(self, weights, i: int, exact: bool = False, receive=None, base=None) -> dict[str, torch.Tensor]:
         """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne)
         (``receive``: separate receive weights (B, Ne), ``weights`` then the transmit apodization):
         from its fast model when one is installed (:meth:`install_fast`) and ``exact`` is False,
-        else from the exact :class:`MatrixPSF`."""
+        else from the exact :class:`MatrixPSF`. ``base`` (Ne,): weights each row differs from in a
+        few elements (a local search's moves), for the fast model's receive sums
+        (:meth:`MatrixFastPSF.image`); the images are the same."""
         fast = None if exact else self._fast.get(int(i))
+        if fast is not None and base is not None and receive is None:
+            return fast.planes(weights, base=base)
         model = fast if fast is not None else self.model(i)
         return model.planes(weights) if receive is None else model.planes(weights, receive=receive)
 
