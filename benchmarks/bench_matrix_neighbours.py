@@ -23,7 +23,7 @@ each rate is the median of the rounds, each ratio the median of the rounds' rati
 Usage::
 
     python benchmarks/bench_matrix_neighbours.py [--scene matrix-1024] [--outs 16] [--steps 8]
-        [--masks 256] [--rounds 3] [--threads 1]
+        [--block-outs N] [--masks 256] [--rounds 3] [--threads 1]
 
 The last output line is a JSON record; everything before it is for people.
 """
@@ -88,6 +88,8 @@ def main(argv=None) -> dict:
     p.add_argument("--scene", default="matrix-1024", help="3-D scene (default matrix-1024)")
     p.add_argument("--outs", type=int, default=16, help="outgoing elements whose swaps (a) scores (default 16)")
     p.add_argument("--steps", type=int, default=8, help="moves of the walks (b) and (c) a round (default 8)")
+    p.add_argument("--block-outs", type=int, default=None,
+                   help="outgoing elements of a block of (b) (default: what neighbourhood.block() prefers)")
     p.add_argument("--masks", type=int, default=256, help="neighbour masks (d) scores a round (default 256)")
     p.add_argument("--rounds", type=int, default=3, help="alternations of (a)-(d) (default 3)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
@@ -111,7 +113,8 @@ def main(argv=None) -> dict:
     cons = constraints_of(obj)   # the channel groups of a scene with [constraints], else None
     rng = np.random.default_rng(a.seed)
     ne, k = obj.n_elements, obj.k
-    per_block = nb.block().outgoing * (ne - k) if cons is None else SCATTERED
+    block_outs = nb.block().outgoing if a.block_outs is None else a.block_outs
+    per_block = block_outs * (ne - k) if cons is None else SCATTERED
 
     def fresh():
         if cons is not None:
@@ -160,7 +163,8 @@ def main(argv=None) -> dict:
               + f"; load {os.getloadavg()[0]:.1f}", flush=True)
     ind = rates["independent"]
     rec = {"benchmark": "matrix_neighbours", "scene": a.scene, "k": int(k), "n_elements": int(ne),
-           "groups": cons is not None, "whole_outs": int(outs.size), "steps": a.steps, "block_swaps": int(per_block),
+           "groups": cons is not None, "whole_outs": int(outs.size), "steps": a.steps, "block_outs": int(block_outs),
+           "block_swaps": int(per_block),
            "scattered_swaps": SCATTERED, "rounds": a.rounds,
            "objective_load_s": round(load_s, 2), "prepare_s": round(prepare_s, 2),
            "independent_masks_per_s": round(statistics.median(ind), 1), "target_ratio": TARGET, "machine": machine()}

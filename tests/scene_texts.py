@@ -47,3 +47,12 @@ k = 4
 r_main = 1.0
 r_guard = 2.0
 """
+
+#: a sector scene of an 8 x 8 matrix probe (two points at 15 mm): its fast paths build in seconds
+TINY_SECTOR = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
+               "acquisition": {"fs_over_fc": 4.0},
+               "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
+                            "source_distance": "5 mm"},
+               "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 0.0, "15 mm"]], "samples_per_lobe": 3.0,
+                          "margin": 1.0, "n_freq": 4, "fresh_random": 3},
+               "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0}}

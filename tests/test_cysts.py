@@ -13,15 +13,10 @@ import torch
 from arraysel.errors import ParameterError
 from arraysel.objective.cysts import CystPhantom, CystSettings, contrast_ratio, gcnr, score_cysts
 from arraysel.scenes.schema import load_scene
+from scene_texts import TINY_SECTOR
 
 #: the tiny sector scene of tests/test_sector.py (8 x 8 elements, two points at 15 mm)
-TINY = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
-        "acquisition": {"fs_over_fc": 4.0},
-        "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
-                     "source_distance": "5 mm"},
-        "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 0.0, "15 mm"]], "samples_per_lobe": 3.0, "margin": 1.0,
-                   "n_freq": 4, "fresh_random": 3},
-        "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0}}
+TINY = copy.deepcopy(TINY_SECTOR)
 
 U = np.arange(-31, 32) * 0.0179           # the grid of matrix-1024-sector
 LOBE = (0.0537, 0.0537)

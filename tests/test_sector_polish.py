@@ -16,14 +16,10 @@ from arraysel.run.sector_report import BeamPolish, beam_polish_plan
 from arraysel.scenes.schema import load_scene
 from arraysel.selectors.contract import Budget
 from arraysel.selectors.registry import get_registry
+from scene_texts import TINY_SECTOR
 
-TINY = {"name": "tiny-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
-        "acquisition": {"fs_over_fc": 4.0},
-        "transmit": {"n_tx_x": 3, "n_tx_y": 3, "max_tilt_deg": 20.0, "max_tilt_deg_y": 20.0,
-                     "source_distance": "5 mm"},
-        "sector": {"points": [[0.0, 0.0, "15 mm"], [10.0, 0.0, "15 mm"]], "samples_per_lobe": 3.0, "margin": 1.0,
-                   "n_freq": 4, "fresh_random": 3, "polish": 0.5},
-        "selection": {"k": 16}, "weights": {"L_PSF": 10.0, "L_contrast": 10.0, "L_SLR": 10.0}}
+TINY = copy.deepcopy(TINY_SECTOR)
+TINY["sector"]["polish"] = 0.5
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,8 @@ columns: real and imaginary parts ``(P, M)``, one column per neighbour, the rows
 every plane. :class:`ColumnMetrics` scores them there, without transposing them into the
 ``(M, H, W)`` planes :func:`psf3d_metrics` takes: every sum over pixels is a matrix-vector
 product, the peak an argmax down the columns, the side-lobe quantile one ``topk`` down the
-side-region rows. The definitions are those of :mod:`arraysel.objective.metrics3d` (the same
+side-region rows; the pixels' positions are held in the columns' row order, so the images are
+never reordered. The definitions are those of :mod:`arraysel.objective.metrics3d` (the same
 regions around each column's own peak, the same quantile, the same main-lobe widths through the
 C-plane's own peak), so the values are the same to rounding (``tests/test_matrix_neighbours.py``).
 No gradient.
@@ -44,7 +45,7 @@ class ColumnMetrics:
         self.n = n = int(rows.numel())
         self.unsort = torch.empty_like(rows)
         self.unsort[rows] = torch.arange(n)                # pixel i sits in row unsort[i]
-        self.coords = ps.coords                            # (N, 3) float64, planes' order
+        self.coords = ps.coords[rows]                      # (N, 3) float64, in row order
         self.rm, self.rg = region_radii(wavelength, r_main, r_guard)
         self.q = float(quantile)
         self.dtype = dtype
@@ -62,12 +63,14 @@ class ColumnMetrics:
     def __call__(self, re: torch.Tensor, im: torch.Tensor, cols: torch.Tensor | None = None) -> dict[str, np.ndarray]:
         """``{name: float64 (M,)}`` of the images ``re + i im`` (each ``(P, M)``, rows as ``rows``);
         with ``cols``, of those columns only."""
+        if cols is not None:
+            re, im = re.index_select(1, cols), im.index_select(1, cols)
+            k2 = (re * re).addcmul_(im, im)                                # |kappa|^2 (P, M)
+        else:
+            k2 = (re * re).addcmul_(im, im)
         kr_re = self.ref_r @ re + self.ref_i @ im
         kr_im = self.ref_i @ re - self.ref_r @ im
-        k2 = (re * re).addcmul_(im, im)                                    # |kappa|^2 (P, M)
-        if cols is not None:
-            k2, kr_re, kr_im = k2.index_select(1, cols), kr_re[cols], kr_im[cols]
-        k2 = k2.index_select(0, self.unsort).T.contiguous()                # (M, N), the planes' order
+        k2 = k2.T.contiguous()                                             # (M, N), in row order
         out: dict[str, torch.Tensor] = {}
         kk = k2.sum(1).double()
         tiny = torch.finfo(re.dtype).tiny
@@ -126,7 +129,8 @@ class ColumnMetrics:
             return {"width_x_6dB": np.full(m, np.inf), "width_y_6dB": np.full(m, np.inf)}
         h, w = self.c_shape
         o = self.c_off
-        flat_peak = torch.argmax(k2[:, o:o + h * w], 1)
+        at = self.unsort                                                   # pixel -> row
+        flat_peak = torch.argmax(k2.index_select(1, at[o:o + h * w]), 1)
         i0, j0 = flat_peak // w, flat_peak % w
         c = self.c_coords
         out = {}
@@ -137,7 +141,7 @@ class ColumnMetrics:
             else:
                 idx = o + torch.arange(h)[None, :] * w + j0[:, None]
                 s = c[:, j0.numpy(), comp].T
-            a = _sqrt0(torch.gather(k2, 1, idx)).double().numpy()            # (M, n)
+            a = _sqrt0(torch.gather(k2, 1, at[idx])).double().numpy()        # (M, n)
             jp = np.argmax(a, axis=1)
             pk = a[np.arange(m), jp]
             thr = SIX_DB * pk

@@ -26,8 +26,8 @@ import torch
 from arraysel.objective.tensors import check_masks
 from arraysel.physics.imaging import Imager, KernelImager, PatternImager, VolumeImager
 
-__all__ = ["scene_imagers", "scene_points", "scene_beams", "matrix_model", "exact_notice", "estimate_seconds",
-           "neighbourhood_for", "default_chunk", "check_masks", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D",
+__all__ = ["scene_imagers", "transmit_events", "scene_points", "scene_beams", "matrix_model", "exact_notice",
+           "estimate_seconds", "neighbourhood_for", "default_chunk", "check_masks", "FAST_VERSION", "DEFAULT_CHUNK", "DEFAULT_CHUNK_3D",
            "DEFAULT_CHUNK_PATTERN"]
 
 _log = logging.getLogger(__name__)
@@ -228,3 +228,12 @@ def matrix_model(setup, k: int, dtype=torch.float32, device="cpu", fast: bool = 
         why = refused[0] if refused else "refused when it was built (its check against the exact path failed)"
         return MatrixPSF(setup, dtype=dtype, device=device), f"unavailable: {why}"
     return MatrixFastPSF.from_state(setup, state, base, dtype=dtype, device=device), None
+
+
+def transmit_events(imagers) -> int:
+    """The transmit events a selection may give apertures of their own (``aperture.mode =
+    "per-transmit"``): those of a matrix scene imaged on planes, else 0."""
+    from arraysel.physics.imaging import VolumeImager
+
+    first = imagers[0] if imagers else None
+    return int(first.setup.delays.shape[0]) if isinstance(first, VolumeImager) else 0

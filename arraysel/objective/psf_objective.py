@@ -209,8 +209,9 @@ class Objective:
         return _Timer(self)
 
     def as_masks(self, masks) -> torch.Tensor:
-        """``masks`` (B, Ne) or (Ne,) as checked weights on the objective's device and dtype."""
-        return checked_masks(masks, self.n_elements, self.device, self.dtype)
+        """``masks`` (B, Ne) or (Ne,) as checked weights on the objective's device and dtype; a
+        matrix scene's also (B, n_tx, Ne), a transmit aperture per transmit event."""
+        return checked_masks(masks, self.n_elements, self.device, self.dtype, I.transmit_events(self.imagers))
 
     def _weights(self, weights: torch.Tensor) -> torch.Tensor:
         w = weights[None] if weights.dim() == 1 else weights   # (B, n_tx, Ne): one per transmit event

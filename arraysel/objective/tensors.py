@@ -42,16 +42,19 @@ def objective_device(device) -> torch.device:
     return device
 
 
-def checked_masks(masks, n_elements: int, device, dtype) -> torch.Tensor:
+def checked_masks(masks, n_elements: int, device, dtype, n_events: int = 0) -> torch.Tensor:
     """``masks`` (B, Ne) or (Ne,) (numpy or torch) as a (B, Ne) tensor on ``device`` in ``dtype``;
-    SelectionError for a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
+    with ``n_events`` > 1 (a scene whose transmit events may have apertures of their own) also
+    ``(B, n_events, Ne)``, one transmit aperture per event, checked row by row. SelectionError for
+    a wrong shape, a NaN or Inf, a negative weight or an empty selection."""
     m = masks if isinstance(masks, torch.Tensor) else torch.as_tensor(np.asarray(masks, dtype=np.float64))
     if m.dim() == 1:
         m = m[None]
-    if m.dim() == 3 and m.shape[-1] == n_elements:  # a transmit aperture per transmit event (B, n_tx, Ne)
+    if n_events > 1 and m.dim() == 3 and m.shape[1:] == (n_events, n_elements):
         return checked_masks(m.reshape(-1, n_elements), n_elements, device, dtype).reshape(m.shape)
     if m.dim() != 2 or m.shape[1] != n_elements:
-        raise SelectionError(f"masks must have shape (B, {n_elements}), got {tuple(m.shape)}")
+        also = f" or (B, {n_events}, {n_elements}) (per transmit event)" if n_events > 1 else ""
+        raise SelectionError(f"masks must have shape (B, {n_elements}){also}, got {tuple(m.shape)}")
     m = m.to(device, dtype)
     if not bool(torch.isfinite(m).all()):
         raise SelectionError("masks contain NaN or Inf")

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import functools
 import logging
-import math
 
 import numpy as np
 
 from arraysel.report import tables as reporting
+from arraysel.run.sector_report import point_info
 
 __all__ = ["FRESH_ONE", "point_selections", "point_files"]
 
@@ -49,17 +49,6 @@ def point_selections(objective, rows: list[dict]) -> tuple[list[str], list, np.n
     return labels, seeds, np.array(masks, dtype=bool).reshape(-1, n)
 
 
-def _point_info(objective) -> list[tuple]:
-    from arraysel.objective.sector_objective import point_label
-
-    out = []
-    for i in range(objective.n_points):
-        u, v = objective.setup.direction_of(i)
-        out.append((point_label(objective, i), math.degrees(math.asin(u)), math.degrees(math.asin(v)),
-                    objective.setup.range_of(i)))
-    return out
-
-
 def point_files(objective, rows: list[dict], beams, figures: bool = True) -> tuple[dict, dict]:
     """The files of the module docstring for a sector scene's objective (none for another
     objective, or one seen through separate apertures); ``beams``: the ``beams.csv`` DataFrame. Returns ``({file name: DataFrame},
@@ -79,7 +68,7 @@ def point_files(objective, rows: list[dict], beams, figures: bool = True) -> tup
     wanted = list(range(objective.n_points)) if figures else list(cysts.points)
     _log.info("imaging %d selections on %d points for the points' figures and cysts", len(labels), len(wanted))
     images = {i: objective.point_images(masks, i).detach().cpu().numpy() for i in wanted}
-    pts = _point_info(objective)
+    pts = point_info(objective)
     if cysts is not None:
         import pandas as pd
 

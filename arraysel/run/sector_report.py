@@ -57,7 +57,8 @@ def beam_source(objective):
     return PSFBeams(objective, int(scene.value("metrics", "fresh_random")))
 
 
-def _point_info(objective) -> list[tuple]:
+def point_info(objective) -> list[tuple]:
+    """``(label, angle in x (deg), angle in y (deg), range (m))`` of each of the scene's points."""
     from arraysel.objective.beams1d import PSFBeams
     from arraysel.objective.sector_objective import point_label
 
@@ -93,7 +94,7 @@ def sector_tables(objective, rows: list[dict]):
     if not len(allm):
         return pd.DataFrame(columns=list(B.BEAMS_COLUMNS)), pd.DataFrame(columns=list(B.PARETO_COLUMNS))
     met = objective.beam_metrics(allm)
-    pts = _point_info(objective)
+    pts = point_info(objective)
     beams, pareto = [], []
     for config, r in reporting.best_rows(rows).items():
         sel = r.get("elements")
