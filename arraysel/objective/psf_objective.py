@@ -48,7 +48,8 @@ from arraysel.objective.plane_metrics import plane_scorer
 from arraysel.objective.sector_beams import per_beam_attribute
 from arraysel.objective.point_columns import AGGREGATES, aggregated, images_out, point_metric_names  # noqa: F401
 from arraysel.errors import ParameterError, SelectionError
-from arraysel.objective.tensors import checked_masks, objective_device  # noqa: F401  (checked_masks: its former home)
+from arraysel.objective.tensors import (ReadOnlyKw, checked_masks,  # noqa: F401  (checked_masks: its former home)
+                                        objective_device)
 from arraysel.physics.imaging import PlaneSet
 from arraysel.selection import masks_from_indices
 from arraysel.scenes.scene import ObjectiveSettings
@@ -136,9 +137,9 @@ class Objective:
         self.aggregate = st.aggregate
         first = self.imagers[0]
         self.image_kind = "kernels" if all(im.pitch is not None for im in self.imagers) else "planes"
-        self.metric_kw = dict(wavelength=st.wavelength, **st.metric_radii)
-        if first.pitch is not None:
-            self.metric_kw = dict(pitch=first.pitch[0], **self.metric_kw)
+        kw = dict(wavelength=st.wavelength, **st.metric_radii)
+        #: the metrics' radii and scales (read-only: the scorers below hold them)
+        self.metric_kw = ReadOnlyKw(kw if first.pitch is None else dict(pitch=first.pitch[0], **kw))
         # each imager's scoring of its plane sets against its reference, and the names it gives
         scorers = [plane_scorer(im, wavelength=st.wavelength, **st.metric_radii) for im in self.imagers]
         self._columns = scorers[0][0]

@@ -9,7 +9,8 @@ from torch import Tensor
 
 from arraysel.errors import ParameterError, SelectionError
 
-__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2", "objective_device", "checked_masks", "check_masks"]
+__all__ = ["_check_tensor", "_check_kernel_shape", "_abs2", "objective_device", "checked_masks", "check_masks",
+           "ReadOnlyKw"]
 
 
 def _check_tensor(name: str, x: object) -> Tensor:
@@ -75,3 +76,19 @@ def check_masks(n: int, k: int) -> torch.Tensor:
         m[torch.randperm(n, generator=g)[:k]] = 1
         checks.append(m)
     return torch.stack(checks)
+
+
+class ReadOnlyKw(dict):
+    """An objective's ``metric_kw``: the metrics' radii and scales, fixed when the objective is built
+    (its scorers hold them). Changing one raises a TypeError that says where they are set, where a
+    plain dict would take the change and score on with the old values, silently."""
+
+    def _refuse(self, *args, **kwargs):
+        raise TypeError("objective.metric_kw is read-only: the metrics' radii and scales are fixed when the "
+                        "objective is built; set them in the scene's [metrics] section")
+
+    __setitem__ = __delitem__ = update = pop = popitem = clear = setdefault = _refuse
+    __ior__ = _refuse
+
+    def __reduce__(self):
+        return (ReadOnlyKw, (dict(self),))
