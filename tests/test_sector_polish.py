@@ -76,16 +76,23 @@ def test_compare_polishes_the_searches_of_a_sector_scene(tmp_path, tiny):
     assert "polish=0.0" in beams.loc[beams["config"] == "random", "options"].iloc[0]
 
 
-def test_moves_from_a_base_give_the_same_images_and_metrics(tiny):
-    """A local search's moves scored from its selection's fast-path sums (``base``: the receive
-    sums change by the rows of the elements that differ) equal the same masks scored afresh."""
-    rng = np.random.default_rng(5)
+def _swaps_of_a_base(seed: int, count: int):
+    """A random selection of 16 of 64 elements and ``count`` of its one-swap neighbours (row ``i``
+    swaps its ``i``-th selected element for its ``i``-th unselected one)."""
+    rng = np.random.default_rng(seed)
     base = np.zeros(64, dtype=bool)
     base[rng.choice(64, 16, replace=False)] = True
     on, off = np.flatnonzero(base), np.flatnonzero(~base)
-    moves = np.repeat(base[None], 6, axis=0)
-    moves[np.arange(6), on[:6]] = False
-    moves[np.arange(6), off[:6]] = True
+    moves = np.repeat(base[None], count, axis=0)
+    moves[np.arange(count), on[:count]] = False
+    moves[np.arange(count), off[:count]] = True
+    return base, moves
+
+
+def test_moves_from_a_base_give_the_same_images_and_metrics(tiny):
+    """A local search's moves scored from its selection's fast-path sums (``base``: the receive
+    sums change by the rows of the elements that differ) equal the same masks scored afresh."""
+    base, moves = _swaps_of_a_base(seed=5, count=6)
     moves[5] = base                                  # no move at all: the base itself
     for i in range(tiny.n_points):
         assert tiny.fast_point(i)
@@ -104,13 +111,7 @@ def test_moves_from_a_base_on_a_mirrored_point():
     from test_sector_fast import SMALL   # points 1 and 2 are x-y mirrors: point 2 takes point 1's model
 
     obj = SectorObjective(load_scene(copy.deepcopy(SMALL)), dtype=torch.float32)
-    rng = np.random.default_rng(1)
-    base = np.zeros(64, dtype=bool)
-    base[rng.choice(64, 16, replace=False)] = True
-    on, off = np.flatnonzero(base), np.flatnonzero(~base)
-    moves = np.repeat(base[None], 4, axis=0)
-    moves[np.arange(4), on[:4]] = False
-    moves[np.arange(4), off[:4]] = True
+    base, moves = _swaps_of_a_base(seed=1, count=4)
     for i in (1, 2):
         assert obj.fast_point(i)
         a, b = obj.point_images(moves, i), obj.point_images(moves, i, base=base)

@@ -97,7 +97,9 @@ class ApertureObjective:
             if getattr(inner, "image_kind", None) != "planes" or hasattr(inner, "beam_metrics"):
                 raise ParameterError("aperture.mode = 'per-transmit' applies to matrix-probe scenes imaged on planes "
                                      "(such as matrix-1024); allowed on this scene: shared, full-tx, separate")
-            self.n_events = int(inner.imagers[0].setup.delays.shape[0])
+            from arraysel.objective.imagers import transmit_events
+
+            self.n_events = transmit_events(inner.imagers)
         if mode == "full-tx":
             self.n_elements, self.k = n, int(inner.k)
             self.constraints = getattr(inner, "constraints", None)
