@@ -143,9 +143,10 @@ def beam_pattern_view(objective, labels: list[str], masks: np.ndarray):
 
 #: the polish's search settings on a sector scene (``docs/sector.md``): 32 swaps a round, screened on
 #: the points within 1 dB of the worst (every point once the side lobes are that close: then no
-#: screening), the best 8 scored on every point, on the smooth maximum of the points' side lobes at 0.3 dB
+#: screening), the best 8 scored on every point, on the smooth maximum of the points' side lobes at 0.3 dB;
+#: 3/4 of each round's swaps proposed by the gradient of the screened points' side lobes (``guide``)
 BEAM_POLISH_SETTINGS = {"batch": 32, "keep": 8, "screen_db": 1.0, "soft_db": 0.3, "patience": 60,
-                        "width_weight": 300.0}
+                        "width_weight": 300.0, "guide": 0.75}
 
 
 @dataclasses.dataclass
