@@ -587,6 +587,39 @@ def test_envelopes_of_a_few_selections_from_their_rows(no_cache, monkeypatch, dt
     assert not real(fast, mask.clone().requires_grad_(True))
 
 
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30])
+def test_compiled_envelopes_of_a_batch_equal_torchs(no_cache, monkeypatch, step_bytes):
+    """A float32 batch of at least MIN_BATCH selections has its receive products reduced to
+    segment peaks and runs compiled: the envelopes equal torch's reduction of the same products
+    to one rounding of the root (torch's vectorised root is not always the nearest float), zero on the
+    receive elements a selection does not use, NaN in the same entries; float64, a gradient or a
+    small batch keep torch's operations."""
+    from arraysel.physics import compiled
+
+    model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
+    cert = model.basis.certificates
+    monkeypatch.setattr(Certificates, "receive_step_bytes", step_bytes)
+    ne = model.n_elements
+    rng = np.random.default_rng(7)
+    masks = torch.zeros(2 * compiled.MIN_BATCH, ne)
+    for b in range(masks.shape[0]):
+        masks[b, rng.choice(ne, 1 + b % ne, replace=False)] = 1
+    w = torch.cat([masks, _mixed_weights(ne, seed=3).float()])
+    w[-1, 5] = math.nan
+    assert cert._compiled_envelopes(w)
+    assert not cert._compiled_envelopes(w[:compiled.MIN_BATCH - 1])
+    assert not cert._compiled_envelopes(w.double())
+    assert not cert._compiled_envelopes(w.clone().requires_grad_(True))
+    got = cert.envelopes(w)
+    monkeypatch.setattr(Certificates, "_compiled_envelopes", lambda self, w: False)
+    want = cert.envelopes(w)
+    assert torch.equal(got.isnan(), want.isnan()) and bool(got.isnan().any())
+    torch.testing.assert_close(got, want, rtol=2.5e-7, atol=0, equal_nan=True)
+    ntx, M, nS = len(model.transmits), cert.max_run, cert.window_samples // cert.segment
+    off = (w[:-1] == 0).T[None, :, None, None, :].expand(ntx, ne, M, nS, -1)  # the last: NaN everywhere
+    assert bool((got.view(ntx, ne, M, nS, -1)[..., :-1][off] == 0).all())
+
+
 @pytest.mark.parametrize("subset_min", [1, 1000])
 @pytest.mark.parametrize("step_bytes", [0, 1 << 30])
 def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeypatch, step_bytes, subset_min):

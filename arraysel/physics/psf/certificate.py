@@ -239,6 +239,16 @@ class Certificates:
 
             seg.zero_()
             channel_peaks_into(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), env.numpy())
+        elif self._compiled_envelopes(w):
+            from arraysel.physics.peakkernels import product_peaks_into, segment_runs
+
+            seg.zero_()
+            wn, en = np.ascontiguousarray(w.numpy()), env.numpy()
+            every = np.arange(B)
+            for e0, _, s, y in self._receive_products(w):
+                product_peaks_into(y.numpy(), every if s is None else s.numpy(), e0, wn, en)
+            segment_runs(en)
+            return env.view(-1, B)
         else:
             peaks = w.new_zeros(B, ne, ntx, nS)
             for e0, e1, s, y in self._receive_products(w):
@@ -390,6 +400,16 @@ class Certificates:
 
         y = swap_channels(self.pair_channels.numpy(), self._swap_sums[1], out, into, on)
         return y.reshape(on.shape[0], self.model.n_elements, 2, len(self.model.transmits), self.window_samples)
+
+    def _compiled_envelopes(self, w: torch.Tensor) -> bool:
+        """Whether :meth:`envelopes` reduces the receive products to segment peaks and runs
+        compiled (:func:`~arraysel.physics.peakkernels.product_peaks_into`,
+        :func:`~arraysel.physics.peakkernels.segment_runs`: one read of each product and one pass
+        over the envelopes, where torch's square, maximum, root, product, transpose and running
+        maxima take a dozen): on the CPU without gradient, for a batch of at least
+        :data:`~arraysel.physics.compiled.MIN_BATCH` selections in float32 (the same values)."""
+        return w.device.type == "cpu" and not w.requires_grad and w.shape[0] >= compiled.MIN_BATCH and \
+            w.dtype == torch.float32
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
         """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of
