@@ -620,6 +620,37 @@ def test_compiled_envelopes_of_a_batch_equal_torchs(no_cache, monkeypatch, step_
     assert bool((got.view(ntx, ne, M, nS, -1)[..., :-1][off] == 0).all())
 
 
+def test_batches_write_their_envelopes_in_the_last_batchs_memory(no_cache, monkeypatch):
+    """Refinement.kernels writes a batch's envelopes in the memory of the last batch's (no fresh
+    pages for every batch) when it is large enough, and the kernels equal those of envelopes in
+    memory of their own; a small batch, or a second caller while the memory is in use, gets its
+    own."""
+    from arraysel.physics import compiled
+
+    model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
+    basis, ref = model.basis, model.basis.refinement
+    rng = np.random.default_rng(11)
+    w = torch.zeros(2 * compiled.MIN_BATCH, 16)
+    for b in range(w.shape[0]):
+        w[b, rng.choice(16, 8, replace=False)] = 1
+    k1, ok1 = basis.kernels(w)
+    assert len(ref._env_pool) == 1
+    buf = ref._env_pool[0]
+    assert buf.numel() == basis.certificates.envelope_size(w.shape[0])
+    k2, ok2 = basis.kernels(w.flip(0))
+    assert ref._env_pool == [buf]  # the same memory again
+    assert torch.equal(k2, k1.flip(0)) and torch.equal(ok2, ok1.flip(0))
+    k3, _ = basis.kernels(w[:compiled.MIN_BATCH])  # smaller: the same memory
+    assert ref._env_pool == [buf] and torch.equal(k3, k1[:compiled.MIN_BATCH])
+    assert ref._envelope_scratch(w[:compiled.MIN_BATCH - 1]) is None  # a small batch: its own
+    taken = ref._envelope_scratch(w)
+    assert taken is buf and ref._envelope_scratch(w) is not buf  # in use: new memory
+    ref._env_pool.append(taken)
+    monkeypatch.setattr(Refinement, "_envelope_scratch", lambda self, wd: None)
+    k4, ok4 = basis.kernels(w)
+    assert torch.equal(k4, k1) and torch.equal(ok4, ok1)
+
+
 @pytest.mark.parametrize("subset_min", [1, 1000])
 @pytest.mark.parametrize("step_bytes", [0, 1 << 30])
 def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeypatch, step_bytes, subset_min):

@@ -216,8 +216,10 @@ class Certificates:
                 y = ws @ self.pair_channels[:, a * cols:b * cols]
                 yield a, b, (None if whole else s), y.view(n, b - a, 2, ntx, T)
 
-    def envelopes(self, w: torch.Tensor) -> torch.Tensor:
-        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w (no gradient).
+    def envelopes(self, w: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w (no gradient),
+        written into the first entries of ``out`` (a contiguous 1-D tensor of w's dtype and
+        device, at least :meth:`envelope_size` long) when it is given.
 
         Entry (n, e, m, a): ``max |X_ne(t)|`` over segments ``a .. a + m`` (``segment`` samples
         each; zeros past the end). The channel sums of the receive elements a selection uses are
@@ -232,7 +234,10 @@ class Certificates:
         sg = self.segment
         nS = self.window_samples // sg
         nch = ntx * ne
-        env = w.new_empty(nch, self.max_run, nS, B)
+        if out is None:
+            env = w.new_empty(nch, self.max_run, nS, B)
+        else:
+            env = out[:self.envelope_size(B)].view(nch, self.max_run, nS, B)
         seg = env[:, 0]
         if self._channels_from_rows(w):
             from arraysel.physics.peakkernels import channel_peaks_into
@@ -261,6 +266,11 @@ class Certificates:
             peaks.sqrt_().mul_(w.abs()[:, :, None, None])
             seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
         return self._segment_runs(env)
+
+    def envelope_size(self, B: int) -> int:
+        """Entries of the envelopes of ``B`` selections (:meth:`envelopes`)."""
+        return len(self.model.transmits) * self.model.n_elements * self.max_run * \
+            (self.window_samples // self.segment) * int(B)
 
     def _segment_runs(self, env: torch.Tensor) -> torch.Tensor:
         """Fill runs 2 .. ``max_run`` of envelopes ``env`` (nch, M, nS, B) whose first run (the
