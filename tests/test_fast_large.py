@@ -606,12 +606,14 @@ def test_compiled_envelopes_of_a_batch_equal_torchs(no_cache, monkeypatch, step_
         masks[b, rng.choice(ne, 1 + b % ne, replace=False)] = 1
     w = torch.cat([masks, _mixed_weights(ne, seed=3).float()])
     w[-1, 5] = math.nan
-    assert cert._compiled_envelopes(w)
-    assert not cert._compiled_envelopes(w[:compiled.MIN_BATCH - 1])
-    assert not cert._compiled_envelopes(w.double())
-    assert not cert._compiled_envelopes(w.clone().requires_grad_(True))
+    from arraysel.physics.psf import certificate
+
+    assert certificate.compiled_envelopes(w)
+    assert not certificate.compiled_envelopes(w[:compiled.MIN_BATCH - 1])
+    assert not certificate.compiled_envelopes(w.double())
+    assert not certificate.compiled_envelopes(w.clone().requires_grad_(True))
     got = cert.envelopes(w)
-    monkeypatch.setattr(Certificates, "_compiled_envelopes", lambda self, w: False)
+    monkeypatch.setattr(certificate, "compiled_envelopes", lambda w: False)
     want = cert.envelopes(w)
     assert torch.equal(got.isnan(), want.isnan()) and bool(got.isnan().any())
     torch.testing.assert_close(got, want, rtol=2.5e-7, atol=0, equal_nan=True)
@@ -626,6 +628,7 @@ def test_batches_write_their_envelopes_in_the_last_batchs_memory(no_cache, monke
     memory of their own; a small batch, or a second caller while the memory is in use, gets its
     own."""
     from arraysel.physics import compiled
+    from arraysel.physics.psf import refinement as refinement_module
 
     model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
     basis, ref = model.basis, model.basis.refinement
@@ -642,11 +645,12 @@ def test_batches_write_their_envelopes_in_the_last_batchs_memory(no_cache, monke
     assert torch.equal(k2, k1.flip(0)) and torch.equal(ok2, ok1.flip(0))
     k3, _ = basis.kernels(w[:compiled.MIN_BATCH])  # smaller: the same memory
     assert ref._env_pool == [buf] and torch.equal(k3, k1[:compiled.MIN_BATCH])
-    assert ref._envelope_scratch(w[:compiled.MIN_BATCH - 1]) is None  # a small batch: its own
-    taken = ref._envelope_scratch(w)
-    assert taken is buf and ref._envelope_scratch(w) is not buf  # in use: new memory
+    scratch = refinement_module._envelope_scratch
+    assert scratch(ref._env_pool, ref.certificates, w[:compiled.MIN_BATCH - 1]) is None  # small: its own
+    taken = scratch(ref._env_pool, ref.certificates, w)
+    assert taken is buf and scratch(ref._env_pool, ref.certificates, w) is not buf  # in use: new memory
     ref._env_pool.append(taken)
-    monkeypatch.setattr(Refinement, "_envelope_scratch", lambda self, wd: None)
+    monkeypatch.setattr(refinement_module, "_envelope_scratch", lambda pool, certificates, wd: None)
     k4, ok4 = basis.kernels(w)
     assert torch.equal(k4, k1) and torch.equal(ok4, ok1)
 

@@ -73,6 +73,32 @@ def block_matrix(lo: torch.Tensor, hi: torch.Tensor, outside: torch.Tensor, max_
     return sparse_csr(crow, cols_i, vals, (nq, width)).to(device)
 
 
+def compiled_envelopes(w: torch.Tensor) -> bool:
+    """Whether :meth:`Certificates.envelopes` reduces the receive products to segment peaks and
+    runs compiled (:func:`_envelopes_compiled`): on the CPU without gradient, for a batch of at
+    least :data:`~arraysel.physics.compiled.MIN_BATCH` selections in float32 (the same values)."""
+    return w.device.type == "cpu" and not w.requires_grad and w.shape[0] >= compiled.MIN_BATCH and \
+        w.dtype == torch.float32
+
+
+def _envelopes_compiled(cert: "Certificates", w: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
+    """:meth:`Certificates.envelopes` of ``w`` into ``env`` (nch, M, nS, B), returned as (nch M
+    nS, B): each receive product read once
+    (:func:`~arraysel.physics.peakkernels.product_peaks_into`) and one pass over the envelopes
+    (:func:`~arraysel.physics.peakkernels.segment_runs`), where torch's square, maximum, root,
+    product, transpose and running maxima take a dozen."""
+    from arraysel.physics.peakkernels import product_peaks_into, segment_runs
+
+    B = w.shape[0]
+    env[:, 0].zero_()
+    wn, en = np.ascontiguousarray(w.numpy()), env.numpy()
+    every = np.arange(B)
+    for e0, _, s, y in cert._receive_products(w):
+        product_peaks_into(y.numpy(), every if s is None else s.numpy(), e0, wn, en)
+    segment_runs(en)
+    return env.view(-1, B)
+
+
 class RawChannels(NamedTuple):
     """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
     gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
@@ -244,16 +270,8 @@ class Certificates:
 
             seg.zero_()
             channel_peaks_into(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), env.numpy())
-        elif self._compiled_envelopes(w):
-            from arraysel.physics.peakkernels import product_peaks_into, segment_runs
-
-            seg.zero_()
-            wn, en = np.ascontiguousarray(w.numpy()), env.numpy()
-            every = np.arange(B)
-            for e0, _, s, y in self._receive_products(w):
-                product_peaks_into(y.numpy(), every if s is None else s.numpy(), e0, wn, en)
-            segment_runs(en)
-            return env.view(-1, B)
+        elif compiled_envelopes(w):
+            return _envelopes_compiled(self, w, env)
         else:
             peaks = w.new_zeros(B, ne, ntx, nS)
             for e0, e1, s, y in self._receive_products(w):
@@ -269,8 +287,8 @@ class Certificates:
 
     def envelope_size(self, B: int) -> int:
         """Entries of the envelopes of ``B`` selections (:meth:`envelopes`)."""
-        return len(self.model.transmits) * self.model.n_elements * self.max_run * \
-            (self.window_samples // self.segment) * int(B)
+        nS = self.window_samples // self.segment
+        return len(self.model.transmits) * self.model.n_elements * self.max_run * nS * B
 
     def _segment_runs(self, env: torch.Tensor) -> torch.Tensor:
         """Fill runs 2 .. ``max_run`` of envelopes ``env`` (nch, M, nS, B) whose first run (the
@@ -410,16 +428,6 @@ class Certificates:
 
         y = swap_channels(self.pair_channels.numpy(), self._swap_sums[1], out, into, on)
         return y.reshape(on.shape[0], self.model.n_elements, 2, len(self.model.transmits), self.window_samples)
-
-    def _compiled_envelopes(self, w: torch.Tensor) -> bool:
-        """Whether :meth:`envelopes` reduces the receive products to segment peaks and runs
-        compiled (:func:`~arraysel.physics.peakkernels.product_peaks_into`,
-        :func:`~arraysel.physics.peakkernels.segment_runs`: one read of each product and one pass
-        over the envelopes, where torch's square, maximum, root, product, transpose and running
-        maxima take a dozen): on the CPU without gradient, for a batch of at least
-        :data:`~arraysel.physics.compiled.MIN_BATCH` selections in float32 (the same values)."""
-        return w.device.type == "cpu" and not w.requires_grad and w.shape[0] >= compiled.MIN_BATCH and \
-            w.dtype == torch.float32
 
     def _channels_from_rows(self, w: torch.Tensor) -> bool:
         """Whether :meth:`envelopes` sums each channel of ``w`` compiled from the rows of
