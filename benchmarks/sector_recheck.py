@@ -14,10 +14,15 @@ side in steps of ``lambda0 / (samples_per_lobe D)``.
 
 The metrics are computed here too, independently of ``arraysel.objective.lobes``, as
 ``docs/sector.md`` defines them: the peak is the local maximum reached by climbing from the pixel
-nearest the point's direction; the main lobe is the peak's basin, the pixels reachable from the
-peak along paths that never rise more than ``ripple_db`` (1 dB) above the lowest amplitude met so
-far on them (so the main lobe ends at its first nulls, whatever their shape); ``PSL_dB`` is the
-strongest pixel outside it, ``ISLR_dB`` the energy outside over the energy inside, and the -6 dB
+nearest the point's direction; the main lobe is read along 64 rays from the peak, uniform in
+angle, sampled every half pixel (bilinear in amplitude): a ray's radius is its first null (the
+lowest amplitude met before the amplitude first rises more than ``ripple_db``, 1 dB, above the
+lowest met so far), at most 3 times the distance at which it first falls to -6 dB, and a pixel is
+main lobe when it lies no further from the peak than the radius interpolated linearly in angle
+between the rays either side (the documented rule, ``arraysel.objective.lobe_regions.MainLobeRule``'s
+defaults); ``PSL_dB`` is the
+strongest pixel outside it (``PSL_uncapped_dB``: outside a main lobe read along one ray through
+every pixel, with no cap), ``ISLR_dB`` the energy outside over the energy inside, and the -6 dB
 widths in x and y are read through the peak along the grid's rows and columns (``x = R u``,
 ``y = R v``), interpolated linearly in amplitude.
 
@@ -34,7 +39,6 @@ exact per-beam path (``SectorObjective.beam_metrics(..., exact=True)``).
 from __future__ import annotations
 
 import argparse
-import heapq
 import json
 import math
 import sys
@@ -46,7 +50,7 @@ import numpy as np
 #: points no issue names: (theta_x deg, theta_y deg, range mm)
 DEFAULT_POINTS = "0,0,35; 0,0,95; 20,0,65; 0,-8,35; -14,14,65"
 DEFAULT_CONFIGS = ("full", "spiral", "uniform", "random", "anneal", "anneal + polish")
-COLUMNS = ("source", "config", "point", "theta_x_deg", "theta_y_deg", "range_mm", "PSL_dB", "ISLR_dB",
+COLUMNS = ("source", "config", "point", "theta_x_deg", "theta_y_deg", "range_mm", "PSL_dB", "PSL_uncapped_dB", "ISLR_dB",
            "width_x_mm", "width_y_mm", "seconds")
 
 
@@ -142,29 +146,75 @@ def _climb(a: np.ndarray, i: int, j: int) -> tuple[int, int]:
         i, j = best[1], best[2]
 
 
-def basin(a: np.ndarray, peak: tuple[int, int], ripple_db: float = 1.0) -> np.ndarray:
-    """The main lobe: pixels reachable from ``peak`` (4-neighbour steps) along a path that never
-    rises more than ``ripple_db`` above the lowest amplitude met before on it (widest-path search
-    on the running minimum). Boolean (H, W)."""
-    rise = 10 ** (ripple_db / 20)
+def _ray_profiles(a: np.ndarray, peak: tuple[int, int], ui: np.ndarray, uj: np.ndarray):
+    """Amplitude along rays from ``peak`` in directions (ui, uj) (pixel units, unit length),
+    sampled every half pixel (bilinear) to the surface's edge: ``(s, prof)``, prof inf past the edge."""
+    from scipy.ndimage import map_coordinates
+
     h, w = a.shape
-    best = np.full(a.shape, -1.0)
-    best[peak] = a[peak]
-    heap = [(-a[peak], peak)]
-    inside = np.zeros(a.shape, dtype=bool)
-    while heap:
-        m, (i, j) = heapq.heappop(heap)
-        m = -m
-        if inside[i, j]:
-            continue
-        inside[i, j] = True
-        for p, q in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
-            if 0 <= p < h and 0 <= q < w and not inside[p, q] and a[p, q] <= m * rise:
-                mn = min(m, a[p, q])
-                if mn > best[p, q]:
-                    best[p, q] = mn
-                    heapq.heappush(heap, (-mn, (p, q)))
-    return inside
+
+    def reach(p0, u, n):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(u > 1e-12, (n - 1 - p0) / u, np.where(u < -1e-12, -p0 / u, np.inf))
+
+    edge = np.minimum(reach(peak[0], ui, h), reach(peak[1], uj, w))
+    s = np.arange(0.0, edge.max() + 0.5, 0.5)
+    valid = s[None, :] <= edge[:, None] + 1e-9
+    ci = np.clip(peak[0] + ui[:, None] * s[None, :], 0, h - 1)
+    cj = np.clip(peak[1] + uj[:, None] * s[None, :], 0, w - 1)
+    prof = map_coordinates(a, [ci.ravel(), cj.ravel()], order=1).reshape(ci.shape)
+    return s, np.where(valid, prof, np.inf)
+
+
+def ray_radius(s: np.ndarray, prof: np.ndarray, ripple_db: float = 1.0, cap: float | None = 3.0) -> np.ndarray:
+    """Each ray's main-lobe radius: its first null (the lowest amplitude met before the amplitude
+    first rises more than ``ripple_db`` above the lowest met so far; inf when it never does),
+    at most ``cap`` times the distance at which it first falls to -6 dB (interpolated linearly)."""
+    low = np.minimum.accumulate(prof, axis=1)
+    rises = np.zeros(prof.shape, dtype=bool)
+    rises[:, 1:] = np.isfinite(prof[:, 1:]) & (prof[:, 1:] > low[:, :-1] * 10 ** (ripple_db / 20))
+    has = rises.any(1)
+    first = np.where(has, rises.argmax(1), prof.shape[1])
+    before = np.where(np.arange(prof.shape[1])[None, :] < first[:, None], prof, np.inf)
+    radius = np.where(has, s[before.argmin(1)], np.inf)
+    if cap is None:
+        return radius
+    half = 0.5 * prof[:, :1]
+    below = prof <= half
+    k = np.where(below.any(1), below.argmax(1), 0)
+    a0, a1 = prof[np.arange(len(k)), np.maximum(k - 1, 0)], prof[np.arange(len(k)), k]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r6 = np.where(below.any(1) & (k > 0), s[np.maximum(k - 1, 0)] + (a0 - half[:, 0]) / (a0 - a1) * 0.5, np.inf)
+    return np.minimum(radius, cap * r6)
+
+
+def main_lobe(a: np.ndarray, peak: tuple[int, int], ripple_db: float = 1.0, n_rays: int | None = 64,
+              cap: float | None = 3.0) -> np.ndarray:
+    """The main lobe, boolean (H, W): the pixels no further from ``peak`` than the main-lobe radius
+    (:func:`ray_radius`) of their direction. ``n_rays`` rays uniform in angle, the radius
+    interpolated linearly in angle between the two rays either side of a pixel (an infinite radius
+    on either side: the pixel is main lobe); ``n_rays=None``: one ray through every pixel."""
+    h, w = a.shape
+    ii, jj = np.mgrid[0:h, 0:w]
+    di, dj = (ii - peak[0]).ravel().astype(float), (jj - peak[1]).ravel().astype(float)
+    dist = np.hypot(di, dj)
+    far = dist > 0
+    inside = np.ones(h * w, dtype=bool)
+    if n_rays is None:
+        s, prof = _ray_profiles(a, peak, di[far] / dist[far], dj[far] / dist[far])
+        inside[far] = dist[far] <= ray_radius(s, prof, ripple_db, cap) + 1e-9
+        return inside.reshape(h, w)
+    theta = 2 * np.pi * np.arange(n_rays) / n_rays
+    s, prof = _ray_profiles(a, peak, np.sin(theta), np.cos(theta))
+    rad = ray_radius(s, prof, ripple_db, cap)
+    phi = np.mod(np.arctan2(di[far], dj[far]), 2 * np.pi) / (2 * np.pi / n_rays)
+    k = np.floor(phi).astype(int) % n_rays
+    f = phi - np.floor(phi)
+    r0, r1 = rad[k], rad[(k + 1) % n_rays]
+    both = np.isfinite(r0) & np.isfinite(r1)
+    r = np.where(both, (1 - f) * np.where(both, r0, 0) + f * np.where(both, r1, 0), np.inf)
+    inside[far] = dist[far] <= r + 1e-9
+    return inside.reshape(h, w)
 
 
 def _width(profile: np.ndarray, pos: np.ndarray, k: int) -> float:
@@ -192,14 +242,16 @@ def lobe_metrics(image: np.ndarray, u: np.ndarray, v: np.ndarray, r: float, targ
     i0 = int(np.argmin(np.abs(v - target_uv[1])))
     j0 = int(np.argmin(np.abs(u - target_uv[0])))
     pk = _climb(a, i0, j0)
-    main = basin(a, pk, ripple_db)
+    main = main_lobe(a, pk, ripple_db)
     p = a ** 2
     side = p[~main]
     p0 = p[pk]
     psl = 10 * math.log10(max(side.max(), 1e-24 * p0) / p0) if side.size else -240.0
+    free = p[~main_lobe(a, pk, ripple_db, n_rays=None, cap=None)]
+    psl_free = 10 * math.log10(max(free.max(), 1e-24 * p0) / p0) if free.size else -240.0
     islr = 10 * math.log10(max(side.sum(), 1e-24 * p0) / p[main].sum())
     return {"PSL_dB": psl, "ISLR_dB": islr, "width_x": _width(a[pk[0]], r * u, pk[1]),
-            "width_y": _width(a[:, pk[1]], r * v, pk[0]), "peak_uv": (float(u[pk[1]]), float(v[pk[0]]))}
+            "width_y": _width(a[:, pk[1]], r * v, pk[0]), "PSL_uncapped_dB": psl_free, "peak_uv": (float(u[pk[1]]), float(v[pk[0]]))}
 
 
 # --------------------------------------------------------------------------- the PyMUST reference
@@ -313,6 +365,8 @@ def _arguments(argv):
     ap.add_argument("--max-pixels", type=int, default=8000, help="refuse surfaces with more pixels than this")
     ap.add_argument("--fresh", type=int, default=0, help="fresh random selections of k elements (seed 0), [0, 16]")
     ap.add_argument("--append", action="store_true", help="add to the rows of the folder's results.csv")
+    ap.add_argument("--rescore", action="store_true",
+                    help="recompute the PyMUST rows' metrics from the images saved in --out (pymust_*.npy)")
     ap.add_argument("--no-pymust", action="store_true", help="leave the PyMUST reference out")
     ap.add_argument("--no-arraysel", action="store_true", help="leave arraysel's scores out")
     ap.add_argument("--out", type=Path, required=True, help="folder for results.csv and summary.csv")
@@ -359,35 +413,55 @@ def main(argv=None) -> None:
           f"(|u|, |v| <= {grid[-1]:.4f}, step {step:.4f})", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    if args.append and (args.out / "results.csv").is_file():
-        rows = [tuple(r) for r in pd.read_csv(args.out / "results.csv").itertuples(index=False)]
-    if not args.no_arraysel:
+    if args.append or args.rescore:
+        if (args.out / "results.csv").is_file():
+            rows = [tuple(r) for r in pd.read_csv(args.out / "results.csv").reindex(columns=list(COLUMNS))
+                    .itertuples(index=False)]
+    if not args.no_arraysel and not args.rescore:
         t = time.perf_counter()
         for (ax, ay, r), res in zip(points, arraysel_metrics(scene, points, args.half_angle, args.margin,
                                                                    args.samples_per_lobe, masks)):
             rows += _rows("arraysel", names, (ax, ay, r), res)
         print(f"arraysel: {time.perf_counter() - t:.0f} s", flush=True)
         _write(rows, args.out)
-    for ax, ay, r in [] if args.no_pymust else points:
-        t = time.perf_counter()
-        ref = PyMUSTRecheck(scene, (ax, ay, r), grid, grid)
-        imgs = ref.images(masks)
-        sec = (time.perf_counter() - t) / len(masks)
-        uv0 = (math.sin(math.radians(ax)), math.sin(math.radians(ay)))
-        res = [lobe_metrics(im, grid, grid, r * 1e-3, uv0) for im in imgs]
-        res = {k: np.array([m[k] for m in res]) for k in ("PSL_dB", "ISLR_dB", "width_x", "width_y")}
-        res["seconds"] = np.full(len(masks), sec)
-        rows += _rows("pymust", names, (ax, ay, r), res)
-        np.save(args.out / f"pymust_{ax:g}_{ay:g}_{r:g}.npy", np.abs(imgs).astype(np.float32))
+    for point in [] if args.no_pymust else points:
+        rows = _pymust_point(args, scene, point, grid, names, masks, rows)
         _write(rows, args.out)
-        print(f"pymust ({ax:g}, {ay:g}) deg, {r:g} mm: {time.perf_counter() - t:.0f} s", flush=True)
-    table = pd.DataFrame(rows, columns=list(COLUMNS))
-    print(summarise(table).to_string(index=False))
+    print(summarise(pd.DataFrame(rows, columns=list(COLUMNS))).to_string(index=False))
 
 
-def _rows(source: str, names: list[str], point, res: dict) -> list[tuple]:
+def _pymust_point(args, scene, point, grid, names, masks, rows) -> list[tuple]:
+    """``rows`` with the PyMUST rows of ``point`` (simulated, or, with ``--rescore``, read back
+    from the folder's saved images, keeping the rows' seconds) replaced."""
     ax, ay, r = point
-    return [(source, n, f"({ax:g}, {ay:g}) deg, {r:g} mm", ax, ay, r, float(res["PSL_dB"][b]), float(res["ISLR_dB"][b]),
+    path = args.out / f"pymust_{ax:g}_{ay:g}_{r:g}.npy"
+    label = _rows("pymust", names, point, None)[0][2]
+    old = {row[1]: row[-1] for row in rows if row[0] == "pymust" and row[2] == label}
+    t = time.perf_counter()
+    if args.rescore:
+        if not path.is_file():
+            raise SystemExit(f"--rescore: no saved images {path.name} for the point {label}")
+        imgs = np.load(path)
+        sec = np.array([old.get(n, np.nan) for n in names])
+    else:
+        imgs = PyMUSTRecheck(scene, point, grid, grid).images(masks)
+        sec = np.full(len(masks), (time.perf_counter() - t) / len(masks))
+        np.save(path, np.abs(imgs).astype(np.float32))
+    uv0 = (math.sin(math.radians(ax)), math.sin(math.radians(ay)))
+    res = [lobe_metrics(im, grid, grid, r * 1e-3, uv0) for im in imgs]
+    res = {k: np.array([m[k] for m in res]) for k in ("PSL_dB", "PSL_uncapped_dB", "ISLR_dB", "width_x", "width_y")}
+    res["seconds"] = sec
+    print(f"pymust {label}: {time.perf_counter() - t:.0f} s", flush=True)
+    return [row for row in rows if not (row[0] == "pymust" and row[2] == label)] + _rows("pymust", names, point, res)
+
+
+def _rows(source: str, names: list[str], point, res: dict | None) -> list[tuple]:
+    ax, ay, r = point
+    label = f"({ax:g}, {ay:g}) deg, {r:g} mm"
+    if res is None:
+        return [(source, "", label)]
+    free = res.get("PSL_uncapped_dB", np.full(len(names), np.nan))
+    return [(source, n, label, ax, ay, r, float(res["PSL_dB"][b]), float(free[b]), float(res["ISLR_dB"][b]),
              float(res["width_x"][b]) * 1e3, float(res["width_y"][b]) * 1e3, float(res["seconds"][b]))
             for b, n in enumerate(names)]
 
@@ -395,7 +469,7 @@ def _rows(source: str, names: list[str], point, res: dict) -> list[tuple]:
 def summarise(table) -> "object":
     """Per source and selection: the worst PSL over the points, the mean -6 dB width (x and y)."""
     g = table.groupby(["source", "config"], sort=False)
-    out = g.agg(worst_PSL_dB=("PSL_dB", "max"), mean_ISLR_dB=("ISLR_dB", "mean"),
+    out = g.agg(worst_PSL_dB=("PSL_dB", "max"), worst_PSL_uncapped_dB=("PSL_uncapped_dB", "max"), mean_ISLR_dB=("ISLR_dB", "mean"),
                 mean_width_x=("width_x_mm", "mean"), mean_width_y=("width_y_mm", "mean")).reset_index()
     out["mean_width_mm"] = (out.pop("mean_width_x") + out.pop("mean_width_y")) / 2
     return out

@@ -39,7 +39,7 @@ def test_separable_sinc_has_its_analytic_lobes(mod):
     assert res["PSL_dB"] == pytest.approx(first, abs=0.05)
     assert res["width_x"] == pytest.approx(2 * 0.6034 * lobe * r, rel=0.01)
     assert res["width_y"] == pytest.approx(res["width_x"], rel=1e-9)
-    main = mod.basin(np.abs(img), (60, 60))
+    main = mod.main_lobe(np.abs(img), (60, 60))
     U, V = np.meshgrid(u, u)
     inner = (np.abs(U) < 0.9 * lobe) & (np.abs(V) < 0.9 * lobe)
     assert main[inner].all()                                   # the whole main lobe
@@ -108,3 +108,17 @@ def test_bad_input_names_the_argument(mod, tmp_path):
         mod.read_selections([csv], ["bad"], 1024)
     with pytest.raises(SystemExit):
         mod.main(["--half-angle", "70", "--out", str(tmp_path)])
+
+
+def test_ray_radius_first_null_and_cap(mod):
+    """A ray falling to its lowest value (0.04 at 3.5 pixels) before a rise of more than 1 dB has
+    its first null there; its -6 dB distance is 0.5 + 0.5 (0.7 - 0.5) / (0.7 - 0.4) = 0.833, so the
+    cap of 3 times it (2.5) cuts the radius; a ray that never rises has none (inf)."""
+    s = np.arange(10) * 0.5
+    prof = np.array([[1.0, 0.7, 0.4, 0.2, 0.1, 0.05, 0.045, 0.04, 0.2, 0.1],
+                     [1.0, 0.7, 0.4, 0.2, 0.1, 0.05, 0.045, 0.04, 0.039, 0.03]])
+    assert mod.ray_radius(s, prof, cap=None).tolist() == [3.5, math.inf]
+    np.testing.assert_allclose(mod.ray_radius(s, prof, cap=3.0), [2.5, 2.5])
+    # a rise of less than 1 dB above the lowest value met is ripple, not a null
+    rip = np.array([[1.0, 0.4, 0.1, 0.05, 0.055, 0.04, 0.3]])
+    assert mod.ray_radius(np.arange(7) * 0.5, rip, cap=None).tolist() == [2.5]
