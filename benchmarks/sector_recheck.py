@@ -179,7 +179,7 @@ def ray_radius(s: np.ndarray, prof: np.ndarray, ripple_db: float = 1.0, cap: flo
     radius = np.where(has, s[before.argmin(1)], np.inf)
     if cap is None:
         return radius
-    half = 0.5 * prof[:, :1]
+    half = 10 ** (-6 / 20) * prof[:, :1]
     below = prof <= half
     k = np.where(below.any(1), below.argmax(1), 0)
     a0, a1 = prof[np.arange(len(k)), np.maximum(k - 1, 0)], prof[np.arange(len(k)), k]
@@ -219,7 +219,7 @@ def main_lobe(a: np.ndarray, peak: tuple[int, int], ripple_db: float = 1.0, n_ra
 
 def _width(profile: np.ndarray, pos: np.ndarray, k: int) -> float:
     """-6 dB width of ``profile`` through its sample ``k`` (linear in amplitude); inf if it never falls."""
-    half = 0.5 * profile[k]
+    half = 10 ** (-6 / 20) * profile[k]
     ends = []
     for step in (1, -1):
         i = k
@@ -357,7 +357,8 @@ def _arguments(argv):
     ap.add_argument("--extra", type=Path, nargs="*", default=[], help="more CSVs of selections (config, elements)")
     ap.add_argument("--configs", nargs="+", default=list(DEFAULT_CONFIGS), help="the rows (config names) to score")
     ap.add_argument("--points", default=DEFAULT_POINTS,
-                    help=f"'theta_x_deg,theta_y_deg,range_mm; ...' (default {DEFAULT_POINTS!r})")
+                    help=f"'theta_x_deg,theta_y_deg,range_mm; ...' (default {DEFAULT_POINTS!r}); write "
+                         "--points=... when the text starts with a minus sign")
     ap.add_argument("--half-angle", type=float, default=35.0,
                     help="the surfaces' half-angle in x and y, degrees, (0, 60] (default 35)")
     ap.add_argument("--margin", type=float, default=1.0, help="lobes lambda0/D past the half-angle, [0, 5]")

@@ -30,14 +30,18 @@ def _sinc_image(u, v, lobe, shift=(0.0, 0.0)):
 def test_separable_sinc_has_its_analytic_lobes(mod):
     """sinc(u/L) sinc(v/L): first nulls at |u| = L or |v| = L, so the main lobe is the square
     inside them; the strongest side lobe is the first one along an axis, sinc(1.4303) = -13.26 dB;
-    the -6 dB width is 2 x 0.6034 L (sinc(0.6034) = 1/2), times the range on the sphere."""
+    the -6 dB width is 2 x 0.6025 L (sinc(0.6025) = 10^(-6/20)), times the range on the sphere."""
     lobe, r = 0.05, 0.04
     u = np.arange(-60, 61) * (lobe / 10)
     img = _sinc_image(u, u, lobe)
     res = mod.lobe_metrics(img, u, u, r, (0.0, 0.0))
     first = 20 * math.log10(abs(np.sinc(1.4303)))
     assert res["PSL_dB"] == pytest.approx(first, abs=0.05)
-    assert res["width_x"] == pytest.approx(2 * 0.6034 * lobe * r, rel=0.01)
+    from scipy.optimize import brentq
+
+    x6 = brentq(lambda x: np.sinc(x) - 10 ** (-6 / 20), 0.1, 0.9)
+    assert x6 == pytest.approx(0.6025, abs=1e-4)
+    assert res["width_x"] == pytest.approx(2 * x6 * lobe * r, rel=0.003)
     assert res["width_y"] == pytest.approx(res["width_x"], rel=1e-9)
     main = mod.main_lobe(np.abs(img), (60, 60))
     U, V = np.meshgrid(u, u)
@@ -112,13 +116,14 @@ def test_bad_input_names_the_argument(mod, tmp_path):
 
 def test_ray_radius_first_null_and_cap(mod):
     """A ray falling to its lowest value (0.04 at 3.5 pixels) before a rise of more than 1 dB has
-    its first null there; its -6 dB distance is 0.5 + 0.5 (0.7 - 0.5) / (0.7 - 0.4) = 0.833, so the
-    cap of 3 times it (2.5) cuts the radius; a ray that never rises has none (inf)."""
+    its first null there; its -6 dB distance is 0.5 + 0.5 (0.7 - h) / (0.7 - 0.4) with h = 10^(-6/20),
+    0.832, so the cap of 3 times it (2.495) cuts the radius; a ray that never rises has none (inf)."""
     s = np.arange(10) * 0.5
     prof = np.array([[1.0, 0.7, 0.4, 0.2, 0.1, 0.05, 0.045, 0.04, 0.2, 0.1],
                      [1.0, 0.7, 0.4, 0.2, 0.1, 0.05, 0.045, 0.04, 0.039, 0.03]])
     assert mod.ray_radius(s, prof, cap=None).tolist() == [3.5, math.inf]
-    np.testing.assert_allclose(mod.ray_radius(s, prof, cap=3.0), [2.5, 2.5])
+    r6 = 0.5 + 0.5 * (0.7 - 10 ** (-6 / 20)) / 0.3
+    np.testing.assert_allclose(mod.ray_radius(s, prof, cap=3.0), [3 * r6, 3 * r6])
     # a rise of less than 1 dB above the lowest value met is ripple, not a null
     rip = np.array([[1.0, 0.4, 0.1, 0.05, 0.055, 0.04, 0.3]])
     assert mod.ray_radius(np.arange(7) * 0.5, rip, cap=None).tolist() == [2.5]
