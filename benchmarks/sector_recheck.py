@@ -118,6 +118,21 @@ def element_grid(nx: int = 32, ny: int = 32, pitch: float = 0.3e-3) -> np.ndarra
     return np.stack([(ix.ravel() - (nx - 1) / 2) * pitch, (iy.ravel() - (ny - 1) / 2) * pitch])
 
 
+def surface_pixels(kind: str, point: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Pixels (Hv, Hu, 3) m of a point's surface: ``"sphere"``, the sphere of its range ``R`` at the
+    direction cosines ``(u, v)``; ``"plane"``, the C-plane through the point (z = its depth) at the
+    same ``x = R u``, ``y = R v``."""
+    r = float(np.linalg.norm(point))
+    U, V = np.meshgrid(u, v)
+    if kind == "sphere":
+        Z = r * np.sqrt(1.0 - U ** 2 - V ** 2)
+    elif kind == "plane":
+        Z = np.full(U.shape, float(point[2]))
+    else:
+        raise ValueError(f"--surface = {kind!r}: allowed 'sphere' or 'plane'")
+    return np.stack([r * U, r * V, Z], axis=-1)
+
+
 def virtual_source_delays(elements: np.ndarray, tilts_deg: list[tuple[float, float]], distance: float,
                           c: float) -> np.ndarray:
     """Delays (n_tx, Ne) s of diverging waves from sources ``distance`` behind the array centre
@@ -258,7 +273,8 @@ def lobe_metrics(image: np.ndarray, u: np.ndarray, v: np.ndarray, r: float, targ
 class PyMUSTRecheck:
     """Compound images of one point on its sphere for a batch of selections, from PyMUST."""
 
-    def __init__(self, scene: dict, point_deg: tuple[float, float, float], u: np.ndarray, v: np.ndarray):
+    def __init__(self, scene: dict, point_deg: tuple[float, float, float], u: np.ndarray, v: np.ndarray,
+                 kind: str = "sphere"):
         import logging
 
         import pymust
@@ -282,10 +298,9 @@ class PyMUSTRecheck:
         self.delays = virtual_source_delays(p.elements, tilts, _length(tx["source_distance"]), p.c)
         self.r = point_deg[2] * 1e-3
         self.point = point_position(point_deg[0], point_deg[1], self.r)
-        U, V = np.meshgrid(u, v)
-        W = np.sqrt(1.0 - U ** 2 - V ** 2)
-        self.shape = U.shape
-        self.pixels = [np.ascontiguousarray((self.r * c).ravel()) for c in (U, V, W)]
+        xyz = surface_pixels(kind, self.point, u, v)
+        self.shape = xyz.shape[:2]
+        self.pixels = [np.ascontiguousarray(xyz[..., i].ravel()) for i in range(3)]
 
     def images(self, masks: np.ndarray) -> np.ndarray:
         """Complex images (B, Hv, Hu) of bool masks (B, Ne)."""
@@ -317,14 +332,17 @@ def _length(text) -> float:
 
 # --------------------------------------------------------------------------- arraysel
 def arraysel_metrics(scene: dict, points, half_angle: float, margin: float, samples: float,
-                     masks: np.ndarray) -> list[dict]:
-    """arraysel's exact per-beam metrics of ``masks`` on ``points``: one dict (B,) per point."""
+                     masks: np.ndarray, kind: str = "sphere") -> list[dict]:
+    """arraysel's exact per-beam metrics of ``masks`` on ``points``: one dict (B,) per point; on
+    C-planes (``kind="plane"``) its exact PSF model on those pixels and its lobe metrics."""
     import arraysel as asel
     from arraysel.objective.sector_objective import SectorObjective
 
     tree = {k: dict(v) if isinstance(v, dict) else v for k, v in scene.items() if k != "cysts"}
     tree["sector"] = {**tree["sector"], "points": [[ax, ay, f"{r} mm"] for ax, ay, r in points],
                       "half_angle_deg": half_angle, "margin": margin, "samples_per_lobe": samples}
+    if kind == "plane":
+        return _arraysel_planes(asel.load_scene(tree), masks)
     obj = SectorObjective(asel.load_scene(tree), fast=False)
     out = []
     for i in range(len(points)):
@@ -333,6 +351,30 @@ def arraysel_metrics(scene: dict, points, half_angle: float, margin: float, samp
         sec = (time.perf_counter() - t) / len(masks)
         out.append({"PSL_dB": bm["PSL_dB"][:, 0], "ISLR_dB": bm["ISLR_dB"][:, 0], "width_x": bm["width_x_6dB"][:, 0],
                     "width_y": bm["width_y_6dB"][:, 0], "seconds": np.full(len(masks), sec)})
+    return out
+
+
+def _arraysel_planes(scene, masks: np.ndarray) -> list[dict]:
+    import torch
+
+    from arraysel.objective.lobes import lobe_metrics as asel_lobes
+    from arraysel.physics.volume.psf import MatrixPSF
+
+    setup = scene.sector_setup()
+    out = []
+    for i, point in enumerate(setup.points):
+        t = time.perf_counter()
+        coords = torch.as_tensor(surface_pixels("plane", np.array(point), setup.u, setup.v))
+        model = MatrixPSF(setup.point_setup(i), dtype=torch.float32, coords={"c": coords})
+        with torch.no_grad():
+            img = model.planes(torch.as_tensor(masks, dtype=torch.float32))["c"]
+            res = asel_lobes({"c": img}, {"c": coords}, target=point,
+                             terms=("PSL_dB", "ISLR_dB", "width_x_6dB", "width_y_6dB"))
+        sec = (time.perf_counter() - t) / len(masks)
+        out.append({"PSL_dB": res["PSL_dB"].numpy(), "ISLR_dB": res["ISLR_dB"].numpy(),
+                    "width_x": res["width_x_6dB"].numpy(), "width_y": res["width_y_6dB"].numpy(),
+                    "seconds": np.full(len(masks), sec)})
+        del model
     return out
 
 
@@ -361,6 +403,9 @@ def _arguments(argv):
                          "--points=... when the text starts with a minus sign")
     ap.add_argument("--half-angle", type=float, default=35.0,
                     help="the surfaces' half-angle in x and y, degrees, (0, 60] (default 35)")
+    ap.add_argument("--surface", choices=("sphere", "plane"), default="sphere",
+                    help="each point's surface: the sphere of its range (default) or the C-plane through it "
+                         "(z = its depth) over the same x = R u, y = R v")
     ap.add_argument("--margin", type=float, default=1.0, help="lobes lambda0/D past the half-angle, [0, 5]")
     ap.add_argument("--samples-per-lobe", type=float, default=3.0, help="pixels per lambda0/D, [2, 8]")
     ap.add_argument("--max-pixels", type=int, default=8000, help="refuse surfaces with more pixels than this")
@@ -421,7 +466,7 @@ def main(argv=None) -> None:
     if not args.no_arraysel and not args.rescore:
         t = time.perf_counter()
         for (ax, ay, r), res in zip(points, arraysel_metrics(scene, points, args.half_angle, args.margin,
-                                                                   args.samples_per_lobe, masks)):
+                                                                   args.samples_per_lobe, masks, args.surface)):
             rows += _rows("arraysel", names, (ax, ay, r), res)
         print(f"arraysel: {time.perf_counter() - t:.0f} s", flush=True)
         _write(rows, args.out)
@@ -445,7 +490,7 @@ def _pymust_point(args, scene, point, grid, names, masks, rows) -> list[tuple]:
         imgs = np.load(path)
         sec = np.array([old.get(n, np.nan) for n in names])
     else:
-        imgs = PyMUSTRecheck(scene, point, grid, grid).images(masks)
+        imgs = PyMUSTRecheck(scene, point, grid, grid, args.surface).images(masks)
         sec = np.full(len(masks), (time.perf_counter() - t) / len(masks))
         np.save(path, np.abs(imgs).astype(np.float32))
     uv0 = (math.sin(math.radians(ax)), math.sin(math.radians(ay)))

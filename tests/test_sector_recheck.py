@@ -96,6 +96,15 @@ def test_geometry(mod):
     assert d[1].reshape(32, 32)[:, 0].mean() < d[1].reshape(32, 32)[:, -1].mean()
     g = mod.uv_grid(0.554, 0.0179)
     assert g.size == 63 and g[31] == 0.0 and g[-1] >= 0.554
+    # a point's surfaces: the sphere of its range, or the C-plane through it at the same x, y
+    pt = mod.point_position(20.0, 0.0, 0.065)
+    sph = mod.surface_pixels("sphere", pt, g, g)
+    pla = mod.surface_pixels("plane", pt, g, g)
+    np.testing.assert_allclose(np.linalg.norm(sph, axis=-1), 0.065, rtol=1e-12)
+    np.testing.assert_allclose(pla[..., :2], sph[..., :2], rtol=0, atol=1e-15)
+    assert np.all(pla[..., 2] == pt[2])
+    with pytest.raises(ValueError, match="--surface"):
+        mod.surface_pixels("cone", pt, g, g)
 
 
 def test_bad_input_names_the_argument(mod, tmp_path):
