@@ -71,10 +71,16 @@ class ColumnMetrics:
         kr_re = self.ref_r @ re + self.ref_i @ im
         kr_im = self.ref_i @ re - self.ref_r @ im
         k2 = k2.T.contiguous()                                             # (M, N), in row order
+        return self.from_power(k2, k2.sum(1).double(), kr_re.double(), kr_im.double())
+
+    def from_power(self, k2: torch.Tensor, kk: torch.Tensor, kr_re: torch.Tensor,
+                   kr_im: torch.Tensor) -> dict[str, np.ndarray]:
+        """``{name: float64 (M,)}`` of images given by their ``|kappa|^2`` ``k2`` (M, N) (rows as
+        ``rows``), ``<k, k>`` ``kk`` and ``<k, r>`` (``kr_re + i kr_im``) against the reference
+        (each float64 (M,))."""
         out: dict[str, torch.Tensor] = {}
-        kk = k2.sum(1).double()
-        tiny = torch.finfo(re.dtype).tiny
-        fit = _safe_div(kr_re.double() ** 2 + kr_im.double() ** 2, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
+        tiny = torch.finfo(k2.dtype).tiny
+        fit = _safe_div(kr_re ** 2 + kr_im ** 2, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
         out["L_PSF"] = torch.clamp((self.rr - fit) / self.rr, min=0.0) if self.rr > 0 else torch.zeros_like(kk)
         peak_val, peak = torch.max(k2, 1)
         lobe = {k: torch.empty(k2.shape[0], dtype=torch.float64) for k in

@@ -44,11 +44,13 @@ import torch
 
 from arraysel.errors import SelectionError
 
-__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
+__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "PIXEL_CHUNK", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
            "check_selection"]
 
 #: outgoing elements per batched product of the block path (its output: rows x Ne images)
 BLOCK_ROWS = 4
+#: pixels per batched product of the block path (its cross terms are read while in cache)
+PIXEL_CHUNK = 64
 #: an outgoing element's swaps go by the block path when they fill at least this share of its row
 #: of Ne images (on matrix-1024 a neighbour of a block costs about a fifteenth of a mask scored by
 #: ``evaluate``); the other moves are formed from their own rows
@@ -185,13 +187,12 @@ class MatrixNeighbourhood:
             self._pending = rows
         self._carried += 1
 
-    def _settle(self, X: torch.Tensor | None = None) -> None:
-        """Add the carried move's cross terms to the held columns: ``X`` (P, 2, Ne) when a block's
-        product formed them, else formed here."""
+    def _settle(self) -> None:
+        """Add the carried move's cross terms to the held columns (a block's product adds them
+        itself, :meth:`swap_power`)."""
         if self._pending is None:
             return
-        if X is None:
-            X = self._cross(*self._pending)[:, :, 0]
+        X = self._cross(*self._pending)[:, :, 0]
         self._pending = None
         ur, ui = self._U
         ur.add_(X[:, 0])
@@ -228,39 +229,67 @@ class MatrixNeighbourhood:
         imaginary parts, the fast path's pixel order; ``C_aa = 2 D_a``): one batched product per
         pixel group."""
         A = Ba.shape[0]
-        rights = self.rights()
-        rdt = self.model._B.dtype
-        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=rdt)
+        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=self.model._B.dtype)
         p0 = 0
-        for (n, w, o), r in zip(self.groups, rights):
+        for (n, _, _), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
+            torch.bmm(left, r, out=X[p0:p0 + n])
+            p0 += n
+        return X.reshape(self.n_pixels, 2, A, self.n_elements)
+
+    def swap_power(self, outs: torch.Tensor, ai: np.ndarray, ei: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(k2, sums)`` of the swaps ``outs[ai[i]]`` off and ``ei[i]`` on: ``|img|^2`` (M, P) (the
+        fast path's pixel order) and float64 ``(<k, k>, Re <k, r>, Im <k, r>)`` (M, 3) against the
+        reference (:func:`~arraysel.objective.column_kernels.block_power`). One batched product
+        per chunk of :data:`PIXEL_CHUNK` pixels gives the cross terms of ``outs`` (and of a carried
+        move's rows, added to the held columns) against every element, and the compiled pass reads
+        the swaps' images from it while it is in cache."""
+        from arraysel.objective.column_kernels import block_power
+
+        Ba, Za = self._rows(outs)
+        Sa = self._segsum(Ba * self._z + self._gamma * Za)               # S_a from the rows
+        v = (self._img[None] - Sa + self.diagonal().index_select(0, outs)).T   # (P, A)
+        vr, vi = v.real.contiguous().numpy(), v.imag.contiguous().numpy()
+        if self._U is None:
+            self._pairs_part()
+        pend, self._pending = self._pending, None
+        if pend is not None:     # the carried move's rows in the same product, added to the columns
+            Ba, Za = torch.cat([pend[0], Ba]), torch.cat([pend[1], Za])
+        first = 0 if pend is None else 1
+        ur, ui = self._U
+        cm = self.metrics()
+        rr, ri = cm.ref_r.numpy(), cm.ref_i.numpy()
+        ai, ei = np.ascontiguousarray(ai, dtype=np.int64), np.ascontiguousarray(ei, dtype=np.int64)
+        k2 = np.empty((ai.size, self.n_pixels), dtype=vr.dtype)
+        sums = np.zeros((ai.size, 3))
+        p0 = 0
+        for (n, w, o), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
+            for c0 in range(0, n, PIXEL_CHUNK):
+                c1 = min(n, c0 + PIXEL_CHUNK)
+                X = torch.bmm(left[c0:c1], r[c0:c1]).reshape(c1 - c0, 2, -1, self.n_elements)
+                if first:
+                    ur[p0 + c0:p0 + c1].add_(X[:, 0, 0])
+                    ui[p0 + c0:p0 + c1].add_(X[:, 1, 0])
+                sl = slice(p0 + c0, p0 + c1)
+                block_power(X.numpy(), first, ur[sl].numpy(), ui[sl].numpy(), vr[sl], vi[sl], rr[sl], ri[sl],
+                            ai, ei, p0 + c0, k2, sums)
+            p0 += n
+        return torch.from_numpy(k2), torch.from_numpy(sums)
+
+    def _lefts(self, Ba: torch.Tensor, Za: torch.Tensor):
+        """Per pixel group, the left factor ``(n, 2 A, 4 w)`` (real) of the cross terms of the rows
+        ``(B_a, Z_a)`` (each ``(A, cols)``): ``[re rows; im rows] x [re | im]`` against
+        :meth:`rights`."""
+        A = Ba.shape[0]
+        rdt = self.model._B.dtype
+        for n, w, o in self.groups:
             L = torch.view_as_real(torch.cat([Ba[:, o:o + n * w].reshape(A, n, w),
                                               Za[:, o:o + n * w].reshape(A, n, w)], 2)).permute(1, 0, 2, 3)
-            left = torch.empty(n, 2, A, 4 * w, dtype=rdt)   # [re rows; im rows] x [re | im] of (B_a, Z_a)
+            left = torch.empty(n, 2, A, 4 * w, dtype=rdt)
             left[:, 0, :, :2 * w] = L[..., 0]
             left[:, 0, :, 2 * w:] = -L[..., 1]
             left[:, 1, :, :2 * w] = L[..., 1]
             left[:, 1, :, 2 * w:] = L[..., 0]
-            torch.bmm(left.reshape(n, 2 * A, 4 * w), r, out=X[p0:p0 + n])
-            p0 += n
-        return X.reshape(self.n_pixels, 2, A, self.n_elements)
-
-    def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
-        """The images of the swaps ``outs[i]`` off and every element on (the columns of active
-        elements are meaningless) as real ``(P, 2, A, Ne)``: real and imaginary parts, rows in
-        the fast path's pixel order; one batched product per pixel group."""
-        Ba, Za = self._rows(outs)
-        if self._pending is not None:     # the carried move's rows in the same product
-            X = self._cross(torch.cat([self._pending[0], Ba]), torch.cat([self._pending[1], Za]))
-            self._settle(X[:, :, 0])
-            X = X[:, :, 1:]
-        else:
-            X = self._cross(Ba, Za)
-        X = X.neg_()
-        v = (self._img[None] - self._single(outs) + self.diagonal().index_select(0, outs)).T   # (P, A)
-        ur, ui = self._pairs_part()
-        X[:, 0].add_(ur[:, None]).add_(v.real[:, :, None])
-        X[:, 1].add_(ui[:, None]).add_(v.imag[:, :, None])
-        return X
+            yield left.reshape(n, 2 * A, 4 * w)
 
     def move_images(self, out: torch.Tensor, into: torch.Tensor) -> torch.Tensor:
         """The images ``(M, P)`` (complex, the fast path's pixel order) of the moves that switch
@@ -307,44 +336,40 @@ class MatrixNeighbourhood:
         return (counts >= DENSE_SHARE * self.n_elements)[inv]
 
     def move_columns(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, re, im, cols)``: the images of the moves ``(out[i], into[i])``
-        (``(B, m)``, ``-1`` pads) of the held selection at ``positions`` of the request as the
-        columns ``cols`` of ``(P, M)`` real and imaginary parts (``cols`` None: all of them). The
-        swaps whose outgoing element has many (:meth:`dense`) go by blocks of outgoing elements
-        against every element; the other moves are formed from their own rows."""
+        """Yield ``(positions, {name: float64 (n,)})``: the metrics of the moves ``(out[i], into[i])``
+        (``(B, m)``, ``-1`` pads) of the held selection at ``positions`` of the request. The swaps
+        whose outgoing element has many (:meth:`dense`) go by blocks of outgoing elements against
+        every element (:meth:`swap_power`); the other moves are formed from their own rows."""
         block = np.zeros(out.shape[0], dtype=bool)
         single = out.shape[1] == 1 or bool((out[:, 1:] < 0).all())
         if single and out.shape[0] and (out[:, 0] >= 0).all():
             block = self.dense(out[:, 0])
         if block.any():
             pos = np.flatnonzero(block)
-            for p, re, im, cols in self.swap_columns(out[pos, 0], into[pos, 0]):
-                yield pos[p], re, im, cols
+            for p, res in self.swap_columns(out[pos, 0], into[pos, 0]):
+                yield pos[p], res
         rest = np.flatnonzero(~block)
+        cm = self.metrics()
         for s in range(0, rest.size, MOVE_BATCH):
             pos = rest[s:s + MOVE_BATCH]
             img = self.move_images(torch.as_tensor(out[pos]), torch.as_tensor(into[pos])).T
-            yield pos, img.real.contiguous(), img.imag.contiguous(), None
+            yield pos, cm(img.real.contiguous(), img.imag.contiguous())
 
     def swap_columns(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, re, im, cols)``: the images of the swaps ``(out[i], into[i])`` of
-        the held selection at ``positions`` of the request as the columns ``cols`` of ``(P, M)``
-        real and imaginary parts, a block of outgoing elements against every element at a time."""
+        """Yield ``(positions, {name: float64 (n,)})``: the metrics of the swaps ``(out[i], into[i])``
+        of the held selection at ``positions`` of the request, a block of :data:`BLOCK_ROWS`
+        outgoing elements against every element at a time."""
         order = np.argsort(out, kind="stable")
         a_sorted = out[order]
         starts = np.flatnonzero(np.r_[True, a_sorted[1:] != a_sorted[:-1]])
         ends = np.r_[starts[1:], a_sorted.size]
-        ne = self.n_elements
+        cm = self.metrics()
         for g in range(0, starts.size, BLOCK_ROWS):
             s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]
-            X = self.swap_block(torch.as_tensor(a_sorted[s0], dtype=torch.long))
-            A = s0.size
-            pos = np.concatenate([order[s:e] for s, e in zip(s0, s1)])
-            rows = np.concatenate([np.full(e - s, i) for i, (s, e) in enumerate(zip(s0, s1))])
-            idx = torch.as_tensor(rows * ne + into[pos])
-            re = X[:, 0].reshape(self.n_pixels, A * ne)
-            im = X[:, 1].reshape(self.n_pixels, A * ne)
-            yield pos, re, im, idx
+            pos = order[s0[0]:s1[-1]]
+            rows = np.repeat(np.arange(s0.size), s1 - s0)
+            k2, sums = self.swap_power(torch.as_tensor(a_sorted[s0], dtype=torch.long), rows, into[pos])
+            yield pos, cm.from_power(k2, sums[:, 0], sums[:, 1], sums[:, 2])
 
     def metrics(self):
         """The :class:`~arraysel.objective.columns3d.ColumnMetrics` of the objective (formed once)."""
@@ -358,11 +383,10 @@ class MatrixNeighbourhood:
         return self._metrics
 
     def score(self, pieces, total: int) -> dict[str, np.ndarray]:
-        """``{name: float64 (total,)}`` of the columns ``pieces`` yields as ``(positions, re, im, cols)``."""
-        cm = self.metrics()
+        """``{name: float64 (total,)}`` of the metrics ``pieces`` yields as ``(positions, {name: values})``."""
         out: dict[str, np.ndarray] = {}
-        for pos, re, im, cols in pieces:
-            for k, v in cm(re, im, cols).items():
+        for pos, res in pieces:
+            for k, v in res.items():
                 if k not in out:
                     out[k] = np.empty(total, dtype=np.float64)
                 out[k][pos] = v

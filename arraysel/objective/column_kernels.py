@@ -1,0 +1,54 @@
+"""The compiled pass of a 3-D neighbourhood's block of swaps (:mod:`arraysel.objective.matrix_neighbours`).
+
+A block's batched product gives, per pixel, the cross terms ``X`` of its outgoing elements against
+every element. The image of the swap ``(a off, e on)`` at pixel ``p`` is then
+``u_e(p) + v_a(p) - X_ae(p)`` (``u_e = S_e + D_e``, ``v_a = img - S_a + D_a``), and what the metrics
+read of it is ``|img|^2`` and the sums ``<k, k>`` and ``<k, r>`` against the reference.
+:func:`block_power` forms them in one pass over a chunk of pixels, straight into the rows of the
+neighbours' ``|img|^2`` (one row per neighbour, the layout the metrics take), so the block's images
+are never written out, negated, gathered or transposed. Sums are accumulated in float64.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from arraysel.io.numba_cache import ensure_cache_dir
+
+ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
+
+__all__ = ["block_power"]
+
+#: fast-math flags of the float64 sums: reordered and contracted, NaN and Inf kept
+_SUMS = {"reassoc", "contract", "nsz"}
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_SUMS)
+def block_power(X, first, ur, ui, vr, vi, rr, ri, ai, ei, p0, k2, sums):
+    """For the neighbours ``i`` (the swaps ``ai[i]`` of the block off, element ``ei[i]`` on) and the
+    chunk's pixels ``p`` (rows ``p0 + p`` of the images): ``k2[i, p0 + p] = re^2 + im^2`` of
+    ``re = ur[p, e] + vr[p, a] - X[p, 0, first + a, e]`` (``im`` alike from ``ui``, ``vi``, ``X[p, 1]``),
+    and adds to ``sums[i]`` the chunk's ``<k, k>``, ``Re <k, r>`` and ``Im <k, r>`` (``<k, r> =
+    sum k conj(r)``, reference ``rr + i ri``). ``X`` (c, 2, rows, Ne); ``ur``, ``ui`` (c, Ne);
+    ``vr``, ``vi`` (c, A); ``rr``, ``ri`` (c,)."""
+    c = X.shape[0]
+    for i in range(ai.shape[0]):
+        a = ai[i]
+        e = ei[i]
+        ax = a + first
+        kk = 0.0
+        kre = 0.0
+        kim = 0.0
+        for p in range(c):
+            re = ur[p, e] + vr[p, a] - X[p, 0, ax, e]
+            im = ui[p, e] + vi[p, a] - X[p, 1, ax, e]
+            v = re * re + im * im
+            k2[i, p0 + p] = v
+            kk += v
+            r0 = np.float64(rr[p])
+            r1 = np.float64(ri[p])
+            kre += r0 * re + r1 * im
+            kim += r1 * re - r0 * im
+        sums[i, 0] += kk
+        sums[i, 1] += kre
+        sums[i, 2] += kim
