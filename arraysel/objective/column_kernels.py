@@ -14,10 +14,11 @@ import numba
 import numpy as np
 
 from arraysel.io.numba_cache import ensure_cache_dir
+from arraysel.objective.metric_kernels import _heap_keep
 
 ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
 
-__all__ = ["block_power"]
+__all__ = ["block_power", "lobe_sums"]
 
 #: fast-math flags of the float64 sums: reordered and contracted, NaN and Inf kept
 _SUMS = {"reassoc", "contract", "nsz"}
@@ -52,3 +53,37 @@ def block_power(X, first, ur, ui, vr, vi, rr, ri, ai, ei, p0, k2, sums):
         sums[i, 0] += kk
         sums[i, 1] += kre
         sums[i, 2] += kim
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_SUMS)
+def _masked_sums(row, main, side):
+    """float64 sums of ``row`` over the 0/1 weights ``main`` and ``side``."""
+    s_main = 0.0
+    s_side = 0.0
+    for j in range(row.shape[0]):
+        v = np.float64(row[j])
+        s_main += v * main[j]
+        s_side += v * side[j]
+    return s_main, s_side
+
+
+@numba.njit(cache=True, nogil=True)
+def lobe_sums(k2, rows, main, side, side_idx, m, s_main, s_side, top):
+    """For the rows ``rows`` of ``k2`` (M, N) (the images whose peaks share one position): the
+    float64 sums over the main and side regions (0/1 weights ``main``, ``side`` (N,)) into
+    ``s_main``, ``s_side``, and the ``m`` largest side values (pixels ``side_idx``), largest
+    first, into ``top`` (len(rows), m), kept in a min-heap while the side is read."""
+    heap = np.empty(max(m, 1), dtype=k2.dtype)
+    for t in range(rows.shape[0]):
+        row = k2[rows[t]]
+        a, b = _masked_sums(row, main, side)
+        s_main[t] = a
+        s_side[t] = b
+        size = 0
+        for j in side_idx:
+            v = row[j]
+            if size < m or v > heap[0]:     # most values fall below the heap's least
+                size = _heap_keep(heap, size, m, v)
+        srt = np.sort(heap[:size])
+        for j in range(size):
+            top[t, j] = srt[size - 1 - j]

@@ -86,12 +86,10 @@ class ColumnMetrics:
         lobe = {k: torch.empty(k2.shape[0], dtype=torch.float64) for k in
                 ("L_contrast", "L_SLR_q", "L_SLR_i", "PSL_dB")}
         uniq, inv = torch.unique(self.coords[peak], dim=0, return_inverse=True)
+        k2n = np.ascontiguousarray(k2.numpy())
         for u in range(uniq.shape[0]):
             rows = torch.nonzero(inv == u).flatten()
-            one = uniq.shape[0] == 1
-            sub = k2 if one else k2.index_select(0, rows)
-            pv = peak_val if one else peak_val.index_select(0, rows)
-            for k, v in self._lobes(sub, pv, uniq[u]).items():
+            for k, v in self._lobes(k2n, rows.numpy(), peak_val.index_select(0, rows), uniq[u]).items():
                 lobe[k][rows] = v
         out.update(lobe)
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])
@@ -100,15 +98,23 @@ class ColumnMetrics:
         res.update(self._widths(k2))
         return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
 
-    def _lobes(self, k2: torch.Tensor, peak: torch.Tensor, position: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The lobe terms of the items ``k2`` (M, N) whose peaks (values ``peak``) lie at ``position``."""
+    def _lobes(self, k2: np.ndarray, rows: np.ndarray, peak: torch.Tensor,
+               position: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The lobe terms of the items ``k2[rows]`` (``k2`` (M, N)) whose peaks (values ``peak``)
+        lie at ``position``: the region sums and the side's largest values in one compiled pass
+        (:func:`~arraysel.objective.column_kernels.lobe_sums`)."""
+        from arraysel.objective.column_kernels import lobe_sums
+
         d2 = (self.coords - position[None]).square().sum(-1)
         main = d2 <= self.rm * self.rm * (1 + BOUNDARY_RTOL)
         side = d2 >= self.rg * self.rg * (1 - BOUNDARY_RTOL)
         n_main, n_side = int(main.sum()), int(side.sum())
-        s_main = (k2 @ main.to(k2.dtype)).double()
-        side_vals = k2.index_select(1, torch.nonzero(side).flatten())            # (M, n_side)
-        s_side = side_vals.sum(1).double()
+        k = min(self.top, n_side)
+        s_main, s_side = np.empty(rows.size), np.empty(rows.size)
+        top = np.empty((rows.size, max(k, 1)))
+        lobe_sums(k2, np.ascontiguousarray(rows, dtype=np.int64), main.double().numpy(), side.double().numpy(),
+                  torch.nonzero(side).flatten().numpy(), k, s_main, s_side, top)
+        s_main, s_side, top = torch.from_numpy(s_main), torch.from_numpy(s_side), torch.from_numpy(top)
         res = {"L_SLR_i": _safe_div(s_side, s_main),
                "L_contrast": _safe_div(s_side / max(n_side, 1), s_main / max(n_main, 1))}
         peak = peak.double()
@@ -116,8 +122,6 @@ class ColumnMetrics:
             res["L_SLR_q"] = torch.zeros_like(peak)
             res["PSL_dB"] = torch.full_like(peak, PSL_FLOOR_DB)
             return res
-        k = min(self.top, n_side)
-        top = torch.topk(side_vals, k, dim=1, largest=True, sorted=True).values.double()   # descending
         pos = self.q * (n_side - 1)
         lo, hi = math.floor(pos), math.ceil(pos)
         v_lo = _sqrt0(top[:, min(max(n_side - 1 - lo, 0), k - 1)])
