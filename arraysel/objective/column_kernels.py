@@ -18,7 +18,7 @@ from arraysel.objective.metric_kernels import _heap_keep
 
 ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
 
-__all__ = ["block_power", "lobe_sums"]
+__all__ = ["block_power", "lobe_sums", "peaks"]
 
 #: fast-math flags of the float64 sums: reordered and contracted, NaN and Inf kept
 _SUMS = {"reassoc", "contract", "nsz"}
@@ -80,10 +80,42 @@ def lobe_sums(k2, rows, main, side, side_idx, m, s_main, s_side, top):
         s_main[t] = a
         s_side[t] = b
         size = 0
-        for j in side_idx:
-            v = row[j]
-            if size < m or v > heap[0]:     # most values fall below the heap's least
+        thr = -np.inf          # the heap's least once it is full: most values fall below it
+        for j in range(side_idx.shape[0]):
+            v = row[side_idx[j]]
+            if v > thr or size < m:
                 size = _heap_keep(heap, size, m, v)
+                if size == m:
+                    thr = heap[0]
         srt = np.sort(heap[:size])
         for j in range(size):
             top[t, j] = srt[size - 1 - j]
+
+
+@numba.njit(cache=True, nogil=True)
+def peaks(k2, crows, peak_val, peak, c_peak):
+    """Per row of ``k2`` (M, N): its largest value ``peak_val`` and the first column holding it
+    ``peak`` (as ``torch.max``), and, when ``crows`` (the columns of the C-plane's pixels, in the
+    plane's order) is not empty, the first C-plane pixel holding the plane's largest value
+    ``c_peak`` (as ``torch.argmax`` over the gathered plane)."""
+    n_c = crows.shape[0]
+    for t in range(k2.shape[0]):
+        row = k2[t]
+        best = row[0]
+        at = 0
+        for j in range(1, row.shape[0]):
+            v = row[j]
+            if v > best or (v != v and best == best):    # a NaN wins, as in torch
+                best = v
+                at = j
+        peak_val[t] = best
+        peak[t] = at
+        if n_c:
+            cb = row[crows[0]]
+            ci = 0
+            for f in range(1, n_c):
+                v = row[crows[f]]
+                if v > cb or (v != v and cb == cb):
+                    cb = v
+                    ci = f
+            c_peak[t] = ci

@@ -82,7 +82,7 @@ class ColumnMetrics:
         tiny = torch.finfo(k2.dtype).tiny
         fit = _safe_div(kr_re ** 2 + kr_im ** 2, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
         out["L_PSF"] = torch.clamp((self.rr - fit) / self.rr, min=0.0) if self.rr > 0 else torch.zeros_like(kk)
-        peak_val, peak = torch.max(k2, 1)
+        peak_val, peak, c_peak = self._peaks(k2)
         lobe = {k: torch.empty(k2.shape[0], dtype=torch.float64) for k in
                 ("L_contrast", "L_SLR_q", "L_SLR_i", "PSL_dB")}
         uniq, inv = torch.unique(self.coords[peak], dim=0, return_inverse=True)
@@ -95,7 +95,7 @@ class ColumnMetrics:
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])
         out["Mean"] = 0.25 * (out["L_PSF"] + out["L_contrast"] + out["L_SLR_q"] + out["L_SLR_i"])
         res = {k: out[k].double().numpy() for k in (*METRIC_NAMES, "PSL_dB")}
-        res.update(self._widths(k2))
+        res.update(self._widths(k2, c_peak))
         return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
 
     def _lobes(self, k2: np.ndarray, rows: np.ndarray, peak: torch.Tensor,
@@ -131,16 +131,35 @@ class ColumnMetrics:
         res["PSL_dB"] = 10.0 * torch.log10(torch.clamp(ratio, min=10.0 ** (PSL_FLOOR_DB / 10.0)))
         return res
 
-    def _widths(self, k2: torch.Tensor) -> dict[str, np.ndarray]:
-        """The -6 dB widths along x and y of the C-plane through its own peak (as
-        :func:`~arraysel.objective.metrics3d.main_lobe_widths`) of the items ``k2`` (M, N)."""
+    def _peaks(self, k2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(peak value, peak row, C-plane peak)`` of the items ``k2`` (M, N): the largest value and
+        its first row (as ``torch.max``), and the first pixel of the C-plane (its flat index in the
+        plane) holding the plane's largest value; one compiled pass
+        (:func:`~arraysel.objective.column_kernels.peaks`)."""
+        from arraysel.objective.column_kernels import peaks
+
+        m = k2.shape[0]
+        pv = torch.empty(m, dtype=k2.dtype)
+        pk, cpk = torch.empty(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
+        if self.c_off is None:
+            crows = np.empty(0, dtype=np.int64)
+        else:
+            h, w = self.c_shape
+            crows = self.unsort[self.c_off:self.c_off + h * w].numpy()         # C-plane pixel -> row
+        peaks(np.ascontiguousarray(k2.numpy()), np.ascontiguousarray(crows, dtype=np.int64), pv.numpy(),
+              pk.numpy(), cpk.numpy())
+        return pv, pk, cpk
+
+    def _widths(self, k2: torch.Tensor, flat_peak: torch.Tensor) -> dict[str, np.ndarray]:
+        """The -6 dB widths along x and y of the C-plane through its own peak (its flat index in the
+        plane ``flat_peak``; as :func:`~arraysel.objective.metrics3d.main_lobe_widths`) of the
+        items ``k2`` (M, N)."""
         m = k2.shape[0]
         if self.c_off is None:
             return {"width_x_6dB": np.full(m, np.inf), "width_y_6dB": np.full(m, np.inf)}
         h, w = self.c_shape
         o = self.c_off
         at = self.unsort                                                   # pixel -> row
-        flat_peak = torch.argmax(k2.index_select(1, at[o:o + h * w]), 1)
         i0, j0 = flat_peak // w, flat_peak % w
         c = self.c_coords
         out = {}

@@ -49,8 +49,9 @@ __all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "PIXEL_CHUNK", "DENSE_SHARE", "M
 
 #: outgoing elements per batched product of the block path (its output: rows x Ne images)
 BLOCK_ROWS = 4
-#: pixels per batched product of the block path (its cross terms are read while in cache)
-PIXEL_CHUNK = 64
+#: pixels times rows (outgoing elements) per batched product of the block path: its cross terms
+#: (``2 rows x Ne`` a pixel) are read while they are in cache
+PIXEL_CHUNK = 256
 #: an outgoing element's swaps go by the block path when they fill at least this share of its row
 #: of Ne images (on matrix-1024 a neighbour of a block costs about a fifteenth of a mask scored by
 #: ``evaluate``); the other moves are formed from their own rows
@@ -240,7 +241,7 @@ class MatrixNeighbourhood:
         """``(k2, sums)`` of the swaps ``outs[ai[i]]`` off and ``ei[i]`` on: ``|img|^2`` (M, P) (the
         fast path's pixel order) and float64 ``(<k, k>, Re <k, r>, Im <k, r>)`` (M, 3) against the
         reference (:func:`~arraysel.objective.column_kernels.block_power`). One batched product
-        per chunk of :data:`PIXEL_CHUNK` pixels gives the cross terms of ``outs`` (and of a carried
+        per chunk of pixels (:data:`PIXEL_CHUNK`) gives the cross terms of ``outs`` (and of a carried
         move's rows, added to the held columns) against every element, and the compiled pass reads
         the swaps' images from it while it is in cache."""
         from arraysel.objective.column_kernels import block_power
@@ -262,9 +263,10 @@ class MatrixNeighbourhood:
         k2 = np.empty((ai.size, self.n_pixels), dtype=vr.dtype)
         sums = np.zeros((ai.size, 3))
         p0 = 0
+        chunk = max(8, PIXEL_CHUNK // Ba.shape[0])
         for (n, w, o), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
-            for c0 in range(0, n, PIXEL_CHUNK):
-                c1 = min(n, c0 + PIXEL_CHUNK)
+            for c0 in range(0, n, chunk):
+                c1 = min(n, c0 + chunk)
                 X = torch.bmm(left[c0:c1], r[c0:c1]).reshape(c1 - c0, 2, -1, self.n_elements)
                 if first:
                     ur[p0 + c0:p0 + c1].add_(X[:, 0, 0])
