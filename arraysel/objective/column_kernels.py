@@ -25,34 +25,45 @@ _SUMS = {"reassoc", "contract", "nsz"}
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SUMS)
-def block_power(X, first, ur, ui, vr, vi, rr, ri, ai, ei, p0, k2, sums):
-    """For the neighbours ``i`` (the swaps ``ai[i]`` of the block off, element ``ei[i]`` on) and the
-    chunk's pixels ``p`` (rows ``p0 + p`` of the images): ``k2[i, p0 + p] = re^2 + im^2`` of
-    ``re = ur[p, e] + vr[p, a] - X[p, 0, first + a, e]`` (``im`` alike from ``ui``, ``vi``, ``X[p, 1]``),
-    and adds to ``sums[i]`` the chunk's ``<k, k>``, ``Re <k, r>`` and ``Im <k, r>`` (``<k, r> =
-    sum k conj(r)``, reference ``rr + i ri``). ``X`` (c, 2, rows, Ne); ``ur``, ``ui`` (c, Ne);
-    ``vr``, ``vi`` (c, A); ``rr``, ``ri`` (c,)."""
+def block_power(X, first, ur, ui, vr, vi, rr, ri, rows, p0, k2, sums, tile):
+    """For the swaps ``(a off, e on)`` of the block and the chunk's pixels ``p`` (rows ``p0 + p`` of
+    the images): ``re = ur[p, e] + vr[p, a] - X[p, 0, first + a, e]`` (``im`` alike from ``ui``,
+    ``vi``, ``X[p, 1]``); adds the chunk's ``<k, k>``, ``Re <k, r>``, ``Im <k, r>`` (``<k, r> =
+    sum k conj(r)``, reference ``rr + i ri``) to ``sums[:, a, e]`` for every ``e`` (one pass along
+    the contiguous rows, vectorised), and writes ``|img|^2`` of the swaps asked for (``rows[a, e]``
+    >= 0: the neighbour's row of ``k2``) into ``k2[rows[a, e], p0 + p]``, through the chunk's
+    ``tile`` (c, Ne). ``X`` (c, 2, first + A, Ne); ``ur``, ``ui`` (c, Ne); ``vr``, ``vi`` (c, A);
+    ``rr``, ``ri`` (c,); ``sums`` float64 (3, A, Ne)."""
     c = X.shape[0]
-    for i in range(ai.shape[0]):
-        a = ai[i]
-        e = ei[i]
-        ax = a + first
-        kk = 0.0
-        kre = 0.0
-        kim = 0.0
+    ne = X.shape[3]
+    for a in range(rows.shape[0]):
+        kk = sums[0, a]
+        kre = sums[1, a]
+        kim = sums[2, a]
         for p in range(c):
-            re = ur[p, e] + vr[p, a] - X[p, 0, ax, e]
-            im = ui[p, e] + vi[p, a] - X[p, 1, ax, e]
-            v = re * re + im * im
-            k2[i, p0 + p] = v
-            kk += v
+            xr = X[p, 0, first + a]
+            xi = X[p, 1, first + a]
+            u0 = ur[p]
+            u1 = ui[p]
+            t = tile[p]
+            v0 = vr[p, a]
+            v1 = vi[p, a]
             r0 = np.float64(rr[p])
             r1 = np.float64(ri[p])
-            kre += r0 * re + r1 * im
-            kim += r1 * re - r0 * im
-        sums[i, 0] += kk
-        sums[i, 1] += kre
-        sums[i, 2] += kim
+            for e in range(ne):
+                re = u0[e] + v0 - xr[e]
+                im = u1[e] + v1 - xi[e]
+                v = re * re + im * im
+                t[e] = v
+                kk[e] += v
+                kre[e] += r0 * re + r1 * im
+                kim[e] += r1 * re - r0 * im
+        for e in range(ne):
+            i = rows[a, e]
+            if i >= 0:
+                out = k2[i]
+                for p in range(c):
+                    out[p0 + p] = tile[p, e]
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SUMS)
@@ -67,26 +78,45 @@ def _masked_sums(row, main, side):
     return s_main, s_side
 
 
+#: pixels per span whose largest value :func:`lobe_sums` compares with the heap's least first
+_SPAN = 16
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_SUMS)
+def _span_max(row, weights, s0, s1):
+    """The largest of ``row[j] * weights[j]`` over ``s0 <= j < s1`` (``row >= 0``; 0 when empty)."""
+    best = row[s0] * weights[s0]
+    for j in range(s0 + 1, s1):
+        best = max(best, row[j] * weights[j])
+    return best
+
+
 @numba.njit(cache=True, nogil=True)
-def lobe_sums(k2, rows, main, side, side_idx, m, s_main, s_side, top):
-    """For the rows ``rows`` of ``k2`` (M, N) (the images whose peaks share one position): the
-    float64 sums over the main and side regions (0/1 weights ``main``, ``side`` (N,)) into
-    ``s_main``, ``s_side``, and the ``m`` largest side values (pixels ``side_idx``), largest
-    first, into ``top`` (len(rows), m), kept in a min-heap while the side is read."""
+def lobe_sums(k2, rows, main, side, seeds, free, m, s_main, s_side, top):
+    """For the rows ``rows`` of ``k2`` (M, N) (``|img|^2 >= 0`` of images whose peaks share one
+    position): the float64 sums over the main and side regions (0/1 weights ``main``, ``side``
+    (N,)) into ``s_main``, ``s_side``, and the ``m`` largest side values, largest first, into
+    ``top`` (len(rows), m). The heap of the largest values starts from the ``m`` side pixels
+    ``seeds`` (those likely largest), then takes the other side pixels (0/1 ``free``, row type)
+    above its least, read a span at a time: a span whose largest value is below it is skipped."""
     heap = np.empty(max(m, 1), dtype=k2.dtype)
+    n = k2.shape[1]
     for t in range(rows.shape[0]):
         row = k2[rows[t]]
         a, b = _masked_sums(row, main, side)
         s_main[t] = a
         s_side[t] = b
+        if m == 0:
+            continue
         size = 0
-        thr = -np.inf          # the heap's least once it is full: most values fall below it
-        for j in range(side_idx.shape[0]):
-            v = row[side_idx[j]]
-            if v > thr or size < m:
-                size = _heap_keep(heap, size, m, v)
-                if size == m:
-                    thr = heap[0]
+        for j in range(m):
+            size = _heap_keep(heap, size, m, row[seeds[j]])
+        for s0 in range(0, n, _SPAN):
+            s1 = min(n, s0 + _SPAN)
+            if not _span_max(row, free, s0, s1) <= heap[0]:
+                for j in range(s0, s1):
+                    if free[j] > 0 and not row[j] <= heap[0]:
+                        size = _heap_keep(heap, size, m, row[j])
         srt = np.sort(heap[:size])
         for j in range(size):
             top[t, j] = srt[size - 1 - j]

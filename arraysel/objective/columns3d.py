@@ -112,8 +112,14 @@ class ColumnMetrics:
         k = min(self.top, n_side)
         s_main, s_side = np.empty(rows.size), np.empty(rows.size)
         top = np.empty((rows.size, max(k, 1)))
-        lobe_sums(k2, np.ascontiguousarray(rows, dtype=np.int64), main.double().numpy(), side.double().numpy(),
-                  torch.nonzero(side).flatten().numpy(), k, s_main, s_side, top)
+        side_idx = torch.nonzero(side).flatten().numpy()
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        # the heap starts from the side pixels largest in the first image (its neighbours' alike)
+        seeds = side_idx[np.argsort(-k2[rows[0], side_idx], kind="stable")[:k]] if rows.size else side_idx[:k]
+        free = side.numpy().astype(k2.dtype)
+        free[seeds] = 0
+        lobe_sums(k2, rows, main.double().numpy(), side.double().numpy(), np.ascontiguousarray(seeds, dtype=np.int64),
+                  free, k, s_main, s_side, top)
         s_main, s_side, top = torch.from_numpy(s_main), torch.from_numpy(s_side), torch.from_numpy(top)
         res = {"L_SLR_i": _safe_div(s_side, s_main),
                "L_contrast": _safe_div(s_side / max(n_side, 1), s_main / max(n_main, 1))}

@@ -47,11 +47,12 @@ from arraysel.errors import SelectionError
 __all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "PIXEL_CHUNK", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
            "check_selection"]
 
-#: outgoing elements per batched product of the block path (its output: rows x Ne images)
-BLOCK_ROWS = 4
-#: pixels times rows (outgoing elements) per batched product of the block path: its cross terms
-#: (``2 rows x Ne`` a pixel) are read while they are in cache
-PIXEL_CHUNK = 256
+#: most outgoing elements a pass of the block path takes: each pass reads the right factors of
+#: every element once (0.87 GB in float32 on matrix-1024), and holds ``|img|^2`` of its swaps
+#: (16 x 768 neighbours: 226 MB in float32)
+BLOCK_ROWS = 16
+#: pixels per batched product of the block path (its cross terms are read while in cache)
+PIXEL_CHUNK = 64
 #: an outgoing element's swaps go by the block path when they fill at least this share of its row
 #: of Ne images (on matrix-1024 a neighbour of a block costs about a fifteenth of a mask scored by
 #: ``evaluate``); the other moves are formed from their own rows
@@ -241,7 +242,7 @@ class MatrixNeighbourhood:
         """``(k2, sums)`` of the swaps ``outs[ai[i]]`` off and ``ei[i]`` on: ``|img|^2`` (M, P) (the
         fast path's pixel order) and float64 ``(<k, k>, Re <k, r>, Im <k, r>)`` (M, 3) against the
         reference (:func:`~arraysel.objective.column_kernels.block_power`). One batched product
-        per chunk of pixels (:data:`PIXEL_CHUNK`) gives the cross terms of ``outs`` (and of a carried
+        per chunk of :data:`PIXEL_CHUNK` pixels gives the cross terms of ``outs`` (and of a carried
         move's rows, added to the held columns) against every element, and the compiled pass reads
         the swaps' images from it while it is in cache."""
         from arraysel.objective.column_kernels import block_power
@@ -259,22 +260,26 @@ class MatrixNeighbourhood:
         ur, ui = self._U
         cm = self.metrics()
         rr, ri = cm.ref_r.numpy(), cm.ref_i.numpy()
-        ai, ei = np.ascontiguousarray(ai, dtype=np.int64), np.ascontiguousarray(ei, dtype=np.int64)
+        A, ne = outs.shape[0], self.n_elements
+        rows = np.full((A, ne), -1, dtype=np.int64)           # the row of k2 of each swap asked for
+        rows[ai, ei] = np.arange(ai.size)
         k2 = np.empty((ai.size, self.n_pixels), dtype=vr.dtype)
-        sums = np.zeros((ai.size, 3))
+        acc = np.zeros((3, A, ne))
+        chunk = PIXEL_CHUNK
+        tile = np.empty((chunk, ne), dtype=vr.dtype)
         p0 = 0
-        chunk = max(8, PIXEL_CHUNK // Ba.shape[0])
         for (n, w, o), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
             for c0 in range(0, n, chunk):
                 c1 = min(n, c0 + chunk)
-                X = torch.bmm(left[c0:c1], r[c0:c1]).reshape(c1 - c0, 2, -1, self.n_elements)
+                X = torch.bmm(left[c0:c1], r[c0:c1]).reshape(c1 - c0, 2, -1, ne)
                 if first:
                     ur[p0 + c0:p0 + c1].add_(X[:, 0, 0])
                     ui[p0 + c0:p0 + c1].add_(X[:, 1, 0])
                 sl = slice(p0 + c0, p0 + c1)
                 block_power(X.numpy(), first, ur[sl].numpy(), ui[sl].numpy(), vr[sl], vi[sl], rr[sl], ri[sl],
-                            ai, ei, p0 + c0, k2, sums)
+                            rows, p0 + c0, k2, acc, tile)
             p0 += n
+        sums = np.ascontiguousarray(acc[:, ai, ei].T)
         return torch.from_numpy(k2), torch.from_numpy(sums)
 
     def _lefts(self, Ba: torch.Tensor, Za: torch.Tensor):
