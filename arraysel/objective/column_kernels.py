@@ -1,12 +1,22 @@
-"""The compiled pass of a 3-D neighbourhood's block of swaps (:mod:`arraysel.objective.matrix_neighbours`).
+"""The compiled passes of a 3-D neighbourhood's blocks of swaps (:mod:`arraysel.objective.matrix_neighbours`).
 
 A block's batched product gives, per pixel, the cross terms ``X`` of its outgoing elements against
 every element. The image of the swap ``(a off, e on)`` at pixel ``p`` is then
 ``u_e(p) + v_a(p) - X_ae(p)`` (``u_e = S_e + D_e``, ``v_a = img - S_a + D_a``), and what the metrics
 read of it is ``|img|^2`` and the sums ``<k, k>`` and ``<k, r>`` against the reference.
-:func:`block_power` forms them in one pass over a chunk of pixels, straight into the rows of the
-neighbours' ``|img|^2`` (one row per neighbour, the layout the metrics take), so the block's images
-are never written out, negated, gathered or transposed. Sums are accumulated in float64.
+
+* :func:`block_power` forms them for a chunk of pixels along the contiguous element rows of ``X``
+  (vectorised, float64 sums) and writes ``|img|^2`` of the swaps asked for into one row per
+  neighbour (the layout the metrics take), so the block's images are never written out whole,
+  negated, gathered or transposed by torch;
+* :func:`peaks` finds each row's peak and the C-plane's peak in one pass (as ``torch.max`` and
+  ``torch.argmax``: the first of equal values);
+* :func:`lobe_sums` sums the main and side regions and keeps the side's largest values (the
+  quantile's order statistics) in a min-heap seeded with the pixels largest in a first image, so
+  that most of the side is only compared with the heap's least, a span at a time.
+
+:class:`~arraysel.objective.columns3d.ColumnMetrics` calls the last two for every 3-D neighbourhood;
+``tests/test_column_kernels.py`` checks them against the torch operations.
 """
 from __future__ import annotations
 
@@ -29,7 +39,7 @@ def block_power(X, first, ur, ui, vr, vi, rr, ri, rows, p0, k2, sums, tile):
     """For the swaps ``(a off, e on)`` of the block and the chunk's pixels ``p`` (rows ``p0 + p`` of
     the images): ``re = ur[p, e] + vr[p, a] - X[p, 0, first + a, e]`` (``im`` alike from ``ui``,
     ``vi``, ``X[p, 1]``); adds the chunk's ``<k, k>``, ``Re <k, r>``, ``Im <k, r>`` (``<k, r> =
-    sum k conj(r)``, reference ``rr + i ri``) to ``sums[:, a, e]`` for every ``e`` (one pass along
+    sum conj(k) r``, reference ``rr + i ri``) to ``sums[:, a, e]`` for every ``e`` (one pass along
     the contiguous rows, vectorised), and writes ``|img|^2`` of the swaps asked for (``rows[a, e]``
     >= 0: the neighbour's row of ``k2``) into ``k2[rows[a, e], p0 + p]``, through the chunk's
     ``tile`` (c, Ne). ``X`` (c, 2, first + A, Ne); ``ur``, ``ui`` (c, Ne); ``vr``, ``vi`` (c, A);

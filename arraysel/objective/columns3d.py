@@ -1,15 +1,16 @@
 """The metrics of :func:`~arraysel.objective.metrics3d.psf3d_metrics` for many images held pixel-major.
 
-A neighbourhood of a 3-D scene (:mod:`arraysel.objective.matrix_neighbours`) produces its images as
-columns: real and imaginary parts ``(P, M)``, one column per neighbour, the rows the pixels of
-every plane. :class:`ColumnMetrics` scores them there, without transposing them into the
-``(M, H, W)`` planes :func:`psf3d_metrics` takes: every sum over pixels is a matrix-vector
-product, the peak an argmax down the columns, the side-lobe quantile one ``topk`` down the
-side-region rows; the pixels' positions are held in the columns' row order, so the images are
-never reordered. The definitions are those of :mod:`arraysel.objective.metrics3d` (the same
-regions around each column's own peak, the same quantile, the same main-lobe widths through the
-C-plane's own peak), so the values are the same to rounding (``tests/test_matrix_neighbours.py``).
-No gradient.
+A neighbourhood of a 3-D scene (:mod:`arraysel.objective.matrix_neighbours`) produces its images
+either as columns (real and imaginary parts ``(P, M)``, one column per neighbour, the rows the
+pixels of every plane: :meth:`ColumnMetrics.__call__`) or, for a block of swaps, as ``|img|^2``
+with one row per neighbour and its sums against the reference (:meth:`ColumnMetrics.from_power`).
+Neither is reshaped into the ``(M, H, W)`` planes :func:`psf3d_metrics` takes: the pixels'
+positions are held in the images' pixel order; the peaks, the region sums and the side-lobe
+quantile's order statistics come from compiled passes along each neighbour's row
+(:mod:`arraysel.objective.column_kernels`). The definitions are those of
+:mod:`arraysel.objective.metrics3d` (the same regions around each image's own peak, the same
+quantile, the same main-lobe widths through the C-plane's own peak), so the values are the same to
+rounding (``tests/test_matrix_neighbours.py``). CPU tensors. No gradient.
 """
 from __future__ import annotations
 

@@ -21,10 +21,12 @@ path's own planes, to rounding.
 :class:`MatrixNeighbourhood` keeps ``Z``, ``D`` and, per selection, its image and the ``S_e`` it has
 needed. It scores
 
-* a *block* of swaps (one outgoing element ``a`` against many incoming ones, a few such ``a`` at a
-  time: what a search asks for when the neighbourhood says it prefers blocks, :meth:`block`) by one
-  batched matrix product per pixel group: the cross terms ``C_ae`` of the block's ``a`` against
-  every element;
+* a *block* of swaps (one outgoing element ``a`` against many incoming ones, up to
+  :data:`BLOCK_ROWS` such ``a`` at a time: what a search asks for when the neighbourhood says it
+  prefers blocks, :meth:`block`) by one batched matrix product per chunk of pixels: the cross terms
+  ``C_ae`` of the block's ``a`` against every element, read while in cache by a compiled pass
+  (:func:`~arraysel.objective.column_kernels.block_power`) that writes each swap's ``|img|^2`` and
+  its sums against the reference, all the metrics need;
 * any other move (a few swaps of scattered elements, moves of several elements) from its own
   rows: ``img' = img + sum_e d_e S_e + sum_{j in p} (d @ B)_j (d @ Z)_j``, which reads the ``2 m``
   rows of ``B`` and ``Z`` a move of ``m`` elements changes (where a mask scored on its own reads
