@@ -96,6 +96,7 @@ class MatrixNeighbourhood:
         self._pending = None    # the rows (d @ B, d @ Z) of a carried move not yet added to _U
         self._carried = 0       # selections whose S_e were carried over since they were formed
         self._metrics = None
+        self._buffers: dict[str, np.ndarray] = {}   # kept between blocks (:meth:`_scratch`)
 
     # ---------------------------------------------------------------- shared tensors
     def _segsum(self, x: torch.Tensor) -> torch.Tensor:
@@ -265,15 +266,16 @@ class MatrixNeighbourhood:
         A, ne = outs.shape[0], self.n_elements
         rows = np.full((A, ne), -1, dtype=np.int64)           # the row of k2 of each swap asked for
         rows[ai, ei] = np.arange(ai.size)
-        k2 = np.empty((ai.size, self.n_pixels), dtype=vr.dtype)
+        k2 = self._scratch("k2", (ai.size, self.n_pixels), vr.dtype)
         acc = np.zeros((3, A, ne))
         chunk = PIXEL_CHUNK
-        tile = np.empty((chunk, ne), dtype=vr.dtype)
+        tile = self._scratch("tile", (chunk, ne), vr.dtype)
+        out = torch.from_numpy(self._scratch("X", (chunk, 2 * Ba.shape[0], ne), vr.dtype))
         p0 = 0
         for (n, w, o), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
             for c0 in range(0, n, chunk):
                 c1 = min(n, c0 + chunk)
-                X = torch.bmm(left[c0:c1], r[c0:c1]).reshape(c1 - c0, 2, -1, ne)
+                X = torch.bmm(left[c0:c1], r[c0:c1], out=out[:c1 - c0]).reshape(c1 - c0, 2, -1, ne)
                 if first:
                     ur[p0 + c0:p0 + c1].add_(X[:, 0, 0])
                     ui[p0 + c0:p0 + c1].add_(X[:, 1, 0])
@@ -283,6 +285,16 @@ class MatrixNeighbourhood:
             p0 += n
         sums = np.ascontiguousarray(acc[:, ai, ei].T)
         return torch.from_numpy(k2), torch.from_numpy(sums)
+
+    def _scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """A buffer ``shape`` of ``dtype`` kept between blocks (its contents are not), so that a
+        block's ``|img|^2`` (226 MB for 16 outgoing elements on matrix-1024) is not allocated and
+        faulted in afresh each time."""
+        size = int(np.prod(shape))
+        buf = self._buffers.get(name)
+        if buf is None or buf.dtype != dtype or buf.size < size:
+            buf = self._buffers[name] = np.empty(size, dtype=dtype)
+        return buf[:size].reshape(shape)
 
     def _lefts(self, Ba: torch.Tensor, Za: torch.Tensor):
         """Per pixel group, the left factor ``(n, 2 A, 4 w)`` (real) of the cross terms of the rows
