@@ -169,7 +169,7 @@ class MatrixNeighbourhood:
             self._img = self._segsum(self._gamma * self._z)
             self._U = self._pending = None
             self._carried = 0
-        self._S = torch.zeros(self.n_elements, self.n_pixels, dtype=self.cdtype)
+        self._S = None      # formed when first needed (:meth:`_single`)
         self._have = torch.zeros(self.n_elements, dtype=torch.bool)
         self._key, self._mask = key, mask.copy()
 
@@ -207,6 +207,8 @@ class MatrixNeighbourhood:
         """``S_e`` (E, P) of ``elements`` for the held selection (formed when first needed, or read
         from the columns :meth:`_pairs_part` holds)."""
         need = torch.unique(elements[~self._have[elements]])
+        if self._S is None:
+            self._S = torch.empty(self.n_elements, self.n_pixels, dtype=self.cdtype)
         for i in range(0, need.numel(), 64):
             e = need[i:i + 64]
             if self._U is not None:
