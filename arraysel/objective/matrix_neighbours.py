@@ -390,9 +390,11 @@ class MatrixNeighbourhood:
         for g in range(0, starts.size, BLOCK_ROWS):
             s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]
             pos = order[s0[0]:s1[-1]]
-            rows = np.repeat(np.arange(s0.size), s1 - s0)
-            k2, sums = self.swap_power(torch.as_tensor(a_sorted[s0], dtype=torch.long), rows, into[pos])
-            yield pos, cm.from_power(k2, sums[:, 0], sums[:, 1], sums[:, 2])
+            rows, ins = np.repeat(np.arange(s0.size), s1 - s0), into[pos]
+            _, keep, inv = np.unique(rows * self.n_elements + ins, return_index=True, return_inverse=True)
+            k2, sums = self.swap_power(torch.as_tensor(a_sorted[s0], dtype=torch.long), rows[keep], ins[keep])
+            res = cm.from_power(k2, sums[:, 0], sums[:, 1], sums[:, 2])
+            yield pos, {k: v[inv] for k, v in res.items()}      # a swap asked for twice, scored once
 
     def metrics(self):
         """The :class:`~arraysel.objective.columns3d.ColumnMetrics` of the objective (formed once)."""
