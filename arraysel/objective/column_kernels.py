@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from arraysel.io.numba_cache import ensure_cache_dir
-from arraysel.objective.metric_kernels import _heap_keep
+from arraysel.objective.metric_kernels import _heap_keep, _row_sums
 
 ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
 
@@ -78,18 +78,6 @@ def block_power(X, first, ur, ui, vr, vi, rr, ri, rows, p0, k2, sums, tile):
                         k2[i, p0 + p] = t[e]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_SUMS)
-def _masked_sums(row, main, side):
-    """float64 sums of ``row`` over the 0/1 weights ``main`` and ``side``."""
-    s_main = 0.0
-    s_side = 0.0
-    for j in range(row.shape[0]):
-        v = np.float64(row[j])
-        s_main += v * main[j]
-        s_side += v * side[j]
-    return s_main, s_side
-
-
 #: pixels per span whose largest value :func:`lobe_sums` compares with the heap's least first
 _SPAN = 16
 
@@ -115,7 +103,7 @@ def lobe_sums(k2, rows, main, side, seeds, free, m, s_main, s_side, top):
     n = k2.shape[1]
     for t in range(rows.shape[0]):
         row = k2[rows[t]]
-        a, b = _masked_sums(row, main, side)
+        a, b = _row_sums(row, main, side)
         s_main[t] = a
         s_side[t] = b
         if m == 0:
