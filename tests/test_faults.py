@@ -105,6 +105,16 @@ def test_cache_roundtrip_is_memory_mapped_and_follows_the_umask(cache_folder, ca
     assert not [p for p in cache_folder.iterdir() if p.name.endswith(".tmp")]
 
 
+def test_cache_build_hands_out_the_saved_files_not_the_built_tensors(cache_folder):
+    """A process that builds several entries holds none of them in its own memory: the build's
+    tensors are swapped for the saved entry's memory maps (the same values a later run loads)."""
+    build, calls = _counting_builder()
+    first = cache.load_or_build("t", ("m",), build)
+    entry = _entry(cache_folder)
+    assert calls == [1] and _same(first, _state())
+    assert _mapped_file(first["V"]) == str(entry / "V.npy")
+
+
 def _announcement(record) -> bool:
     """The notice a build gives before it starts (a log record, not a problem)."""
     return "(first run with these settings" in record.getMessage()

@@ -210,9 +210,23 @@ def load_or_build(kind: str, key_parts, build: Callable[[], Mapping], *, what: s
         except OSError as exc:
             _log.warning("could not save %s to the cache %s (%s); it will be built again next time",
                          what, folder, _oserror(exc))
-        return state
+            return state
+        return _saved(path, state)
     finally:
         lock.release()
+
+
+def _saved(path: str, built: dict) -> dict:
+    """The entry just saved at ``path``, memory-mapped as a later run loads it, in place of
+    ``built``: the built tensors are then freed, so a process that builds several entries holds
+    at most one of them in its own memory (the rest are pages of the files, which the system may
+    drop), and the first run computes with the very tensors every later run reads. ``built`` when
+    the saved entry cannot be read back."""
+    try:
+        return load_state(path)
+    except (DamagedEntry, OSError) as exc:
+        _log.warning("the cache entry %s could not be read back (%s); using the built tensors", path, exc)
+        return built
 
 
 def build_seconds_estimate(folder: str | None, seconds_hint: float | None) -> float | None:
