@@ -21,7 +21,8 @@ The machine's load moves timings by a third or more, so settings are compared in
 variants' order turned every round, with those environment variables set (``VAR=`` unsets one).
 For example ``--variant default --variant spinning:OMP_WAIT_POLICY=ACTIVE`` compares the default
 with OpenMP threads that spin, and ``--variant old:PYTHONPATH=CHECKOUT`` an older checkout (its
-commands are run as ``python -m arraysel``, so the checkout on PYTHONPATH is the one imported).
+commands are run as ``python -m arraysel`` in the temporary folder, so the checkout on PYTHONPATH is
+the one imported: run in a checkout, ``python -m`` imports the current folder's ``arraysel`` first).
 Medians over ``--rounds`` rounds; the 1-minute load average is recorded with every timing.
 
 A table, then one JSON record as the last line (also written to ``--out`` when given).
@@ -94,11 +95,21 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return label, env
 
 
+#: the folder the measured processes run in: not a checkout, whose own ``arraysel`` folder would
+#: come first on ``sys.path`` (``python -m`` and ``python -c`` put the current folder there) and
+#: hide the checkout a variant puts on ``PYTHONPATH``
+RUN_DIR = tempfile.gettempdir()
+
+
 def variant_env(changes: dict) -> dict:
+    """The environment of a variant's processes; the entries of its ``PYTHONPATH`` made absolute
+    (they run in :data:`RUN_DIR`)."""
     env = dict(START_ENV)
     for var, value in changes.items():
         if value is None:
             env.pop(var, None)
+        elif var == "PYTHONPATH":
+            env[var] = os.pathsep.join(os.path.abspath(p) for p in value.split(os.pathsep) if p)
         else:
             env[var] = value
     return env
@@ -136,7 +147,7 @@ def timed(cmd: list[str], env: dict) -> tuple[float, float, str, float]:
     load = os.getloadavg()[0]
     cpu0 = _children_cpu_s()
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=RUN_DIR)
     s = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
@@ -185,7 +196,7 @@ def parse_args(argv):
 def measure_batches(args, tmp: str) -> dict:
     """{scene: {variant: {t1_s, tN_s, ms_per_mask, loads}}}, the runs interleaved."""
     evaluate = [sys.executable, "-m", "arraysel", "evaluate", "--no-progress"]
-    scenes = [s for s in args.scenes.split(",") if s]
+    scenes = [os.path.abspath(s) if os.path.isfile(s) else s for s in args.scenes.split(",") if s]
     files, times = {}, {}
     for scene in scenes:
         ne, k = scene_size(scene)
@@ -227,7 +238,8 @@ def measure_swaps(args) -> dict:
     out = {}
     if not args.swap_scene:
         return out
-    cmd = [sys.executable, "-c", SWAPS, args.swap_scene, str(args.pairs), str(args.swap_rounds)]
+    scene = os.path.abspath(args.swap_scene) if os.path.isfile(args.swap_scene) else args.swap_scene
+    cmd = [sys.executable, "-c", SWAPS, scene, str(args.pairs), str(args.swap_rounds)]
     for r in range(args.rounds):
         order = args.variants[r % len(args.variants):] + args.variants[:r % len(args.variants)]
         for label, changes in order:

@@ -32,6 +32,21 @@ def test_variant_text_is_parsed_and_checked():
             mod.parse_variant(bad)
 
 
+def test_a_checkout_on_pythonpath_is_the_one_its_processes_import(tmp_path, monkeypatch):
+    """A variant's PYTHONPATH entries are made absolute and its processes run in RUN_DIR (not a
+    checkout): run in a checkout, python -c or -m would import the current folder's arraysel."""
+    mod = _module()
+    fake = tmp_path / "older" / "arraysel"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("")
+    monkeypatch.chdir(tmp_path)
+    env = mod.variant_env({"PYTHONPATH": "older"})
+    assert env["PYTHONPATH"] == str(tmp_path / "older")
+    got = subprocess.run([sys.executable, "-c", "import arraysel; print(arraysel.__file__)"], env=env,
+                         cwd=mod.RUN_DIR, stdout=subprocess.PIPE, text=True, check=True).stdout.strip()
+    assert got == str(fake / "__init__.py")
+
+
 def test_runs_on_the_toy_scene(tmp_path):
     out = tmp_path / "guard.json"
     proc = subprocess.run([sys.executable, SCRIPT, "--scenes", "toy", "--masks", "3", "--rounds", "1",

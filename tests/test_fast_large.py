@@ -587,6 +587,74 @@ def test_envelopes_of_a_few_selections_from_their_rows(no_cache, monkeypatch, dt
     assert not real(fast, mask.clone().requires_grad_(True))
 
 
+@pytest.mark.parametrize("step_bytes", [0, 1 << 30])
+def test_compiled_envelopes_of_a_batch_equal_torchs(no_cache, monkeypatch, step_bytes):
+    """A float32 batch of at least MIN_BATCH selections has its receive products reduced to
+    segment peaks and runs compiled: the envelopes equal torch's reduction of the same products
+    to one rounding of the root (torch's vectorised root is not always the nearest float), zero on the
+    receive elements a selection does not use, NaN in the same entries; float64, a gradient or a
+    small batch keep torch's operations."""
+    from arraysel.physics import compiled
+
+    model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
+    cert = model.basis.certificates
+    monkeypatch.setattr(Certificates, "receive_step_bytes", step_bytes)
+    ne = model.n_elements
+    rng = np.random.default_rng(7)
+    masks = torch.zeros(2 * compiled.MIN_BATCH, ne)
+    for b in range(masks.shape[0]):
+        masks[b, rng.choice(ne, 1 + b % ne, replace=False)] = 1
+    w = torch.cat([masks, _mixed_weights(ne, seed=3).float()])
+    w[-1, 5] = math.nan
+    from arraysel.physics.psf import certificate
+
+    assert certificate.compiled_envelopes(w)
+    assert not certificate.compiled_envelopes(w[:compiled.MIN_BATCH - 1])
+    assert not certificate.compiled_envelopes(w.double())
+    assert not certificate.compiled_envelopes(w.clone().requires_grad_(True))
+    got = cert.envelopes(w)
+    monkeypatch.setattr(certificate, "compiled_envelopes", lambda w: False)
+    want = cert.envelopes(w)
+    assert torch.equal(got.isnan(), want.isnan()) and bool(got.isnan().any())
+    torch.testing.assert_close(got, want, rtol=2.5e-7, atol=0, equal_nan=True)
+    ntx, M, nS = len(model.transmits), cert.max_run, cert.window_samples // cert.segment
+    off = (w[:-1] == 0).T[None, :, None, None, :].expand(ntx, ne, M, nS, -1)  # the last: NaN everywhere
+    assert bool((got.view(ntx, ne, M, nS, -1)[..., :-1][off] == 0).all())
+
+
+def test_batches_write_their_envelopes_in_the_last_batchs_memory(no_cache, monkeypatch):
+    """Refinement.kernels writes a batch's envelopes in the memory of the last batch's (no fresh
+    pages for every batch) when it is large enough, and the kernels equal those of envelopes in
+    memory of their own; a small batch, or a second caller while the memory is in use, gets its
+    own."""
+    from arraysel.physics import compiled
+    from arraysel.physics.psf import refinement as refinement_module
+
+    model = PSFModel(_setup(n_elements=16), dtype=torch.float32, fast=True, margin=2, block=4)
+    basis, ref = model.basis, model.basis.refinement
+    rng = np.random.default_rng(11)
+    w = torch.zeros(2 * compiled.MIN_BATCH, 16)
+    for b in range(w.shape[0]):
+        w[b, rng.choice(16, 8, replace=False)] = 1
+    k1, ok1 = basis.kernels(w)
+    assert len(ref._env_pool) == 1
+    buf = ref._env_pool[0]
+    assert buf.numel() == basis.certificates.envelope_size(w.shape[0])
+    k2, ok2 = basis.kernels(w.flip(0))
+    assert ref._env_pool == [buf]  # the same memory again
+    assert torch.equal(k2, k1.flip(0)) and torch.equal(ok2, ok1.flip(0))
+    k3, _ = basis.kernels(w[:compiled.MIN_BATCH])  # smaller: the same memory
+    assert ref._env_pool == [buf] and torch.equal(k3, k1[:compiled.MIN_BATCH])
+    scratch = refinement_module._envelope_scratch
+    assert scratch(ref._env_pool, ref.certificates, w[:compiled.MIN_BATCH - 1]) is None  # small: its own
+    taken = scratch(ref._env_pool, ref.certificates, w)
+    assert taken is buf and scratch(ref._env_pool, ref.certificates, w) is not buf  # in use: new memory
+    ref._env_pool.append(taken)
+    monkeypatch.setattr(refinement_module, "_envelope_scratch", lambda pool, certificates, wd: None)
+    k4, ok4 = basis.kernels(w)
+    assert torch.equal(k4, k1) and torch.equal(ok4, ok1)
+
+
 @pytest.mark.parametrize("subset_min", [1, 1000])
 @pytest.mark.parametrize("step_bytes", [0, 1 << 30])
 def test_receive_products_cover_each_used_receive_element_once(no_cache, monkeypatch, step_bytes, subset_min):

@@ -202,6 +202,33 @@ def test_cache_size_mode_skips_hashing_but_catches_truncation(cache_folder, monk
         cache.verify_mode()
 
 
+def test_cache_full_check_is_recorded_and_a_changed_file_is_hashed_again(cache_folder, monkeypatch):
+    """A full check of files changed long enough before it is recorded in the entry
+    (``checked.json``); a later load of the unchanged files skips the hashing, and a file written
+    since (a flipped bit) is hashed again and caught. Files changed just before the check (within
+    ``SETTLED_NS``: coarse file times) are not recorded, and the entry stays the cache's."""
+    from arraysel.io import cachefiles
+
+    build, _ = _counting_builder()
+    cache.load_or_build("t", ("k",), build)
+    entry = _entry(cache_folder)
+    hashed = []
+    real = cachefiles._verify_blocks
+    monkeypatch.setattr(cachefiles, "_verify_blocks", lambda *a: (hashed.append(1), real(*a))[1])
+    cache.load_state(str(entry))  # just written: checked, not recorded
+    assert len(hashed) == 1 and not (entry / cachefiles.CHECKED).exists()
+    monkeypatch.setattr(cachefiles, "SETTLED_NS", 50_000_000)
+    time.sleep(0.1)
+    cache.load_state(str(entry))  # hashed, recorded
+    assert len(hashed) == 2 and (entry / cachefiles.CHECKED).exists()
+    assert cache.classify(str(cache_folder), entry.name)["owner"] == "cache"
+    assert _same(cache.load_state(str(entry)), _state()) and len(hashed) == 2  # not hashed again
+    _flip_bit(entry / "V.npy", 600_001)
+    with pytest.raises(cache.DamagedEntry, match="checksum mismatch"):
+        cache.load_state(str(entry))
+    assert len(hashed) == 3
+
+
 _KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     import numpy as np

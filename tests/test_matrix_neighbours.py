@@ -58,6 +58,15 @@ def test_whole_neighbourhood_equals_independent_masks(small, seed):
     _same(got, small.evaluate(swap_masks(m, out, into)))
 
 
+def test_a_block_with_swaps_asked_twice_equals_independent_masks(small):
+    m = _mask(small, 5)
+    out, into = swap_pairs(m)
+    pick = np.flatnonzero(np.isin(out, np.unique(out)[:2]))
+    pick = np.concatenate([pick, pick[[3, 0, 50]]])     # three swaps asked for twice, in another order
+    assert small._neighbourhood().dense(out[pick]).all()
+    _same(small.evaluate_swaps(m, out[pick], into[pick]), small.evaluate(swap_masks(m, out[pick], into[pick])))
+
+
 def test_a_few_swaps_move_by_move_equal_independent_masks(small):
     m = _mask(small, 2)
     out, into = swap_pairs(m, np.random.default_rng(2))

@@ -15,8 +15,8 @@ import zlib
 
 from arraysel.errors import ArrayselError, ParameterError
 
-__all__ = ["FORMAT", "BLOCK", "MANIFEST", "CHECKSUM", "DamagedEntry", "cache_dir", "verify_mode", "entry_name",
-           "load_state"]
+__all__ = ["FORMAT", "BLOCK", "MANIFEST", "CHECKSUM", "CHECKED", "DamagedEntry", "cache_dir", "verify_mode",
+           "entry_name", "load_state"]
 
 FORMAT = 1
 #: bytes per checksum block
@@ -25,6 +25,11 @@ MANIFEST = "manifest.json"
 _OFF = ("", "0", "off", "none", "false", "no")
 #: checksum that new entries carry (the manifest key of each tensor's block digests)
 CHECKSUM = "crc32"
+#: the record, in an entry, of the files its last full check hashed (:func:`_record_checked`)
+CHECKED = "checked.json"
+#: a full check records only files last changed at least this long (ns) before it began: file
+#: times are coarse on some file systems, and a change in the same tick could keep them
+SETTLED_NS = 10 * 10 ** 9
 
 
 class _Crc32:
@@ -257,6 +262,59 @@ def _verify_blocks(path: str, items: list[tuple[str, dict]], block: int) -> None
                                    f"{i * block}..{(i + 1) * block - 1} of {dict(items)[key]['file']}")
 
 
+def _file_key(path: str) -> list[int]:
+    """What a full check records of a file: size, inode, device, modification and change times
+    (ns). Writing to the file, replacing it or changing its times changes the change time."""
+    st = os.stat(path)
+    return [st.st_size, st.st_ino, st.st_dev, st.st_mtime_ns, st.st_ctime_ns]
+
+
+def _checked_files(path: str) -> dict:
+    """``{file: key}`` of the entry's record of its last full check (empty when there is none or
+    it does not parse)."""
+    try:
+        with open(os.path.join(path, CHECKED), "rb") as fh:
+            files = json.loads(fh.read().decode("utf-8")).get("files")
+    except (OSError, ValueError, AttributeError, UnicodeDecodeError, RecursionError):
+        return {}
+    return files if isinstance(files, dict) else {}
+
+
+def _unchanged_since_checked(path: str, items: list[tuple[str, dict]]) -> bool:
+    """Whether the manifest and every file of ``items`` are as the entry's last full check
+    recorded them (:func:`_record_checked`): their blocks were hashed then and nothing has
+    written to them since."""
+    files = _checked_files(path)
+    try:
+        return all(files.get(f) == _file_key(os.path.join(path, f))
+                   for f in [MANIFEST, *(str(info["file"]) for _, info in items)])
+    except OSError:
+        return False
+
+
+def _record_checked(path: str, items: list[tuple[str, dict]], started_ns: int) -> None:
+    """Record in the entry that the files of ``items`` (and the manifest) passed a full check
+    that began at ``started_ns`` (keeping the record of its other files that have not changed):
+    a later load of them skips the hashing while their keys (:func:`_file_key`) stay the same.
+    Nothing is recorded when one of them changed less than :data:`SETTLED_NS` before the check,
+    nor when the entry cannot be written (a shared, read-only cache: every load hashes)."""
+    from arraysel.io.atomic import atomic_write_text
+
+    try:
+        files = {}
+        for f, k in _checked_files(path).items():  # the record of the entry's other files, still valid
+            if isinstance(f, str) and os.path.isfile(os.path.join(path, f)) and k == _file_key(os.path.join(path, f)):
+                files[f] = k
+        for f in [MANIFEST, *(str(info["file"]) for _, info in items)]:
+            key = _file_key(os.path.join(path, f))
+            if max(key[3], key[4]) > started_ns - SETTLED_NS:
+                return
+            files[f] = key
+        atomic_write_text(os.path.join(path, CHECKED), json.dumps({"format": FORMAT, "files": files}))
+    except (OSError, ValueError, TypeError):
+        pass
+
+
 def load_state(path: str, verify: str | None = None, only=None) -> dict:
     """The tensors of the entry at ``path``, memory-mapped (copy-on-write: writing to one does not
     touch the file). ``verify``: ``full`` or ``size`` (default :func:`verify_mode`); ``only``: the
@@ -306,11 +364,15 @@ def read_arrays(path: str, verify: str | None = None, only=None) -> dict:
             raise DamagedEntry(f"tensor {key!r}: {info['file']} holds {size - offset} bytes of data, its shape "
                                f"needs {arr.nbytes}")
         arrays[key] = arr
-    if verify == "full":
+    if verify == "full" and not _unchanged_since_checked(path, items):
+        import time
+
+        started = time.time_ns()
         try:
             _verify_blocks(path, items, block)
         except OSError as exc:
             raise DamagedEntry(f"cannot read the entry's files ({exc.strerror})") from None
+        _record_checked(path, items, started)
     return arrays
 
 

@@ -15,7 +15,8 @@ import uuid
 from typing import Mapping
 
 from arraysel.errors import ParameterError
-from arraysel.io.cachefiles import (ASIDE_TMP_RE, BLOCK, CHECKSUM, ENTRY_RE, FORMAT, LOCK_RE, MANIFEST, OLD_RE,
+from arraysel.io.atomic import TMP_SUFFIX
+from arraysel.io.cachefiles import (ASIDE_TMP_RE, BLOCK, CHECKED, CHECKSUM, ENTRY_RE, FORMAT, LOCK_RE, MANIFEST, OLD_RE,
                                     WRITER_TMP_RE, BlockHasher, DamagedEntry, as_numpy, cache_dir, dir_mode,
                                     read_arrays, read_manifest)
 
@@ -128,8 +129,9 @@ def _du(path: str) -> int:
 
 
 def _entry_files_only(path: str) -> str | None:
-    """None when ``path`` is a real folder holding only regular files named ``*.npy`` or
-    ``manifest.json`` (what the cache writes into an entry), else what is wrong (in words)."""
+    """None when ``path`` is a real folder holding only regular files named ``*.npy``,
+    ``manifest.json`` or ``checked.json`` (and the latter's temporary file: what the cache writes
+    into an entry), else what is wrong (in words)."""
     try:
         st = os.lstat(path)
     except OSError as exc:
@@ -143,7 +145,8 @@ def _entry_files_only(path: str) -> str | None:
     except OSError as exc:
         return f"cannot be listed ({exc.strerror})"
     for f in names:
-        ok_name = f == MANIFEST or (f.endswith(".npy") and not f.startswith("."))
+        ok_name = f in (MANIFEST, CHECKED) or (f.endswith(".npy") and not f.startswith(".")) or (
+            f.startswith(f".{CHECKED}.") and f.endswith(TMP_SUFFIX))  # the record of a check, being written
         try:
             regular = stat.S_ISREG(os.lstat(os.path.join(path, f)).st_mode)
         except OSError:

@@ -1,15 +1,16 @@
 """The metrics of :func:`~arraysel.objective.metrics3d.psf3d_metrics` for many images held pixel-major.
 
-A neighbourhood of a 3-D scene (:mod:`arraysel.objective.matrix_neighbours`) produces its images as
-columns: real and imaginary parts ``(P, M)``, one column per neighbour, the rows the pixels of
-every plane. :class:`ColumnMetrics` scores them there, without transposing them into the
-``(M, H, W)`` planes :func:`psf3d_metrics` takes: every sum over pixels is a matrix-vector
-product, the peak an argmax down the columns, the side-lobe quantile one ``topk`` down the
-side-region rows; the pixels' positions are held in the columns' row order, so the images are
-never reordered. The definitions are those of :mod:`arraysel.objective.metrics3d` (the same
-regions around each column's own peak, the same quantile, the same main-lobe widths through the
-C-plane's own peak), so the values are the same to rounding (``tests/test_matrix_neighbours.py``).
-No gradient.
+A neighbourhood of a 3-D scene (:mod:`arraysel.objective.matrix_neighbours`) produces its images
+either as columns (real and imaginary parts ``(P, M)``, one column per neighbour, the rows the
+pixels of every plane: :meth:`ColumnMetrics.__call__`) or, for a block of swaps, as ``|img|^2``
+with one row per neighbour and its sums against the reference (:meth:`ColumnMetrics.from_power`).
+Neither is reshaped into the ``(M, H, W)`` planes :func:`psf3d_metrics` takes: the pixels'
+positions are held in the images' pixel order; the peaks, the region sums and the side-lobe
+quantile's order statistics come from compiled passes along each neighbour's row
+(:mod:`arraysel.objective.column_kernels`). The definitions are those of
+:mod:`arraysel.objective.metrics3d` (the same regions around each image's own peak, the same
+quantile, the same main-lobe widths through the C-plane's own peak), so the values are the same to
+rounding (``tests/test_matrix_neighbours.py``). CPU tensors. No gradient.
 """
 from __future__ import annotations
 
@@ -71,38 +72,56 @@ class ColumnMetrics:
         kr_re = self.ref_r @ re + self.ref_i @ im
         kr_im = self.ref_i @ re - self.ref_r @ im
         k2 = k2.T.contiguous()                                             # (M, N), in row order
+        return self.from_power(k2, k2.sum(1).double(), kr_re.double(), kr_im.double())
+
+    def from_power(self, k2: torch.Tensor, kk: torch.Tensor, kr_re: torch.Tensor,
+                   kr_im: torch.Tensor) -> dict[str, np.ndarray]:
+        """``{name: float64 (M,)}`` of images given by their ``|kappa|^2`` ``k2`` (M, N) (rows as
+        ``rows``), ``<k, k>`` ``kk`` and ``<k, r>`` (``kr_re + i kr_im``) against the reference
+        (each float64 (M,))."""
         out: dict[str, torch.Tensor] = {}
-        kk = k2.sum(1).double()
-        tiny = torch.finfo(re.dtype).tiny
-        fit = _safe_div(kr_re.double() ** 2 + kr_im.double() ** 2, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
+        tiny = torch.finfo(k2.dtype).tiny
+        fit = _safe_div(kr_re ** 2 + kr_im ** 2, torch.where(kk > tiny, kk, torch.zeros_like(kk)))
         out["L_PSF"] = torch.clamp((self.rr - fit) / self.rr, min=0.0) if self.rr > 0 else torch.zeros_like(kk)
-        peak_val, peak = torch.max(k2, 1)
+        peak_val, peak, c_peak = self._peaks(k2)
         lobe = {k: torch.empty(k2.shape[0], dtype=torch.float64) for k in
                 ("L_contrast", "L_SLR_q", "L_SLR_i", "PSL_dB")}
         uniq, inv = torch.unique(self.coords[peak], dim=0, return_inverse=True)
+        k2n = np.ascontiguousarray(k2.numpy())
         for u in range(uniq.shape[0]):
             rows = torch.nonzero(inv == u).flatten()
-            one = uniq.shape[0] == 1
-            sub = k2 if one else k2.index_select(0, rows)
-            pv = peak_val if one else peak_val.index_select(0, rows)
-            for k, v in self._lobes(sub, pv, uniq[u]).items():
+            for k, v in self._lobes(k2n, rows.numpy(), peak_val.index_select(0, rows), uniq[u]).items():
                 lobe[k][rows] = v
         out.update(lobe)
         out["L_SLR"] = 0.5 * (out["L_SLR_q"] + out["L_SLR_i"])
         out["Mean"] = 0.25 * (out["L_PSF"] + out["L_contrast"] + out["L_SLR_q"] + out["L_SLR_i"])
         res = {k: out[k].double().numpy() for k in (*METRIC_NAMES, "PSL_dB")}
-        res.update(self._widths(k2))
+        res.update(self._widths(k2, c_peak))
         return {k: res[k] for k in (*METRIC_NAMES, *MERIT_NAMES)}
 
-    def _lobes(self, k2: torch.Tensor, peak: torch.Tensor, position: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The lobe terms of the items ``k2`` (M, N) whose peaks (values ``peak``) lie at ``position``."""
+    def _lobes(self, k2: np.ndarray, rows: np.ndarray, peak: torch.Tensor,
+               position: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The lobe terms of the items ``k2[rows]`` (``k2`` (M, N)) whose peaks (values ``peak``)
+        lie at ``position``: the region sums and the side's largest values in one compiled pass
+        (:func:`~arraysel.objective.column_kernels.lobe_sums`)."""
+        from arraysel.objective.column_kernels import lobe_sums
+
         d2 = (self.coords - position[None]).square().sum(-1)
         main = d2 <= self.rm * self.rm * (1 + BOUNDARY_RTOL)
         side = d2 >= self.rg * self.rg * (1 - BOUNDARY_RTOL)
         n_main, n_side = int(main.sum()), int(side.sum())
-        s_main = (k2 @ main.to(k2.dtype)).double()
-        side_vals = k2.index_select(1, torch.nonzero(side).flatten())            # (M, n_side)
-        s_side = side_vals.sum(1).double()
+        k = min(self.top, n_side)
+        s_main, s_side = np.empty(rows.size), np.empty(rows.size)
+        top = np.empty((rows.size, max(k, 1)))
+        side_idx = torch.nonzero(side).flatten().numpy()
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        # the heap starts from the side pixels largest in the first image (its neighbours' alike)
+        seeds = side_idx[np.argsort(-k2[rows[0], side_idx], kind="stable")[:k]] if rows.size else side_idx[:k]
+        free = side.numpy().astype(k2.dtype)
+        free[seeds] = 0
+        lobe_sums(k2, rows, main.double().numpy(), side.double().numpy(), np.ascontiguousarray(seeds, dtype=np.int64),
+                  free, k, s_main, s_side, top)
+        s_main, s_side, top = torch.from_numpy(s_main), torch.from_numpy(s_side), torch.from_numpy(top)
         res = {"L_SLR_i": _safe_div(s_side, s_main),
                "L_contrast": _safe_div(s_side / max(n_side, 1), s_main / max(n_main, 1))}
         peak = peak.double()
@@ -110,8 +129,6 @@ class ColumnMetrics:
             res["L_SLR_q"] = torch.zeros_like(peak)
             res["PSL_dB"] = torch.full_like(peak, PSL_FLOOR_DB)
             return res
-        k = min(self.top, n_side)
-        top = torch.topk(side_vals, k, dim=1, largest=True, sorted=True).values.double()   # descending
         pos = self.q * (n_side - 1)
         lo, hi = math.floor(pos), math.ceil(pos)
         v_lo = _sqrt0(top[:, min(max(n_side - 1 - lo, 0), k - 1)])
@@ -121,16 +138,35 @@ class ColumnMetrics:
         res["PSL_dB"] = 10.0 * torch.log10(torch.clamp(ratio, min=10.0 ** (PSL_FLOOR_DB / 10.0)))
         return res
 
-    def _widths(self, k2: torch.Tensor) -> dict[str, np.ndarray]:
-        """The -6 dB widths along x and y of the C-plane through its own peak (as
-        :func:`~arraysel.objective.metrics3d.main_lobe_widths`) of the items ``k2`` (M, N)."""
+    def _peaks(self, k2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(peak value, peak row, C-plane peak)`` of the items ``k2`` (M, N): the largest value and
+        its first row (as ``torch.max``), and the first pixel of the C-plane (its flat index in the
+        plane) holding the plane's largest value; one compiled pass
+        (:func:`~arraysel.objective.column_kernels.peaks`)."""
+        from arraysel.objective.column_kernels import peaks
+
+        m = k2.shape[0]
+        pv = torch.empty(m, dtype=k2.dtype)
+        pk, cpk = torch.empty(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
+        if self.c_off is None:
+            crows = np.empty(0, dtype=np.int64)
+        else:
+            h, w = self.c_shape
+            crows = self.unsort[self.c_off:self.c_off + h * w].numpy()         # C-plane pixel -> row
+        peaks(np.ascontiguousarray(k2.numpy()), np.ascontiguousarray(crows, dtype=np.int64), pv.numpy(),
+              pk.numpy(), cpk.numpy())
+        return pv, pk, cpk
+
+    def _widths(self, k2: torch.Tensor, flat_peak: torch.Tensor) -> dict[str, np.ndarray]:
+        """The -6 dB widths along x and y of the C-plane through its own peak (its flat index in the
+        plane ``flat_peak``; as :func:`~arraysel.objective.metrics3d.main_lobe_widths`) of the
+        items ``k2`` (M, N)."""
         m = k2.shape[0]
         if self.c_off is None:
             return {"width_x_6dB": np.full(m, np.inf), "width_y_6dB": np.full(m, np.inf)}
         h, w = self.c_shape
         o = self.c_off
         at = self.unsort                                                   # pixel -> row
-        flat_peak = torch.argmax(k2.index_select(1, at[o:o + h * w]), 1)
         i0, j0 = flat_peak // w, flat_peak % w
         c = self.c_coords
         out = {}

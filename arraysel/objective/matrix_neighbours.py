@@ -21,10 +21,12 @@ path's own planes, to rounding.
 :class:`MatrixNeighbourhood` keeps ``Z``, ``D`` and, per selection, its image and the ``S_e`` it has
 needed. It scores
 
-* a *block* of swaps (one outgoing element ``a`` against many incoming ones, a few such ``a`` at a
-  time: what a search asks for when the neighbourhood says it prefers blocks, :meth:`block`) by one
-  batched matrix product per pixel group: the cross terms ``C_ae`` of the block's ``a`` against
-  every element;
+* a *block* of swaps (one outgoing element ``a`` against many incoming ones, up to
+  :data:`BLOCK_ROWS` such ``a`` at a time: what a search asks for when the neighbourhood says it
+  prefers blocks, :meth:`block`) by one batched matrix product per chunk of pixels: the cross terms
+  ``C_ae`` of the block's ``a`` against every element, read while in cache by a compiled pass
+  (:func:`~arraysel.objective.column_kernels.block_power`) that writes each swap's ``|img|^2`` and
+  its sums against the reference, all the metrics need;
 * any other move (a few swaps of scattered elements, moves of several elements) from its own
   rows: ``img' = img + sum_e d_e S_e + sum_{j in p} (d @ B)_j (d @ Z)_j``, which reads the ``2 m``
   rows of ``B`` and ``Z`` a move of ``m`` elements changes (where a mask scored on its own reads
@@ -44,11 +46,15 @@ import torch
 
 from arraysel.errors import SelectionError
 
-__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
+__all__ = ["MatrixNeighbourhood", "BLOCK_ROWS", "PIXEL_CHUNK", "DENSE_SHARE", "MOVE_BATCH", "CARRY_MAX", "REFRESH_AFTER",
            "check_selection"]
 
-#: outgoing elements per batched product of the block path (its output: rows x Ne images)
-BLOCK_ROWS = 4
+#: most outgoing elements a pass of the block path takes: each pass reads the right factors of
+#: every element once (0.87 GB in float32 on matrix-1024), and holds ``|img|^2`` of its swaps
+#: (16 x 768 neighbours: 226 MB in float32)
+BLOCK_ROWS = 16
+#: pixels per batched product of the block path (its cross terms are read while in cache)
+PIXEL_CHUNK = 64
 #: an outgoing element's swaps go by the block path when they fill at least this share of its row
 #: of Ne images (on matrix-1024 a neighbour of a block costs about a fifteenth of a mask scored by
 #: ``evaluate``); the other moves are formed from their own rows
@@ -90,6 +96,7 @@ class MatrixNeighbourhood:
         self._pending = None    # the rows (d @ B, d @ Z) of a carried move not yet added to _U
         self._carried = 0       # selections whose S_e were carried over since they were formed
         self._metrics = None
+        self._buffers: dict[str, np.ndarray] = {}   # kept between blocks (:meth:`_scratch`)
 
     # ---------------------------------------------------------------- shared tensors
     def _segsum(self, x: torch.Tensor) -> torch.Tensor:
@@ -162,7 +169,7 @@ class MatrixNeighbourhood:
             self._img = self._segsum(self._gamma * self._z)
             self._U = self._pending = None
             self._carried = 0
-        self._S = torch.zeros(self.n_elements, self.n_pixels, dtype=self.cdtype)
+        self._S = None      # formed when first needed (:meth:`_single`)
         self._have = torch.zeros(self.n_elements, dtype=torch.bool)
         self._key, self._mask = key, mask.copy()
 
@@ -185,13 +192,12 @@ class MatrixNeighbourhood:
             self._pending = rows
         self._carried += 1
 
-    def _settle(self, X: torch.Tensor | None = None) -> None:
-        """Add the carried move's cross terms to the held columns: ``X`` (P, 2, Ne) when a block's
-        product formed them, else formed here."""
+    def _settle(self) -> None:
+        """Add the carried move's cross terms to the held columns (a block's product adds them
+        itself, :meth:`swap_power`)."""
         if self._pending is None:
             return
-        if X is None:
-            X = self._cross(*self._pending)[:, :, 0]
+        X = self._cross(*self._pending)[:, :, 0]
         self._pending = None
         ur, ui = self._U
         ur.add_(X[:, 0])
@@ -201,6 +207,8 @@ class MatrixNeighbourhood:
         """``S_e`` (E, P) of ``elements`` for the held selection (formed when first needed, or read
         from the columns :meth:`_pairs_part` holds)."""
         need = torch.unique(elements[~self._have[elements]])
+        if self._S is None:
+            self._S = torch.empty(self.n_elements, self.n_pixels, dtype=self.cdtype)
         for i in range(0, need.numel(), 64):
             e = need[i:i + 64]
             if self._U is not None:
@@ -228,39 +236,83 @@ class MatrixNeighbourhood:
         imaginary parts, the fast path's pixel order; ``C_aa = 2 D_a``): one batched product per
         pixel group."""
         A = Ba.shape[0]
-        rights = self.rights()
-        rdt = self.model._B.dtype
-        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=rdt)
+        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=self.model._B.dtype)
         p0 = 0
-        for (n, w, o), r in zip(self.groups, rights):
+        for (n, _, _), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
+            torch.bmm(left, r, out=X[p0:p0 + n])
+            p0 += n
+        return X.reshape(self.n_pixels, 2, A, self.n_elements)
+
+    def swap_power(self, outs: torch.Tensor, ai: np.ndarray, ei: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(k2, sums)`` of the swaps ``outs[ai[i]]`` off and ``ei[i]`` on: ``|img|^2`` (M, P) (the
+        fast path's pixel order) and float64 ``(<k, k>, Re <k, r>, Im <k, r>)`` (M, 3) against the
+        reference (:func:`~arraysel.objective.column_kernels.block_power`). One batched product
+        per chunk of :data:`PIXEL_CHUNK` pixels gives the cross terms of ``outs`` (and of a carried
+        move's rows, added to the held columns) against every element, and the compiled pass reads
+        the swaps' images from it while it is in cache."""
+        from arraysel.objective.column_kernels import block_power
+
+        Ba, Za = self._rows(outs)
+        Sa = self._segsum(Ba * self._z + self._gamma * Za)               # S_a from the rows
+        v = (self._img[None] - Sa + self.diagonal().index_select(0, outs)).T   # (P, A)
+        vr, vi = v.real.contiguous().numpy(), v.imag.contiguous().numpy()
+        if self._U is None:
+            self._pairs_part()
+        pend, self._pending = self._pending, None
+        if pend is not None:     # the carried move's rows in the same product, added to the columns
+            Ba, Za = torch.cat([pend[0], Ba]), torch.cat([pend[1], Za])
+        first = 0 if pend is None else 1
+        ur, ui = self._U
+        cm = self.metrics()
+        rr, ri = cm.ref_r.numpy(), cm.ref_i.numpy()
+        A, ne = outs.shape[0], self.n_elements
+        rows = np.full((A, ne), -1, dtype=np.int64)           # the row of k2 of each swap asked for
+        rows[ai, ei] = np.arange(ai.size)
+        k2 = self._scratch("k2", (ai.size, self.n_pixels), vr.dtype)
+        acc = np.zeros((3, A, ne))
+        chunk = PIXEL_CHUNK
+        tile = self._scratch("tile", (chunk, ne), vr.dtype)
+        out = torch.from_numpy(self._scratch("X", (chunk, 2 * Ba.shape[0], ne), vr.dtype))
+        p0 = 0
+        for (n, w, o), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
+            for c0 in range(0, n, chunk):
+                c1 = min(n, c0 + chunk)
+                X = torch.bmm(left[c0:c1], r[c0:c1], out=out[:c1 - c0]).reshape(c1 - c0, 2, -1, ne)
+                if first:
+                    ur[p0 + c0:p0 + c1].add_(X[:, 0, 0])
+                    ui[p0 + c0:p0 + c1].add_(X[:, 1, 0])
+                sl = slice(p0 + c0, p0 + c1)
+                block_power(X.numpy(), first, ur[sl].numpy(), ui[sl].numpy(), vr[sl], vi[sl], rr[sl], ri[sl],
+                            rows, p0 + c0, k2, acc, tile)
+            p0 += n
+        sums = np.ascontiguousarray(acc[:, ai, ei].T)
+        return torch.from_numpy(k2), torch.from_numpy(sums)
+
+    def _scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """A buffer ``shape`` of ``dtype`` kept between blocks (its contents are not), so that a
+        block's ``|img|^2`` (226 MB for 16 outgoing elements on matrix-1024) is not allocated and
+        faulted in afresh each time."""
+        size = int(np.prod(shape))
+        buf = self._buffers.get(name)
+        if buf is None or buf.dtype != dtype or buf.size < size:
+            buf = self._buffers[name] = np.empty(size, dtype=dtype)
+        return buf[:size].reshape(shape)
+
+    def _lefts(self, Ba: torch.Tensor, Za: torch.Tensor):
+        """Per pixel group, the left factor ``(n, 2 A, 4 w)`` (real) of the cross terms of the rows
+        ``(B_a, Z_a)`` (each ``(A, cols)``): ``[re rows; im rows] x [re | im]`` against
+        :meth:`rights`."""
+        A = Ba.shape[0]
+        rdt = self.model._B.dtype
+        for n, w, o in self.groups:
             L = torch.view_as_real(torch.cat([Ba[:, o:o + n * w].reshape(A, n, w),
                                               Za[:, o:o + n * w].reshape(A, n, w)], 2)).permute(1, 0, 2, 3)
-            left = torch.empty(n, 2, A, 4 * w, dtype=rdt)   # [re rows; im rows] x [re | im] of (B_a, Z_a)
+            left = torch.empty(n, 2, A, 4 * w, dtype=rdt)
             left[:, 0, :, :2 * w] = L[..., 0]
             left[:, 0, :, 2 * w:] = -L[..., 1]
             left[:, 1, :, :2 * w] = L[..., 1]
             left[:, 1, :, 2 * w:] = L[..., 0]
-            torch.bmm(left.reshape(n, 2 * A, 4 * w), r, out=X[p0:p0 + n])
-            p0 += n
-        return X.reshape(self.n_pixels, 2, A, self.n_elements)
-
-    def swap_block(self, outs: torch.Tensor) -> torch.Tensor:
-        """The images of the swaps ``outs[i]`` off and every element on (the columns of active
-        elements are meaningless) as real ``(P, 2, A, Ne)``: real and imaginary parts, rows in
-        the fast path's pixel order; one batched product per pixel group."""
-        Ba, Za = self._rows(outs)
-        if self._pending is not None:     # the carried move's rows in the same product
-            X = self._cross(torch.cat([self._pending[0], Ba]), torch.cat([self._pending[1], Za]))
-            self._settle(X[:, :, 0])
-            X = X[:, :, 1:]
-        else:
-            X = self._cross(Ba, Za)
-        X = X.neg_()
-        v = (self._img[None] - self._single(outs) + self.diagonal().index_select(0, outs)).T   # (P, A)
-        ur, ui = self._pairs_part()
-        X[:, 0].add_(ur[:, None]).add_(v.real[:, :, None])
-        X[:, 1].add_(ui[:, None]).add_(v.imag[:, :, None])
-        return X
+            yield left.reshape(n, 2 * A, 4 * w)
 
     def move_images(self, out: torch.Tensor, into: torch.Tensor) -> torch.Tensor:
         """The images ``(M, P)`` (complex, the fast path's pixel order) of the moves that switch
@@ -307,44 +359,42 @@ class MatrixNeighbourhood:
         return (counts >= DENSE_SHARE * self.n_elements)[inv]
 
     def move_columns(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, re, im, cols)``: the images of the moves ``(out[i], into[i])``
-        (``(B, m)``, ``-1`` pads) of the held selection at ``positions`` of the request as the
-        columns ``cols`` of ``(P, M)`` real and imaginary parts (``cols`` None: all of them). The
-        swaps whose outgoing element has many (:meth:`dense`) go by blocks of outgoing elements
-        against every element; the other moves are formed from their own rows."""
+        """Yield ``(positions, {name: float64 (n,)})``: the metrics of the moves ``(out[i], into[i])``
+        (``(B, m)``, ``-1`` pads) of the held selection at ``positions`` of the request. The swaps
+        whose outgoing element has many (:meth:`dense`) go by blocks of outgoing elements against
+        every element (:meth:`swap_power`); the other moves are formed from their own rows."""
         block = np.zeros(out.shape[0], dtype=bool)
         single = out.shape[1] == 1 or bool((out[:, 1:] < 0).all())
         if single and out.shape[0] and (out[:, 0] >= 0).all():
             block = self.dense(out[:, 0])
         if block.any():
             pos = np.flatnonzero(block)
-            for p, re, im, cols in self.swap_columns(out[pos, 0], into[pos, 0]):
-                yield pos[p], re, im, cols
+            for p, res in self.swap_columns(out[pos, 0], into[pos, 0]):
+                yield pos[p], res
         rest = np.flatnonzero(~block)
+        cm = self.metrics()
         for s in range(0, rest.size, MOVE_BATCH):
             pos = rest[s:s + MOVE_BATCH]
             img = self.move_images(torch.as_tensor(out[pos]), torch.as_tensor(into[pos])).T
-            yield pos, img.real.contiguous(), img.imag.contiguous(), None
+            yield pos, cm(img.real.contiguous(), img.imag.contiguous())
 
     def swap_columns(self, out: np.ndarray, into: np.ndarray):
-        """Yield ``(positions, re, im, cols)``: the images of the swaps ``(out[i], into[i])`` of
-        the held selection at ``positions`` of the request as the columns ``cols`` of ``(P, M)``
-        real and imaginary parts, a block of outgoing elements against every element at a time."""
+        """Yield ``(positions, {name: float64 (n,)})``: the metrics of the swaps ``(out[i], into[i])``
+        of the held selection at ``positions`` of the request, a block of :data:`BLOCK_ROWS`
+        outgoing elements against every element at a time."""
         order = np.argsort(out, kind="stable")
         a_sorted = out[order]
         starts = np.flatnonzero(np.r_[True, a_sorted[1:] != a_sorted[:-1]])
         ends = np.r_[starts[1:], a_sorted.size]
-        ne = self.n_elements
+        cm = self.metrics()
         for g in range(0, starts.size, BLOCK_ROWS):
             s0, s1 = starts[g:g + BLOCK_ROWS], ends[g:g + BLOCK_ROWS]
-            X = self.swap_block(torch.as_tensor(a_sorted[s0], dtype=torch.long))
-            A = s0.size
-            pos = np.concatenate([order[s:e] for s, e in zip(s0, s1)])
-            rows = np.concatenate([np.full(e - s, i) for i, (s, e) in enumerate(zip(s0, s1))])
-            idx = torch.as_tensor(rows * ne + into[pos])
-            re = X[:, 0].reshape(self.n_pixels, A * ne)
-            im = X[:, 1].reshape(self.n_pixels, A * ne)
-            yield pos, re, im, idx
+            pos = order[s0[0]:s1[-1]]
+            rows, ins = np.repeat(np.arange(s0.size), s1 - s0), into[pos]
+            _, keep, inv = np.unique(rows * self.n_elements + ins, return_index=True, return_inverse=True)
+            k2, sums = self.swap_power(torch.as_tensor(a_sorted[s0], dtype=torch.long), rows[keep], ins[keep])
+            res = cm.from_power(k2, sums[:, 0], sums[:, 1], sums[:, 2])
+            yield pos, {k: v[inv] for k, v in res.items()}      # a swap asked for twice, scored once
 
     def metrics(self):
         """The :class:`~arraysel.objective.columns3d.ColumnMetrics` of the objective (formed once)."""
@@ -358,11 +408,10 @@ class MatrixNeighbourhood:
         return self._metrics
 
     def score(self, pieces, total: int) -> dict[str, np.ndarray]:
-        """``{name: float64 (total,)}`` of the columns ``pieces`` yields as ``(positions, re, im, cols)``."""
-        cm = self.metrics()
+        """``{name: float64 (total,)}`` of the metrics ``pieces`` yields as ``(positions, {name: values})``."""
         out: dict[str, np.ndarray] = {}
-        for pos, re, im, cols in pieces:
-            for k, v in cm(re, im, cols).items():
+        for pos, res in pieces:
+            for k, v in res.items():
                 if k not in out:
                     out[k] = np.empty(total, dtype=np.float64)
                 out[k][pos] = v

@@ -93,6 +93,91 @@ def channel_peaks_into(A: np.ndarray, w: np.ndarray, env: np.ndarray) -> None:
     _channel_peaks_kernel(A, w, sel_b, sel_e, env.shape[0] // w.shape[1], env)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fma_square(re, im):
+    """``re^2 + im^2`` of float32 samples as torch's ``square`` then ``addcmul`` round it: ``im^2``
+    rounded to float32, then ``re^2`` added in one rounding (a fused multiply-add), here summed in
+    float64 (where ``re^2`` is exact) and rounded to float32."""
+    t = im * im
+    return np.float32(np.float64(re) * np.float64(re) + np.float64(t))
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _product_peaks_kernel(y, rows, e0, w, env):
+    """``env[n * Ne + e, 0, a, rows[i]] = |w[rows[i], e]| max_r |y[i, e - e0, :, n, r nS + a]|``:
+    the segment peaks of the receive products ``y`` (B', g, 2, ntx, T) float32 of the selections
+    ``rows`` (B',) int64 on the receive elements ``e0 .. e0 + g - 1`` (segment-offset-major
+    samples), in y's precision as torch's square, fused sum, maximum, root and product give them; a NaN
+    sample makes its segment's peak NaN. w: (B, Ne) float32; env: (ntx * Ne, M, nS, B) float32. Parallel over
+    the selections."""
+    g = y.shape[1]
+    ntx = y.shape[3]
+    ne = w.shape[1]
+    ns = env.shape[2]
+    seg = y.shape[4] // ns
+    for i in numba.prange(y.shape[0]):
+        b = rows[i]
+        mx = np.empty(ns, dtype=y.dtype)
+        for k in range(g):
+            e = e0 + k
+            scale = abs(w[b, e])
+            for n in range(ntx):
+                re = y[i, k, 0, n]
+                im = y[i, k, 1, n]
+                for a in range(ns):
+                    mx[a] = _fma_square(re[a], im[a])
+                for r in range(1, seg):
+                    o = r * ns
+                    for a in range(ns):
+                        v = _fma_square(re[o + a], im[o + a])
+                        if v > mx[a]:
+                            mx[a] = v
+                        elif v != v:
+                            mx[a] = v
+                for a in range(ns):
+                    env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * scale
+
+
+def product_peaks_into(y: np.ndarray, rows: np.ndarray, e0: int, w: np.ndarray, env: np.ndarray) -> None:
+    """Write the segment peaks of one receive product of :meth:`Certificates._receive_products
+    <arraysel.physics.psf.certificate.Certificates._receive_products>` (``y`` (B', g, 2, ntx, T)
+    of the selections ``rows`` of ``w`` (B, Ne) on the receive elements from ``e0``) into the
+    first run of the envelopes ``env`` (ntx * Ne, M, nS, B): one read of the product, where
+    torch's square, sum, maximum, root, product and scatter take six passes."""
+    _product_peaks_kernel(y, np.ascontiguousarray(rows, dtype=np.int64), int(e0), w, env)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _segment_runs_kernel(env):
+    """Runs 2 .. M of the envelopes ``env`` (nch, M, nS, B) from their first run:
+    ``env[c, m, a] = max(env[c, m - 1, a], env[c, 0, a + m])`` (``env[c, m - 1, a]`` past the
+    end), NaN where either is NaN (torch's ``maximum``). Parallel over the channels."""
+    M = env.shape[1]
+    ns = env.shape[2]
+    B = env.shape[3]
+    for c in numba.prange(env.shape[0]):
+        for m in range(1, M):
+            for a in range(ns):
+                prev = env[c, m - 1, a]
+                out = env[c, m, a]
+                if a + m < ns:
+                    nxt = env[c, 0, a + m]
+                    for b in range(B):
+                        x = prev[b]
+                        v = nxt[b]
+                        out[b] = x if (x >= v or x != x) else v
+                else:
+                    for b in range(B):
+                        out[b] = prev[b]
+
+
+def segment_runs(env: np.ndarray) -> None:
+    """Fill runs 2 .. M of the envelopes ``env`` (nch, M, nS, B), C-contiguous, in place from
+    their first run (:meth:`Certificates._segment_runs
+    <arraysel.physics.psf.certificate.Certificates._segment_runs>` in one pass over each channel)."""
+    _segment_runs_kernel(env)
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _row_sums_kernel(A, rows, step, out):
     """``out[c] = sum_{j in rows} A[j, c]`` in float64, parallel over chunks of ``step`` columns

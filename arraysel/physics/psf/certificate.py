@@ -73,6 +73,32 @@ def block_matrix(lo: torch.Tensor, hi: torch.Tensor, outside: torch.Tensor, max_
     return sparse_csr(crow, cols_i, vals, (nq, width)).to(device)
 
 
+def compiled_envelopes(w: torch.Tensor) -> bool:
+    """Whether :meth:`Certificates.envelopes` reduces the receive products to segment peaks and
+    runs compiled (:func:`_envelopes_compiled`): on the CPU without gradient, for a batch of at
+    least :data:`~arraysel.physics.compiled.MIN_BATCH` selections in float32 (the same values)."""
+    return w.device.type == "cpu" and not w.requires_grad and w.shape[0] >= compiled.MIN_BATCH and \
+        w.dtype == torch.float32
+
+
+def _envelopes_compiled(cert: "Certificates", w: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
+    """:meth:`Certificates.envelopes` of ``w`` into ``env`` (nch, M, nS, B), returned as (nch M
+    nS, B): each receive product read once
+    (:func:`~arraysel.physics.peakkernels.product_peaks_into`) and one pass over the envelopes
+    (:func:`~arraysel.physics.peakkernels.segment_runs`), where torch's square, maximum, root,
+    product, transpose and running maxima take a dozen."""
+    from arraysel.physics.peakkernels import product_peaks_into, segment_runs
+
+    B = w.shape[0]
+    env[:, 0].zero_()
+    wn, en = np.ascontiguousarray(w.numpy()), env.numpy()
+    every = np.arange(B)
+    for e0, _, s, y in cert._receive_products(w):
+        product_peaks_into(y.numpy(), every if s is None else s.numpy(), e0, wn, en)
+    segment_runs(en)
+    return env.view(-1, B)
+
+
 class RawChannels(NamedTuple):
     """One selection's I/Q channels as the product with ``pair_channels`` leaves them (CPU, no
     gradient): ``y`` (Ne, 2, ntx, T) [re, im] with each channel's samples in segment-offset-major
@@ -216,8 +242,10 @@ class Certificates:
                 y = ws @ self.pair_channels[:, a * cols:b * cols]
                 yield a, b, (None if whole else s), y.view(n, b - a, 2, ntx, T)
 
-    def envelopes(self, w: torch.Tensor) -> torch.Tensor:
-        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w (no gradient).
+    def envelopes(self, w: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """Segment envelopes (ntx * Ne * M * nS, B) of the channels of selections w (no gradient),
+        written into the first entries of ``out`` (a contiguous 1-D tensor of w's dtype and
+        device, at least :meth:`envelope_size` long) when it is given.
 
         Entry (n, e, m, a): ``max |X_ne(t)|`` over segments ``a .. a + m`` (``segment`` samples
         each; zeros past the end). The channel sums of the receive elements a selection uses are
@@ -232,13 +260,18 @@ class Certificates:
         sg = self.segment
         nS = self.window_samples // sg
         nch = ntx * ne
-        env = w.new_empty(nch, self.max_run, nS, B)
+        if out is None:
+            env = w.new_empty(nch, self.max_run, nS, B)
+        else:
+            env = out[:self.envelope_size(B)].view(nch, self.max_run, nS, B)
         seg = env[:, 0]
         if self._channels_from_rows(w):
             from arraysel.physics.peakkernels import channel_peaks_into
 
             seg.zero_()
             channel_peaks_into(self.pair_channels.numpy(), np.ascontiguousarray(w.numpy()), env.numpy())
+        elif compiled_envelopes(w):
+            return _envelopes_compiled(self, w, env)
         else:
             peaks = w.new_zeros(B, ne, ntx, nS)
             for e0, e1, s, y in self._receive_products(w):
@@ -251,6 +284,11 @@ class Certificates:
             peaks.sqrt_().mul_(w.abs()[:, :, None, None])
             seg.view(ntx, ne, nS, B).copy_(peaks.permute(2, 1, 3, 0))
         return self._segment_runs(env)
+
+    def envelope_size(self, B: int) -> int:
+        """Entries of the envelopes of ``B`` selections (:meth:`envelopes`)."""
+        nS = self.window_samples // self.segment
+        return len(self.model.transmits) * self.model.n_elements * self.max_run * nS * B
 
     def _segment_runs(self, env: torch.Tensor) -> torch.Tensor:
         """Fill runs 2 .. ``max_run`` of envelopes ``env`` (nch, M, nS, B) whose first run (the

@@ -30,6 +30,7 @@ again from their pair matrices.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -65,6 +66,39 @@ def _windows(setup, pz, px, rows, cols):
     return z0, x0, fits
 
 
+def _envelope_scratch(pool: list, certificates, wd: torch.Tensor) -> torch.Tensor | None:
+    """The memory the envelopes of a batch ``wd`` are written in (:func:`_batch_envelopes`): the
+    last batch's, when it is large enough, taken from ``pool`` (a second thread finds it empty
+    and gets memory of its own), else new; None (the envelopes' own memory) for a batch smaller
+    than :data:`~arraysel.physics.compiled.MIN_BATCH` or off the CPU. The envelopes of a
+    128-element scene's batch are about 150 MB: memory mapped afresh for every batch cost about
+    0.3 CPU ms a mask in page faults."""
+    if wd.shape[0] < compiled.MIN_BATCH or wd.device.type != "cpu":
+        return None
+    need = certificates.envelope_size(wd.shape[0])
+    buf = pool.pop() if pool else None
+    if buf is None or buf.numel() < need or buf.dtype != wd.dtype:
+        buf = torch.empty(need, dtype=wd.dtype)
+    return buf
+
+
+@contextlib.contextmanager
+def _batch_envelopes(refinement: "Refinement", wd: torch.Tensor, env: torch.Tensor | None):
+    """``env``, or the envelopes of ``wd`` (no gradient) in memory of
+    :func:`_envelope_scratch`, which goes back to ``refinement._env_pool`` on exit."""
+    if env is not None:
+        yield env
+        return
+    scratch = _envelope_scratch(refinement._env_pool, refinement.certificates, wd)
+    try:
+        with torch.no_grad():
+            env = refinement.certificates.envelopes(wd, out=scratch)
+        yield env
+    finally:
+        if scratch is not None and not refinement._env_pool:
+            refinement._env_pool.append(scratch)
+
+
 class Refinement:
     """Peak location, refinement and the certified kernels of a
     :class:`~arraysel.physics.psf.basis.PairBasis` (``basis.refinement``; its inputs and what it
@@ -86,6 +120,7 @@ class Refinement:
         self._plans_for_blocks = self.exact.plans_for_blocks  # block DAS plans, cached
         self._block_plans, self._block_dtx = self.exact.blocks, self.exact.dtx  # the plan caches
         self._core_pos = None  # E pixel -> its column among the core's (:meth:`_settle_in_core`)
+        self._env_pool: list = []  # the memory of the last batch's envelopes (:func:`_envelope_scratch`)
 
     #: at most this many pixels tied with the peak (within the error bound) are settled exactly
     max_ties = 256
@@ -311,15 +346,13 @@ class Refinement:
         the peak beats the bound of |I| outside the region (tier 1: E; tier 2: the band, whose
         loose blocks are then beamformed exactly, :meth:`refine`); in steps, :meth:`_tier_one`
         to :meth:`_exact_rest`."""
-        with torch.no_grad():
-            wd = w.detach()
-            if env is None:
-                env = self.certificates.envelopes(wd)
-        img, eps, win_err = self.basis.images(w, with_error=True) if images is None else images
-        out, ok, peaks = self._tier_one(w, wd, env, img, eps, win_err)
-        if tier_one:
-            return out, ok.cpu()
-        out, ok = self._tier_two(w, wd, env, img, eps, win_err, out, ok, peaks)
+        wd = w.detach()
+        with _batch_envelopes(self, wd, env) as env:  # not read past tier 2
+            img, eps, win_err = self.basis.images(w, with_error=True) if images is None else images
+            out, ok, peaks = self._tier_one(w, wd, env, img, eps, win_err)
+            if tier_one:
+                return out, ok.cpu()
+            out, ok = self._tier_two(w, wd, env, img, eps, win_err, out, ok, peaks)
         if self.basis.finer is not None:
             out, ok = self._finer_windows(w, out, ok, peaks)
         out, ok = self._finer_kernels(w, out, ok, peaks)
