@@ -50,6 +50,8 @@ def main(argv=None):
     ap.add_argument("--patience", type=int, default=20)
     ap.add_argument("--screen-db", type=float, default=0.0,
                     help="screen on the points within this many dB of the worst (inf: score every point)")
+    ap.add_argument("--guide", type=float, default=0.0,
+                    help="the share of each round's swaps proposed by the gradient (0: all random)")
     ap.add_argument("--soft-db", type=float, default=0.0,
                     help="search on the smooth maximum over the points at this temperature (0: the worst)")
     ap.add_argument("--width-ratio", type=float, default=1.05,
@@ -109,7 +111,8 @@ def main(argv=None):
                   for _, r in prev[prev["kind"] == "polished"].iterrows() if not args.only or r["config"] in args.only}
     for s, m in starts.items():
         res = polish_on_beams(obj, m, width_cap=cap, seconds=args.seconds, batch=args.batch, keep=args.keep, seed=0,
-                              points=pts, patience=args.patience, screen_db=args.screen_db, soft_db=args.soft_db)
+                              points=pts, patience=args.patience, screen_db=args.screen_db, soft_db=args.soft_db,
+                              guide=args.guide)
         print(f"  {s}: loss {res['start_loss']:.2f} -> {res['loss']:.2f} dB, worst PSL {res['worst_PSL_dB']:.2f} dB, "
               f"width {res['mean_width_m'] * 1e3:.3f} mm; {res['rounds']} rounds, {res['accepted']} accepted, "
               f"{res['evaluations']} full + {res['screened']} screened scores in {res['seconds']:.0f} s", flush=True)

@@ -116,3 +116,40 @@ def test_moves_from_a_base_on_a_mirrored_point():
         assert obj.fast_point(i)
         a, b = obj.point_images(moves, i), obj.point_images(moves, i, base=base)
         assert torch.allclose(a, b, rtol=0, atol=1e-5 * float(a.abs().max())), i
+
+
+def test_the_scene_sets_the_budget_and_seeds_of_its_comparison(tmp_path):
+    from arraysel.cli.compare import scene_defaults
+    from arraysel.errors import ParameterError
+
+    budget, seeds = scene_defaults("matrix-1024-sector")
+    assert seeds == [0] and 60 <= budget <= 300        # one run a selector, within the 30-minute comparison
+    assert scene_defaults("matrix-1024") == (None, None) and scene_defaults("toy") == (None, None)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('base = "matrix-1024-sector"\n[compare]\nseeds = [0, 0]\n')
+    with pytest.raises(ParameterError, match="compare.seeds"):
+        scene_defaults(str(bad))
+    bad.write_text('base = "matrix-1024-sector"\n[compare]\nbudget_s = -5\n')
+    with pytest.raises(ParameterError, match="compare.budget_s"):
+        scene_defaults(str(bad))
+
+
+def test_the_guide_proposes_the_swaps_its_gradient_predicts_best(tiny):
+    from arraysel.objective.sector_polish import _Guide
+
+    m = tiny.fresh_random_masks(1, seed=3)[0]
+    guide = _Guide(tiny, top=6)
+    moves = guide.moves(m, [0, 1], 8)
+    assert moves.shape == (8, tiny.n_elements) and (moves.sum(1) == m.sum()).all()
+    assert ((moves != m).sum(1) == 2).all() and len({r.tobytes() for r in moves}) == 8
+    again = guide.moves(m, [0, 1], 8)                # the next ones: none offered twice for a selection
+    assert not {r.tobytes() for r in again} & {r.tobytes() for r in moves}
+    g = guide._gradient(m, [0, 1])
+    assert np.isfinite(g).all() and np.abs(g).max() > 0
+    loss = lambda x: float(tiny.beam_metrics(x, points=[0, 1])["PSL_dB"].max(1).mean())  # noqa: E731
+    rng = np.random.default_rng(0)
+    randoms = np.repeat(m[None], 8, axis=0)
+    rows = np.arange(8)
+    randoms[rows, rng.choice(np.flatnonzero(m), 8)] = False
+    randoms[rows, rng.choice(np.flatnonzero(~m), 8)] = True
+    assert loss(moves) < loss(randoms)               # the guided swaps lower the worst side lobe more

@@ -9,6 +9,7 @@ import sys
 import threading
 
 from arraysel.errors import ParameterError, check_number
+from arraysel.objective.build import TOY_SCENE
 from arraysel.objective.build import objective_for as build_objective  # the CLI's name for it (loads no torch)
 
 #: the default time budget: the runs of one comparison share DEFAULT_TOTAL_S seconds, each getting
@@ -30,6 +31,21 @@ def default_budget_s(runs: int) -> float:
     return float(max(DEFAULT_MIN_S, min(DEFAULT_BUDGET_S, math.floor(share))))
 
 
+def scene_defaults(scene: str) -> tuple[float | None, list[int] | None]:
+    """The scene's own defaults of a comparison, ``(compare.budget_s, compare.seeds)`` (None where
+    it sets none; the ``toy`` objective has none)."""
+    if scene == TOY_SCENE:
+        return None, None
+    from arraysel.scenes.schema import load_scene
+
+    sc = load_scene(scene)
+    seeds = sc.value("compare", "seeds")
+    if seeds is not None and (not seeds or len(set(seeds)) != len(seeds)):
+        raise ParameterError(f"compare.seeds must list distinct integers >= 0, got {seeds!r}")
+    budget = sc.value("compare", "budget_s")
+    return (None if budget is None else float(budget)), (None if seeds is None else [int(s) for s in seeds])
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "compare", help="compare selectors on a scene (Table 1, traces, figures)",
@@ -44,15 +60,17 @@ def add_parser(subparsers) -> None:
                    help="scene name or file (default: paper); 'toy' is the cheap synthetic objective "
                         "arraysel.objective.toy (Ne=64, k=32), for trying selectors out")
     p.add_argument("--budget-s", type=float, default=None, metavar="S",
-                   help=f"wall-clock seconds per selector run (0: no limit; default: the runs share "
-                        f"{DEFAULT_TOTAL_S / 60:g} minutes, {DEFAULT_MIN_S:g} to {DEFAULT_BUDGET_S:g} s each, "
+                   help=f"wall-clock seconds per selector run (0: no limit; default: the scene's "
+                        f"compare.budget_s, else the runs share {DEFAULT_TOTAL_S / 60:g} minutes, "
+                        f"{DEFAULT_MIN_S:g} to {DEFAULT_BUDGET_S:g} s each, "
                         f"e.g. 38 s for 'ste,random,uniform' with 5 seeds; with --resume the budget of "
                         f"the runs being resumed)")
     p.add_argument("--budget-evals", type=int, default=None, metavar="N",
                    help="objective evaluations per selector run (default: no limit)")
     p.add_argument("--seeds", default=None, metavar="0,1,2",
-                   help="comma-separated seeds, each stochastic selector runs once per seed (default: "
-                        "0,1,2,3,4); a deterministic one (uniform, greedy) runs once, with the first")
+                   help="comma-separated seeds, each stochastic selector runs once per seed (default: the "
+                        "scene's compare.seeds, else 0,1,2,3,4); a deterministic one (uniform, greedy) runs "
+                        "once, with the first")
     p.add_argument("--out", default="results/compare", metavar="DIR",
                    help="output folder (default results/compare)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default cpu)")
@@ -228,9 +246,15 @@ def _run_locked(args, registry, names, options, seeds, budget_s, grace_s, previo
     from arraysel.run.compare import DEFAULT_SEEDS, compare
     from arraysel.selectors.contract import Budget
 
+    scene_s, scene_seeds = scene_defaults(args.scene)
+    seeds = scene_seeds if seeds is None else seeds
     n_runs = sum(1 if registry[n].deterministic else len(seeds or DEFAULT_SEEDS) for n in names)
     if budget_s is None and args.resume and isinstance((previous or {}).get("budget"), dict):
         budget_s = float(previous["budget"].get("seconds") or 0)     # the runs being resumed
+    elif budget_s is None and scene_s is not None:
+        budget_s = scene_s
+        _log.warning("arraysel compare: %d run(s) of %g s each (the scene's compare.budget_s; --budget-s sets it)",
+                     n_runs, budget_s)
     elif budget_s is None:
         budget_s = default_budget_s(n_runs)
         _log.warning("arraysel compare: %d run(s) of %g s each (the default time budget shares %g minutes; "

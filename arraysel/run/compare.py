@@ -32,7 +32,7 @@ from arraysel.run.experiment import budget_flag, config_label, full_row, with_en
 from arraysel.run.isolation import DEFAULT_GRACE_S, UNTIMED_LIMIT_S
 from arraysel.run.outdir import check_out_dir, check_resume, lock_out_dir
 from arraysel.run.runners import Runner, RunSpec, check_isolated, make_runner, scores_neighbourhoods
-from arraysel.run.sector_report import beam_source
+from arraysel.run.sector_report import beam_source, prepare_beam_polish
 from arraysel.run.store import CompareStore, write_figures
 from arraysel.selection import Selection
 from arraysel.selectors.contract import Budget
@@ -248,7 +248,10 @@ def _compare_locked(objective, out: Path, plan: _Plan, *, resume, force, progres
     runner = make_runner(objective, plan.budget, plan.grace, float(full.get("Mean", math.nan)), executor=executor,
                          objective_factory=objective_factory, isolate=isolate, threads=threads, progress=progress,
                          neighbourhoods=any(scores_neighbourhoods(s) for s in todo))
+    fast_s = prepare_beam_polish(objective, todo)   # a sector scene's fast models, before any run's clock
     warm = runner.prepare(todo)
+    if fast_s:
+        meta["sector_fast_s"] = fast_s
     if warm is not None:  # runs made here: this process's objective warmed before the first clock starts
         meta["warm_up"] = warm
     store.save([full] + rows, traces)

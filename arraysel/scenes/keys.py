@@ -134,6 +134,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "polish_width_ratio": Key("float", (1, 2, False), 1.048, "the polish's cap on the mean -6 dB width, "
                                   "over the fresh random selections' median"),
     },
+    "compare": {  # the defaults of `arraysel compare` on this scene (its command-line options override them)
+        "budget_s": Key("float", (0, 86400, True), None, "seconds of each selector run when --budget-s is not "
+                        "given (default: the runs share 7 minutes, 10 to 120 s each)"),
+        "seeds": Key("ints", (0, 2 ** 31 - 1), None, "seeds of the stochastic selectors when --seeds is not "
+                     "given (default: 0, 1, 2, 3, 4)"),
+    },
     "cysts": {  # optional in a sector scene: anechoic cysts in speckle, compare's cysts.csv (docs/sector.md)
         "points": Key("ints", (0, 31), None, "the sector.points (indices) whose PSF images a cyst centred on the "
                       "point (default: every point)"),
