@@ -161,6 +161,20 @@ def emit_json(record: dict) -> None:
     print(json.dumps(record, sort_keys=False), flush=True)
 
 
+def finish(record: dict, out: str | None) -> int:
+    """Write ``record`` as JSON to ``out`` (its folder made; nothing when None), then print it as
+    the last line (:func:`emit_json`); a benchmark's exit status 0."""
+    import os
+
+    if out:
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        with open(out, "w") as fh:
+            json.dump(record, fh, indent=1)
+            fh.write("\n")
+    emit_json(record)
+    return 0
+
+
 def cache_files() -> set | None:
     """Names of the fast-path basis files in the on-disk cache (None when the cache is off)."""
     from arraysel.io.cache import cache_dir

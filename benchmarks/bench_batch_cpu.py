@@ -110,12 +110,7 @@ def main(argv=None) -> int:
                          f"{med['user_ms'] + med['sys_ms']:.2f}", f"{med['faults']:.0f}",
                          f"{statistics.mean(run['load'] for run in runs):.1f}"])
     print(C.table(rows, ["variant", "call", "calls", "user ms", "sys ms", "CPU ms/mask", "faults/mask", "load"]))
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(record, fh, indent=1)
-            fh.write("\n")
-    C.emit_json(record)
-    return 0
+    return C.finish(record, args.out)
 
 
 if __name__ == "__main__":

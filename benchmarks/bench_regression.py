@@ -278,13 +278,7 @@ def main(argv=None) -> int:
         rows.append([f"neighbours {args.swap_scene}", label, args.pairs, "", "",
                      f"{row['swaps_per_s']} /s", "", "", f"{statistics.mean(row['loads']):.1f}"])
     print(C.table(rows, ["scene", "variant", "masks", "1 mask s", "N masks s", "ms/mask", "CPU ms/mask", "x PyMUST", "load"]))
-    if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as fh:
-            json.dump(record, fh, indent=1)
-            fh.write("\n")
-    C.emit_json(record)
-    return 0
+    return C.finish(record, args.out)
 
 
 if __name__ == "__main__":
