@@ -61,14 +61,9 @@ class ColumnMetrics:
             self.c_coords = c
             self.c_axes = c_plane_axes(C_PLANE, c)
 
-    def __call__(self, re: torch.Tensor, im: torch.Tensor, cols: torch.Tensor | None = None) -> dict[str, np.ndarray]:
-        """``{name: float64 (M,)}`` of the images ``re + i im`` (each ``(P, M)``, rows as ``rows``);
-        with ``cols``, of those columns only."""
-        if cols is not None:
-            re, im = re.index_select(1, cols), im.index_select(1, cols)
-            k2 = (re * re).addcmul_(im, im)                                # |kappa|^2 (P, M)
-        else:
-            k2 = (re * re).addcmul_(im, im)
+    def __call__(self, re: torch.Tensor, im: torch.Tensor) -> dict[str, np.ndarray]:
+        """``{name: float64 (M,)}`` of the images ``re + i im`` (each ``(P, M)``, rows as ``rows``)."""
+        k2 = (re * re).addcmul_(im, im)                                    # |kappa|^2 (P, M)
         kr_re = self.ref_r @ re + self.ref_i @ im
         kr_im = self.ref_i @ re - self.ref_r @ im
         k2 = k2.T.contiguous()                                             # (M, N), in row order
