@@ -18,6 +18,12 @@ from arraysel.io.numba_cache import ensure_cache_dir
 ensure_cache_dir(__file__)  # a place numba can cache the kernels in, also for a user who cannot write here
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _nan_max(m, v):
+    """The larger of ``m`` and ``v``, NaN when either is (torch's ``maximum``); ``m`` on a tie."""
+    return v if (v > m or v != v) else m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _segment_peaks(acc, mx, ntx, seg, ns, half, scale, env, ne, e, b):
     """``env[n * ne + e, 0, a, b] = scale max_r |acc|`` over the samples ``r`` of segment ``a`` of
     transmit ``n``, for one channel ``acc`` ([re | im] halves, segment-offset-major samples; a
@@ -28,11 +34,7 @@ def _segment_peaks(acc, mx, ntx, seg, ns, half, scale, env, ne, e, b):
         for r in range(seg):
             o = (n * seg + r) * ns
             for a in range(ns):
-                v = acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a]
-                if v > mx[a]:
-                    mx[a] = v
-                elif v != v:
-                    mx[a] = v
+                mx[a] = _nan_max(mx[a], acc[o + a] * acc[o + a] + acc[half + o + a] * acc[half + o + a])
         for a in range(ns):
             env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * scale
 
@@ -129,11 +131,7 @@ def _product_peaks_kernel(y, rows, e0, w, env):
                 for r in range(1, seg):
                     o = r * ns
                     for a in range(ns):
-                        v = _fma_square(re[o + a], im[o + a])
-                        if v > mx[a]:
-                            mx[a] = v
-                        elif v != v:
-                            mx[a] = v
+                        mx[a] = _nan_max(mx[a], _fma_square(re[o + a], im[o + a]))
                 for a in range(ns):
                     env[n * ne + e, 0, a, b] = np.sqrt(mx[a]) * scale
 
@@ -163,9 +161,7 @@ def _segment_runs_kernel(env):
                 if a + m < ns:
                     nxt = env[c, 0, a + m]
                     for b in range(B):
-                        x = prev[b]
-                        v = nxt[b]
-                        out[b] = x if (x >= v or x != x) else v
+                        out[b] = _nan_max(prev[b], nxt[b])
                 else:
                     for b in range(B):
                         out[b] = prev[b]
