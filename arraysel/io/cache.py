@@ -221,9 +221,10 @@ def _saved(path: str, built: dict) -> dict:
     ``built``: the built tensors are then freed, so a process that builds several entries holds
     at most one of them in its own memory (the rest are pages of the files, which the system may
     drop), and the first run computes with the very tensors every later run reads. ``built`` when
-    the saved entry cannot be read back."""
+    the saved entry cannot be read back. Its blocks were hashed as they were written, so only the
+    sizes and headers are checked here (the next load checks it in full)."""
     try:
-        return load_state(path)
+        return load_state(path, verify="size")
     except (DamagedEntry, OSError) as exc:
         _log.warning("the cache entry %s could not be read back (%s); using the built tensors", path, exc)
         return built
