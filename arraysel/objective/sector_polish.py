@@ -74,9 +74,10 @@ class _Guide:
     """
 
     def __init__(self, objective, top: int = 24):
-        self.obj, self.top = objective, int(top)
+        self.obj = getattr(objective, "beams", objective)   # an Objective's per-beam view, else the view itself
+        self.top = int(top)
         self.key, self.pairs, self.tried = None, None, set()
-        xy = getattr(objective, "beams", objective).setup.probe.element_positions()[:, :2]
+        xy = self.obj.setup.probe.element_positions()[:, :2]
         self.r2 = (xy ** 2).sum(1)
 
     def _gradient(self, mask: np.ndarray, on: list[int]) -> np.ndarray:
@@ -84,7 +85,7 @@ class _Guide:
 
         from arraysel.objective.lobes import main_lobe_regions
 
-        obj = getattr(self.obj, "beams", self.obj)    # an Objective's per-beam view, else the view itself
+        obj = self.obj
         w = torch.as_tensor(mask, dtype=obj.dtype, device=obj.device)[None].requires_grad_(True)
         levels = []
         for i in on:
