@@ -305,3 +305,17 @@ def test_bad_input():
         MainLobeRule(n_rays=4)
     with pytest.raises(ParameterError, match="power=True"):
         lobe_metrics({"p": good.to(torch.complex128)}, {"p": c}, frame="uv", power=True)
+
+
+def test_grid_axes_of_a_wide_sphere_are_read_at_its_middle():
+    # at the corner of a sphere sampled out to |u|, |v| = 0.7 a step in u runs mostly along z; the
+    # axes along x and y are read where the surface faces the probe
+    from arraysel.objective.lobe_regions import _axis_along
+    from arraysel.physics.beamgeometry import sphere_surface
+
+    g = np.linspace(-0.705, 0.705, 79)
+    pos = sphere_surface(0.05, g, g)
+    corner = pos[0, 1] - pos[0, 0]
+    assert abs(float(corner[2])) > abs(float(corner[0]))
+    assert _axis_along(pos, 0) == 1 and _axis_along(pos, 1) == 0
+    assert _axis_along(pos[:1], 0) == 1 and _axis_along(pos[:1], 1) is None   # one row: no axis along y

@@ -384,9 +384,13 @@ def find_regions(surfs: list[Surface], target, rule: MainLobeRule) -> LobeRegion
 # --------------------------------------------------------------------------
 
 def _axis_along(pos: Tensor, comp: int) -> int | None:
-    """The grid axis (0 rows, 1 columns) whose step runs mostly along component ``comp``."""
+    """The grid axis (0 rows, 1 columns) whose step runs mostly along component ``comp``, read at the
+    grid's middle (at a corner of a wide sphere in u-v, a step runs mostly along z)."""
+    i, j = max(pos.shape[0] // 2 - 1, 0), max(pos.shape[1] // 2 - 1, 0)
     for axis in (0, 1):
-        step = (pos[1, 0] - pos[0, 0]) if axis == 0 else (pos[0, 1] - pos[0, 0])
+        if pos.shape[axis] < 2:
+            continue
+        step = (pos[i + 1, j] - pos[i, j]) if axis == 0 else (pos[i, j + 1] - pos[i, j])
         if abs(float(step[comp])) >= 0.5 * float(step.norm()) > 0:
             return axis
     return None
