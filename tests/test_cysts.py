@@ -18,7 +18,7 @@ from scene_texts import TINY_SECTOR
 #: the tiny sector scene of tests/test_sector.py (8 x 8 elements, two points at 15 mm)
 TINY = copy.deepcopy(TINY_SECTOR)
 
-U = np.arange(-31, 32) * 0.0179           # the grid of matrix-1024-sector
+U = np.arange(-31, 32) * 0.0179           # a sector grid (matrix-1024-sector's with margin 1)
 LOBE = (0.0537, 0.0537)
 
 

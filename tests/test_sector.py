@@ -44,16 +44,17 @@ def test_builtin_sector_scene_and_its_geometry():
     assert geo["half_angles"] == (30.0, 30.0) and geo["tilts"] == (30.0, 30.0)
     lam = 1540.0 / 3e6
     assert geo["lobe"][0] == pytest.approx(lam / (31 * 0.3e-3 + 0.25e-3))
-    assert geo["half_uv"][0] == pytest.approx(0.5 + geo["lobe"][0])
+    assert geo["half_uv"][0] == pytest.approx(0.5 + 3 * geo["lobe"][0])   # three main lobes past the edge
     st = s.sector_setup()
     assert st.delays.shape == (25, 1024)
-    assert len(st.points) == 6 and st.points[1] == pytest.approx((0.0, 0.0, 0.05))
+    assert len(st.points) == 11 and st.points[1] == pytest.approx((0.0, 0.0, 0.05))
+    assert st.direction_of(10) == pytest.approx((-math.sin(math.radians(13)),) * 2)
     assert st.direction_of(5) == pytest.approx((math.sin(math.radians(13)),) * 2)
     # the grid: 0 on a sample, the step samples_per_lobe times finer than lambda / D, past the edge
     assert 0.0 in st.u and np.diff(st.u) == pytest.approx(geo["step"])
     assert st.u[-1] >= geo["half_uv"][0] and st.u[-1] - geo["step"] < geo["half_uv"][0]
     obj = build_objective(s)   # the one Objective, over the beam pattern, with its points' per-beam view
-    assert type(obj) is Objective and isinstance(obj.beams, SectorBeams) and obj.n_points == 6
+    assert type(obj) is Objective and isinstance(obj.beams, SectorBeams) and obj.n_points == 11
 
 
 @pytest.mark.parametrize("over, key", [

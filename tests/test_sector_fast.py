@@ -10,7 +10,7 @@ import torch
 
 from arraysel.objective.sector_objective import BEAM_COLUMNS, SectorObjective, sector_fast_state
 from arraysel.physics.volume.fast import MatrixFastPSF
-from arraysel.physics.volume.sector import MirroredModel, xy_mirrors
+from arraysel.physics.volume.sector import MIRRORS, MirroredModel, _mirror_image, mirrors
 from arraysel.scenes.schema import load_scene
 
 SMALL = {"name": "small-sector", "probe": {"name": "MATRIX-32x32", "nx": 8, "ny": 8},
@@ -64,18 +64,72 @@ def test_fast_images_equal_the_exact_ones(small):
         assert _si_mse(fast[0], other[0]) > 1e-2
 
 
-def test_xy_mirrors_finds_the_swapped_points(small):
-    perm, pairs = xy_mirrors(small.setup)
-    assert pairs == {1: 2, 2: 1}
+def test_mirrors_find_the_swapped_points(small):
+    perms, pairs = mirrors(small.setup)
+    assert pairs == {2: (1, "swap")}
     grid = np.arange(64).reshape(8, 8)
-    np.testing.assert_array_equal(perm, grid.T.reshape(-1))
+    np.testing.assert_array_equal(perms["swap"], grid.T.reshape(-1))
     builtin = SectorObjective("matrix-1024-sector")
-    perm, pairs = xy_mirrors(builtin.setup)
-    assert pairs == {3: 4, 4: 3}   # 13 degrees in x and in y; the diagonal point is its own mirror
-    # transmits steered less far in y break the symmetry
+    # five models serve the eleven points: the others are mirror images of the 13-degree points
+    # (in x and y on both sides, and the diagonals)
+    assert mirrors(builtin.setup)[1] == {4: (3, "swap"), 6: (3, "x"), 7: (3, "antiswap"), 8: (5, "x"), 9: (5, "y"),
+                                         10: (5, "xy")}
+    # transmits steered less far in y break the swap of x and y
     tree = copy.deepcopy(SMALL)
     tree["transmit"]["max_tilt_deg_y"] = 10.0
-    assert xy_mirrors(SectorObjective(load_scene(tree)).setup)[0] is None
+    assert "swap" not in mirrors(SectorObjective(load_scene(tree)).setup)[0]
+
+
+def _mirrored_scene():
+    tree = copy.deepcopy(SMALL)
+    # point 1 and its images in every mirror of the square grid (x, y, both, the swap and the anti-swap)
+    tree["sector"]["points"] = [[0.0, 0.0, "15 mm"], [10.0, 5.0, "20 mm"], [5.0, 10.0, "20 mm"],
+                                [-10.0, 5.0, "20 mm"], [10.0, -5.0, "20 mm"], [-5.0, -10.0, "20 mm"],
+                                [-10.0, -5.0, "20 mm"]]
+    return SectorObjective(load_scene(tree), dtype=torch.float32)
+
+
+def test_mirrors_find_every_mirrored_point():
+    obj = _mirrored_scene()
+    perms, pairs = mirrors(obj.setup)
+    assert set(perms) == set(MIRRORS)
+    assert pairs == {2: (1, "swap"), 3: (1, "x"), 4: (1, "y"), 5: (1, "antiswap"), 6: (1, "xy")}
+    grid = np.arange(64).reshape(8, 8)   # element index = 8 * row (y) + column (x)
+    np.testing.assert_array_equal(perms["x"], grid[:, ::-1].reshape(-1))
+    np.testing.assert_array_equal(perms["y"], grid[::-1, :].reshape(-1))
+    np.testing.assert_array_equal(perms["swap"], grid.T.reshape(-1))
+    np.testing.assert_array_equal(perms["antiswap"], grid[::-1, ::-1].T.reshape(-1))
+    # steering less far in y than in x breaks the mirrors that swap x and y, not the flips
+    tree = copy.deepcopy(SMALL)
+    tree["transmit"]["max_tilt_deg_y"] = 10.0
+    assert set(mirrors(SectorObjective(load_scene(tree)).setup)[0]) == {"x", "y", "xy"}
+
+
+def test_mirrored_model_refuses_an_unknown_mirror():
+    with pytest.raises(ValueError, match="mirror name 'z'"):
+        MirroredModel(None, np.arange(4), "z")
+
+
+@pytest.mark.slow
+def test_mirrored_points_fast_images_equal_the_exact_ones():
+    obj = _mirrored_scene()
+    # the mirrored point's exact image is the first point's, of the permuted weights, mirrored
+    w = torch.as_tensor(_masks(), dtype=torch.float32)[1:2]
+    perms, pairs = mirrors(obj.setup)
+    base = {name: obj.point_images(w[:, torch.as_tensor(perms[name])], 1, exact=True) for name in perms}
+    for j, (i, name) in pairs.items():
+        direct = obj.point_images(w, j, exact=True)
+        assert _si_mse(_mirror_image(base[name], name)[0], direct[0]) <= 1e-10, (j, name)
+        # and a wrong mirror is caught
+        wrong = "y" if name == "x" else "x"
+        assert _si_mse(_mirror_image(base[wrong], wrong)[0], direct[0]) > 1e-3, (j, wrong)
+    w = torch.as_tensor(_masks(), dtype=torch.float32)
+    for j in range(2, obj.n_points):
+        assert obj.fast_point(j), obj.fast_refused
+        assert isinstance(obj.exact._fast[j], MirroredModel)   # nothing built for it
+        fast, exact = obj.point_images(w, j), obj.point_images(w, j, exact=True)
+        for b in range(len(w)):
+            assert _si_mse(fast[b], exact[b]) <= 1e-6, (j, b)
 
 
 @pytest.mark.slow

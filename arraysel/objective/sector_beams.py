@@ -163,15 +163,15 @@ class SectorBeams:
         if not self.fast_exact or i in self.fast_refused:
             return False
         from arraysel.physics.volume.fast import FastPathUnavailable
-        from arraysel.physics.volume.sector import MirroredModel, xy_mirrors
+        from arraysel.physics.volume.sector import MirroredModel, mirrors
 
         if self._mirrors is None:
-            self._mirrors = xy_mirrors(self.setup)
-        perm, pairs = self._mirrors
-        j = pairs.get(int(i))
-        if j is not None and j < int(i) and self.fast_point(j, build=build):
-            # the x-y mirror of an earlier point: its model, the weights permuted, the image transposed
-            psf.install_fast(i, MirroredModel(psf._fast[j], perm))
+            self._mirrors = mirrors(self.setup)
+        perms, pairs = self._mirrors
+        j, name = pairs.get(int(i), (None, None))
+        if j is not None and self.fast_point(j, build=build):
+            # the mirror image of an earlier point: its model, the weights permuted, the image mirrored
+            psf.install_fast(i, MirroredModel(psf._fast[j], perms[name], name))
             return True
 
         state = sector_fast_state(self, i, build=build)

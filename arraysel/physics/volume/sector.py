@@ -32,7 +32,8 @@ from arraysel.physics.simus import SimOptions
 from arraysel.physics.volume.fast import FastSettings, MatrixFastPSF
 from arraysel.physics.volume.psf import MatrixPSF, MatrixPSFSetup
 
-__all__ = ["SURFACE", "SECTOR_FAST", "SECTOR_FAST_LADDER", "xy_mirrors", "MirroredModel", "sector_grid", "beam_point", "SectorSetup", "SectorPSF"]
+__all__ = ["SURFACE", "SECTOR_FAST", "SECTOR_FAST_LADDER", "MIRRORS", "mirrors", "MirroredModel",
+           "sector_grid", "beam_point", "SectorSetup", "SectorPSF"]
 
 #: the name of each point's surface in the dicts :meth:`SectorPSF.surfaces` returns
 SURFACE = "sector"
@@ -72,42 +73,86 @@ def beam_point(theta_x_deg: float, theta_y_deg: float, range_m: float) -> tuple[
     return (r * u, r * v, r * math.sqrt(1 - u * u - v * v))
 
 
-def xy_mirrors(setup: "SectorSetup") -> tuple[np.ndarray | None, dict[int, int]]:
-    """The scene's symmetry under the swap of x and y, when it has it: ``(perm, pairs)``.
+#: the mirror symmetries of a square grid that a sector scene may have, each its own inverse, as the
+#: map of a position (x, y): the flip of x, of y, of both, the swap of x and y, and the swap with both
+#: flipped
+MIRRORS = {"x": lambda x, y: (-x, y), "y": lambda x, y: (x, -y), "xy": lambda x, y: (-x, -y),
+           "swap": lambda x, y: (y, x), "antiswap": lambda x, y: (-y, -x)}
 
-    ``perm`` (Ne,) maps each element to the element at its swapped position (None, and no pairs,
-    unless the elements' positions, their size in x and y, the set of transmits' delays and the
-    grid of directions are all unchanged by the swap); ``pairs`` maps a point ``j`` to another point
-    ``i`` at its swapped position. Point ``j``'s image of weights ``w`` is then point ``i``'s image
-    of ``w[:, perm]``, transposed (rows v, columns u): the same delay-and-sum seen in a mirror."""
-    probe = setup.probe
+
+def _mirror_perm(setup: "SectorSetup", name: str) -> np.ndarray | None:
+    """The element permutation of mirror ``name`` (:data:`MIRRORS`), None when the scene lacks that
+    symmetry: the elements' positions and sizes, the set of the transmits' delays and the grid of
+    directions must all be unchanged by it."""
+    probe, f = setup.probe, MIRRORS[name]
     pos = np.asarray(probe.element_positions(), dtype=np.float64)
     tol = 1e-9 * max(1.0, float(np.abs(pos).max()) * 1e3)
-    d = np.abs(pos[:, None, [1, 0, 2]] - pos[None, :, :]).sum(-1)
+    gx, gy = f(pos[:, 0], pos[:, 1])
+    moved = np.stack([gx, gy, pos[:, 2]], axis=1)
+    d = np.abs(moved[:, None, :] - pos[None, :, :]).sum(-1)
     perm = d.argmin(1)
-    if (d[np.arange(len(pos)), perm].max() > tol or getattr(probe, "width", None) != getattr(probe, "height", None)
-            or setup.u.shape != setup.v.shape or not np.allclose(setup.u, setup.v, rtol=0, atol=1e-12)):
-        return None, {}
+    if d[np.arange(len(pos)), perm].max() > tol:
+        return None
+    swaps = name in ("swap", "antiswap")
+    u, v = np.asarray(setup.u), np.asarray(setup.v)
+    if swaps and (getattr(probe, "width", None) != getattr(probe, "height", None) or u.shape != v.shape
+                  or not np.allclose(u, v, rtol=0, atol=1e-12)):
+        return None
+    flips = {"x": "u", "y": "v", "xy": "uv", "antiswap": "uv"}.get(name, "")
+    for axis in flips:
+        g = u if axis == "u" else v
+        if not np.allclose(g, -g[::-1], rtol=0, atol=1e-12):
+            return None
     dl = setup.delays
     scale = max(float(np.abs(dl).max()), 1e-30)
     for row in dl[:, perm]:
         if not (np.abs(dl - row[None]).max(1) <= 1e-9 * scale).any():
-            return None, {}
+            return None
+    return perm
+
+
+def mirrors(setup: "SectorSetup") -> tuple[dict[str, np.ndarray], dict[int, tuple[int, str]]]:
+    """The scene's mirror symmetries (:data:`MIRRORS`) and the points they relate: ``(perms, pairs)``.
+
+    ``perms`` maps each mirror the scene has to its element permutation (``perm[e]``: the element at
+    the mirror image of element ``e``'s position); ``pairs`` maps a point ``j`` to ``(i, name)``, an
+    earlier point ``i`` whose mirror image it is (the first such ``i``). Point ``j``'s image of
+    weights ``w`` is then point ``i``'s image of ``w[:, perm]``, mirrored (:class:`MirroredModel`): the
+    same delay-and-sum seen in a mirror, which needs no model of its own."""
+    perms = {}
+    for name in MIRRORS:
+        perm = _mirror_perm(setup, name)
+        if perm is not None:
+            perms[name] = perm
     pairs = {}
-    for j, (x, y, z) in enumerate(setup.points):
-        for i, q in enumerate(setup.points):
-            if i != j and np.allclose(q, (y, x, z), rtol=0, atol=1e-12):
-                pairs[j] = i
+    pts = [tuple(map(float, q)) for q in setup.points]
+    for j, (x, y, z) in enumerate(pts):
+        for i, q in enumerate(pts[:j]):
+            hit = next((name for name in perms
+                        if np.allclose(q, (*MIRRORS[name](x, y), z), rtol=0, atol=1e-12)), None)
+            if hit is not None:
+                pairs[j] = (i, hit)
                 break
-    return perm, pairs
+    return perms, pairs
+
+
+def _mirror_image(x: torch.Tensor, name: str) -> torch.Tensor:
+    """An image (..., Hv, Hu) seen in mirror ``name``: rows are v, columns u."""
+    if name in ("swap", "antiswap"):
+        x = x.transpose(-1, -2)
+    dims = {"x": (-1,), "y": (-2,), "xy": (-2, -1), "antiswap": (-2, -1)}.get(name, ())
+    return x.flip(dims) if dims else x
 
 
 class MirroredModel:
-    """Point ``j``'s images from the model of its mirror point ``i`` (:func:`xy_mirrors`): the
-    weights permuted, the image transposed. ``planes(weights, receive=None)`` as the model's."""
+    """Point ``j``'s images from the model of its mirror point ``i`` (:func:`mirrors`): the weights
+    permuted, the image mirrored. ``planes(weights, receive=None)`` as the model's. ``name``: the
+    mirror (:data:`MIRRORS`; default the swap of x and y)."""
 
-    def __init__(self, model, perm: np.ndarray):
-        self.model = model
+    def __init__(self, model, perm: np.ndarray, name: str = "swap"):
+        if name not in MIRRORS:
+            raise ParameterError(f"mirror name {name!r} is not one of {sorted(MIRRORS)}")
+        self.model, self.name = model, name
         self.perm = torch.as_tensor(np.asarray(perm), dtype=torch.long)
 
     def planes(self, weights, receive=None, base=None) -> dict[str, torch.Tensor]:
@@ -119,7 +164,7 @@ class MirroredModel:
         w = mirrored(weights)
         b = None if base is None else mirrored(base)[0]
         out = self.model.planes(w, base=b) if receive is None else self.model.planes(w, receive=mirrored(receive))
-        return {k: v.transpose(-1, -2) for k, v in out.items()}
+        return {k: _mirror_image(v, self.name) for k, v in out.items()}
 
 
 @dataclass(frozen=True, eq=False)
