@@ -40,7 +40,7 @@ KICKS = ("window", "swaps")
 #: ``lns``'s defaults: elements a window frees, the best predicted placements scored exactly, the
 #: windows in a row without improvement that declare a local optimum, the most placements a
 #: window may have
-WIDTH, VERIFY, WINDOWS, CAP = 16, 32, 16, 50_000
+WIDTH, VERIFY, WINDOWS, CAP = 16, 32, 4, 50_000
 #: the most swaps a placement may be from the window's current one (``radius``): the quadratic
 #: model ranks moves of a few swaps well near a local optimum, and overrates larger ones
 RADIUS = 3
