@@ -127,3 +127,15 @@ def test_lns_keeps_channel_groups(reg):
                      registry=reg).run()
     assert row["error"] == ""
     assert cons.feasible([int(i) for i in row["elements"].split()])
+
+
+def test_a_window_kick_moves_within_its_radius_which_grows_with_the_strength():
+    _, s = _search(n=20, k=10, radius=1, width=10, max_perturb=4)  # perturb: the engine's 2
+    base = np.arange(20) % 2 == 0
+    radii = []
+    verified = s.verified
+    s.verified = lambda mask, window, radius=None: radii.append(radius) or verified(mask, window, radius)
+    for strength, most in ((2, 1), (4, 3)):
+        kicked = s.perturbed(base, strength)
+        assert kicked.sum() == 10 and 1 <= int((kicked & ~base).sum()) <= most
+    assert radii == [1, 3]

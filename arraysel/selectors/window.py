@@ -47,8 +47,8 @@ RADIUS = 3
 #: ``lns``'s swap-engine settings: ``swap``'s
 LNS = SWAP
 
-__all__ = ["WINDOW_SHAPES", "KICKS", "RADIUS", "WIDTH", "VERIFY", "WINDOWS", "CAP", "LNS", "WindowSearch", "window_options",
-           "placements", "element_coordinates"]
+__all__ = ["WINDOW_SHAPES", "KICKS", "RADIUS", "WIDTH", "VERIFY", "WINDOWS", "CAP", "LNS", "WindowSearch",
+           "window_options", "placements", "element_coordinates"]
 
 
 def window_options() -> dict[str, Option]:
@@ -179,12 +179,14 @@ class WindowSearch(SwapSearch):
         self._tried.add(tried)
         return None
 
-    def verified(self, mask: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def verified(self, mask: np.ndarray, window: np.ndarray,
+                 radius: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The placements of ``window``'s active elements (other than ``mask``'s) the model of the
         loss at ``mask`` predicts best, scored exactly in one call (:meth:`score_moved`): among the
         ``4 verify`` best predicted, the ``verify`` best not scored before and every one scored
-        before (free); all of them in a random order without a model. ``(masks, Means)``, both
-        empty when the window is all active or all inactive."""
+        before (free); all of them in a random order without a model. Only placements within
+        ``radius`` swaps (default :attr:`radius`; 0: all). ``(masks, Means)``, both empty when the
+        window is all active or all inactive."""
         window = np.sort(self.fitted(mask, window))
         inside = mask[window]
         m, w = int(inside.sum()), window.size
@@ -194,7 +196,8 @@ class WindowSearch(SwapSearch):
             self._placements[(w, m)] = placements(w, m)
         d = self._placements[(w, m)].astype(np.int8) - inside
         size = np.abs(d).sum(axis=1) // 2  # swaps a placement is from the current one (0: itself)
-        d = d[(size > 0) & ((size <= self.radius) | (self.radius == 0))]
+        radius = self.radius if radius is None else radius
+        d = d[(size > 0) & ((size <= radius) | (radius == 0))]
         order = self._ranked(mask, window, d, 4 * self.verify)
         cands = np.repeat(mask[None], order.size, axis=0)
         cands[:, window] = d[order] + inside > 0
@@ -216,10 +219,12 @@ class WindowSearch(SwapSearch):
 
     def perturbed(self, base: np.ndarray, strength: int) -> np.ndarray:
         """With ``kick = window``, the best verified placement of a random window of ``base``
-        (:meth:`verified`), which differs from it (random swaps when the window offers none);
-        else the engine's ``strength`` random swaps."""
+        (:meth:`verified`; ``radius`` grown by as many swaps as ``strength`` has grown above
+        ``perturb``), which differs from it (random swaps when the window offers none); else the
+        engine's ``strength`` random swaps."""
         if self.kick == "window" and 0 < self.k < self.n:
-            cands, values = self.verified(base, self.window())
+            radius = self.radius + max(0, strength - self.perturb) if self.radius else 0
+            cands, values = self.verified(base, self.window(), radius)
             if values.size and np.isfinite(values).any():
                 return cands[int(np.argmin(values))].copy()
         return super().perturbed(base, strength)
