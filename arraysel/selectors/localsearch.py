@@ -173,6 +173,8 @@ class SwapSearch(SwapDescent):
     def perturbed(self, base: np.ndarray, strength: int) -> np.ndarray:
         """The start of a round's descent from ``base``: ``strength`` random swaps (feasible ones
         under channel groups)."""
+        if self.constraints is None:
+            return random_swaps(base, strength, self.rng)
         return random_swaps(base, strength, self.rng, self.constraints)
 
     # -- the race -------------------------------------------------------------------
