@@ -44,8 +44,10 @@ WIDTH, VERIFY, WINDOWS, CAP = 16, 32, 4, 50_000
 #: the most swaps a placement may be from the window's current one (``radius``): the quadratic
 #: model ranks moves of a few swaps well near a local optimum, and overrates larger ones
 RADIUS = 3
-#: ``lns``'s swap-engine settings: ``swap``'s
-LNS = SWAP
+#: ``lns``'s swap-engine settings: ``swap``'s, with a perturbation (a window kick's radius) that grows
+#: by one swap a round without a new best, up to 6 swaps above ``perturb`` (at 120 s a run it lowered
+#: the median of every 1-D scene: benchmarks/results/compare-search-lns-120s)
+LNS = SWAP.replace(max_perturb=6)
 
 __all__ = ["WINDOW_SHAPES", "KICKS", "RADIUS", "WIDTH", "VERIFY", "WINDOWS", "CAP", "LNS", "WindowSearch",
            "window_options", "placements", "element_coordinates"]
