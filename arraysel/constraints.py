@@ -541,4 +541,4 @@ def refuse_groups(objective, selector: str) -> None:
     gc = group_constraints(objective)
     if gc is not None:
         raise ParameterError(f"selector {selector!r} cannot honour the constraint groups ({gc.describe()}); "
-                             f"use swap, anneal, ils, memetic, genetic, ste, gumbel, random, uniform or spiral")
+                             f"use swap, anneal, ils, lns, memetic, genetic, ste, gumbel, random, uniform or spiral")

@@ -35,7 +35,7 @@ for _name in REGISTRY.names():
 
 def test_every_builtin_is_covered():
     for name in ("uniform", "random", "ste", "gumbel", "nlopt", "greedy", "centre", "random-swap", "swap", "ils",
-                 "anneal", "genetic", "memetic", "nevergrad", "spiral"):
+                 "anneal", "genetic", "memetic", "lns", "nevergrad", "spiral"):
         assert "TestConformance_" + name.replace("-", "_") in globals()
 
 

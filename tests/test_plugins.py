@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SINGLE_FILE = ROOT / "examples" / "single_file_plugin.py"
 EXAMPLE_SRC = ROOT / "examples" / "arraysel-example-plugin" / "src"
 BUILTINS = {"uniform", "random", "ste", "gumbel", "nlopt", "greedy", "swap", "ils", "anneal", "genetic", "memetic",
-            "nevergrad", "spiral"}
+            "lns", "nevergrad", "spiral"}
 
 
 @pytest.fixture
@@ -52,7 +52,7 @@ def test_builtins_register_through_the_hook_with_origins():
     assert set(reg.names()) == BUILTINS
     assert reg.origin("uniform") == reg.origin("random") == "arraysel.baselines"
     assert reg.origin("ste") == "arraysel.ste"
-    with pytest.raises(Exception, match="known selectors: anneal, genetic, greedy, gumbel, ils, memetic, nevergrad, nlopt, random, spiral, ste, swap, uniform"):
+    with pytest.raises(Exception, match="known selectors: anneal, genetic, greedy, gumbel, ils, lns, memetic, nevergrad, nlopt, random, spiral, ste, swap, uniform"):
         reg["nope"]
 
 
@@ -209,7 +209,7 @@ def test_single_file_plugin_with_cli_option(isolated_pm, tmp_path, capsys):
 def test_cli_rejects_unknown_selector_and_bad_options(isolated_pm, tmp_path, capsys):
     assert cli.main(_compare_args(tmp_path, "ste,nosuch")) == 2
     err = capsys.readouterr().err
-    assert "unknown selector(s) nosuch" in err and "anneal, genetic, greedy, gumbel, ils, memetic, nevergrad, nlopt, random, spiral, ste, swap, uniform" in err
+    assert "unknown selector(s) nosuch" in err and "anneal, genetic, greedy, gumbel, ils, lns, memetic, nevergrad, nlopt, random, spiral, ste, swap, uniform" in err
     assert cli.main(_compare_args(tmp_path, "ste", "-o", "ste.nosuch=1")) == 2
     assert "has no option 'nosuch'" in capsys.readouterr().err
     assert cli.main(_compare_args(tmp_path, "ste", "-o", "ste.lr=abc")) == 2

@@ -155,8 +155,7 @@ class SwapSearch(SwapDescent):
             if restart:
                 start_mask, stale, strength = self._fresh_mask(self.rng), 0, self.perturb
             else:
-                start_mask = (random_swaps(base, strength, self.rng) if self.constraints is None
-                              else random_swaps(base, strength, self.rng, self.constraints))
+                start_mask = self.perturbed(base, strength)
             v = float(self.score(start_mask[None])[0])
             self._note(start_mask, v)
             cand, cand_value = self.descend(start_mask, v)
@@ -171,6 +170,12 @@ class SwapSearch(SwapDescent):
             if idle >= self.MAX_IDLE_ROUNDS:
                 return  # the reachable selections are all scored (a tiny problem)
 
+    def perturbed(self, base: np.ndarray, strength: int) -> np.ndarray:
+        """The start of a round's descent from ``base``: ``strength`` random swaps (feasible ones
+        under channel groups)."""
+        if self.constraints is None:
+            return random_swaps(base, strength, self.rng)
+        return random_swaps(base, strength, self.rng, self.constraints)
 
     # -- the race -------------------------------------------------------------------
     def _race_starts(self, m: int) -> list[np.ndarray]:

@@ -69,6 +69,7 @@ BUILTIN_PLUGINS: dict[str, str] = {
     "arraysel.anneal": "arraysel_plugins.anneal",
     "arraysel.genetic": "arraysel_plugins.genetic",
     "arraysel.memetic": "arraysel_plugins.memetic",
+    "arraysel.lns": "arraysel_plugins.lns",
     "arraysel.nevergrad": "arraysel_plugins.nevergrad_bridge",
     "arraysel.spiral": "arraysel_plugins.spiral",
 }
