@@ -1026,6 +1026,7 @@ class _CountingRace:
         return [sum(d for _, d in g) for _, g in itertools.groupby(search.log, key=lambda e: e[0])]
 
 
+@pytest.mark.slow   # 20 s: whole races on a real scene
 def test_automatic_race_quota_gives_each_turn_its_part_of_the_race_share():
     # race_quota = None: ceil(log2(race)) turns, each RACE_SHARE / turns of the budget, split
     # evenly among the descents of the turn; under an evaluation budget that is a count
