@@ -73,35 +73,41 @@ def beam_point(theta_x_deg: float, theta_y_deg: float, range_m: float) -> tuple[
     return (r * u, r * v, r * math.sqrt(1 - u * u - v * v))
 
 
-#: the mirror symmetries of a square grid that a sector scene may have, each its own inverse, as the
-#: map of a position (x, y): the flip of x, of y, of both, the swap of x and y, and the swap with both
-#: flipped
-MIRRORS = {"x": lambda x, y: (-x, y), "y": lambda x, y: (x, -y), "xy": lambda x, y: (-x, -y),
-           "swap": lambda x, y: (y, x), "antiswap": lambda x, y: (-y, -x)}
+#: the mirror symmetries of a square grid that a sector scene may have, each its own inverse, as
+#: ``(flip x, flip y, swap x and y)`` (the swap first): the flip of x, of y, of both, the swap of x
+#: and y, and the swap with both flipped. Positions (x, y) and directions (u, v) mirror alike.
+MIRRORS = {"x": (True, False, False), "y": (False, True, False), "xy": (True, True, False),
+           "swap": (False, False, True), "antiswap": (True, True, True)}
+
+
+def _mirrored(name: str, x, y):
+    """Position (or direction) ``(x, y)`` seen in mirror ``name``."""
+    flip_x, flip_y, swap = MIRRORS[name]
+    if swap:
+        x, y = y, x
+    return (-x if flip_x else x, -y if flip_y else y)
 
 
 def _mirror_perm(setup: "SectorSetup", name: str) -> np.ndarray | None:
     """The element permutation of mirror ``name`` (:data:`MIRRORS`), None when the scene lacks that
     symmetry: the elements' positions and sizes, the set of the transmits' delays and the grid of
     directions must all be unchanged by it."""
-    probe, f = setup.probe, MIRRORS[name]
+    probe = setup.probe
+    flip_u, flip_v, swap = MIRRORS[name]
     pos = np.asarray(probe.element_positions(), dtype=np.float64)
     tol = 1e-9 * max(1.0, float(np.abs(pos).max()) * 1e3)
-    gx, gy = f(pos[:, 0], pos[:, 1])
+    gx, gy = _mirrored(name, pos[:, 0], pos[:, 1])
     moved = np.stack([gx, gy, pos[:, 2]], axis=1)
     d = np.abs(moved[:, None, :] - pos[None, :, :]).sum(-1)
     perm = d.argmin(1)
     if d[np.arange(len(pos)), perm].max() > tol:
         return None
-    swaps = name in ("swap", "antiswap")
     u, v = np.asarray(setup.u), np.asarray(setup.v)
-    if swaps and (getattr(probe, "width", None) != getattr(probe, "height", None) or u.shape != v.shape
-                  or not np.allclose(u, v, rtol=0, atol=1e-12)):
+    if swap and (getattr(probe, "width", None) != getattr(probe, "height", None) or u.shape != v.shape
+                 or not np.allclose(u, v, rtol=0, atol=1e-12)):
         return None
-    flips = {"x": "u", "y": "v", "xy": "uv", "antiswap": "uv"}.get(name, "")
-    for axis in flips:
-        g = u if axis == "u" else v
-        if not np.allclose(g, -g[::-1], rtol=0, atol=1e-12):
+    for flip, g in ((flip_u, u), (flip_v, v)):
+        if flip and not np.allclose(g, -g[::-1], rtol=0, atol=1e-12):
             return None
     dl = setup.delays
     scale = max(float(np.abs(dl).max()), 1e-30)
@@ -129,7 +135,7 @@ def mirrors(setup: "SectorSetup") -> tuple[dict[str, np.ndarray], dict[int, tupl
     for j, (x, y, z) in enumerate(pts):
         for i, q in enumerate(pts[:j]):
             hit = next((name for name in perms
-                        if np.allclose(q, (*MIRRORS[name](x, y), z), rtol=0, atol=1e-12)), None)
+                        if np.allclose(q, (*_mirrored(name, x, y), z), rtol=0, atol=1e-12)), None)
             if hit is not None:
                 pairs[j] = (i, hit)
                 break
@@ -138,9 +144,10 @@ def mirrors(setup: "SectorSetup") -> tuple[dict[str, np.ndarray], dict[int, tupl
 
 def _mirror_image(x: torch.Tensor, name: str) -> torch.Tensor:
     """An image (..., Hv, Hu) seen in mirror ``name``: rows are v, columns u."""
-    if name in ("swap", "antiswap"):
+    flip_u, flip_v, swap = MIRRORS[name]
+    if swap:
         x = x.transpose(-1, -2)
-    dims = {"x": (-1,), "y": (-2,), "xy": (-2, -1), "antiswap": (-2, -1)}.get(name, ())
+    dims = ((-1,) if flip_u else ()) + ((-2,) if flip_v else ())
     return x.flip(dims) if dims else x
 
 
