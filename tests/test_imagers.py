@@ -62,8 +62,8 @@ def _assert_same(before: dict, after: dict, path: str = "") -> None:
             _assert_same(value, after[key], f"{path}/{key}")
         else:
             # L_PSF of the full array (and its per-point L_PSF@...) is its distance to itself, zero
-            # up to float32 rounding (2.4e-12 on matrix-1024): that rounding is not a score, and a fast path built afresh
-            # rounds it differently. float32 sums are rounded differently by different CPUs (their
+            # up to float32 rounding (2.4e-12 on matrix-1024): that rounding is not a score, and a
+            # fast path built afresh rounds it differently. float32 sums are rounded differently by different CPUs (their
             # vector kernels add in different orders): recorded on one machine, the values are
             # equal on another to 1e-6 on the 1-D scenes and up to 6.4e-5 on the sector scene's
             # L_SLR_i (a ratio of sums over whole surfaces); a matrix scene's swaps are formed from
