@@ -33,7 +33,7 @@ __all__ = ["scene_imagers", "transmit_events", "scene_points", "scene_beams", "m
 _log = logging.getLogger(__name__)
 
 #: the version of the cached fast-path tensors of a 3-D scene (bumped when their meaning changes)
-FAST_VERSION = 2
+FAST_VERSION = 3
 #: the most interpolation harmonics (``FastSettings.replicas``) the 3-D fast path's build tries
 MAX_REPLICAS = 2
 #: most masks per batch of ``Objective.evaluate`` on a 1-D scene; each model takes at most its

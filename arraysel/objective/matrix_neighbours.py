@@ -77,13 +77,14 @@ class MatrixNeighbourhood:
         self.objective = objective
         self.model = model
         self.n_elements = ne = model.n_elements
-        self.cols = model._Psi.shape[1]
+        self.cols = model._B.shape[1] // 2
         self.cdtype = model.cdtype
         #: (pixels, width, column offset) per pixel group, in the fast path's column order
         self.groups = list(model._groups)
         self.n_pixels = sum(n for n, _, _ in self.groups)
         self.unsort = model._unsort
-        self._B = torch.view_as_complex(model._B.reshape(ne, self.cols, 2))   # (Ne, cols), no copy
+        # (Ne, cols): no copy of a receive matrix held in the evaluation's precision
+        self._B = torch.view_as_complex(model.receive_matrix().reshape(ne, self.cols, 2))
         self._Z = None          # (Ne, cols) transmit rows C_e Psi
         self._D = None          # (Ne, P) sum_j B_ej Z_ej, group order
         self._right = None      # per group (n, 4 w, Ne) real: [Re Z | Re B | Im Z | Im B] by column
@@ -112,9 +113,7 @@ class MatrixNeighbourhood:
     def transmit_rows(self) -> torch.Tensor:
         """``Z = C Psi`` (Ne, cols): the transmit rows of the elements (formed once)."""
         if self._Z is None:
-            m = self.model
-            c = m._C.permute(1, 0, 2).reshape(self.n_elements, -1)            # (Ne, n_tx r)
-            self._Z = c @ m._Psi
+            self._Z = self.model.transmit_sums(self.model.element_coefficients())
         return self._Z
 
     def diagonal(self) -> torch.Tensor:
@@ -129,7 +128,7 @@ class MatrixNeighbourhood:
         """Per pixel group, the right factor ``(n, 4 w, Ne)`` (real) of the cross terms."""
         if self._right is None:
             Z = self.transmit_rows()
-            rdt = self.model._B.dtype
+            rdt = self.model.dtype
             out = []
             for n, w, o in self.groups:
                 r = torch.empty(n, 4 * w, self.n_elements, dtype=rdt)
@@ -163,9 +162,9 @@ class MatrixNeighbourhood:
         else:
             m = self.model
             w = torch.as_tensor(mask, dtype=m.dtype, device=m.device)[None]
-            gamma = torch.view_as_complex((w @ m._B).reshape(1, -1, 2))[0]
-            c = torch.einsum("be,ner->bnr", w.to(self.cdtype), m._C).reshape(1, -1)
-            self._gamma, self._z = gamma, (c @ m._Psi)[0]
+            rx = torch.view_as_real(self._B).reshape(self.n_elements, -1)   # (Ne, 2 cols) real, no copy
+            gamma = torch.view_as_complex((w @ rx).reshape(1, -1, 2))[0]
+            self._gamma, self._z = gamma, m.transmit_sums(m.transmit_coefficients(w))[0]
             self._img = self._segsum(self._gamma * self._z)
             self._U = self._pending = None
             self._carried = 0
@@ -236,7 +235,7 @@ class MatrixNeighbourhood:
         imaginary parts, the fast path's pixel order; ``C_aa = 2 D_a``): one batched product per
         pixel group."""
         A = Ba.shape[0]
-        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=self.model._B.dtype)
+        X = torch.empty(self.n_pixels, 2 * A, self.n_elements, dtype=self.model.dtype)
         p0 = 0
         for (n, _, _), r, left in zip(self.groups, self.rights(), self._lefts(Ba, Za)):
             torch.bmm(left, r, out=X[p0:p0 + n])
@@ -303,7 +302,7 @@ class MatrixNeighbourhood:
         ``(B_a, Z_a)`` (each ``(A, cols)``): ``[re rows; im rows] x [re | im]`` against
         :meth:`rights`."""
         A = Ba.shape[0]
-        rdt = self.model._B.dtype
+        rdt = self.model.dtype
         for n, w, o in self.groups:
             L = torch.view_as_real(torch.cat([Ba[:, o:o + n * w].reshape(A, n, w),
                                               Za[:, o:o + n * w].reshape(A, n, w)], 2)).permute(1, 0, 2, 3)

@@ -285,7 +285,7 @@ class SectorBeams:
 
 
 #: the version of the cached sector fast-path tensors (bumped when their meaning changes)
-SECTOR_FAST_VERSION = 1
+SECTOR_FAST_VERSION = 2
 
 
 def _point_key(setup, i: int) -> tuple:

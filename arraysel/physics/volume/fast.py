@@ -49,46 +49,25 @@ import numpy as np
 import torch
 
 from arraysel.errors import ParameterError, SelectionError, check_number
+from arraysel.physics.volume.nodes import chebyshev_nodes, interpolation_harmonics, lagrange, node_reach
 from arraysel.physics.volume.psf import (MatrixPSF, check_element_weights, check_surfaces, plane_axes, split_planes,
                                          transmit_event_weights)
+from arraysel.physics.volume.stored import STORAGES, store, stored_product
 
-__all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "interpolation_harmonics", "fast_relative_error"]
+__all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "STORAGES", "interpolation_harmonics",
+           "fast_relative_error", "stored_product"]
 
 
 class FastPathUnavailable(RuntimeError):
     """The fast path cannot represent this scene (the reason says why); use the exact path."""
 
 
-def interpolation_harmonics(beta: torch.Tensor, orders) -> torch.Tensor:
-    """Fourier coefficients ``h_q(beta)`` (len(orders), F) complex128 of the 1-periodic factor that
-    linear interpolation of the samples ``exp(i beta m)`` multiplies the tone ``exp(i beta x)`` by:
-    ``interp(x) = exp(i beta x) sum_q h_q exp(2i pi q x)`` (``h_q = sinc^2(beta / 2 pi + q)``)."""
-    beta = torch.as_tensor(beta, dtype=torch.float64)
-    u = beta / (2 * math.pi)
-    return torch.stack([torch.sinc(u + q) ** 2 for q in orders]).to(torch.complex128)
-
-
-def _chebyshev_nodes(n: int) -> torch.Tensor:
-    k = torch.arange(n, dtype=torch.float64)
-    return torch.cos(math.pi * (2 * k + 1) / (2 * n))
-
-
-def _lagrange(nodes: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Lagrange basis ``l_m(x)`` for the node sets ``nodes`` (..., S) at points ``x`` (..., E):
-    (..., E, S), by the barycentric formula (exact at the nodes)."""
-    s = nodes.shape[-1]
-    diff = nodes[..., :, None] - nodes[..., None, :]  # (..., S, S)
-    eye = torch.eye(s, dtype=torch.bool, device=nodes.device)
-    wts = 1.0 / torch.where(eye, torch.ones_like(diff), diff).prod(-1)  # (..., S)
-    d = x[..., :, None] - nodes[..., None, :]  # (..., E, S)
-    hit = d == 0
-    d = torch.where(hit, torch.ones_like(d), d)
-    terms = wts[..., None, :] / d
-    out = terms / terms.sum(-1, keepdim=True)
-    if bool(hit.any()):
-        exact = hit.to(out.dtype)
-        out = torch.where(hit.any(-1, keepdim=True), exact, out)
-    return out
+def _transmit_rows(ranks, r_max: int):
+    """The rows of the flattened (transmit, g) coefficients that the unpadded transmit tensor keeps
+    (g < r_n of each transmit ``n``); None when no transmit is padded."""
+    if all(r == r_max for r in ranks):
+        return None
+    return torch.cat([n * r_max + torch.arange(r) for n, r in enumerate(ranks)])
 
 
 def fast_relative_error(fast: dict, exact: dict) -> torch.Tensor:
@@ -107,18 +86,26 @@ class FastSettings:
     max_nodes: the most Chebyshev nodes a pixel may need (a larger need: the fast path is refused);
     check_tol: the largest relative plane error (squared norm ratio) accepted on the check
     selections; above it the fast path is refused (the objective uses the exact path).
+    storage: ``"float32"`` keeps the receive matrix and the transmit tensor in single (or the
+    evaluation's) precision; ``"float16"`` rounds them, each column scaled to a largest magnitude of
+    1, to float16 (11 significant bits) at the build, before the check, so the check measures the
+    model as stored: half the memory and cache; the products are still formed in the evaluation's
+    precision, a block of columns at a time (:mod:`arraysel.physics.volume.stored`).
     """
 
     tol: float = 1e-5
     replicas: int = 0
     max_nodes: int = 48
     check_tol: float = 1e-4
+    storage: str = "float32"
 
     def __post_init__(self):
         check_number("tol", self.tol, lo=0, lo_open=True, hi=1e-1)
         check_number("replicas", self.replicas, lo=0, hi=8, integer=True)
         check_number("max_nodes", self.max_nodes, lo=2, hi=512, integer=True)
         check_number("check_tol", self.check_tol, lo=0, lo_open=True, hi=1.0)
+        if self.storage not in STORAGES:
+            raise ParameterError(f"storage = {self.storage!r} is not allowed; choose one of {', '.join(STORAGES)}")
 
 
 def _tone_response(t, s0: int, s1: int, fc: float, fs: float, tol: float) -> torch.Tensor:
@@ -144,25 +131,6 @@ def _tone_response(t, s0: int, s1: int, fc: float, fs: float, tol: float) -> tor
         raise FastPathUnavailable(f"the I/Q map is not a tone response on the samples read (relative "
                                   f"departure {float(resid / size):.2e} > {tol:.1e})")
     return L
-
-
-def _node_reach(n: int, tol: float, a_hi: float) -> float:
-    """The largest phase half-span ``a <= a_hi`` for which ``n`` Chebyshev nodes interpolate
-    ``exp(i a t)`` on [-1, 1] to ``tol`` (max error on a fine grid; bisection, the error growing with a)."""
-    th = torch.linspace(-1, 1, 401, dtype=torch.float64)
-    nd = _chebyshev_nodes(n)
-    ell = _lagrange(nd, th).to(torch.complex128)
-
-    def err(a):
-        return float((ell @ torch.polar(torch.ones_like(nd), a * nd) - torch.polar(torch.ones_like(th), a * th)).abs().max())
-
-    if err(a_hi) <= tol:
-        return a_hi
-    lo, hi = 0.0, a_hi
-    for _ in range(40):
-        m = (lo + hi) / 2
-        lo, hi = (m, hi) if err(m) <= tol else (lo, m)
-    return lo
 
 
 def _receive_amplitudes(A: list[torch.Tensor], f: list[torch.Tensor], fc: float, weights: list[torch.Tensor],
@@ -254,7 +222,7 @@ def _node_groups(delta: torch.Tensor, fgrid, relevance, fs: float, kc: float, st
         left = need < 0
         if not bool(left.any()):
             break
-        reach = _node_reach(n_nodes, tol, float(a_pix[left].max()))
+        reach = node_reach(n_nodes, tol, float(a_pix[left].max()))
         need[left & (a_pix <= reach)] = n_nodes
     if bool((need < 0).any()):
         raise FastPathUnavailable(f"the receive delays of a pixel span too long a time for "
@@ -273,7 +241,7 @@ def _receive_matrix(delta, rx_pos, mid, half, groups, n_cols: int, a_ek, kc: flo
     n_elements, K, Q = delta.shape[1], a_ek.shape[1], len(orders)
     B = torch.empty(n_elements, n_cols, dtype=cdtype)
     for n_nodes, idx, off in groups:
-        nodes = _chebyshev_nodes(n_nodes)
+        nodes = chebyshev_nodes(n_nodes)
         width = Q * n_nodes * K
         for p0 in range(0, idx.numel(), chunk):
             ii = idx[p0:p0 + chunk]
@@ -281,7 +249,7 @@ def _receive_matrix(delta, rx_pos, mid, half, groups, n_cols: int, a_ek, kc: flo
             hh = half[ii, None]
             tnorm = torch.where(hh > 0, (dl - mid[ii, None]) / torch.where(hh > 0, hh, torch.ones_like(hh)),
                                 torch.zeros_like(dl))
-            ell = _lagrange(nodes.expand(dl.shape[0], n_nodes), tnorm)  # (p, Ne, S)
+            ell = lagrange(nodes.expand(dl.shape[0], n_nodes), tnorm)  # (p, Ne, S)
             ph = torch.polar(torch.ones_like(dl), kc * dl)               # (p, Ne)
             reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[ii]) for q in orders], 1)
             blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)  # (p, Q, Ne, S)
@@ -308,7 +276,7 @@ def _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, 
         W, kf = W[..., keep], kf[keep]
         xi = tx_pos[n]
         for n_nodes, idx, off in groups:
-            nodes = _chebyshev_nodes(n_nodes)
+            nodes = chebyshev_nodes(n_nodes)
             width = Q * n_nodes * K
             for p0 in range(0, idx.numel(), chunk):
                 ii = idx[p0:p0 + chunk]
@@ -392,16 +360,50 @@ class MatrixFastPSF:
         self._C = torch.zeros(n_tx, self.n_elements, r_max, dtype=self.cdtype)
         for n, cn in enumerate(C_list):
             self._C[n, :, :ranks[n]] = cn.to(self.cdtype)
+        self._rows = _transmit_rows(ranks, r_max)
         self._B = torch.view_as_real(B).reshape(self.n_elements, -1)     # (Ne, 2 columns): re, im interleaved
-        self._Psi = Psi.reshape(n_tx * r_max, -1)
+        # the transmit tensor without its zero padding: the rows g < r_n of each transmit
+        self._Psi = torch.cat([Psi[n, :ranks[n]] for n in range(n_tx)]) if self._rows is not None \
+            else Psi.reshape(n_tx * r_max, -1)
+        del Psi
+        self._B_scale = self._Psi_scale = None
+        if st.storage == "float16":   # rounded here, so that the check measures the model as stored
+            self._B, self._B_scale = store(self._B)
+            self._Psi, self._Psi_scale = store(self._Psi)
         self.sizes = {"transmit_ranks": ranks, "nodes": max(g[0] for g in groups),
                       "pixels_by_nodes": {g[0]: int(g[1].numel()) for g in groups}, "harmonics": Q, "amplitude_terms": K,
-                      "pixels": P, "bytes": int(self._B.numel() * self._B.element_size()
-                                                + self._Psi.numel() * self._Psi.element_size()
-                                                + self._C.numel() * self._C.element_size())}
+                      "pixels": P, "bytes": self._bytes()}
         if self.device.type != "cpu":
-            self._B, self._Psi, self._C = self._B.to(self.device), self._Psi.to(self.device), self._C.to(self.device)
-            self._unsort = self._unsort.to(self.device)
+            self._to_device()
+
+    def _to_device(self) -> None:
+        for name in ("_B", "_Psi", "_C", "_unsort", "_rows", "_B_scale", "_Psi_scale"):
+            t = getattr(self, name)
+            if t is not None:
+                setattr(self, name, t.to(self.device))
+
+    def element_coefficients(self) -> torch.Tensor:
+        """Each element's transmit coefficients (Ne, rows of the transmit tensor): the rows of
+        ``C_n`` side by side, as :meth:`transmit_coefficients` of the unit selections."""
+        c = self._C.permute(1, 0, 2).reshape(self.n_elements, -1)
+        return c if self._rows is None else c.index_select(1, self._rows)
+
+    def _bytes(self) -> int:
+        return int(sum(t.numel() * t.element_size() for t in (self._B, self._Psi, self._C, self._B_scale,
+                                                                self._Psi_scale) if t is not None))
+
+    @property
+    def storage(self) -> str:
+        """The precision the receive matrix and the transmit tensor are held in (:data:`STORAGES`)."""
+        return "float16" if self._B.dtype == torch.float16 else "float32"
+
+    def receive_matrix(self, elements: torch.Tensor | None = None) -> torch.Tensor:
+        """The receive matrix ``B`` (Ne, 2 columns; re, im interleaved), or its rows ``elements``, in
+        the evaluation's precision (no copy when it is stored so)."""
+        B = self._B if elements is None else self._B[elements]
+        if self._B_scale is None:
+            return B
+        return B.to(self.dtype) * self._B_scale.to(self.dtype)
 
     # ---------------------------------------------------------------- evaluate
     def _receive_sums(self, r: torch.Tensor, base) -> torch.Tensor:
@@ -409,17 +411,33 @@ class MatrixFastPSF:
         a few elements (the moves of a local search), the base's sums (the latest base's kept) plus
         the rows of ``B`` of the elements that differ: a swap costs two rows of ``B``, not ``Ne``."""
         if base is None:
-            return r @ self._B
+            return stored_product(r, self._B, self._B_scale)
         b = check_element_weights(base, self.n_elements, self.dtype, self.device)
         d = r - b
         rows, cols = d.nonzero(as_tuple=True)
         if rows.numel() > r.shape[0] * self.n_elements // 8:   # not a few moves: the full product
-            return r @ self._B
+            return stored_product(r, self._B, self._B_scale)
         key = b.detach().cpu().numpy().tobytes()
         if getattr(self, "_base_sums", (None,))[0] != key:   # the latest base's sums, kept: a search asks again
-            self._base_sums = (key, b.detach() @ self._B)
+            self._base_sums = (key, stored_product(b.detach()[None], self._B, self._B_scale)[0])
         out = self._base_sums[1].expand(r.shape[0], -1).clone()
-        return out.index_add_(0, rows, d[rows, cols, None] * self._B[cols])
+        return out.index_add_(0, rows, d[rows, cols, None] * self.receive_matrix(cols))
+
+    def transmit_coefficients(self, weights: torch.Tensor) -> torch.Tensor:
+        """``c`` (B, rows of the transmit tensor): each transmit's field coefficients ``w @ C_n``,
+        the rows g < r_n of each; ``weights`` (B, Ne) one apodization for every transmit, or
+        (B, n_tx, Ne) one per transmit event."""
+        w = weights.to(self.cdtype)
+        if w.dim() == 2:
+            c = torch.einsum("be,ner->bnr", w, self._C)
+        else:
+            c = torch.einsum("bne,ner->bnr", w, self._C)
+        c = c.reshape(w.shape[0], -1)
+        return c if self._rows is None else c.index_select(1, self._rows)
+
+    def transmit_sums(self, c: torch.Tensor) -> torch.Tensor:
+        """``z = c @ Psi`` (B, columns) complex from :meth:`transmit_coefficients`' ``c``."""
+        return stored_product(c, self._Psi, self._Psi_scale)
 
     def image(self, weights, receive=None, base=None) -> torch.Tensor:
         """Compound image (B, Npix) on the planes' pixels (as :meth:`MatrixPSF.image`); with
@@ -439,11 +457,8 @@ class MatrixFastPSF:
                                  f"got {tuple(r.shape)}")
         Bn = w.shape[0]
         gamma = torch.view_as_complex(self._receive_sums(r, base).reshape(Bn, -1, 2))   # (B, columns)
-        if w.shape[1] == 1:
-            c = torch.einsum("be,ner->bnr", w[:, 0].to(self.cdtype), self._C).reshape(Bn, -1)  # (B, n_tx*r)
-        else:  # one transmit apodization per transmit event: each event's own field coefficients
-            c = torch.einsum("bne,ner->bnr", w.to(self.cdtype), self._C).reshape(Bn, -1)
-        z = c @ self._Psi                                                    # (B, columns)
+        # one transmit apodization for all transmits, or one per transmit event: each event's own
+        z = self.transmit_sums(self.transmit_coefficients(w[:, 0] if w.shape[1] == 1 else w))  # (B, columns)
         prod = gamma * z
         # split, not slices: a slice's backward fills a full-size zero tensor per group
         parts = torch.split(prod, [n * width for n, width, _ in self._groups], dim=1)
@@ -459,22 +474,30 @@ class MatrixFastPSF:
     # ---------------------------------------------------------------- check
     def state(self) -> dict[str, torch.Tensor]:
         """The tensors that :meth:`from_state` restores this model from (for the on-disk cache;
-        stored in single precision, 1e-7 relative, far below the check's tolerance)."""
-        return {"B": self._B.cpu().float(), "Psi": self._Psi.cpu().to(torch.complex64),
-                "C": self._C.cpu().to(torch.complex64), "unsort": self._unsort.cpu(),
-                "groups": torch.tensor(self._groups, dtype=torch.int64).reshape(-1, 3),
-                "image_scale": torch.tensor(float(self.image_scale)),
-                "check_error": torch.tensor(float(self.check["max_relative_error"])),
-                "ranks": torch.tensor(self.sizes["transmit_ranks"]), "nodes": torch.tensor(self.sizes["nodes"]),
-                "harmonics": torch.tensor(self.sizes["harmonics"]),
-                "amplitude_terms": torch.tensor(self.sizes["amplitude_terms"])}
+        stored in single precision, 1e-7 relative, far below the check's tolerance, or in the
+        scaled float16 of :attr:`FastSettings.storage`, as checked, with their column scales). The
+        transmit tensor holds the rows ``g < r_n`` of each transmit (``ranks``), without padding."""
+        low = self.storage == "float16"
+        out = {"B": self._B.cpu() if low else self._B.cpu().float(),
+               "Psi": self._Psi.cpu() if low else self._Psi.cpu().to(torch.complex64),
+               "C": self._C.cpu().to(torch.complex64), "unsort": self._unsort.cpu(),
+               "groups": torch.tensor(self._groups, dtype=torch.int64).reshape(-1, 3),
+               "image_scale": torch.tensor(float(self.image_scale)),
+               "check_error": torch.tensor(float(self.check["max_relative_error"])),
+               "ranks": torch.tensor(self.sizes["transmit_ranks"]), "nodes": torch.tensor(self.sizes["nodes"]),
+               "harmonics": torch.tensor(self.sizes["harmonics"]),
+               "amplitude_terms": torch.tensor(self.sizes["amplitude_terms"])}
+        if low:
+            out.update(B_scale=self._B_scale.cpu(), Psi_scale=self._Psi_scale.cpu())
+        return out
 
     @classmethod
     def from_state(cls, setup, state: dict, settings: FastSettings | None = None, dtype=torch.float32,
                    device="cpu", coords: dict | None = None) -> "MatrixFastPSF":
         """A model restored from :meth:`state` for ``setup`` (no exact model is built: :attr:`exact`
         is None); ``coords``: the surfaces it was built on, when not the setup's planes (as
-        :class:`MatrixPSF`'s ``coords``). Raises ValueError when the tensors do not fit the setup."""
+        :class:`MatrixPSF`'s ``coords``). Tensors stored in float16 stay so (read a block at a
+        time). Raises ValueError when the tensors do not fit the setup."""
         self = cls.__new__(cls)
         self.settings = settings or FastSettings()
         self.exact = None
@@ -490,17 +513,26 @@ class MatrixFastPSF:
         n_pix = sum(h * w for h, w in self._shapes.values())
         columns = sum(n * width for n, width, _ in self._groups)
         B, Psi, C, unsort = state["B"], state["Psi"], state["C"], state["unsort"]
-        if (B.shape != (self.n_elements, 2 * columns) or Psi.shape[1] != columns or unsort.shape != (n_pix,)
+        ranks = [int(r) for r in state["ranks"]]
+        low = B.dtype == torch.float16
+        self._B_scale, self._Psi_scale = (state.get("B_scale"), state.get("Psi_scale")) if low else (None, None)
+        if (B.shape != (self.n_elements, 2 * columns) or Psi.shape[1] != (2 * columns if low else columns)
+                or unsort.shape != (n_pix,) or (Psi.dtype == torch.float16) != low
                 or sum(n for n, _, _ in self._groups) != n_pix
-                or C.shape[:2] != (setup.n_tx, self.n_elements) or C.shape[0] * C.shape[2] != Psi.shape[0]):
+                or C.shape[:2] != (setup.n_tx, self.n_elements) or len(ranks) != C.shape[0]
+                or max(ranks) != C.shape[2] or sum(ranks) != Psi.shape[0]
+                or (low and (self._B_scale is None or self._Psi_scale is None
+                             or self._B_scale.shape != (2 * columns,) or self._Psi_scale.shape != (columns,)))):
             raise ValueError("the stored fast-path tensors do not fit this scene")
-        self._B = B.to(self.device, dtype).contiguous()
-        self._Psi = Psi.to(self.device, self.cdtype).contiguous()
-        self._C = C.to(self.device, self.cdtype).contiguous()
-        self._unsort = unsort.to(self.device)
-        self.sizes = {"transmit_ranks": [int(r) for r in state["ranks"]], "nodes": int(state["nodes"]),
+        self._B = (B if low else B.to(dtype)).contiguous()
+        self._Psi = (Psi if low else Psi.to(self.cdtype)).contiguous()
+        self._C = C.to(self.cdtype).contiguous()
+        self._rows = _transmit_rows(ranks, C.shape[2])
+        self._unsort = unsort
+        self._to_device()
+        self.sizes = {"transmit_ranks": ranks, "nodes": int(state["nodes"]),
                       "harmonics": int(state["harmonics"]), "amplitude_terms": int(state["amplitude_terms"]),
-                      "pixels": n_pix, "bytes": int(sum(t.numel() * t.element_size() for t in (B, Psi, C)))}
+                      "pixels": n_pix, "bytes": self._bytes()}
         self.check = {"max_relative_error": float(state["check_error"]), "tolerance": self.settings.check_tol,
                       "restored": True}
         return self

@@ -42,9 +42,11 @@ SURFACE = "sector"
 #: of the band's phase, so it needs up to about 52 interpolation nodes (the planes of a 3-D scene
 #: need at most 48); the check is held to a relative squared error of 1e-6. Without interpolation
 #: harmonics the error is below that for a 1024-element probe, whose many elements average the
-#: linear interpolation's ripple out; a small probe needs one harmonic each side
-SECTOR_FAST_LADDER = (FastSettings(max_nodes=128, check_tol=1e-6),
-                      FastSettings(max_nodes=128, check_tol=1e-6, replicas=1))
+#: linear interpolation's ripple out; a small probe needs one harmonic each side. The two large
+#: tensors are stored in scaled float16 (half the memory of float32; the check, which measures the
+#: model as stored, holds them to the same 1e-6)
+SECTOR_FAST_LADDER = (FastSettings(max_nodes=128, check_tol=1e-6, storage="float16"),
+                      FastSettings(max_nodes=128, check_tol=1e-6, replicas=1, storage="float16"))
 SECTOR_FAST = SECTOR_FAST_LADDER[0]
 
 

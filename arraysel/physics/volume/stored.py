@@ -1,0 +1,98 @@
+"""Tensors held in a lower precision than the evaluation's, and products with them.
+
+The fast path's two large tensors (:class:`~arraysel.physics.volume.fast.MatrixFastPSF`'s receive
+matrix and transmit tensor) may be stored in float16 (:attr:`FastSettings.storage
+<arraysel.physics.volume.fast.FastSettings>`): half the memory and cache of float32. Each stored
+column is scaled to a largest magnitude of 1 (its scale kept in float32), so nothing overflows and
+every entry keeps float16's 11 significant bits relative to its column. The products with them are
+formed in the evaluation's precision, a block of :data:`STORED_BLOCK` columns converted into one
+buffer at a time and the product's columns scaled once, so the stored tensor is never held whole
+in float32 and the only rounding is that of the stored entries (measured by the fast path's check).
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = ["STORAGES", "STORED_BLOCK", "store", "stored_block", "stored_product"]
+
+#: the precisions :class:`~arraysel.physics.volume.fast.FastSettings` may store the large tensors in
+STORAGES = ("float32", "float16")
+#: columns of a stored tensor converted to the evaluation's precision at a time
+STORED_BLOCK = 1024
+
+
+def store(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(data, scale)``: a tensor (R, C) as float16 columns scaled to a largest magnitude of 1, and
+    the float32 scales (C,) that restore it (``data * scale``); an all-zero column has scale 1. A
+    complex tensor is stored as its real view, (re, im) pairs of columns (R, 2 C), both parts of a
+    column under its one scale."""
+    real = torch.view_as_real(x) if x.is_complex() else x[..., None]            # (R, C, 1 or 2)
+    top = real.abs().amax((0, 2))
+    scale = torch.where(top > 0, top, torch.ones_like(top))
+    return (real / scale[:, None]).reshape(x.shape[0], -1).to(torch.float16), scale.to(torch.float32)
+
+
+def stored_block(stored: torch.Tensor, scale: torch.Tensor | None, a: int, b: int, dtype) -> torch.Tensor:
+    """Columns ``a:b`` of a stored tensor in ``dtype``, scaled back (a new tensor); a complex
+    ``dtype`` reads the stored (re, im) pairs of columns."""
+    blk = _raw_block(stored, a, b, dtype, None)
+    return blk if scale is None else blk * scale[a:b].to(blk.real.dtype)
+
+
+def _raw_block(stored: torch.Tensor, a: int, b: int, dtype, buf: torch.Tensor | None) -> torch.Tensor:
+    """Columns ``a:b`` of ``stored`` in ``dtype``, unscaled, converted into ``buf`` (real, at least
+    as wide; None: a new tensor)."""
+    cplx = dtype.is_complex
+    real = (torch.float32 if dtype == torch.complex64 else torch.float64) if cplx else dtype
+    lo, hi = (2 * a, 2 * b) if cplx else (a, b)
+    if buf is None or hi - lo != buf.shape[1]:
+        blk = stored[:, lo:hi].to(real)
+    else:
+        blk = buf
+        blk.copy_(stored[:, lo:hi])
+    return torch.view_as_complex(blk.reshape(stored.shape[0], b - a, 2)) if cplx else blk
+
+
+class _StoredProduct(torch.autograd.Function):
+    """``x @ S`` for ``S`` held in float16 with column scales: ``S`` converted to ``x``'s precision
+    :data:`STORED_BLOCK` columns at a time into one buffer (never whole), the product formed in
+    ``x``'s and scaled once at the end."""
+
+    @staticmethod
+    def forward(ctx, x, stored, scale):
+        cplx = x.is_complex()
+        n = stored.shape[1] // 2 if cplx else stored.shape[1]
+        out = torch.empty(x.shape[0], n, dtype=x.dtype, device=x.device)
+        buf = torch.empty(stored.shape[0], (2 if cplx else 1) * min(n, STORED_BLOCK),
+                          dtype=x.real.dtype, device=x.device)
+        for a in range(0, n, STORED_BLOCK):
+            b = min(n, a + STORED_BLOCK)
+            out[:, a:b] = x @ _raw_block(stored, a, b, x.dtype, buf)
+        if scale is not None:
+            out.mul_(scale.to(x.real.dtype))
+        ctx.save_for_backward(stored, scale)
+        ctx.n, ctx.dtype = n, x.dtype
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        stored, scale = ctx.saved_tensors
+        if scale is not None:
+            grad = grad * scale.to(grad.real.dtype)
+        cplx = ctx.dtype.is_complex
+        buf = torch.empty(stored.shape[0], (2 if cplx else 1) * min(ctx.n, STORED_BLOCK),
+                          dtype=grad.real.dtype, device=grad.device)
+        gx = torch.zeros(grad.shape[0], stored.shape[0], dtype=ctx.dtype, device=grad.device)
+        for a in range(0, ctx.n, STORED_BLOCK):
+            b = min(ctx.n, a + STORED_BLOCK)
+            gx += grad[:, a:b] @ _raw_block(stored, a, b, ctx.dtype, buf).mH
+        return gx, None, None
+
+
+def stored_product(x: torch.Tensor, stored: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """``x @ stored`` (differentiable in ``x``); a float16 ``stored`` (with its column ``scale``
+    from :func:`store`; a complex ``x``: its (re, im) pairs of columns) is read a block of columns
+    at a time in ``x``'s precision."""
+    if stored.dtype != torch.float16:
+        return x @ stored
+    return _StoredProduct.apply(x, stored, scale)
