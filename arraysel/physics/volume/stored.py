@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["STORAGES", "STORED_BLOCK", "store", "stored_block", "stored_product"]
+__all__ = ["STORAGES", "STORED_BLOCK", "store", "stored_product"]
 
 #: the precisions :class:`~arraysel.physics.volume.fast.FastSettings` may store the large tensors in
 STORAGES = ("float32", "float16")
@@ -32,25 +32,19 @@ def store(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (real / scale[:, None]).reshape(x.shape[0], -1).to(torch.float16), scale.to(torch.float32)
 
 
-def stored_block(stored: torch.Tensor, scale: torch.Tensor | None, a: int, b: int, dtype) -> torch.Tensor:
-    """Columns ``a:b`` of a stored tensor in ``dtype``, scaled back (a new tensor); a complex
-    ``dtype`` reads the stored (re, im) pairs of columns."""
-    blk = _raw_block(stored, a, b, dtype, None)
-    return blk if scale is None else blk * scale[a:b].to(blk.real.dtype)
-
-
-def _raw_block(stored: torch.Tensor, a: int, b: int, dtype, buf: torch.Tensor | None) -> torch.Tensor:
-    """Columns ``a:b`` of ``stored`` in ``dtype``, unscaled, converted into ``buf`` (real, at least
-    as wide; None: a new tensor)."""
+def _blocks(stored: torch.Tensor, n: int, dtype):
+    """``(a, b, block)`` for each :data:`STORED_BLOCK` of the ``n`` columns of ``stored``: columns
+    ``a:b`` in ``dtype``, unscaled, converted into one buffer (a complex ``dtype`` reads the stored
+    (re, im) pairs of columns; the last, narrower block is a new tensor)."""
     cplx = dtype.is_complex
     real = (torch.float32 if dtype == torch.complex64 else torch.float64) if cplx else dtype
-    lo, hi = (2 * a, 2 * b) if cplx else (a, b)
-    if buf is None or hi - lo != buf.shape[1]:
-        blk = stored[:, lo:hi].to(real)
-    else:
-        blk = buf
-        blk.copy_(stored[:, lo:hi])
-    return torch.view_as_complex(blk.reshape(stored.shape[0], b - a, 2)) if cplx else blk
+    per = 2 if cplx else 1
+    buf = torch.empty(stored.shape[0], per * min(n, STORED_BLOCK), dtype=real, device=stored.device)
+    for a in range(0, n, STORED_BLOCK):
+        b = min(n, a + STORED_BLOCK)
+        src = stored[:, per * a:per * b]
+        blk = buf.copy_(src) if src.shape[1] == buf.shape[1] else src.to(real)
+        yield a, b, (torch.view_as_complex(blk.reshape(stored.shape[0], b - a, 2)) if cplx else blk)
 
 
 class _StoredProduct(torch.autograd.Function):
@@ -60,14 +54,10 @@ class _StoredProduct(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, stored, scale):
-        cplx = x.is_complex()
-        n = stored.shape[1] // 2 if cplx else stored.shape[1]
+        n = stored.shape[1] // 2 if x.is_complex() else stored.shape[1]
         out = torch.empty(x.shape[0], n, dtype=x.dtype, device=x.device)
-        buf = torch.empty(stored.shape[0], (2 if cplx else 1) * min(n, STORED_BLOCK),
-                          dtype=x.real.dtype, device=x.device)
-        for a in range(0, n, STORED_BLOCK):
-            b = min(n, a + STORED_BLOCK)
-            out[:, a:b] = x @ _raw_block(stored, a, b, x.dtype, buf)
+        for a, b, blk in _blocks(stored, n, x.dtype):
+            out[:, a:b] = x @ blk
         if scale is not None:
             out.mul_(scale.to(x.real.dtype))
         ctx.save_for_backward(stored, scale)
@@ -79,13 +69,9 @@ class _StoredProduct(torch.autograd.Function):
         stored, scale = ctx.saved_tensors
         if scale is not None:
             grad = grad * scale.to(grad.real.dtype)
-        cplx = ctx.dtype.is_complex
-        buf = torch.empty(stored.shape[0], (2 if cplx else 1) * min(ctx.n, STORED_BLOCK),
-                          dtype=grad.real.dtype, device=grad.device)
         gx = torch.zeros(grad.shape[0], stored.shape[0], dtype=ctx.dtype, device=grad.device)
-        for a in range(0, ctx.n, STORED_BLOCK):
-            b = min(ctx.n, a + STORED_BLOCK)
-            gx += grad[:, a:b] @ _raw_block(stored, a, b, ctx.dtype, buf).mH
+        for a, b, blk in _blocks(stored, ctx.n, ctx.dtype):
+            gx += grad[:, a:b] @ blk.mH
         return gx, None, None
 
 
