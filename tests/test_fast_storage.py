@@ -116,6 +116,16 @@ def test_float16_storage_images_state_and_bytes(models):
         MatrixFastPSF.from_state(exact.setup, bad, low.settings)
 
 
+def test_float16_build_stores_what_storing_the_float32_model_would(models):
+    # the float16 model is rounded a block of pixels at a time as it is built (never held whole in
+    # float32): the same bits as storing the float32 model's tensors whole
+    _, full, low = models
+    B, B_scale = store(full._B)
+    Psi, Psi_scale = store(full._Psi)
+    assert torch.equal(low._B, B) and torch.equal(low._B_scale, B_scale)
+    assert torch.equal(low._Psi, Psi) and torch.equal(low._Psi_scale, Psi_scale)
+
+
 def test_float16_storage_gradient_and_moves(models):
     exact, full, low = models
     ne = exact.n_elements

@@ -52,7 +52,7 @@ from arraysel.errors import ParameterError, SelectionError, check_number
 from arraysel.physics.volume.nodes import chebyshev_nodes, interpolation_harmonics, lagrange, node_reach
 from arraysel.physics.volume.psf import (MatrixPSF, check_element_weights, check_surfaces, plane_axes, split_planes,
                                          transmit_event_weights)
-from arraysel.physics.volume.stored import STORAGES, store, stored_product
+from arraysel.physics.volume.stored import STORAGES, ColumnSink, stored_product
 
 __all__ = ["FastPathUnavailable", "FastSettings", "MatrixFastPSF", "STORAGES", "interpolation_harmonics",
            "fast_relative_error", "stored_product"]
@@ -236,10 +236,10 @@ def _node_groups(delta: torch.Tensor, fgrid, relevance, fs: float, kc: float, st
     return mid, half, groups, off
 
 
-def _receive_matrix(delta, rx_pos, mid, half, groups, n_cols: int, a_ek, kc: float, orders, chunk: int, cdtype):
-    """The receive matrix ``B`` (Ne, columns), each group's columns ordered (pixel, q, node, k)."""
+def _receive_matrix(delta, rx_pos, mid, half, groups, a_ek, kc: float, orders, chunk: int, sink: ColumnSink):
+    """The receive matrix ``B`` (Ne, columns) into ``sink``, each group's columns ordered (pixel, q,
+    node, k), a block of ``chunk`` pixels at a time."""
     n_elements, K, Q = delta.shape[1], a_ek.shape[1], len(orders)
-    B = torch.empty(n_elements, n_cols, dtype=cdtype)
     for n_nodes, idx, off in groups:
         nodes = chebyshev_nodes(n_nodes)
         width = Q * n_nodes * K
@@ -254,18 +254,14 @@ def _receive_matrix(delta, rx_pos, mid, half, groups, n_cols: int, a_ek, kc: flo
             reps = torch.stack([torch.polar(torch.ones_like(dl), 2 * math.pi * q * rx_pos[ii]) for q in orders], 1)
             blk = ph[:, None, :, None] * reps[..., None] * ell[:, None].to(ph.dtype)  # (p, Q, Ne, S)
             blk = blk[..., None] * a_ek[None, None, :, None, :]           # (p, Q, Ne, S, K)
-            c0 = off + p0 * width
-            B[:, c0:c0 + ii.numel() * width] = blk.permute(2, 0, 1, 3, 4).reshape(n_elements, -1).to(cdtype)
-    return B
+            sink.put(off + p0 * width, blk.permute(2, 0, 1, 3, 4).reshape(n_elements, -1))
 
 
-def _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, n_cols: int, fs: float, fc: float,
-                     kc: float, tol: float, orders, chunk: int, cdtype):
-    """The transmit tensor ``Psi`` (n_tx, r_max, columns), zero-padded in g, in the receive
-    matrix's column order."""
-    n_tx, r_max, Q, K = len(fgrid), max(ranks), len(orders), rx_basis[0].shape[0]
-    Psi = torch.zeros(n_tx, r_max, n_cols, dtype=cdtype)
-    for n in range(n_tx):
+def _transmit_weights(fgrid, Phi, L, rx_basis, fs: float, fc: float, tol: float, orders) -> list:
+    """Per transmit ``(W, kf)``: the weights (r_n, Q, K, F') of its transmit sums over the
+    frequencies F' where the echo has weight, and those frequencies' phase steps a sample."""
+    out = []
+    for n in range(len(fgrid)):
         f = fgrid[n]
         kf = 2 * math.pi * f / fs
         h = interpolation_harmonics(2 * math.pi * (f - fc) / fs, orders)  # (Q, F)
@@ -273,23 +269,35 @@ def _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, 
         # frequencies where the echo has no weight add nothing (a thousandth of ``tol``): leave them out
         mag = W.abs().amax((0, 1, 2))
         keep = mag > 1e-3 * tol * mag.max()
-        W, kf = W[..., keep], kf[keep]
-        xi = tx_pos[n]
-        for n_nodes, idx, off in groups:
-            nodes = chebyshev_nodes(n_nodes)
-            width = Q * n_nodes * K
-            for p0 in range(0, idx.numel(), chunk):
-                ii = idx[p0:p0 + chunk]
-                dnode = mid[ii, None] + half[ii, None] * nodes[None]     # (p, S) delta_pm
+        out.append((W[..., keep], kf[keep]))
+    return out
+
+
+def _transmit_tensor(weights, tx_pos, ranks, mid, half, groups, kc: float, orders, chunk: int, sink: ColumnSink):
+    """The transmit tensor ``Psi`` (sum of the ranks, columns) into ``sink``: the rows g < r_n of
+    each transmit ``n`` (``weights`` from :func:`_transmit_weights`), in the receive matrix's
+    column order, a block of ``chunk`` pixels (all transmits) at a time."""
+    Q, K = len(orders), weights[0][0].shape[2]
+    first = [0]
+    for r in ranks:
+        first.append(first[-1] + r)
+    for n_nodes, idx, off in groups:
+        nodes = chebyshev_nodes(n_nodes)
+        width = Q * n_nodes * K
+        for p0 in range(0, idx.numel(), chunk):
+            ii = idx[p0:p0 + chunk]
+            dnode = mid[ii, None] + half[ii, None] * nodes[None]         # (p, S) delta_pm
+            blk = torch.empty(first[-1], ii.numel() * width, dtype=sink.cdtype)
+            for n, (W, kf) in enumerate(weights):
+                xi = tx_pos[n]
                 zeta = xi[ii, None] + dnode                              # (p, S)
                 E = torch.polar(torch.ones_like(zeta[..., None] * kf), zeta[..., None] * kf)  # (p, S, F)
                 pre = torch.stack([torch.polar(torch.ones_like(zeta), 2 * math.pi * q * xi[ii, None]
                                                - kc * dnode) for q in orders], 1)  # (p, Q, S)
                 # sum_f W[g,q,k,f] E[p,s,f]  -> (g, p, q, s, k)
                 v = torch.einsum("gqkf,psf->gpqsk", W, E) * pre[None, :, :, :, None]
-                c0 = off + p0 * width
-                Psi[n, :ranks[n], c0:c0 + ii.numel() * width] = v.reshape(ranks[n], -1).to(cdtype)
-    return Psi
+                blk[first[n]:first[n + 1]] = v.reshape(ranks[n], -1).to(sink.cdtype)
+            sink.put(off + p0 * width, blk)
 
 
 class MatrixFastPSF:
@@ -349,10 +357,18 @@ class MatrixFastPSF:
         Q = len(orders)
         P = rx_pos.shape[0]
         mid, half, groups, n_cols = _node_groups(delta, fgrid, relevance, fs, kc, st, Q * K)
-        B = _receive_matrix(delta, rx_pos, mid, half, groups, n_cols, a_ek, kc, orders, chunk, self.cdtype)
+        # built a block of pixels at a time straight into their storage (float16: rounded block by block,
+        # before the check, which then measures the model as stored)
+        sink = ColumnSink(self.n_elements, n_cols, st.storage, self.cdtype, real=True)
+        _receive_matrix(delta, rx_pos, mid, half, groups, a_ek, kc, orders, chunk, sink)
+        self._B, self._B_scale = sink.result()
+        del sink
         r_max = max(ranks)
-        Psi = _transmit_tensor(fgrid, Phi, L, rx_basis, tx_pos, ranks, mid, half, groups, n_cols, fs, fc, kc, st.tol,
-                               orders, chunk, self.cdtype)
+        sink = ColumnSink(sum(ranks), n_cols, st.storage, self.cdtype, real=False)
+        _transmit_tensor(_transmit_weights(fgrid, Phi, L, rx_basis, fs, fc, st.tol, orders), tx_pos, ranks, mid,
+                         half, groups, kc, orders, chunk, sink)
+        self._Psi, self._Psi_scale = sink.result()
+        del sink
         order = torch.cat([idx for _, idx, _ in groups])
         #: (pixels in the groups' order, nodes a pixel, column offset) per group, and the inverse order
         self._groups = [(idx.numel(), Q * n_nodes * K, off) for n_nodes, idx, off in groups]
@@ -361,15 +377,6 @@ class MatrixFastPSF:
         for n, cn in enumerate(C_list):
             self._C[n, :, :ranks[n]] = cn.to(self.cdtype)
         self._rows = _transmit_rows(ranks, r_max)
-        self._B = torch.view_as_real(B).reshape(self.n_elements, -1)     # (Ne, 2 columns): re, im interleaved
-        # the transmit tensor without its zero padding: the rows g < r_n of each transmit
-        self._Psi = torch.cat([Psi[n, :ranks[n]] for n in range(n_tx)]) if self._rows is not None \
-            else Psi.reshape(n_tx * r_max, -1)
-        del Psi
-        self._B_scale = self._Psi_scale = None
-        if st.storage == "float16":   # rounded here, so that the check measures the model as stored
-            self._B, self._B_scale = store(self._B)
-            self._Psi, self._Psi_scale = store(self._Psi)
         self.sizes = {"transmit_ranks": ranks, "nodes": max(g[0] for g in groups),
                       "pixels_by_nodes": {g[0]: int(g[1].numel()) for g in groups}, "harmonics": Q, "amplitude_terms": K,
                       "pixels": P, "bytes": self._bytes()}

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["STORAGES", "STORED_BLOCK", "store", "stored_product"]
+__all__ = ["STORAGES", "STORED_BLOCK", "ColumnSink", "store", "stored_product"]
 
 #: the precisions :class:`~arraysel.physics.volume.fast.FastSettings` may store the large tensors in
 STORAGES = ("float32", "float16")
@@ -30,6 +30,46 @@ def store(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     top = real.abs().amax((0, 2))
     scale = torch.where(top > 0, top, torch.ones_like(top))
     return (real / scale[:, None]).reshape(x.shape[0], -1).to(torch.float16), scale.to(torch.float32)
+
+
+class ColumnSink:
+    """A complex tensor (R, C) written a block of whole columns at a time and held as it will be
+    used, never whole in ``cdtype``: ``real`` True, as its real view (R, 2 C), (re, im) pairs of
+    columns, else complex; with ``storage`` "float16", each block stored at once (:func:`store`,
+    which scales each column, real or complex, on its own: storing by blocks gives what storing the
+    whole tensor would). :meth:`put` the columns ``c0:c0 + w`` (all R rows, any complex dtype,
+    cast to ``cdtype`` first); :meth:`result` ``(data, scale or None)``."""
+
+    def __init__(self, rows: int, cols: int, storage: str, cdtype, real: bool):
+        if storage not in STORAGES:
+            raise ValueError(f"storage = {storage!r} is not allowed; choose one of {', '.join(STORAGES)}")
+        self.half, self.real, self.cdtype = storage == "float16", bool(real), cdtype
+        rdtype = torch.float32 if cdtype == torch.complex64 else torch.float64
+        if self.half:
+            self.data = torch.zeros(rows, 2 * cols, dtype=torch.float16)
+            self.scale = torch.ones(2 * cols if self.real else cols, dtype=torch.float32)
+        else:
+            self.data = torch.zeros(rows, 2 * cols, dtype=rdtype) if self.real else torch.zeros(rows, cols, dtype=cdtype)
+            self.scale = None
+
+    def put(self, c0: int, block: torch.Tensor) -> None:
+        w = block.shape[1]
+        x = block.to(self.cdtype)
+        if self.real:
+            x = torch.view_as_real(x).reshape(x.shape[0], -1)
+        if not self.half:
+            if self.real:
+                self.data[:, 2 * c0:2 * (c0 + w)] = x
+            else:
+                self.data[:, c0:c0 + w] = x
+            return
+        data, scale = store(x)
+        self.data[:, 2 * c0:2 * (c0 + w)] = data
+        per = 2 if self.real else 1
+        self.scale[per * c0:per * (c0 + w)] = scale
+
+    def result(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        return self.data, self.scale
 
 
 def _blocks(stored: torch.Tensor, n: int, dtype):
