@@ -348,6 +348,7 @@ def arraysel_metrics(scene: dict, points, half_angle: float, margin: float, samp
     for i in range(len(points)):
         t = time.perf_counter()
         bm = obj.beam_metrics(masks, points=[i], exact=True)
+        obj.beams.exact.release(i)       # one point's exact model held at a time
         sec = (time.perf_counter() - t) / len(masks)
         out.append({"PSL_dB": bm["PSL_dB"][:, 0], "ISLR_dB": bm["ISLR_dB"][:, 0], "width_x": bm["width_x_6dB"][:, 0],
                     "width_y": bm["width_y_6dB"][:, 0], "seconds": np.full(len(masks), sec)})

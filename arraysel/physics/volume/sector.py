@@ -261,6 +261,10 @@ class SectorPSF:
                                         coords=self.coords[i])
         return self._models[i]
 
+    def release(self, i: int) -> None:
+        """Free point ``i``'s exact model (rebuilt on its next use): a scan of many points holds one at a time."""
+        self._models.pop(int(i), None)
+
     def surfaces(self, weights, i: int, exact: bool = False, receive=None, base=None) -> dict[str, torch.Tensor]:
         """Point ``i``'s image ``{SURFACE: complex (B, Hv, Hu)}`` for element weights (B, Ne)
         (``receive``: separate receive weights (B, Ne), ``weights`` then the transmit apodization):
