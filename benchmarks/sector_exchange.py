@@ -1,6 +1,6 @@
 """Polish a sector scene's selection by the exchange method and write what it did.
 
-:func:`arraysel.objective.sector_exchange.exchange_polish`: rounds of a scan of the selection on
+:func:`arraysel.run.sector_exchange.exchange_polish`: rounds of a scan of the selection on
 random points of the sector (exact path), the worst ones added to the scene's points, and a polish
 on the enlarged set. Writes to ``--out``: ``exchange.csv`` (``config``, ``elements``: the start
 and the polished selection, for ``benchmarks/sector_recheck.py --extra``), ``exchange.json`` (each
@@ -44,7 +44,7 @@ def main(argv=None) -> None:
     set_threads(args.threads)
     import numpy as np
 
-    from arraysel.objective.sector_exchange import exchange_polish
+    from arraysel.run.sector_exchange import exchange_polish
 
     start = read_selections([args.selections], [args.config], 1024)[args.config]
     args.out.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""The exchange polish of a sector scene (``arraysel.objective.sector_exchange``): random points in
+"""The exchange polish of a sector scene (``arraysel.run.sector_exchange``): random points in
 the sector, a scan that equals the exact per-beam metrics, and rounds that add the worst scanned
 points above the scene's own worst to the points polished on."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from arraysel.errors import ParameterError
-from arraysel.objective.sector_exchange import exchange_polish, random_sector_points, scan_points
+from arraysel.run.sector_exchange import exchange_polish, random_sector_points, scan_points
 from arraysel.objective.sector_objective import SectorObjective
 from arraysel.run.sector_report import BeamPolish
 from arraysel.scenes.schema import load_scene
