@@ -28,12 +28,13 @@ import time
 import numpy as np
 
 from arraysel.errors import ParameterError, check_number
+from arraysel.scenes.keys import SCHEMA
 from arraysel.scenes.load import load_scene
 
 __all__ = ["random_sector_points", "scan_points", "exchange_polish", "MAX_POINTS"]
 
-#: the most points a sector scene holds (``sector.points``)
-MAX_POINTS = 32
+#: the most points a sector scene holds (the range of the ``sector.points`` key)
+MAX_POINTS = int(SCHEMA["sector"]["points"].cons[1])
 
 
 def _tree(scene, points) -> dict:
@@ -117,13 +118,21 @@ def exchange_polish(scene, mask, *, rounds: int = 3, scan: int = 24, add: int = 
                              f"rounds x add <= {MAX_POINTS - len(points)}")
     added: list[list] = []
     history = []
+    ratio = float(sc.value("sector", "polish_width_ratio"))
+
+    def objective_on(pts):
+        """The objective on ``pts``, its points' fast models (cached) and the cap over all of them."""
+        gc.collect()            # the previous objective's models unmapped before the next are built
+        o = SectorObjective(load_scene(_tree(sc, pts)))
+        p = BeamPolish(1.0, ratio)
+        p.prepare(o)
+        return o, p
+
+    obj, plan = objective_on(points)    # kept from round to round: the polished set is the next scene
     for r in range(rounds):
         t0 = time.perf_counter()
         cand = random_sector_points(sc, scan, np.random.default_rng([seed, r]), ranges, edge_deg)
         psl = scan_points(sc, m, cand)["PSL_dB"]
-        obj = SectorObjective(load_scene(_tree(sc, points)))
-        plan = BeamPolish(1.0, float(sc.value("sector", "polish_width_ratio")))
-        plan.prepare(obj)
         _, summ = obj.beam_loss(m[None], plan.cap)
         worst = float(summ["worst_PSL_dB"][0])
         order = [int(j) for j in np.argsort(-psl) if psl[j] > worst][:add]
@@ -139,9 +148,7 @@ def exchange_polish(scene, mask, *, rounds: int = 3, scan: int = 24, add: int = 
         points += [cand[j] for j in order]
         added += [cand[j] for j in order]
         del obj
-        gc.collect()
-        obj = SectorObjective(load_scene(_tree(sc, points)))
-        plan.prepare(obj)              # the new points' fast models (cached) and the cap over all points
+        obj, plan = objective_on(points)
         res = polish_on_beams(obj, m, width_cap=plan.cap, seconds=seconds, seed=seed + r, **BEAM_POLISH_SETTINGS)
         m = np.asarray(res["mask"], dtype=bool)
         step["polish"] = {k: v for k, v in res.items() if k != "mask"}
@@ -152,6 +159,4 @@ def exchange_polish(scene, mask, *, rounds: int = 3, scan: int = 24, add: int = 
             f"(worst {res['worst_PSL_dB']:.2f} dB on {len(points)} points, mean width "
             f"{res['mean_width_m'] * 1e3:.3f} mm, {res['rounds']} rounds, {res['accepted']} moves, "
             f"{res['seconds']:.0f} s)")
-        del obj
-        gc.collect()
     return {"mask": m, "points": points, "added": added, "history": history}
