@@ -16,7 +16,7 @@ from arraysel.objective.contract import element_layout
 from arraysel.selectors.contract import Option, Selector
 from arraysel.selectors.hookspecs import hookimpl
 from arraysel.selectors.starts import layout_projection
-from arraysel.selectors.layouts import TAPERS, fermat_spiral_layout, is_planar, tapered_line_layout
+from arraysel.selectors.layouts import TAPERS, TUKEY_ALPHA, fermat_spiral_layout, is_planar, tapered_line_layout
 
 
 class SpiralSelector(Selector):
@@ -26,8 +26,12 @@ class SpiralSelector(Selector):
     description = "density-tapered Fermat spiral snapped to the grid (a tapered line on a 1-D array)"
     options = {
         "taper": Option(str, "none", "radial density taper: none (plain sunflower, the default: on a "
-                        "grid of a few hundred elements a taper widens the main lobe), cosine (cos(pi rho / 2)) "
-                        "or blackman", choices=TAPERS),
+                        "grid of a few hundred elements a taper widens the main lobe), cosine (cos(pi rho / 2)), "
+                        "blackman or tukey (flat, then a cosine fall over the outer tukey_alpha of the radius)",
+                        choices=TAPERS),
+        "tukey_alpha": Option(float, TUKEY_ALPHA, "the share of the radius over which the tukey taper falls "
+                              "to zero (1: Hann; the published 50 % Tukey spiral: 0.5); other tapers ignore it",
+                              lo=0.01, hi=1.0),
         "rotation_deg": Option(float, 0.0, "angle of the spiral's first point (degrees; matrix arrays)",
                                lo=-360.0, hi=360.0),
     }
@@ -37,12 +41,12 @@ class SpiralSelector(Selector):
     def select(self, objective, k, seed):
         n = int(objective.n_elements)
         grid, positions = element_layout(objective)
-        taper = self.options["taper"]
+        taper, alpha = self.options["taper"], self.options["tukey_alpha"]
         if grid is None and not is_planar(positions):
-            chosen = tapered_line_layout(n, k, taper)
+            chosen = tapered_line_layout(n, k, taper, alpha)
         else:
             layout = positions if positions is not None else grid
-            chosen = fermat_spiral_layout(layout, k, taper, self.options["rotation_deg"])
+            chosen = fermat_spiral_layout(layout, k, taper, self.options["rotation_deg"], alpha)
         mask = layout_projection(objective, chosen)  # channel groups: the documented projection
         objective.evaluate(mask[None])
         return [int(i) for i in np.flatnonzero(mask)]

@@ -333,3 +333,40 @@ def test_chirped_layouts_name_a_bad_parameter():
         chirped_layouts(np.random.default_rng(0), 8, 4, 0)
     with pytest.raises(ParameterError):
         chirped_layouts(np.random.default_rng(0), 12, 4, 4, (5, 5))
+
+
+def test_tukey_density_is_flat_then_a_cosine_fall():
+    rho = np.array([0.0, 0.3, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(taper_density(rho, "tukey", 0.5), [1.0, 1.0, 1.0, 0.5, 0.0], atol=1e-12)
+    # alpha = 1 is the Hann window, cos^2(pi rho / 2)
+    r = np.linspace(0, 1, 21)
+    np.testing.assert_allclose(taper_density(r, "tukey", 1.0), np.cos(0.5 * np.pi * r) ** 2, atol=1e-12)
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ParameterError, match="alpha"):
+            taper_density(r, "tukey", bad)
+
+
+def test_tukey_spiral_fills_the_centre_and_thins_the_rim_with_alpha():
+    yy, xx = np.mgrid[:32, :32]
+    rr = np.hypot(yy - 15.5, xx - 15.5)
+
+    def rim(sel):
+        iy, ix = np.divmod(np.array(sel), 32)
+        return (np.hypot(iy - 15.5, ix - 15.5) > 11).sum()
+    sels = {a: fermat_spiral_layout((32, 32), 256, "tukey", alpha=a) for a in (0.1, 0.5, 1.0)}
+    for sel in sels.values():
+        _check(sel, 1024, 256)
+    # a wider fall leaves fewer elements near the rim; alpha -> 0 approaches the plain sunflower
+    assert rim(sels[1.0]) < rim(sels[0.5]) < rim(sels[0.1]) <= rim(fermat_spiral_layout((32, 32), 256, "none")) + 3
+    assert rr.size == 1024
+
+
+def test_spiral_selector_uses_the_tukey_option():
+    from arraysel.selectors.registry import get_registry
+    cls = get_registry()["spiral"]
+    obj = ToyObjective(1024, 256, grid=(32, 32))
+    for alpha in (0.25, 1.0):
+        chosen = cls(taper="tukey", tukey_alpha=alpha).select(obj, 256, 0)
+        assert chosen == fermat_spiral_layout((32, 32), 256, "tukey", alpha=alpha)
+    with pytest.raises(ParameterError, match="tukey_alpha"):
+        cls(taper="tukey", tukey_alpha=0.0)

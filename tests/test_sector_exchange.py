@@ -91,3 +91,21 @@ def test_exchange_refuses_bad_input(kwargs, name):
 def test_exchange_needs_a_sector_scene():
     with pytest.raises(ParameterError, match="sector"):
         exchange_polish("matrix-1024", np.ones(1024, dtype=bool))
+
+
+def test_the_scan_scores_a_batch_of_selections_and_weights_as_one_at_a_time():
+    pts = [[5.0, -4.0, "16 mm"], [-12.0, 8.0, "13 mm"]]
+    masks = np.stack([_mask(1), _mask(2)])
+    taper = np.hanning(10)[1:9]
+    weights = np.outer(taper, taper).reshape(-1)          # an apodized full array, 8 x 8
+    batch = scan_points(_tiny(), np.concatenate([masks, weights[None]]), pts)
+    for j, one in enumerate([masks[0], masks[1], weights]):
+        ref = scan_points(_tiny(), one, pts)
+        for k, v in ref.items():
+            assert batch[k].shape == (3, 2)
+            np.testing.assert_allclose(batch[k][j], v, rtol=1e-6, atol=1e-9, err_msg=k)
+    # the apodization widens the main lobe (a known answer of tapering)
+    w_full = scan_points(_tiny(), np.ones(64), pts)["width_x_6dB"]
+    assert np.all(batch["width_x_6dB"][2] > w_full)
+    with pytest.raises(ParameterError, match="mask"):
+        scan_points(_tiny(), np.ones((2, 2, 64)), pts)

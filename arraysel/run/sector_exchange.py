@@ -63,24 +63,34 @@ def random_sector_points(scene, n: int, rng: np.random.Generator, ranges=(20e-3,
     return [[round(float(a), 1), round(float(b), 1), f"{float(c) * 1e3:.1f} mm"] for a, b, c in zip(ax, ay, r)]
 
 
-def scan_points(scene, mask, points) -> dict[str, np.ndarray]:
-    """The exact per-beam metrics of one selection ``mask`` (Ne,) on ``points`` (the scene's surfaces
-    and settings, these points instead of its own): ``{name: float64 (P,)}``, the names of
-    :data:`~arraysel.objective.sector_beams.BEAM_COLUMNS`."""
+def scan_points(scene, mask, points, log=None) -> dict[str, np.ndarray]:
+    """The exact per-beam metrics of a selection on ``points`` (the scene's surfaces and settings,
+    these points instead of its own): ``{name: float64 (P,)}``, the names of
+    :data:`~arraysel.objective.sector_beams.BEAM_COLUMNS`. ``mask``: one selection (Ne,) (boolean,
+    or non-negative element weights: an apodized array), or a batch (B, Ne), then ``(B, P)``
+    arrays, every selection scored on a point while its exact model is held. ``log``: a callable
+    given one line per point."""
     from arraysel.objective.sector_objective import SectorObjective
 
     sc = load_scene(scene)
-    m = np.asarray(mask, dtype=bool).reshape(1, -1)
+    w = np.asarray(mask)
+    single = w.ndim == 1
+    w = w.reshape(1, -1) if single else w
+    if w.ndim != 2:
+        raise ParameterError(f"mask must be (Ne,) or (B, Ne), got shape {np.asarray(mask).shape}")
+    w = w.astype(bool) if w.dtype == bool else w.astype(np.float64)
     out: dict[str, list] = {}
     for lo in range(0, len(points), MAX_POINTS):        # a scene holds at most MAX_POINTS points
         part = points[lo:lo + MAX_POINTS]
         obj = SectorObjective(load_scene(_tree(sc, part)), fast=False)
         for i in range(len(part)):  # one point at a time: the exact path holds one point's model
-            bm = obj.beam_metrics(m, points=[i], exact=True)
+            bm = obj.beam_metrics(w, points=[i], exact=True)
             obj.beams.exact.release(i)
             for k, v in bm.items():
-                out.setdefault(k, []).append(float(v[0, 0]))
-    return {k: np.asarray(v) for k, v in out.items()}
+                out.setdefault(k, []).append(v[:, 0].astype(np.float64))
+            if log is not None:
+                log(f"point {lo + i + 1}/{len(points)} {part[i]} scored")
+    return {k: (np.stack(v, 1)[0] if single else np.stack(v, 1)) for k, v in out.items()}
 
 
 def exchange_polish(scene, mask, *, rounds: int = 3, scan: int = 24, add: int = 2, seconds: float = 300.0,

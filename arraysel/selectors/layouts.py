@@ -24,7 +24,7 @@ from arraysel.objective.contract import check_element_grid
 __all__ = ["GOLDEN_ANGLE_DEG", "TAPERS", "uniform_layout", "uniform_subgrid", "taper_density", "grid_of_positions",
            "spread_layout", "planar_uniform_layout", "is_planar",
            "fermat_spiral_points", "fermat_spiral_layout", "tapered_line_layout", "snap_to_elements",
-           "CHIRP_PERIODS", "chirped_layouts"]
+           "CHIRP_PERIODS", "TUKEY_ALPHA", "chirped_layouts"]
 
 #: the golden angle, 180 (3 - sqrt 5) degrees = 137.5078 degrees, between successive spiral points
 GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))
@@ -34,7 +34,9 @@ GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))
 #: and the centre's offset (normalised aperture, -1 to 1)
 CHIRP_PERIODS = {"centre": (1.0, 4.0), "edge": (1.0, 6.0), "growth": (0.5, 4.0), "offset": (-0.15, 0.15)}
 #: the density tapers of :func:`taper_density`
-TAPERS = ("none", "cosine", "blackman")
+TAPERS = ("none", "cosine", "blackman", "tukey")
+#: the default share of the radius over which the ``tukey`` taper falls (the published 50 % Tukey)
+TUKEY_ALPHA = 0.5
 
 
 def _check_k(k, n: int) -> int:
@@ -201,14 +203,17 @@ def is_planar(positions) -> bool:
 # density-tapered Fermat spiral
 # --------------------------------------------------------------------------
 
-def taper_density(rho, taper: str = "cosine") -> np.ndarray:
+def taper_density(rho, taper: str = "cosine", alpha: float = TUKEY_ALPHA) -> np.ndarray:
     """The element density (relative to the centre) at the normalised radius ``rho`` in [0, 1].
 
     * ``none``: 1 (the plain sunflower: uniform density);
     * ``cosine``: ``cos(pi rho / 2)``;
-    * ``blackman``: ``0.42 + 0.5 cos(pi rho) + 0.08 cos(2 pi rho)`` (the centred Blackman window).
+    * ``blackman``: ``0.42 + 0.5 cos(pi rho) + 0.08 cos(2 pi rho)`` (the centred Blackman window);
+    * ``tukey``: 1 out to ``1 - alpha``, then ``(1 + cos(pi (rho - 1 + alpha) / alpha)) / 2`` (the
+      tapered cosine; ``alpha`` in (0, 1], the share of the radius it falls over: 1 is the Hann
+      window, 0.5 the published 50 % Tukey).
 
-    Each is 1 at the centre; ``cosine`` and ``blackman`` fall to 0 at the rim.
+    Each is 1 at the centre; ``cosine``, ``blackman`` and ``tukey`` fall to 0 at the rim.
     """
     check_choice("taper", taper, TAPERS)
     rho = np.clip(np.asarray(rho, dtype=np.float64), 0.0, 1.0)
@@ -216,13 +221,16 @@ def taper_density(rho, taper: str = "cosine") -> np.ndarray:
         return np.ones_like(rho)
     if taper == "cosine":
         return np.cos(0.5 * np.pi * rho)
+    if taper == "tukey":
+        a = check_number("alpha", alpha, lo=0.0, lo_open=True, hi=1.0)
+        return np.where(rho <= 1.0 - a, 1.0, 0.5 * (1.0 + np.cos(np.pi * (rho - 1.0 + a) / a)))
     return 0.42 + 0.5 * np.cos(np.pi * rho) + 0.08 * np.cos(2 * np.pi * rho)
 
 
-def _inverse_cumulative(u: np.ndarray, taper: str, dim: int) -> np.ndarray:
+def _inverse_cumulative(u: np.ndarray, taper: str, dim: int, alpha: float = TUKEY_ALPHA) -> np.ndarray:
     """``G^{-1}(u)`` with ``G(rho) = int_0^rho w(s) s^(dim-1) ds / int_0^1 w(s) s^(dim-1) ds``."""
     rho = np.linspace(0.0, 1.0, 8193)
-    f = taper_density(rho, taper) * rho ** (dim - 1)
+    f = taper_density(rho, taper, alpha) * rho ** (dim - 1)
     g = np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(rho))])
     g /= g[-1]
     # g is strictly increasing on [0, 1) (w > 0 there); drop the flat tail a zero rim density may leave
@@ -230,7 +238,8 @@ def _inverse_cumulative(u: np.ndarray, taper: str, dim: int) -> np.ndarray:
     return np.interp(u, g[keep], rho[keep])
 
 
-def fermat_spiral_points(k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> np.ndarray:
+def fermat_spiral_points(k: int, taper: str = "cosine", rotation_deg: float = 0.0,
+                         alpha: float = TUKEY_ALPHA) -> np.ndarray:
     """``k`` points of a density-tapered Fermat (sunflower) spiral in the unit disc, ``(k, 2)``.
 
     Point ``n = 0 .. k-1`` is at angle ``n * GOLDEN_ANGLE_DEG + rotation_deg`` and radius
@@ -242,7 +251,7 @@ def fermat_spiral_points(k: int, taper: str = "cosine", rotation_deg: float = 0.
     k = int(check_number("k", k, lo=1, integer=True))
     rot = check_number("rotation_deg", rotation_deg)
     n = np.arange(k, dtype=np.float64)
-    rho = _inverse_cumulative(n / k, taper, dim=2)
+    rho = _inverse_cumulative(n / k, taper, dim=2, alpha=alpha)
     theta = np.deg2rad(n * GOLDEN_ANGLE_DEG + rot)
     return np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=1)
 
@@ -292,7 +301,8 @@ def _half_extent(v: np.ndarray) -> float:
     return 0.5 * float(u[-1] - u[0]) + 0.5 * step
 
 
-def fermat_spiral_layout(layout, k: int, taper: str = "cosine", rotation_deg: float = 0.0) -> list[int]:
+def fermat_spiral_layout(layout, k: int, taper: str = "cosine", rotation_deg: float = 0.0,
+                         alpha: float = TUKEY_ALPHA) -> list[int]:
     """``k`` elements of a matrix array along a density-tapered Fermat spiral, sorted.
 
     ``layout`` is a grid ``(ny, nx)`` (element index ``iy * nx + ix``, unit steps) or the elements'
@@ -306,14 +316,14 @@ def fermat_spiral_layout(layout, k: int, taper: str = "cosine", rotation_deg: fl
     n = len(pos)
     k = _check_k(k, n)
     check_choice("taper", taper, TAPERS)
-    pts = fermat_spiral_points(k, taper, rotation_deg)
+    pts = fermat_spiral_points(k, taper, rotation_deg, alpha)
     centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
     half = np.array([_half_extent(pos[:, 0]), _half_extent(pos[:, 1])])
     half = np.where(half > 0, half, 1.0)
     return sorted(snap_to_elements(centre + pts * half, pos))
 
 
-def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[int]:
+def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine", alpha: float = TUKEY_ALPHA) -> list[int]:
     """The 1-D analogue of the density-tapered spiral: ``k`` of ``Ne`` elements on a line, sorted.
 
     Points ``t_n = H^{-1}((n + 1/2) / k)`` in [-1, 1], ``H`` the normalised cumulative of the
@@ -327,7 +337,7 @@ def tapered_line_layout(n_elements: int, k: int, taper: str = "cosine") -> list[
     check_choice("taper", taper, TAPERS)
     u = (np.arange(k, dtype=np.float64) + 0.5) / k
     # symmetric density on [-1, 1]: H(t) = 1/2 + sign(t) G(|t|) / 2 with G the 1-D cumulative
-    a = _inverse_cumulative(np.abs(2 * u - 1), taper, dim=1)
+    a = _inverse_cumulative(np.abs(2 * u - 1), taper, dim=1, alpha=alpha)
     t = np.sign(2 * u - 1) * a
     pts = (n - 1) / 2 + t * n / 2
     order = np.argsort(np.abs(t), kind="stable")
