@@ -115,7 +115,12 @@ def stage_heldout(args, obj, positions) -> None:
 
     from arraysel.run.sector_exchange import random_sector_points, scan_points
 
-    front = pd.read_csv(args.out / "frontier.csv").drop_duplicates(["q", "s", "beta"])
+    front = pd.read_csv(args.frontier or args.out / "frontier.csv")
+    if args.band:
+        every = pd.read_csv((args.frontier or args.out / "frontier.csv").with_name("tapers.csv"))
+        lo, hi = args.band
+        front = pd.concat([front, every[(every["width_ratio"] >= lo) & (every["width_ratio"] <= hi)]])
+    front = front.drop_duplicates(["q", "s", "beta"])
     designs: dict[str, tuple[str, np.ndarray]] = {"full": ("full array", np.ones(obj.n_elements))}
     for _, f in front.iterrows():
         designs[f"taper q={f.q:g} s={f.s:g} beta={f.beta:g}"] = ("taper", taper_weights(positions, f.q, f.s, f.beta))
@@ -208,6 +213,11 @@ def main(argv=None) -> None:
     ap.add_argument("--selections", type=Path, nargs="*", default=[], help="CSVs with columns config, elements")
     ap.add_argument("--configs", nargs="*", default=[], help="the rows of --selections to score held out")
     ap.add_argument("--fresh", type=int, default=16, help="fresh random selections scored held out")
+    ap.add_argument("--band", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="also every taper of tapers.csv (beside the frontier's) whose width ratio on the scene "
+                         "lies in [LO, HI]")
+    ap.add_argument("--frontier", type=Path, default=None,
+                    help="the tapers to score held out (default: --out's frontier.csv, from --stage scene)")
     ap.add_argument("--points", type=int, default=16, help="held-out points")
     ap.add_argument("--seed", type=int, default=20261208, help="seed of the held-out points")
     ap.add_argument("--ranges-mm", type=float, nargs=2, default=(20.0, 110.0))
