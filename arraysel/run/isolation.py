@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
-import multiprocessing.connection
 import multiprocessing.util
 import os
 import threading
@@ -23,7 +22,7 @@ from typing import Callable
 
 from arraysel.errors import error_text as _error_text
 from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end,  # noqa: F401
-                                  _process_init, _watch, mp_context as _mp_context)
+                                  _process_init, _watch, mp_context as _mp_context, wait_for_result)
 
 __all__ = ["DEFAULT_GRACE_S", "UNTIMED_LIMIT_S", "BUILD_LIMIT_S", "OneShot", "IsolatedWorker", "run_one_shot"]
 
@@ -155,17 +154,9 @@ class OneShot:
         return None
 
     def wait(self):
-        """Block until :meth:`poll` has a result; return it."""
-        try:
-            while True:
-                res = self.poll()
-                if res is not None:
-                    return res
-                left = max(0.0, self.deadline - time.monotonic())
-                multiprocessing.connection.wait(self.waitables(), timeout=min(left, 3600.0))
-        except BaseException:  # KeyboardInterrupt, SIGTERM: never leave the child running
-            self.kill()
-            raise
+        """Block until :meth:`poll` has a result; return it (on any exception, kill
+        first: never leave the child running)."""
+        return wait_for_result(self, self.kill)
 
     def kill(self) -> None:
         """Stop the child (if alive) and release its pipe."""

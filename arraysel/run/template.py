@@ -40,7 +40,7 @@ from typing import Callable
 
 from arraysel.errors import error_text as _error_text
 from arraysel.run.workers import (BUILD_LIMIT_S, _SELF_STOP_MARGIN_S, TaskFailed, _children_allowed, _end, _process_init,
-                                  _watch, mp_context as _mp_context)
+                                  _watch, mp_context as _mp_context, wait_for_result)
 
 __all__ = ["WarmTemplate", "warm_objective", "set_threads", "cpu_cores", "threads_per_worker", "run_with_retries",
            "borrowed_template", "close_templates"]
@@ -474,17 +474,9 @@ class WarmTemplate:
                           f"return in time", kind="timeout")
 
     def wait(self):
-        """Block until :meth:`poll` has a result; return it."""
-        try:
-            while True:
-                res = self.poll()
-                if res is not None:
-                    return res
-                left = max(0.0, self.deadline - time.monotonic())
-                multiprocessing.connection.wait(self.waitables(), timeout=min(left, 3600.0))
-        except BaseException:  # KeyboardInterrupt, SIGTERM: never leave the run going
-            self.close()
-            raise
+        """Block until :meth:`poll` has a result; return it (on any exception, close
+        first: never leave the run going)."""
+        return wait_for_result(self, self.close)
 
     def cancel(self) -> None:
         """Abandon the run it is doing: the template (and with it the run) is ended."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import multiprocessing
+import multiprocessing.connection
 import multiprocessing.util
 import os
 import threading
@@ -156,6 +157,22 @@ def _watch(alive, limit: list) -> None:
             os._exit(70)
         if limit[0] is not None and time.monotonic() > limit[0]:
             os._exit(124)
+
+
+def wait_for_result(task, abort: Callable[[], None]):
+    """Block until ``task.poll()`` has a result and return it, sleeping on ``task.waitables()`` until
+    ``task.deadline`` (a monotonic time) between polls; on any exception (KeyboardInterrupt, SIGTERM
+    included) call ``abort()`` first, so that no child process is left running, then re-raise."""
+    try:
+        while True:
+            res = task.poll()
+            if res is not None:
+                return res
+            left = max(0.0, task.deadline - time.monotonic())
+            multiprocessing.connection.wait(task.waitables(), timeout=min(left, 3600.0))
+    except BaseException:
+        abort()
+        raise
 
 
 def _end(code: int = 0) -> None:
