@@ -55,13 +55,11 @@ def taper_weights(positions, q: float, s: float, beta: float):
     plus half an element step)."""
     import numpy as np
 
+    from arraysel.selectors.layouts import _half_extent   # the spiral's aperture: the same normalisation
+
     pos = np.asarray(positions, dtype=np.float64)[:, :2]
     centre = 0.5 * (pos.min(0) + pos.max(0))
-    half = []
-    for v in pos.T:
-        u = np.unique(v)
-        half.append(0.5 * (u[-1] - u[0]) + (0.5 * float(np.min(np.diff(u))) if len(u) > 1 else 0.0))
-    xy = np.abs(pos - centre) / np.array(half)
+    xy = np.abs(pos - centre) / np.array([_half_extent(pos[:, 0]), _half_extent(pos[:, 1])])
     rq = (xy[:, 0] ** q + xy[:, 1] ** q) ** (1.0 / q)
     return kaiser(rq / s, beta)
 
@@ -113,6 +111,7 @@ def stage_heldout(args, obj, positions) -> None:
     import numpy as np
     import pandas as pd
 
+    from arraysel.report.beams import FRESH_RANDOM
     from arraysel.run.sector_exchange import random_sector_points, scan_points
 
     front = pd.read_csv(args.frontier or args.out / "frontier.csv")
@@ -148,20 +147,22 @@ def stage_heldout(args, obj, positions) -> None:
                                                       wx=("width_x_6dB", "mean"), wy=("width_y_6dB", "mean"))
     summary["mean_width_mm"] = (summary.pop("wx") + summary.pop("wy")) / 2 * 1e3
     fresh_rows = summary[summary["kind"] == "fresh random"]
-    # the fresh baseline as compare forms it: each point's median over the fresh selections, then the worst point
+    # the fresh baseline's side lobe as compare's beams.csv forms it: each point's median over the fresh selections,
+    # then the worst point (pareto.csv takes the median of the selections' own worst); its width as pareto.csv forms
+    # it: the median of the selections' mean widths
     per_point = table[table["kind"] == "fresh random"].groupby("point", sort=False)
     med = {"kind": "fresh random", "worst_PSL_dB": float(per_point["PSL_dB"].median().max()),
            "median_PSL_dB": float(per_point["PSL_dB"].median().median()),
            "mean_ISLR_dB": float(fresh_rows["mean_ISLR_dB"].median()),
            "mean_width_mm": float(fresh_rows["mean_width_mm"].median())}
-    summary.loc["random (fresh median)"] = med
+    summary.loc[FRESH_RANDOM] = med
     summary["width_ratio"] = summary["mean_width_mm"] / med["mean_width_mm"]
     summary.to_csv(args.out / "summary.csv")
     meta = {"command": shlex.join(["python", "benchmarks/sector_frontier.py", *sys.argv[1:]]), "points": points,
             "seconds": time.perf_counter() - t0}
     (args.out / "heldout.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     show = summary[summary["kind"] != "fresh random"].sort_values("mean_width_mm")
-    show = pd.concat([show, summary.loc[["random (fresh median)"]]])
+    show = pd.concat([show, summary.loc[[FRESH_RANDOM]]])
     print(show[["kind", "worst_PSL_dB", "median_PSL_dB", "mean_width_mm", "width_ratio"]].round(3).to_string())
     _figure(summary, args.out / "frontier.png")
 
@@ -176,18 +177,21 @@ def _figure(summary, path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from arraysel.report.beams import BASELINES, FRESH_RANDOM
+
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     tapers = summary[summary["kind"] == "taper"].sort_values("width_ratio")
     ax.plot(tapers["width_ratio"], tapers["worst_PSL_dB"], "o", color="0.55", label="smooth tapers (full array)")
     ax.plot(tapers["width_ratio"], np.minimum.accumulate(tapers["worst_PSL_dB"].to_numpy()), "--", color="0.55",
             label="their lower envelope")
-    base = summary[(summary["kind"] == "selection") | (summary.index == "random (fresh median)")
+    base = summary[(summary["kind"] == "selection") | (summary.index == FRESH_RANDOM)
                    | (summary["kind"] == "full array")]
     marks = {"full array": "ks", "fresh random": "x"}
     for name, row in base.iterrows():
         ax.plot(row["width_ratio"], row["worst_PSL_dB"], marks.get(row["kind"], "o"), ms=7, label=name)
     if "spiral" in summary.index:
-        baselines = summary.loc[[n for n in ("spiral", "random", "uniform", "random (fresh median)") if n in summary.index]]
+        # the sector issue's baselines: compare's, less the full array
+        baselines = summary.loc[[n for n in BASELINES if n != "full" and n in summary.index]]
         top = float(baselines["worst_PSL_dB"].min()) - 2.0
         right = 1.05 * float(baselines["width_ratio"].min())
         ax.fill_between([0.98, right], [top, top], [top - 10, top - 10], color="tab:green", alpha=0.12,
